@@ -1,0 +1,304 @@
+"""The calibration result: a versioned value with units that applies itself to (N,3) arrays.
+
+Model (SPEC §2): ``m = K x + b + Σ effect terms + noise``, ``x`` the unit field direction in the
+sensor (body) frame, ``K`` upper triangular with a positive diagonal (the canonical form), ``b``
+the offset, both in the sensor's unit (µT for ``sensor: mag``, m/s² for ``sensor: accel`` unless
+the track declares another unit).
+"""
+from __future__ import annotations
+
+import dataclasses
+import datetime as _dt
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any, Mapping
+
+import numpy as np
+
+from .atomic import atomic_write_text
+from .errors import CalibrationFileError
+
+FORMAT = "streamcal-calibration/1"
+SENSORS = ("mag", "accel")
+DEFAULT_MODEL = ("hard_iron", "soft_iron")
+#: Largest calibration file we agree to parse (bytes); real ones are < 10 kB.
+MAX_FILE_BYTES = 1 << 20
+
+
+def _utc_now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
+
+
+def canonical_form(A: np.ndarray, directions: np.ndarray | None = None):
+    """Write a general 3×3 sensor matrix ``A`` as ``K Q`` (RQ decomposition), ``K`` upper
+    triangular with positive diagonal, ``Q`` orthogonal; return ``(K, Q)``.
+
+    ``A x = K (Q x)``, so directions expressed for ``K`` are ``Q x``; pass ``directions`` (N,3)
+    to get them rotated as a third return value.
+    """
+    import scipy.linalg
+
+    A = np.asarray(A, dtype=float)
+    K, Q = scipy.linalg.rq(A)
+    signs = np.sign(np.diag(K))
+    signs[signs == 0] = 1.0
+    K = K * signs[None, :]
+    Q = signs[:, None] * Q
+    K = np.triu(K)
+    if directions is None:
+        return K, Q
+    return K, Q, np.asarray(directions) @ Q.T
+
+
+@dataclass(frozen=True, eq=False)
+class Calibration:
+    """A fitted sensor model.
+
+    Attributes:
+        K: (3,3) upper triangular, positive diagonal, sensor unit per unit direction.
+        b: (3,) offset in the sensor unit.
+        sensor: ``"mag"`` or ``"accel"``.
+        model: effect names of SPEC §3 that the model contains.
+        effects: parameters of the effects beyond K and b, ``{name: {param: value}}``.
+        rms: sensor estimation error over inliers (paper eq. 41), sensor unit.
+        n, n_outliers: samples used and samples classified as outliers.
+        coverage: fraction of the sphere of directions covered (0..1), if known.
+        unit: the sensor unit (``"uT"``, ``"m/s^2"``, ``"counts"``…).
+        field: local field strength (``field_uT`` in the file) when known.
+        inliers, weights, directions: per-sample results of the fit (not stored in the file):
+            bool (N,), robust weights (N,) in [0, 1], unit directions (N,3).
+    """
+
+    K: np.ndarray
+    b: np.ndarray
+    sensor: str = "mag"
+    model: tuple[str, ...] = DEFAULT_MODEL
+    effects: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    rms: float = float("nan")
+    n: int = 0
+    n_outliers: int = 0
+    coverage: float | None = None
+    unit: str = "uT"
+    field: float | None = None
+    method: str = "autocal"
+    kernel: str | None = None
+    created: str = field(default_factory=_utc_now)
+    inliers: np.ndarray | None = None
+    weights: np.ndarray | None = None
+    directions: np.ndarray | None = None
+    extra: Mapping[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "K", np.asarray(self.K, dtype=float).reshape(3, 3))
+        object.__setattr__(self, "b", np.asarray(self.b, dtype=float).reshape(3))
+        object.__setattr__(self, "model", tuple(self.model))
+
+    # -- using it ---------------------------------------------------------------------------
+    def apply(self, m, covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
+        """Calibrated unit directions ``x = K⁻¹ (m − b − effect terms)``, shape (N,3).
+
+        ``m`` is (N,3) or (3,) in the sensor unit; ``covariates`` maps track column names
+        (``t``, ``temp``, aux channels…) to (N,) arrays, needed when the model has effects
+        beyond K and b. The result is *not* renormalised, so its norm shows the remaining error.
+        """
+        m = np.asarray(m, dtype=float)
+        single = m.ndim == 1
+        m2 = np.atleast_2d(m)
+        if self.effects:
+            from .model import invert_model
+
+            x = invert_model(self, m2, covariates or {})
+        else:
+            x = np.linalg.solve(self.K, (m2 - self.b).T).T
+        return x[0] if single else x
+
+    def apply_field(self, m, covariates=None) -> np.ndarray:
+        """Calibrated field vectors in the sensor unit, ``|B| x`` (needs ``field``; else uses
+        the mean radius of K, the geometric mean of its diagonal)."""
+        scale = self.field if self.field else float(np.prod(np.diag(self.K)) ** (1 / 3))
+        return scale * self.apply(m, covariates)
+
+    def model_error(self, other: "Calibration") -> float:
+        """Normalized model deviation ‖[K,b] − [K',b']‖_F / ‖[K',b']‖_F (paper eq. 39/40)."""
+        a = np.hstack([self.K, self.b[:, None]])
+        ref = np.hstack([other.K, other.b[:, None]])
+        return float(np.linalg.norm(a - ref) / np.linalg.norm(ref))
+
+    def replace(self, **changes) -> "Calibration":
+        return dataclasses.replace(self, **changes)
+
+    # -- JSON -------------------------------------------------------------------------------
+    def to_dict(self) -> dict:
+        """The calibration file's keys (SPEC §2)."""
+        out = {
+            "format": FORMAT,
+            "sensor": self.sensor,
+            "model": list(self.model),
+            "K": [[float(v) for v in row] for row in self.K],
+            "b": [float(v) for v in self.b],
+            "effects": _jsonable(self.effects),
+            "rms": _finite_or_none(self.rms),
+            "n": int(self.n),
+            "n_outliers": int(self.n_outliers),
+            "coverage": _finite_or_none(self.coverage),
+            "unit": self.unit,
+            "method": self.method,
+            "created": self.created,
+        }
+        if self.kernel is not None:
+            out["kernel"] = self.kernel
+        if self.field is not None:
+            out["field_uT" if self.unit == "uT" else "field"] = float(self.field)
+        for key, value in self.extra.items():
+            out.setdefault(key, _jsonable(value))
+        return out
+
+    def to_json(self, indent: int | None = 2) -> str:
+        return json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+
+    def save(self, path: str | os.PathLike) -> None:
+        """Write the calibration file atomically (temp file, fsync, rename)."""
+        atomic_write_text(path, self.to_json() + "\n")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: str = "<calibration>") -> "Calibration":
+        """Validate every key and shape (SPEC §2); raise :class:`CalibrationFileError` naming
+        the key and what was expected."""
+        return _parse(data, source)
+
+    @classmethod
+    def from_json(cls, text: str, source: str = "<calibration>") -> "Calibration":
+        try:
+            data = json.loads(text, parse_constant=_reject_constant)
+        except (json.JSONDecodeError, ValueError) as exc:
+            raise CalibrationFileError(f"{source}: not valid JSON ({exc})") from None
+        return _parse(data, source)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Calibration":
+        path = os.fspath(path)
+        try:
+            size = os.path.getsize(path)
+            if size > MAX_FILE_BYTES:
+                raise CalibrationFileError(f"{path}: {size} bytes is too large for a calibration file")
+            with open(path, "rb") as handle:
+                raw = handle.read(MAX_FILE_BYTES + 1)
+        except OSError as exc:
+            raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        try:
+            text = raw.decode("utf-8")
+        except UnicodeDecodeError as exc:
+            raise CalibrationFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+        return cls.from_json(text, source=path)
+
+
+def _reject_constant(name):
+    raise ValueError(f"non-finite number {name} is not allowed")
+
+
+def _finite_or_none(value):
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _jsonable(value):
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_jsonable(v) for v in np.asarray(value, dtype=object).tolist()] \
+            if isinstance(value, np.ndarray) else [_jsonable(v) for v in value]
+    if isinstance(value, (np.floating, float)):
+        return _finite_or_none(value)
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    return value
+
+
+def _parse(data, source: str) -> Calibration:
+    def fail(key, what):
+        raise CalibrationFileError(f"{source}: key '{key}': {what}")
+
+    if not isinstance(data, Mapping):
+        raise CalibrationFileError(f"{source}: expected a JSON object, found {type(data).__name__}")
+    if data.get("format") != FORMAT:
+        fail("format", f"expected '{FORMAT}', found {data.get('format')!r} (not a streamcal calibration?)")
+    sensor = data.get("sensor")
+    if sensor not in SENSORS:
+        fail("sensor", f"expected one of {SENSORS}, found {sensor!r}")
+    model = data.get("model")
+    if not isinstance(model, list) or not all(isinstance(m, str) for m in model):
+        fail("model", "expected a list of effect names")
+    from .model.catalog import EFFECT_NAMES
+
+    for name in model:
+        if name not in EFFECT_NAMES:
+            fail("model", f"unknown effect {name!r}; known: {', '.join(EFFECT_NAMES)}")
+    K = _matrix(data.get("K"), (3, 3), "K", fail)
+    if np.any(np.tril(K, -1) != 0):
+        fail("K", "must be upper triangular (canonical form)")
+    if np.any(np.diag(K) <= 0):
+        fail("K", "diagonal must be positive")
+    b = _matrix(data.get("b"), (3,), "b", fail)
+    effects = data.get("effects", {})
+    if not isinstance(effects, Mapping):
+        fail("effects", "expected an object {effect: {parameter: value}}")
+    for name, params in effects.items():
+        if name not in EFFECT_NAMES:
+            fail("effects", f"unknown effect {name!r}")
+        if not isinstance(params, Mapping):
+            fail(f"effects.{name}", "expected an object of parameters")
+    if effects:
+        from .model import validate_effect_params
+
+        try:
+            validate_effect_params(effects)
+        except ValueError as exc:
+            fail("effects", str(exc))
+    numbers = {}
+    for key, kind, required in (("rms", float, False), ("n", int, True), ("n_outliers", int, False),
+                                ("coverage", float, False)):
+        value = data.get(key)
+        if value is None:
+            if required:
+                fail(key, "missing")
+            continue
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+            fail(key, f"expected a finite number, found {value!r}")
+        if kind is int and (value != int(value) or value < 0):
+            fail(key, f"expected a non-negative integer, found {value!r}")
+        numbers[key] = kind(value)
+    if "coverage" in numbers and not 0 <= numbers["coverage"] <= 1:
+        fail("coverage", f"expected a fraction in [0, 1], found {numbers['coverage']}")
+    unit = data.get("unit", "uT" if sensor == "mag" else "m/s^2")
+    field_value = data.get("field_uT", data.get("field"))
+    if field_value is not None and (isinstance(field_value, bool) or not isinstance(field_value, (int, float))
+                                    or not math.isfinite(field_value) or field_value <= 0):
+        fail("field_uT", f"expected a positive number, found {field_value!r}")
+    created = data.get("created", "")
+    if not isinstance(created, str):
+        fail("created", "expected an ISO-8601 string")
+    known = {"format", "sensor", "model", "K", "b", "effects", "rms", "n", "n_outliers", "coverage",
+             "unit", "field_uT", "field", "method", "kernel", "created"}
+    extra = {k: v for k, v in data.items() if k not in known}
+    return Calibration(K=K, b=b, sensor=sensor, model=tuple(model), effects=dict(effects),
+                       rms=numbers.get("rms", float("nan")), n=numbers["n"],
+                       n_outliers=numbers.get("n_outliers", 0), coverage=numbers.get("coverage"),
+                       unit=str(unit), field=None if field_value is None else float(field_value),
+                       method=str(data.get("method", "autocal")), kernel=data.get("kernel"),
+                       created=created, extra=extra)
+
+
+def _matrix(value, shape, key, fail) -> np.ndarray:
+    try:
+        arr = np.array(value, dtype=float)
+    except (TypeError, ValueError):
+        fail(key, f"expected numbers of shape {shape}")
+    if arr.shape != shape:
+        fail(key, f"expected shape {shape}, found {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        fail(key, "contains a non-finite value")
+    return arr
