@@ -12,7 +12,8 @@ import datetime as _dt
 import json
 import math
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass
+from dataclasses import field as _field
 from typing import Any, Mapping
 
 import numpy as np
@@ -75,7 +76,7 @@ class Calibration:
     b: np.ndarray
     sensor: str = "mag"
     model: tuple[str, ...] = DEFAULT_MODEL
-    effects: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    effects: Mapping[str, Mapping[str, Any]] = _field(default_factory=dict)
     rms: float = float("nan")
     n: int = 0
     n_outliers: int = 0
@@ -84,11 +85,11 @@ class Calibration:
     field: float | None = None
     method: str = "autocal"
     kernel: str | None = None
-    created: str = field(default_factory=_utc_now)
+    created: str = _field(default_factory=_utc_now)
     inliers: np.ndarray | None = None
     weights: np.ndarray | None = None
     directions: np.ndarray | None = None
-    extra: Mapping[str, Any] = field(default_factory=dict)
+    extra: Mapping[str, Any] = _field(default_factory=dict)
 
     def __post_init__(self):
         object.__setattr__(self, "K", np.asarray(self.K, dtype=float).reshape(3, 3))
