@@ -1,0 +1,85 @@
+"""Ranking the effects the model may be missing.
+
+Each candidate effect is *actually refitted* (the same fitter as the base model), so its
+``rms_after`` is what "add it and refit" gives. Significance: on the samples that both fits call
+inliers, with ``RSS = Σ‖r_j‖²`` of the eq. 41 residuals (one degree of freedom per sample: the
+direction takes the other two), the nested-model F statistic
+
+    F = ((RSS₀ − RSS₁) / P) / (RSS₁ / (n − p₁)),     P added parameters, p₁ all global ones
+
+is referred to F(P, n − p₁). With thousands of samples a physically negligible effect is still
+"significant", so an effect is only called missing when it is also material (the rms drops by
+at least :data:`MIN_DROP`) and the base rms is clearly above the noise floor
+(:data:`ABOVE_FLOOR`): a clean track must come out ``at_noise_floor``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.stats
+
+P_VALUE = 1e-6
+MIN_DROP = 0.10
+ABOVE_FLOOR = 1.10
+#: Global parameters of the core models.
+CORE_PARAMS = {"hard_iron": 3, "scale": 3, "soft_iron": 6}
+
+
+@dataclass
+class Candidate:
+    effect: str
+    rms_after: float
+    p_value: float
+    evidence: str
+    n_params: int = 0
+    significant: bool = False
+    calibration: object = field(default=None, repr=False)
+
+    def to_dict(self) -> dict:
+        return {"effect": self.effect, "rms_after": self.rms_after, "p_value": self.p_value,
+                "evidence": self.evidence}
+
+
+def n_global_params(cal) -> int:
+    from ..model import terms_from_params
+
+    core = sum(CORE_PARAMS[n] for n in cal.model if n in CORE_PARAMS)
+    core = min(core, 9)  # scale ⊂ soft_iron
+    return core + sum(t.n_params() for t, _ in terms_from_params(cal.effects))
+
+
+def f_test(rss0: float, rss1: float, p_added: int, n: int, p1: int) -> float:
+    """p-value of the nested-model F test (see module docstring)."""
+    dof = max(n - p1, 1)
+    if rss1 <= 0 or p_added <= 0:
+        return 0.0 if rss0 > rss1 else 1.0
+    F = max(rss0 - rss1, 0.0) / p_added / (rss1 / dof)
+    return float(np.exp(scipy.stats.f.logsf(F, p_added, dof)))
+
+
+def is_significant(rms: float, rms_after: float, p_value: float, floor: float) -> bool:
+    above = not np.isfinite(floor) or rms > ABOVE_FLOOR * floor
+    return bool(p_value < P_VALUE and rms_after <= (1 - MIN_DROP) * rms and above)
+
+
+_SUBJECT = {"temperature_offset": "temp", "temperature_scale": "temp × reading",
+            "time_drift": "time", "axis_nonlinearity": "the cube of each axis reading"}
+
+
+def evidence(effect: str, term, s: np.ndarray, normal: np.ndarray, u: np.ndarray, cov,
+             inliers: np.ndarray) -> str:
+    """Sentence with the multiple correlation between the signed residual ``s`` (N,) and the
+    normal component of the effect's term direction ``nᵀ ∂f/∂θ`` (N,P) — the score test's view
+    of how much of the residual the effect could explain."""
+    if term is None:
+        return ""
+    theta = term.initial()
+    Z = np.einsum("ni,nip->np", normal, term.jac_theta(theta, u, cov))[inliers]
+    y = s[inliers]
+    A = np.column_stack([np.ones(len(y)), Z])
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    sst = np.sum((y - y.mean()) ** 2)
+    r = float(np.sqrt(max(0.0, 1 - np.sum((y - A @ coef) ** 2) / sst))) if sst > 0 else 0.0
+    subject = _SUBJECT.get(effect) or ", ".join(getattr(term, "channels", ())) or effect
+    return f"residual follows {subject} (r={r:.2f})"

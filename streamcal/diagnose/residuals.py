@@ -1,0 +1,152 @@
+"""Residual families of a fitted model, and how each is distributed.
+
+- ``sensor``: the sensor estimation error of the autocalibration paper, eq. 41,
+  ``r_j = g(x̂_j) − m_j`` with ``g(x) = K x + b + Σ_e f_e(θ_e, K x, c_j)`` and ``x̂_j`` re-optimised
+  on the unit sphere (the closest point of the fitted surface), sensor unit. Its rms over inliers
+  is the ``rms`` of the diagnosis, computed the same way for every model.
+- ``magnitude``: ``(‖x‖ − 1)·R`` with ``x`` the calibrated (not renormalised) direction and ``R``
+  the field scale (``field`` or the geometric mean of diag K), sensor unit.
+- ``dip`` (needs accel): angle between the calibrated field and the accelerometer's "up"
+  direction, minus its median, degrees.
+- ``gyro`` (needs gyro): ‖x̂_{j+1} − x̂_j + ω × x̂ Δt‖ / Δt, the rate at which the observed direction
+  departs from the one the gyro predicts (a fixed world vector seen from a body rotating at ω
+  moves as ẋ = −ω × x), degrees per second.
+"""
+from __future__ import annotations
+
+from typing import Mapping
+
+import numpy as np
+
+from ..model import terms_from_params
+
+GN_ITERATIONS = 6
+
+
+def _tangent_basis(x: np.ndarray) -> np.ndarray:
+    """(N,3,2) orthonormal basis of the plane ⟂ x (N,3) unit vectors."""
+    helper = np.where(np.abs(x[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    e1 = np.cross(x, helper)
+    e1 /= np.linalg.norm(e1, axis=1, keepdims=True)
+    return np.stack([e1, np.cross(x, e1)], axis=2)
+
+
+def _model(cal, terms, x, cov):
+    u = x @ cal.K.T
+    g = u + cal.b + sum((t.term(th, u, cov) for t, th in terms), np.zeros_like(u))
+    jac = np.broadcast_to(np.eye(3), (len(x), 3, 3)).copy()
+    for t, th in terms:
+        ju = t.jac_u(th, u, cov)
+        if ju is not None:
+            jac += ju
+    return g, jac @ cal.K
+
+
+def sensor_residual(cal, m: np.ndarray, cov: Mapping[str, np.ndarray]):
+    """Eq. 41 residual. Returns ``r`` (N,3) = g(x̂) − m, ``x̂`` (N,3), the signed distance
+    ``s`` (N,) of the reading along the outward surface normal (sensor unit) and that unit normal
+    (N,3)."""
+    terms = terms_from_params(cal.effects)
+    x = cal.apply(m, cov)
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    for _ in range(GN_ITERATIONS):
+        g, J = _model(cal, terms, x, cov)
+        B = _tangent_basis(x)
+        JB = J @ B                                              # (N,3,2)
+        A = np.einsum("nki,nkj->nij", JB, JB)
+        rhs = np.einsum("nki,nk->ni", JB, g - m)
+        step = -np.linalg.solve(A, rhs[..., None])[..., 0]
+        x = x + np.einsum("nij,nj->ni", B, step)
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+    g, J = _model(cal, terms, x, cov)
+    normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    r = g - m
+    return r, x, -np.einsum("ni,ni->n", r, normal), normal
+
+
+def rms(r: np.ndarray, mask: np.ndarray | None = None) -> float:
+    """sqrt(mean ‖r_j‖²) over ``mask`` (sensor unit)."""
+    r = r if mask is None else r[mask]
+    return float(np.sqrt(np.mean(np.sum(r * r, axis=1)))) if len(r) else float("nan")
+
+
+def magnitude_error(cal, m, cov) -> np.ndarray:
+    scale = cal.field or float(np.prod(np.diag(cal.K)) ** (1 / 3))
+    return (np.linalg.norm(cal.apply(m, cov), axis=1) - 1.0) * scale
+
+
+def dip_error(x: np.ndarray, accel: np.ndarray) -> np.ndarray:
+    """Degrees; ``accel`` (N,3) specific force (points up when still)."""
+    up = accel / np.linalg.norm(accel, axis=1, keepdims=True)
+    ang = np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", x, up), -1, 1)))
+    return ang - np.nanmedian(ang)
+
+
+def gyro_error(x: np.ndarray, gyro: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Degrees per second, one value per consecutive pair (N−1,)."""
+    dt = np.diff(t)
+    w = 0.5 * (gyro[1:] + gyro[:-1])
+    xm = x[1:] + x[:-1]
+    xm /= np.linalg.norm(xm, axis=1, keepdims=True)
+    e = x[1:] - x[:-1] + np.cross(w, xm) * dt[:, None]
+    return np.degrees(np.linalg.norm(e, axis=1) / np.where(dt > 0, dt, np.nan))
+
+
+def binned(values: np.ndarray, by: np.ndarray, bins: int = 12) -> dict:
+    """rms of ``values`` (N,) in ``bins`` equal-count bins of ``by`` (N,): edges, rms, n."""
+    ok = np.isfinite(values) & np.isfinite(by)
+    v, b = values[ok], by[ok]
+    if v.size < bins:
+        return {"edges": [], "rms": [], "n": []}
+    edges = np.unique(np.quantile(b, np.linspace(0, 1, bins + 1)))
+    idx = np.clip(np.searchsorted(edges, b, side="right") - 1, 0, len(edges) - 2)
+    n = np.bincount(idx, minlength=len(edges) - 1)
+    ss = np.bincount(idx, weights=v * v, minlength=len(edges) - 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sqrt(ss / n)
+    return {"edges": [float(e) for e in edges], "rms": [None if not np.isfinite(q) else float(q) for q in r],
+            "n": [int(k) for k in n]}
+
+
+def binned_sphere(values: np.ndarray, x: np.ndarray, n_az: int = 8, n_el: int = 4) -> dict:
+    """rms of ``values`` over an azimuth × elevation grid of directions ``x`` (N,3);
+    elevation bins are equal-area (uniform in z)."""
+    az = np.arctan2(x[:, 1], x[:, 0])
+    ia = np.clip(((az + np.pi) / (2 * np.pi) * n_az).astype(int), 0, n_az - 1)
+    ie = np.clip(((x[:, 2] + 1) / 2 * n_el).astype(int), 0, n_el - 1)
+    idx = ie * n_az + ia
+    n = np.bincount(idx, minlength=n_az * n_el)
+    ss = np.bincount(idx, weights=values * values, minlength=n_az * n_el)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        r = np.sqrt(ss / n)
+    return {"n_azimuth": n_az, "n_elevation": n_el,
+            "rms": [[None if not np.isfinite(q) else float(q) for q in row] for row in r.reshape(n_el, n_az)],
+            "n": n.reshape(n_el, n_az).tolist()}
+
+
+def families(cal, m, cov, inliers, r=None, x=None) -> dict:
+    """Every residual family available for the data: rms (over inliers) and its distribution
+    over time, temperature, aux channels and the sphere of directions."""
+    if r is None:
+        r, x, _, _ = sensor_residual(cal, m, cov)
+    per = {"sensor": (np.linalg.norm(r, axis=1), x),
+           "magnitude": (magnitude_error(cal, m, cov), x)}
+    if all(k in cov for k in ("ax", "ay", "az")):
+        per["dip"] = (dip_error(x, np.stack([cov["ax"], cov["ay"], cov["az"]], axis=1)), x)
+    if all(k in cov for k in ("gx", "gy", "gz")) and "t" in cov and len(x) > 1:
+        g = gyro_error(x, np.stack([cov["gx"], cov["gy"], cov["gz"]], axis=1), cov["t"])
+        per["gyro"] = (np.append(g, np.nan), x)
+    from ..model._common import aux_names
+
+    out = {}
+    for name, (v, dirs) in per.items():
+        sel = inliers & np.isfinite(v)
+        entry = {"rms": float(np.sqrt(np.mean(v[sel] ** 2))) if sel.any() else None,
+                 "unit": {"dip": "deg", "gyro": "deg/s"}.get(name, "sensor"), "by": {}}
+        for key in ["t", "temp", *aux_names(cov)]:
+            if key in cov:
+                entry["by"][key] = binned(v[sel], np.asarray(cov[key], float)[sel])
+        entry["by"]["direction"] = binned_sphere(v[sel], dirs[sel])
+        out[name] = entry
+    return out
