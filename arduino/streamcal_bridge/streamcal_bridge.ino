@@ -1,0 +1,336 @@
+// streamcal_bridge -- MPU-9250 (+ AK8963) to USB serial, streamcal frame protocol v1.
+//
+// Streams SAMPLE frames (raw counts, body axes) at a fixed period, CAL_SAMPLE frames
+// (x = K^-1 (m - b), computed here) when a calibration is held, and the 25 one-pass sphere-fit
+// sums. Accepts SET_CAL (validated, stored in EEPROM with its own CRC, loaded at boot), QUERY_CAL,
+// CLEAR_CAL, START/STOP and GET_INFO. Protocol: firmware_bridge/PROTOCOL.md; codec: sc_protocol.h.
+// Register facts: HARDWARE.md sections 2-4 (MPU-9250 register map, AK8963 datasheet).
+#include <EEPROM.h>
+#include <Wire.h>
+
+#include "sc_protocol.h"
+
+#define FW_MAJOR 1
+#define FW_MINOR 0
+#define BAUD 115200UL
+
+// MPU-9250 (RM-MPU-9250A-00): address with AD0 = 0, registers.
+#define MPU_ADDR 0x68
+#define MPU_SMPLRT_DIV 0x19
+#define MPU_CONFIG 0x1A
+#define MPU_GYRO_CONFIG 0x1B
+#define MPU_ACCEL_CONFIG 0x1C
+#define MPU_ACCEL_CONFIG2 0x1D
+#define MPU_INT_PIN_CFG 0x37
+#define MPU_ACCEL_XOUT_H 0x3B   // 14 bytes: ax ay az temp gx gy gz, big-endian
+#define MPU_USER_CTRL 0x6A
+#define MPU_PWR_MGMT_1 0x6B
+#define MPU_WHO_AM_I 0x75
+#define MPU_BYPASS_EN 0x02      // INT_PIN_CFG bit 1: host bus straight through to the AK8963
+#define GYRO_FS_2000DPS 0x18    // GYRO_CONFIG FS_SEL = 3: 16.4 LSB/(deg/s)
+#define ACCEL_FS_4G 0x08        // ACCEL_CONFIG AFS_SEL = 1: 8192 LSB/g
+
+// AK8963 (AK8963 datasheet), reachable in bypass mode.
+#define AK_ADDR 0x0C
+#define AK_WIA 0x00
+#define AK_ST1 0x02             // 8 bytes 0x02..0x09: ST1, HXL..HZH (little-endian), ST2 (read last)
+#define AK_CNTL1 0x0A
+#define AK_ASAX 0x10
+#define AK_WIA_VALUE 0x48
+#define AK_ST1_DRDY 0x01
+#define AK_ST1_DOR 0x02
+#define AK_ST2_HOFL 0x08
+#define AK_MODE_POWER_DOWN 0x00
+#define AK_MODE_FUSE_ROM 0x0F
+#define AK_MODE_CONT2_16BIT 0x16   // continuous mode 2 (100 Hz), BIT = 1 (16-bit, 0.15 uT/LSB)
+#define AK_UT_PER_LSB 0.15f
+
+// Scales announced in HELLO (PS-MPU-9250A-01 p8/p9/p12).
+#define ACCEL_SCALE (9.80665f / 8192.0f)                 // m/s^2 per count
+#define GYRO_SCALE (3.14159265f / 180.0f / 16.4f)        // rad/s per count
+#define TEMP_SCALE (1.0f / 333.87f)                      // degC per count
+#define TEMP_OFFSET 21.0f
+
+// EEPROM layout: magic "SC", layout version, then the 40-byte calibration block (with its CRC).
+#define EE_MAGIC0 'S'
+#define EE_MAGIC1 'C'
+#define EE_LAYOUT 1
+#define EE_CAL_ADDR 3
+
+static uint8_t g_tx[SC_FRAME_BUF(SC_SIZE_SPHERE_SUMS)];
+static uint8_t g_rx_buf[SC_SIZE_CAL + SC_HEADER_SIZE + SC_CRC_SIZE + 2];
+static ScDecoder g_rx;
+static ScSums g_sums;
+static ScCal g_cal;
+static bool g_cal_valid;
+static float g_mag_scale[3];     // uT per count along body x, y, z (ASA applied)
+static uint16_t g_seq;
+static uint8_t g_whoami, g_ak_wia, g_outputs;
+static bool g_streaming, g_mag_present;
+static uint32_t g_period_us = 10000, g_next_due;
+static uint16_t g_sums_every = 100, g_sums_since;
+
+// ---- I2C ----
+static bool write_reg(uint8_t addr, uint8_t reg, uint8_t value) {
+  Wire.beginTransmission(addr);
+  Wire.write(reg);
+  Wire.write(value);
+  return Wire.endTransmission() == 0;
+}
+
+static bool read_regs(uint8_t addr, uint8_t reg, uint8_t *out, uint8_t n) {
+  Wire.beginTransmission(addr);
+  Wire.write(reg);
+  if (Wire.endTransmission(false) != 0) return false;
+  if (Wire.requestFrom(addr, n) != n) return false;
+  for (uint8_t i = 0; i < n; ++i) out[i] = Wire.read();
+  return true;
+}
+
+static uint8_t read_reg(uint8_t addr, uint8_t reg) {
+  uint8_t v = 0;
+  read_regs(addr, reg, &v, 1);
+  return v;
+}
+
+static void sensor_setup() {
+  write_reg(MPU_ADDR, MPU_PWR_MGMT_1, 0x80);   // H_RESET
+  delay(100);
+  write_reg(MPU_ADDR, MPU_PWR_MGMT_1, 0x01);   // clock: PLL if ready
+  delay(10);
+  write_reg(MPU_ADDR, MPU_CONFIG, 0x03);       // DLPF 41 Hz, 1 kHz internal rate
+  write_reg(MPU_ADDR, MPU_SMPLRT_DIV, 0x04);   // 200 Hz output rate
+  write_reg(MPU_ADDR, MPU_GYRO_CONFIG, GYRO_FS_2000DPS);
+  write_reg(MPU_ADDR, MPU_ACCEL_CONFIG, ACCEL_FS_4G);
+  write_reg(MPU_ADDR, MPU_ACCEL_CONFIG2, 0x03);
+  write_reg(MPU_ADDR, MPU_USER_CTRL, 0x00);    // I2C_MST_EN = 0, required for bypass
+  write_reg(MPU_ADDR, MPU_INT_PIN_CFG, MPU_BYPASS_EN);
+  g_whoami = read_reg(MPU_ADDR, MPU_WHO_AM_I);
+
+  g_ak_wia = read_reg(AK_ADDR, AK_WIA);
+  g_mag_present = g_ak_wia == AK_WIA_VALUE;
+  uint8_t asa[3] = {128, 128, 128};
+  if (g_mag_present) {
+    write_reg(AK_ADDR, AK_CNTL1, AK_MODE_POWER_DOWN);
+    delay(10);
+    write_reg(AK_ADDR, AK_CNTL1, AK_MODE_FUSE_ROM);
+    delay(10);
+    read_regs(AK_ADDR, AK_ASAX, asa, 3);
+    write_reg(AK_ADDR, AK_CNTL1, AK_MODE_POWER_DOWN);
+    delay(10);
+    write_reg(AK_ADDR, AK_CNTL1, AK_MODE_CONT2_16BIT);
+    delay(10);
+  }
+  // Hadj = H (ASA + 128) / 256; body axes: x = Hy, y = Hx, z = -Hz (sign applied to the counts).
+  g_mag_scale[0] = AK_UT_PER_LSB * (asa[1] + 128) / 256.0f;
+  g_mag_scale[1] = AK_UT_PER_LSB * (asa[0] + 128) / 256.0f;
+  g_mag_scale[2] = AK_UT_PER_LSB * (asa[2] + 128) / 256.0f;
+}
+
+// ---- frames out ----
+static void send(ScWriter w) {
+  Serial.write(g_tx, sc_finish(g_tx, w));
+  ++g_seq;
+}
+
+static void send_hello() {
+  ScHello h;
+  h.fw_major = FW_MAJOR; h.fw_minor = FW_MINOR; h.whoami = g_whoami; h.ak_wia = g_ak_wia;
+  h.flags = (g_cal_valid ? SC_HF_CAL_LOADED : 0) | (g_mag_present ? SC_HF_MAG_PRESENT : 0) |
+            (g_streaming ? SC_HF_STREAMING : 0);
+  h.period_us = g_period_us;
+  h.accel_scale = ACCEL_SCALE; h.gyro_scale = GYRO_SCALE;
+  h.temp_scale = TEMP_SCALE; h.temp_offset = TEMP_OFFSET;
+  for (uint8_t i = 0; i < 3; ++i) h.mag_scale[i] = g_mag_scale[i];
+  ScWriter w = sc_begin(g_tx, SC_HELLO, g_seq);
+  sc_put_hello(w, h);
+  send(w);
+}
+
+static void send_ack(uint8_t type, uint16_t seq, uint8_t reason) {
+  ScWriter w = sc_begin(g_tx, reason ? SC_NAK : SC_ACK, g_seq);
+  sc_put_u8(w, type);
+  sc_put_u16(w, seq);
+  if (reason) sc_put_u8(w, reason);
+  send(w);
+}
+
+static void send_cal_report() {
+  ScWriter w = sc_begin(g_tx, SC_CAL_REPORT, g_seq);
+  sc_put_u8(w, g_cal_valid ? 1 : 0);
+  sc_put_cal(w, g_cal);
+  send(w);
+}
+
+static void send_sums() {
+  ScWriter w = sc_begin(g_tx, SC_SPHERE_SUMS, g_seq);
+  sc_put_sums(w, g_sums);
+  send(w);
+}
+
+// ---- calibration in EEPROM ----
+static void load_calibration() {
+  g_cal_valid = false;
+  memset(&g_cal, 0, sizeof g_cal);
+  if (EEPROM.read(0) != EE_MAGIC0 || EEPROM.read(1) != EE_MAGIC1 || EEPROM.read(2) != EE_LAYOUT) return;
+  uint8_t block[SC_SIZE_CAL];
+  for (uint8_t i = 0; i < SC_SIZE_CAL; ++i) block[i] = EEPROM.read(EE_CAL_ADDR + i);
+  ScReader r = {block};
+  ScCal c;
+  sc_get_cal(r, c);
+  if (sc_cal_check(c) == 0) { g_cal = c; g_cal_valid = true; }
+}
+
+static uint8_t store_calibration(const ScCal &c) {
+  uint8_t block[SC_SIZE_CAL];
+  ScWriter w = {block};
+  sc_put_cal(w, c);
+  EEPROM.update(0, 0xFF);  // invalidate first: a reset mid-write leaves no half calibration
+  for (uint8_t i = 0; i < SC_SIZE_CAL; ++i) EEPROM.update(EE_CAL_ADDR + i, block[i]);
+  EEPROM.update(2, EE_LAYOUT);
+  EEPROM.update(1, EE_MAGIC1);
+  EEPROM.update(0, EE_MAGIC0);
+  for (uint8_t i = 0; i < SC_SIZE_CAL; ++i)
+    if (EEPROM.read(EE_CAL_ADDR + i) != block[i]) return SC_NAK_EEPROM_FAILED;
+  return 0;
+}
+
+// ---- commands in ----
+static void handle_frame(int16_t n) {
+  const uint8_t *p = g_rx_buf;
+  uint8_t type = p[1];
+  uint16_t seq = p[2] | ((uint16_t)p[3] << 8);
+  uint8_t body_len = n - SC_HEADER_SIZE;
+  ScReader r = {p + SC_HEADER_SIZE};
+  if (p[0] != SC_PROTOCOL_VERSION) { send_ack(type, seq, SC_NAK_BAD_VERSION); return; }
+  switch (type) {
+    case SC_GET_INFO:
+      if (body_len != 0) break;
+      send_hello();
+      return;
+    case SC_QUERY_CAL:
+      if (body_len != 0) break;
+      send_cal_report();
+      return;
+    case SC_STOP:
+      if (body_len != 0) break;
+      g_streaming = false;
+      send_ack(type, seq, 0);
+      return;
+    case SC_CLEAR_CAL:
+      if (body_len != 0) break;
+      EEPROM.update(0, 0xFF);
+      g_cal_valid = false;
+      send_ack(type, seq, 0);
+      return;
+    case SC_START: {
+      if (body_len != SC_SIZE_START) break;
+      ScStart s;
+      sc_get_start(r, s);
+      g_outputs = s.outputs;
+      if (s.period_us >= 2000) g_period_us = s.period_us;
+      g_sums_every = s.sums_every;
+      if (s.outputs & SC_OUT_RESET_SUMS) { sc_sums_reset(g_sums); g_sums_since = 0; }
+      g_streaming = true;
+      g_next_due = micros();
+      send_ack(type, seq, 0);
+      return;
+    }
+    case SC_SET_CAL: {
+      if (body_len != SC_SIZE_CAL) break;
+      ScCal c;
+      sc_get_cal(r, c);
+      uint8_t reason = sc_cal_check(c);
+      if (reason == 0) reason = store_calibration(c);
+      if (reason == 0) { g_cal = c; g_cal_valid = true; }
+      send_ack(type, seq, reason);
+      return;
+    }
+    default:
+      send_ack(type, seq, SC_NAK_UNKNOWN_TYPE);
+      return;
+  }
+  send_ack(type, seq, SC_NAK_BAD_LENGTH);
+}
+
+// ---- sampling ----
+static void sample_once() {
+  ScSample s;
+  memset(&s, 0, sizeof s);
+  s.t_us = micros();
+  uint8_t raw[14];
+  if (read_regs(MPU_ADDR, MPU_ACCEL_XOUT_H, raw, 14)) {
+    int16_t v[7];
+    for (uint8_t i = 0; i < 7; ++i) v[i] = (int16_t)((raw[2 * i] << 8) | raw[2 * i + 1]);
+    for (uint8_t i = 0; i < 3; ++i) { s.accel[i] = v[i]; s.gyro[i] = v[4 + i]; }
+    s.temp = v[3];
+    s.status |= SC_ST_ACCEL_VALID | SC_ST_GYRO_VALID | SC_ST_TEMP_VALID;
+  } else {
+    s.status |= SC_ST_I2C_ERROR;
+  }
+  if (g_mag_present) {
+    uint8_t m[8];
+    if (!read_regs(AK_ADDR, AK_ST1, m, 8)) {
+      s.status |= SC_ST_I2C_ERROR;
+    } else if (m[0] & AK_ST1_DRDY) {
+      if (m[0] & AK_ST1_DOR) s.status |= SC_ST_MAG_OVERRUN;
+      if (m[7] & AK_ST2_HOFL) {
+        s.status |= SC_ST_MAG_OVERFLOW;
+      } else {
+        int16_t hx = (int16_t)(m[1] | (m[2] << 8)), hy = (int16_t)(m[3] | (m[4] << 8)),
+                hz = (int16_t)(m[5] | (m[6] << 8));
+        s.mag[0] = hy; s.mag[1] = hx; s.mag[2] = -hz;   // |H| <= 32760, negation is safe
+        s.status |= SC_ST_MAG_VALID;
+      }
+    }
+  }
+  if (g_cal_valid) s.status |= SC_ST_CAL_ACTIVE;
+
+  if (g_outputs & SC_OUT_SAMPLES) {
+    ScWriter w = sc_begin(g_tx, SC_SAMPLE, g_seq);
+    sc_put_sample(w, s);
+    send(w);
+  }
+  if (!(s.status & SC_ST_MAG_VALID)) return;
+  if (g_cal_valid && (g_outputs & SC_OUT_CALIBRATED)) {
+    float m[3];
+    ScCalSample c;
+    for (uint8_t i = 0; i < 3; ++i) m[i] = s.mag[i] * g_mag_scale[i];
+    sc_cal_apply(g_cal, m, c.x);
+    c.t_us = s.t_us;
+    c.status = s.status;
+    ScWriter w = sc_begin(g_tx, SC_CAL_SAMPLE, g_seq);
+    sc_put_cal_sample(w, c);
+    send(w);
+  }
+  sc_sums_add(g_sums, s.mag);
+  if ((g_outputs & SC_OUT_SPHERE_SUMS) && g_sums_every && ++g_sums_since >= g_sums_every) {
+    g_sums_since = 0;
+    send_sums();
+  }
+}
+
+void setup() {
+  Serial.begin(BAUD);
+  Wire.begin();
+  Wire.setClock(400000);
+  sc_decoder_init(g_rx, g_rx_buf, sizeof g_rx_buf);
+  sc_sums_reset(g_sums);
+  sensor_setup();
+  load_calibration();
+  g_outputs = SC_OUT_SAMPLES | SC_OUT_CALIBRATED | SC_OUT_SPHERE_SUMS;
+  g_streaming = true;
+  send_hello();
+  g_next_due = micros();
+}
+
+void loop() {
+  while (Serial.available() > 0) {
+    int16_t n = sc_decoder_feed(g_rx, (uint8_t)Serial.read());
+    if (n > 0) handle_frame(n);
+  }
+  if (g_streaming && (int32_t)(micros() - g_next_due) >= 0) {
+    g_next_due += g_period_us;
+    sample_once();
+  }
+}
