@@ -1,0 +1,463 @@
+"""A register-level fake MPU-9250 + AK8963 behind an smbus2-compatible bus, replaying a track.
+
+The fake converts the track back to what the chips would hold — raw int16 counts under the
+full-scale ranges currently written to the registers, the AK8963 axes (inverse of the fixed
+remap), the inverse of the fuse-ROM sensitivity adjustment, big-endian accel/gyro/temp and
+little-endian magnetometer bytes — so a driver reading it exercises its real decoding path.
+
+It honours the register protocol the driver must follow: H_RESET restores defaults, the AK8963
+at 0x0C answers only with INT_PIN_CFG.BYPASS_EN set (and I2C_MST_EN clear), DRDY appears only
+in a continuous mode, the fuse ROM reads back only in fuse-ROM mode, AK8963 mode changes must
+pass through power-down, and the data read ends with ST2. Departures are recorded in
+:attr:`FakeMPU9250Bus.violations` rather than raised, as a real chip would not complain either.
+
+Time: with ``clock`` (a callable returning seconds), track time follows it from construction.
+Without it, each read of ST1 advances to the next magnetometer sample (each burst read of the
+accelerometer when the chip has no magnetometer), and every refused transaction while the device
+is absent advances by one magnetometer period, so tests are deterministic and never sleep.
+
+Faults (seeded, :class:`Faults`): NACK rate, HOFL overflow samples, DOR overruns (skipped
+samples), wrong WHO_AM_I (``who_am_i=``), the device vanishing for a time window and returning
+at power-on defaults, and spontaneous resets.
+
+Example::
+
+    bus = FakeMPU9250Bus(t, mag=m_uT, accel=a, gyro=w, temp=T, faults=Faults(nack_rate=0.05))
+    drv = MPU9250(bus, clock=bus.now)
+"""
+from __future__ import annotations
+
+import ctypes
+import errno as errno_mod
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from . import registers as R
+
+_MPU_DATA = range(R.MpuReg.ACCEL_XOUT_H, R.MpuReg.ACCEL_XOUT_H + R.IMU_BURST_LEN)
+_AK_SIZE = 0x13
+_AK_DEFAULT_INFO = 0x9A   # INFO content is undocumented; any constant will do
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Fault injection for :class:`FakeMPU9250Bus`.
+
+    Attributes:
+        nack_rate: probability that any transaction fails before reaching the chip.
+        nack_errnos: errno values drawn for those failures (121 EREMOTEIO, 5 EIO, 110 ETIMEDOUT…).
+        hofl_rate: probability that a magnetometer sample carries ST2.HOFL.
+        dor_rate: probability that a magnetometer sample is skipped (step mode; in clock mode
+            skips come from polling too slowly).
+        vanish: ``(t_start, t_end)`` track-time windows in which nothing answers; the chips
+            return at power-on defaults.
+        self_resets: ``(t, which)`` spontaneous resets, ``which`` in ``"mpu"``, ``"ak"``, ``"both"``.
+    """
+
+    nack_rate: float = 0.0
+    nack_errnos: Sequence[int] = (errno_mod.EREMOTEIO,)
+    hofl_rate: float = 0.0
+    dor_rate: float = 0.0
+    vanish: Sequence[tuple[float, float]] = ()
+    self_resets: Sequence[tuple[float, str]] = ()
+
+
+def _rows(t: np.ndarray, values, width: int):
+    """(times, values) of the rows where ``values`` is finite; values (k,width)."""
+    if values is None:
+        return np.empty(0), np.empty((0, width))
+    v = np.asarray(values, dtype=float).reshape(len(t), width)
+    ok = np.all(np.isfinite(v), axis=1)
+    return t[ok], v[ok]
+
+
+def _to_int16(x: np.ndarray, limit: int = 32767) -> np.ndarray:
+    return np.clip(np.rint(x), -limit - (limit == 32767), limit).astype(np.int16)
+
+
+@dataclass
+class _Counters:
+    transactions: int = 0
+    nacks: int = 0
+    refused_absent: int = 0
+    hofl: int = 0
+    dor_reported: int = 0
+    skipped: int = 0
+    resets: int = 0
+    samples_latched: int = 0
+
+
+class FakeMPU9250Bus:
+    """In-memory smbus2 look-alike holding one MPU-9250 and its AK8963, replaying a track.
+
+    Args:
+        t: (N,) seconds, non-decreasing.
+        mag: (N,3) µT in body (accelerometer) axes, NaN rows where not sampled.
+        accel: (N,3) m/s²; gyro: (N,3) rad/s; temp: (N,) °C (NaN where not sampled).
+        address: 0x68 (AD0 low) or 0x69 (AD0 high).
+        who_am_i: value of WHO_AM_I (0x71 MPU-9250, 0x73 MPU-9255, 0x70 MPU-6500…).
+        magnetometer: whether an AK8963 is present; default from the WHO_AM_I table.
+        ak_wia: AK8963 WIA value; asa: fuse-ROM ASAX/ASAY/ASAZ bytes.
+        clock: seconds callable; None → step mode (see module docstring).
+        faults: :class:`Faults`; seed: RNG seed for them.
+    """
+
+    def __init__(self, t, mag=None, accel=None, gyro=None, temp=None, *,
+                 address: int = R.MPU_ADDRESS_AD0_LOW, who_am_i: int = 0x71,
+                 magnetometer: bool | None = None, ak_wia: int = R.AK8963_WIA,
+                 asa: Sequence[int] = (0xB0, 0xB2, 0xA5), clock: Callable[[], float] | None = None,
+                 faults: Faults = Faults(), seed: int = 0):
+        if address not in R.MPU_ADDRESSES:
+            raise ValueError(f"address must be 0x68 or 0x69, got 0x{address:02X}")
+        self.t = np.asarray(t, dtype=float).reshape(-1)
+        if self.t.size == 0:
+            raise ValueError("the track to replay is empty")
+        self.address, self.who_am_i, self.ak_wia = address, who_am_i, ak_wia
+        chip = R.WHO_AM_I_TABLE.get(who_am_i)
+        self.has_mag = (chip.has_magnetometer if chip else False) if magnetometer is None \
+            else bool(magnetometer)
+        self.asa = np.asarray(asa, dtype=np.uint8)
+        self.faults, self.rng = faults, np.random.default_rng(seed)
+        self._mag_t, mag_body = _rows(self.t, mag, 3)
+        self._acc_t, self._acc = _rows(self.t, accel, 3)
+        self._gyr_t, self._gyr = _rows(self.t, gyro, 3)
+        self._tmp_t, tmp = _rows(self.t, temp, 1)
+        self._tmp = tmp[:, 0]
+        # AK8963 frame and the inverse sensitivity adjustment: counts·scale·ASA = H.
+        self._mag_ak_uT = mag_body @ R.AK_TO_BODY.T   # AK_TO_BODY is its own inverse
+        self._hofl_fault = self.rng.random(len(self._mag_t)) < faults.hofl_rate
+        self._cache: dict = {}
+        self._imu_clock_t = self._acc_t if self._acc_t.size else self._gyr_t
+        dt = np.diff(self._mag_t if self._mag_t.size > 1 else self._imu_clock_t)
+        self.step_dt = float(np.median(dt)) if dt.size else 0.01
+        self._clock = clock
+        self._clock0 = clock() if clock is not None else 0.0
+        self._tau = self.t[0] - self.step_dt      # step-mode track time
+        self._events = sorted((float(ts), w) for ts, w in faults.self_resets)
+        self._vanish = [(float(a), float(b)) for a, b in faults.vanish]
+        self._absent = False
+        self._imu_next = 0
+        self.counters = _Counters()
+        self.hofl_indices: list[int] = []   # magnetometer-row indices served with HOFL
+        self.violations: list[str] = []
+        self.closed = False
+        self._mpu_power_on()
+        self._ak_power_on()
+
+    # --- construction from a Track (imported lazily: streamcal.track may not exist yet) -----
+    @classmethod
+    def from_track(cls, track, **kwargs) -> "FakeMPU9250Bus":
+        """Replay a ``streamcal.track.Track`` (anything with ``t`` and ``columns``)."""
+        cols = track.columns
+
+        def stack(names):
+            return np.column_stack([cols[n] for n in names]) if all(n in cols for n in names) \
+                else None
+        if getattr(track, "mag_unit", "uT") not in ("uT", "µT"):
+            raise ValueError(f"the fake bus replays µT tracks; this one is in {track.mag_unit}")
+        return cls(track.t, mag=stack(("mx", "my", "mz")), accel=stack(("ax", "ay", "az")),
+                   gyro=stack(("gx", "gy", "gz")), temp=cols.get("temp"), **kwargs)
+
+    @classmethod
+    def from_file(cls, path, **kwargs) -> "FakeMPU9250Bus":
+        """Replay a track file (SPEC §1) read with ``streamcal.track.Track.read``."""
+        from streamcal.track import Track
+        return cls.from_track(Track.read(path), **kwargs)
+
+    # --- time ----------------------------------------------------------------------------------
+    def now(self) -> float:
+        """Current track time, s (usable as the driver's clock)."""
+        if self._clock is not None:
+            return float(self.t[0] + (self._clock() - self._clock0))
+        return float(self._tau)
+
+    @property
+    def finished(self) -> bool:
+        """True once every sample of the track has been served (or its time has passed)."""
+        if self._clock is not None:
+            return self.now() > self.t[-1]
+        if self.has_mag:
+            return self._mag_t.size == 0 or self._tau >= self._mag_t[-1]
+        return self._imu_next >= len(self._imu_clock_t)
+
+    def _sync(self) -> float:
+        tau = self.now()
+        while self._events and self._events[0][0] <= tau:
+            _, which = self._events.pop(0)
+            self.counters.resets += 1
+            if which in ("mpu", "both"):
+                self._mpu_power_on()
+            if which in ("ak", "both"):
+                self._ak_power_on()
+        inside = any(a <= tau < b for a, b in self._vanish)
+        if self._absent and not inside:
+            self._absent = False
+            self._mpu_power_on()
+            self._ak_power_on()
+        self._absent = inside
+        if self.has_mag and self._ak_continuous() and self._clock is not None:
+            self._ak_latch_until(tau)
+        return tau
+
+    # --- bus plumbing ----------------------------------------------------------------------------
+    def _begin(self, address: int) -> None:
+        if self.closed:
+            raise ValueError("I/O operation on closed bus")
+        self.counters.transactions += 1
+        if self.faults.nack_rate and self.rng.random() < self.faults.nack_rate:
+            self.counters.nacks += 1
+            e = int(self.rng.choice(np.asarray(self.faults.nack_errnos)))
+            raise OSError(e, f"[Errno {e}] injected fault at 0x{address:02X}")
+        self._sync()
+        if not self._present(address):
+            if self._absent and self._clock is None:
+                self._tau += self.step_dt
+            self.counters.refused_absent += 1
+            raise OSError(errno_mod.EREMOTEIO, "Remote I/O error")
+
+    def _present(self, address: int) -> bool:
+        if self._absent:
+            return False
+        if address == self.address:
+            return True
+        if address == R.AK8963_ADDRESS and self.has_mag:
+            return bool(R.BYPASS_EN.get(self._mpu[R.MpuReg.INT_PIN_CFG])
+                        and not R.I2C_MST_EN.get(self._mpu[R.MpuReg.USER_CTRL]))
+        return False
+
+    def _read(self, address: int, register: int, length: int) -> list[int]:
+        if address == R.AK8963_ADDRESS:
+            return self._ak_read(register, length)
+        return self._mpu_read(register, length)
+
+    def _write(self, address: int, register: int, data: Sequence[int]) -> None:
+        for i, value in enumerate(data):
+            if address == R.AK8963_ADDRESS:
+                self._ak_write(self._ak_wrap(register, i), int(value) & 0xFF)
+            else:
+                self._mpu_write((register + i) & 0x7F, int(value) & 0xFF)
+
+    # --- smbus2 method set -----------------------------------------------------------------------
+    def read_byte_data(self, i2c_addr: int, register: int, force=None) -> int:
+        self._begin(i2c_addr)
+        return self._read(i2c_addr, register, 1)[0]
+
+    def write_byte_data(self, i2c_addr: int, register: int, value: int, force=None) -> None:
+        self._begin(i2c_addr)
+        self._write(i2c_addr, register, [value])
+
+    def read_i2c_block_data(self, i2c_addr: int, register: int, length: int, force=None):
+        if length > R.SMBUS_BLOCK_MAX:   # smbus2 raises before any I/O, and so do we
+            raise ValueError(f"Desired block length over {R.SMBUS_BLOCK_MAX} bytes")
+        self._begin(i2c_addr)
+        return self._read(i2c_addr, register, length)
+
+    def write_i2c_block_data(self, i2c_addr: int, register: int, data, force=None) -> None:
+        if len(data) > R.SMBUS_BLOCK_MAX:
+            raise ValueError(f"Data length cannot exceed {R.SMBUS_BLOCK_MAX} bytes")
+        self._begin(i2c_addr)
+        self._write(i2c_addr, register, list(data))
+
+    def i2c_rdwr(self, *i2c_msgs) -> None:
+        """Combined transaction of ``smbus2.i2c_msg``: a write sets the register pointer (first
+        byte) and writes the rest; a read fills its buffer from the pointer onwards."""
+        from smbus2.smbus2 import I2C_M_RD
+        if not i2c_msgs:
+            return
+        self._begin(i2c_msgs[0].addr)
+        pointer: dict[int, int] = {}
+        for msg in i2c_msgs:
+            if not self._present(msg.addr):
+                raise OSError(errno_mod.EREMOTEIO, "Remote I/O error")
+            if msg.flags & I2C_M_RD:
+                data = bytes(self._read(msg.addr, pointer.get(msg.addr, 0), msg.len))
+                ctypes.memmove(msg.buf, data, msg.len)
+                pointer[msg.addr] = pointer.get(msg.addr, 0) + msg.len
+            else:
+                payload = bytes(msg)
+                if payload:
+                    pointer[msg.addr] = payload[0]
+                    self._write(msg.addr, payload[0], payload[1:])
+
+    def close(self) -> None:
+        self.closed = True
+
+    def __enter__(self) -> "FakeMPU9250Bus":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # --- MPU-9250 die ----------------------------------------------------------------------------
+    def _mpu_power_on(self) -> None:
+        self._mpu = bytearray(128)
+        for reg, value in R.MPU_RESET_VALUES.items():
+            self._mpu[reg] = value
+        self._mpu[R.MpuReg.WHO_AM_I] = self.who_am_i
+
+    def _mpu_write(self, reg: int, value: int) -> None:
+        if reg == R.MpuReg.PWR_MGMT_1 and R.H_RESET.get(value):
+            self._mpu_power_on()       # H_RESET self-clears
+            return
+        if reg == R.MpuReg.WHO_AM_I or reg in _MPU_DATA or reg == R.MpuReg.INT_STATUS:
+            return                     # read-only
+        self._mpu[reg] = value
+
+    def _mpu_read(self, reg: int, length: int) -> list[int]:
+        regs = [(reg + i) & 0x7F for i in range(length)]
+        view = bytearray(self._mpu)
+        if any(r in _MPU_DATA for r in regs):
+            view[_MPU_DATA.start:_MPU_DATA.stop] = self._imu_bytes(
+                advance=self._clock is None and not self.has_mag)
+        return [view[r] for r in regs]
+
+    def _imu_bytes(self, advance: bool) -> bytes:
+        if advance and self._imu_next < len(self._imu_clock_t):
+            self._tau = self._imu_clock_t[self._imu_next]
+            self._imu_next += 1
+        if R.SLEEP.get(self._mpu[R.MpuReg.PWR_MGMT_1]):
+            return bytes(R.IMU_BURST_LEN)
+        tau = self.now()
+        afs = R.ACCEL_FS_SEL.get(self._mpu[R.MpuReg.ACCEL_CONFIG])
+        gfs = R.GYRO_FS_SEL.get(self._mpu[R.MpuReg.GYRO_CONFIG])
+        out = np.zeros(7, dtype=np.int16)
+        for (times, key, fs), cols in zip(
+                ((self._acc_t, "acc", afs), (self._tmp_t, "tmp", 0), (self._gyr_t, "gyr", gfs)),
+                (slice(0, 3), slice(3, 4), slice(4, 7))):
+            k = int(np.searchsorted(times, tau, side="right")) - 1
+            if k >= 0:
+                out[cols] = self._imu_counts(key, fs)[k]
+        return out.astype(R.IMU_DTYPE).tobytes()
+
+    def _imu_counts(self, key: str, fs: int) -> np.ndarray:
+        """Raw counts of a whole channel for one full-scale setting, encoded once (vectorized)."""
+        if (key, fs) not in self._cache:
+            if key == "acc":
+                counts = _to_int16(self._acc / R.accel_scale(fs))
+            elif key == "gyr":
+                counts = _to_int16(self._gyr / R.gyro_scale(fs))
+            else:
+                counts = _to_int16(((self._tmp - R.TEMP_ROOM_C) * R.TEMP_SENSITIVITY_LSB_PER_C
+                                    + R.TEMP_ROOM_OFFSET_LSB)[:, None])
+            self._cache[key, fs] = counts
+        return self._cache[key, fs]
+
+    # --- AK8963 die ------------------------------------------------------------------------------
+    def _ak_power_on(self) -> None:
+        self._ak = bytearray(_AK_SIZE)
+        self._ak[R.AkReg.WIA] = self.ak_wia
+        self._ak[R.AkReg.INFO] = _AK_DEFAULT_INFO
+        self._ak_next = len(self._mag_t)     # nothing is measured until a continuous mode
+        self._ak_k = -1                      # magnetometer row held in the data registers
+        self._ak_drdy = self._ak_dor = self._ak_reading = False
+
+    def _ak_mode(self) -> int:
+        return R.AK_MODE.get(self._ak[R.AkReg.CNTL1])
+
+    def _ak_continuous(self) -> bool:
+        return self._ak_mode() in R.AK_CONTINUOUS_RATE_HZ
+
+    @staticmethod
+    def _ak_wrap(register: int, i: int) -> int:
+        for lo, hi in R.AK_REGISTER_BLOCKS:
+            if lo <= register <= hi:
+                return lo + (register - lo + i) % (hi - lo + 1)
+        return (register + i) % _AK_SIZE
+
+    def _ak_write(self, reg: int, value: int) -> None:
+        if reg == R.AkReg.CNTL2:
+            if R.AK_SRST.get(value):
+                self._ak_power_on()
+            return
+        if reg in (R.AkReg.CNTL1, R.AkReg.ASTC, R.AkReg.I2CDIS):
+            if reg == R.AkReg.CNTL1:
+                old, new = self._ak_mode(), R.AK_MODE.get(value)
+                if old != R.AkMode.POWER_DOWN and new not in (R.AkMode.POWER_DOWN, old):
+                    self.violations.append(f"AK8963 mode 0x{old:X} → 0x{new:X} without power-down")
+                    return
+                self._ak[reg] = value
+                if new in R.AK_CONTINUOUS_RATE_HZ and old != new:
+                    start = self.now() if self._clock is not None else self._tau
+                    self._ak_next = int(np.searchsorted(self._mag_t, start, side="right"))
+                return
+            self._ak[reg] = value
+        # WIA, INFO, ST1, data, ST2, ASA are read-only
+
+    def _ak_latch(self, k: int, skipped: int) -> None:
+        """Put magnetometer row k in the data registers; ``skipped`` rows were lost before it."""
+        if self._ak_drdy:
+            skipped += 1               # the unread sample is overwritten
+        if skipped:
+            self._ak_dor = True
+            self.counters.skipped += skipped
+        self._ak_k, self._ak_drdy = k, True
+        self.counters.samples_latched += 1
+
+    def _ak_latch_until(self, tau: float) -> None:
+        if self._ak_reading:
+            return                     # registers are protected until ST2 is read
+        end = int(np.searchsorted(self._mag_t, tau, side="right"))
+        if end > self._ak_next:
+            self._ak_latch(end - 1, end - 1 - self._ak_next)
+            self._ak_next = end
+
+    def _ak_step(self) -> None:
+        """Step mode: an ST1 poll advances to the next magnetometer sample when measuring,
+        else by one magnetometer period."""
+        k = self._ak_next
+        if not self._ak_continuous() or k >= len(self._mag_t) or self._ak_reading:
+            self._tau += self.step_dt
+            self._sync()
+            return
+        if self.faults.dor_rate and self.rng.random() < self.faults.dor_rate \
+                and k + 1 < len(self._mag_t):
+            k += 1
+        self._tau = self._mag_t[k]
+        self._sync()
+        if not self._ak_continuous():  # a reset event at this instant stopped the AK8963
+            return
+        self._ak_latch(k, k - self._ak_next)
+        self._ak_next = k + 1
+
+    def _ak_sample_bytes(self) -> tuple[bytes, int]:
+        bits = 16 if R.AK_BIT_16.get(self._ak[R.AkReg.CNTL1]) else 14
+        st2 = R.ST2_BITM if bits == 16 else 0
+        if self._ak_k < 0:
+            return bytes(6), st2
+        key = ("mag", bits)
+        if key not in self._cache:
+            limit = R.MAG_FULL_SCALE_COUNTS[bits]
+            raw = np.rint(self._mag_ak_uT / (R.mag_scale(bits) * R.asa_factor(self.asa)))
+            over = np.any(np.abs(raw) > limit, axis=1) | self._hofl_fault
+            self._cache[key] = (_to_int16(raw, limit).astype(R.MAG_DTYPE), over)
+        counts, over = self._cache[key]
+        if over[self._ak_k]:
+            st2 |= R.ST2_HOFL
+        return counts[self._ak_k].tobytes(), st2
+
+    def _ak_read(self, reg: int, length: int) -> list[int]:
+        regs = [self._ak_wrap(reg, i) for i in range(length)]
+        if regs[0] == R.AkReg.ST1 and self._clock is None:
+            self._ak_step()
+        view = bytearray(self._ak)
+        view[R.AkReg.ST1] = (R.ST1_DRDY if self._ak_drdy else 0) | (R.ST1_DOR if self._ak_dor else 0)
+        data, st2 = self._ak_sample_bytes()
+        view[R.AkReg.HXL:R.AkReg.HXL + 6] = data
+        view[R.AkReg.ST2] = st2
+        if self._ak_mode() == R.AkMode.FUSE_ROM:
+            view[R.AkReg.ASAX:R.AkReg.ASAX + 3] = bytes(self.asa)
+        elif any(r >= R.AkReg.ASAX for r in regs):
+            self.violations.append("AK8963 fuse ROM read outside fuse-ROM mode")
+        out = [view[r] for r in regs]
+        if R.AkReg.ST1 in regs and self._ak_dor:
+            self.counters.dor_reported += 1
+        if R.AkReg.ST2 in regs:
+            if self._ak_drdy and st2 & R.ST2_HOFL:
+                self.counters.hofl += 1
+                self.hofl_indices.append(self._ak_k)
+            self._ak_drdy = self._ak_dor = self._ak_reading = False
+        elif any(R.AkReg.HXL <= r < R.AkReg.ST2 for r in regs):
+            self._ak_reading = True
+        return out

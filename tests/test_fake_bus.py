@@ -1,0 +1,207 @@
+"""The register-level fake MPU-9250/AK8963 bus: smbus2 method set and chip protocol."""
+import errno
+
+import numpy as np
+import pytest
+from smbus2 import i2c_msg
+
+from firmware_bridge import registers as R
+from firmware_bridge.fake_mpu9250 import FakeMPU9250Bus, Faults
+
+MPU, AK = 0x68, R.AK8963_ADDRESS
+
+
+def make_track(n=100, seed=0):
+    """IMU at 200 Hz, magnetometer at 100 Hz (NaN on odd rows)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) * 0.005
+    mag = rng.normal(0.0, 40.0, (n, 3))
+    mag[1::2] = np.nan
+    return dict(t=t, mag=mag, accel=rng.normal(0.0, 6.0, (n, 3)),
+                gyro=rng.normal(0.0, 2.0, (n, 3)), temp=24.0 + rng.normal(0.0, 2.0, n))
+
+
+def enable_bypass(bus):
+    bus.write_byte_data(MPU, R.MpuReg.INT_PIN_CFG, 0x02)
+
+
+def start_mag(bus, mode=R.AkMode.CONTINUOUS_100HZ):
+    enable_bypass(bus)
+    bus.write_byte_data(AK, R.AkReg.CNTL1, 0x10 | mode)
+
+
+def test_absent_address_is_remote_io_error():
+    bus = FakeMPU9250Bus(**make_track())
+    for addr in (0x69, 0x0D, AK):   # AK8963 hidden until bypass is enabled
+        with pytest.raises(OSError) as e:
+            bus.read_byte_data(addr, 0x00)
+        assert e.value.errno == errno.EREMOTEIO
+    enable_bypass(bus)
+    assert bus.read_byte_data(AK, R.AkReg.WIA) == 0x48
+    bus.write_byte_data(MPU, R.MpuReg.USER_CTRL, 0x20)   # I2C master on: bypass no longer works
+    with pytest.raises(OSError):
+        bus.read_byte_data(AK, R.AkReg.WIA)
+
+
+def test_ad0_high_address_option():
+    bus = FakeMPU9250Bus(**make_track(), address=0x69)
+    assert bus.read_byte_data(0x69, R.MpuReg.WHO_AM_I) == 0x71
+    with pytest.raises(OSError):
+        bus.read_byte_data(0x68, R.MpuReg.WHO_AM_I)
+
+
+def test_block_limit_is_32_bytes_like_smbus2():
+    bus = FakeMPU9250Bus(**make_track())
+    assert len(bus.read_i2c_block_data(MPU, 0x00, 32)) == 32
+    with pytest.raises(ValueError):
+        bus.read_i2c_block_data(MPU, 0x00, 33)
+    with pytest.raises(ValueError):
+        bus.write_i2c_block_data(MPU, 0x00, [0] * 33)
+
+
+def test_i2c_rdwr_with_real_messages_matches_smbus_calls():
+    bus = FakeMPU9250Bus(**make_track())
+    bus.i2c_rdwr(i2c_msg.write(MPU, [R.MpuReg.ACCEL_CONFIG, 0x18]))     # register write
+    assert bus.read_byte_data(MPU, R.MpuReg.ACCEL_CONFIG) == 0x18
+    w, r = i2c_msg.write(MPU, [R.MpuReg.SMPLRT_DIV]), i2c_msg.read(MPU, 40)  # > 32 is fine here
+    bus.i2c_rdwr(w, r)
+    expect = [bus.read_byte_data(MPU, R.MpuReg.SMPLRT_DIV + i) for i in range(34)]
+    assert list(r)[:34] == expect
+    with pytest.raises(OSError):
+        bus.i2c_rdwr(i2c_msg.write(0x50, [0]), i2c_msg.read(0x50, 1))
+
+
+def test_block_write_and_auto_increment():
+    bus = FakeMPU9250Bus(**make_track())
+    bus.write_i2c_block_data(MPU, R.MpuReg.SMPLRT_DIV, [4, 3, 0x08, 0x10, 3])
+    assert bus.read_i2c_block_data(MPU, R.MpuReg.SMPLRT_DIV, 5) == [4, 3, 0x08, 0x10, 3]
+
+
+def test_reset_restores_defaults_and_hides_magnetometer():
+    bus = FakeMPU9250Bus(**make_track())
+    start_mag(bus)
+    bus.write_byte_data(MPU, R.MpuReg.ACCEL_CONFIG, 0x18)
+    bus.write_byte_data(MPU, R.MpuReg.PWR_MGMT_1, 0x80)
+    assert bus.read_byte_data(MPU, R.MpuReg.ACCEL_CONFIG) == 0
+    assert bus.read_byte_data(MPU, R.MpuReg.PWR_MGMT_1) == R.MPU_RESET_VALUES[R.MpuReg.PWR_MGMT_1]
+    assert bus.read_byte_data(MPU, R.MpuReg.WHO_AM_I) == 0x71
+    with pytest.raises(OSError):
+        bus.read_byte_data(AK, R.AkReg.WIA)
+
+
+def test_fuse_rom_readable_only_in_fuse_mode():
+    bus = FakeMPU9250Bus(**make_track(), asa=(0x90, 0xA0, 0xB0))
+    enable_bypass(bus)
+    assert bus.read_i2c_block_data(AK, R.AkReg.ASAX, 3) == [0, 0, 0]
+    assert bus.violations
+    bus.write_byte_data(AK, R.AkReg.CNTL1, R.AkMode.FUSE_ROM)
+    assert bus.read_i2c_block_data(AK, R.AkReg.ASAX, 3) == [0x90, 0xA0, 0xB0]
+
+
+def test_mode_change_must_pass_through_power_down():
+    bus = FakeMPU9250Bus(**make_track())
+    bus.write_byte_data(MPU, R.MpuReg.INT_PIN_CFG, 0x02)
+    bus.write_byte_data(AK, R.AkReg.CNTL1, R.AkMode.FUSE_ROM)
+    bus.write_byte_data(AK, R.AkReg.CNTL1, 0x16)
+    assert bus.read_byte_data(AK, R.AkReg.CNTL1) == R.AkMode.FUSE_ROM
+    assert "without power-down" in bus.violations[-1]
+
+
+def test_drdy_only_in_continuous_mode_and_cleared_by_st2():
+    bus = FakeMPU9250Bus(**make_track())
+    enable_bypass(bus)
+    assert bus.read_byte_data(AK, R.AkReg.ST1) & R.ST1_DRDY == 0
+    bus.write_byte_data(AK, R.AkReg.CNTL1, 0x16)
+    assert bus.read_byte_data(AK, R.AkReg.ST1) & R.ST1_DRDY
+    bus.read_byte_data(AK, R.AkReg.ST2)
+    # ST1 polled without reading the data: the next poll brings a sample that overwrote it
+    st1 = bus.read_i2c_block_data(AK, R.AkReg.ST1, 1)[0]
+    st1 = bus.read_i2c_block_data(AK, R.AkReg.ST1, 1)[0]
+    assert st1 & R.ST1_DRDY and st1 & R.ST1_DOR
+    assert bus.counters.skipped == 1
+
+
+def test_raw_counts_big_endian_imu_little_endian_remapped_mag():
+    tr = make_track()
+    asa = np.array([0x99, 0xAA, 0xBB])
+    bus = FakeMPU9250Bus(**tr, asa=asa)
+    start_mag(bus)
+    bus.write_byte_data(MPU, R.MpuReg.ACCEL_CONFIG, R.ACCEL_FS_SEL.set(0, 2))
+    bus.write_byte_data(MPU, R.MpuReg.GYRO_CONFIG, R.GYRO_FS_SEL.set(0, 3))
+    raw_m = bytes(bus.read_i2c_block_data(AK, R.AkReg.ST1, 8))       # first sample: row 0
+    raw_i = bytes(bus.read_i2c_block_data(MPU, R.MpuReg.ACCEL_XOUT_H, 14))
+    h = np.frombuffer(raw_m[1:7], "<i2")
+    m = tr["mag"][0]
+    # m_x = H_y, m_y = H_x, m_z = -H_z (HARDWARE.md §4); counts·0.15·(ASA+128)/256 = µT
+    lsb = R.mag_scale(16) * (asa + 128) / 256
+    np.testing.assert_array_equal(h, np.rint(np.array([m[1], m[0], -m[2]]) / lsb))
+    c = np.frombuffer(raw_i, ">i2")
+    np.testing.assert_array_equal(c[:3], np.rint(tr["accel"][0] / (9.80665 / 4096)))
+    np.testing.assert_array_equal(c[4:], np.rint(tr["gyro"][0] / np.radians(1 / 16.4)))
+    assert c[3] == np.rint((tr["temp"][0] - 21.0) * 333.87)
+    assert raw_m[7] == R.ST2_BITM
+
+
+def test_clock_mode_follows_injected_clock_and_reports_overrun():
+    now = [100.0]
+    tr = make_track()
+    bus = FakeMPU9250Bus(**tr, clock=lambda: now[0])
+    start_mag(bus)
+    now[0] += 0.0401          # four magnetometer samples (10 ms apart) come due; three are lost
+    st1 = bus.read_i2c_block_data(AK, R.AkReg.ST1, 8)
+    assert st1[0] == R.ST1_DRDY | R.ST1_DOR
+    assert bus.counters.skipped == 3
+    assert bus.now() == pytest.approx(tr["t"][0] + 0.0401)
+
+
+def test_nack_injection_is_seeded_and_uses_given_errnos():
+    def run():
+        bus = FakeMPU9250Bus(**make_track(), seed=7,
+                             faults=Faults(nack_rate=0.2, nack_errnos=(errno.EIO, errno.ETIMEDOUT)))
+        seen = []
+        for _ in range(200):
+            try:
+                bus.read_byte_data(MPU, R.MpuReg.WHO_AM_I)
+            except OSError as e:
+                seen.append(e.errno)
+        return bus, seen
+    bus, seen = run()
+    assert len(seen) == bus.counters.nacks and 10 < len(seen) < 80
+    assert set(seen) == {errno.EIO, errno.ETIMEDOUT}
+    assert run()[1] == seen
+
+
+def test_vanish_window_returns_at_defaults():
+    bus = FakeMPU9250Bus(**make_track(), faults=Faults(vanish=[(0.1, 0.2)]))
+    start_mag(bus)
+    while bus.now() < 0.1:
+        bus.read_i2c_block_data(AK, R.AkReg.ST1, 8)
+    refused = 0
+    while True:
+        try:
+            bus.read_byte_data(MPU, R.MpuReg.WHO_AM_I)
+            break
+        except OSError as e:
+            assert e.errno == errno.EREMOTEIO
+            refused += 1
+    assert refused >= 5 and bus.now() >= 0.2
+    assert bus.read_byte_data(MPU, R.MpuReg.INT_PIN_CFG) == 0
+
+
+def test_context_manager_closes():
+    with FakeMPU9250Bus(**make_track()) as bus:
+        bus.read_byte_data(MPU, R.MpuReg.WHO_AM_I)
+    with pytest.raises(ValueError):
+        bus.read_byte_data(MPU, R.MpuReg.WHO_AM_I)
+
+
+def test_from_track():
+    track_mod = pytest.importorskip("streamcal.track")
+    tr = make_track()
+    track = track_mod.Track.from_arrays(tr["t"], mag=tr["mag"], accel=tr["accel"],
+                                        gyro=tr["gyro"], temp=tr["temp"])
+    bus = FakeMPU9250Bus.from_track(track)
+    direct = FakeMPU9250Bus(**tr)
+    for b in (bus, direct):
+        start_mag(b)
+    assert bus.read_i2c_block_data(AK, 2, 8) == direct.read_i2c_block_data(AK, 2, 8)
