@@ -1,0 +1,191 @@
+"""Batch calibration: ``streamcal.fit(data, method=…)`` (SPEC §5).
+
+Pure functions on arrays live in the modules of this package (normalization, ellipsoid fits,
+kernels, the robust LM, reference methods, the one-pass sphere fit); this entry point validates
+the request, picks the data out of a track, runs the method on normalized data and returns a
+:class:`~streamcal.calibration.Calibration` in canonical form and sensor units.
+"""
+from __future__ import annotations
+
+import importlib
+from typing import Iterable, Mapping, Sequence
+
+import numpy as np
+
+from ..calibration import DEFAULT_MODEL, Calibration, canonical_form
+from ..errors import InputError, InsufficientDataError, UnknownEffectError
+from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
+from .autocal import autocal
+from .lm import estimation_error, optimal_directions
+from .normalize import denormalize_model, normalize
+from .observability import assess
+
+__all__ = ["fit", "METHODS", "GRAVITY", "estimation_error", "optimal_directions"]
+
+GRAVITY = 9.80665  # m/s², standard gravity
+#: method name → (module in this package, function), each function maps normalized (N,3)
+#: measurements to a normalized (A, b) with m ≈ A x + b.
+REFERENCE_METHODS = {
+    "magical": ("magical", "fit_magical"),
+    "dorveaux": ("dorveaux", "fit_dorveaux"),
+    "vasconcelos": ("vasconcelos", "fit_vasconcelos"),
+    "kok_schon": ("kok_schon", "fit_kok_schon"),
+    "sphere_stream": ("sphere_stream", "fit_sphere_stream"),
+}
+METHODS = ("autocal", "l1_ellipsoid", "l2_ellipsoid") + tuple(REFERENCE_METHODS)
+REGISTRATION_EFFECTS = ("mag_accel_misalignment", "time_lag")
+MIN_SAMPLES = 12
+
+
+def parse_model(model: str | Iterable[str] = DEFAULT_MODEL, add: str | Iterable[str] = ()) -> tuple[str, ...]:
+    """Effect names from a comma-separated string or a sequence, plus ``add``; validated."""
+    def names(v):
+        if isinstance(v, str):
+            return [s.strip() for s in v.split(",") if s.strip()]
+        return list(v)
+
+    out: list[str] = []
+    for name in names(model) + names(add):
+        if name not in EFFECT_NAMES:
+            raise UnknownEffectError(f"unknown effect {name!r}; the catalog has: {', '.join(EFFECT_NAMES)}")
+        if name not in out:
+            out.append(name)
+    if "scale" in out and "soft_iron" in out:
+        out.remove("scale")  # soft_iron contains the per-axis gains
+    return tuple(out)
+
+
+def _reference(method: str):
+    module, func = REFERENCE_METHODS[method]
+    for name in (module, "reference"):
+        try:
+            mod = importlib.import_module(f"{__name__}.{name}")
+        except ModuleNotFoundError:
+            continue
+        if hasattr(mod, func):
+            return getattr(mod, func)
+    raise InputError(f"method {method!r} is not available in this build")
+
+
+def _measurements(data, sensor: str, covariates):
+    """(m (N,3), unit, covariates, track or None) from a Track or an array."""
+    from ..track import Track
+
+    if isinstance(data, Track):
+        if sensor == "mag":
+            m, unit = data.mag, data.mag_unit
+            cov = data.covariates_at_mag() if covariates is None else covariates
+        else:
+            if not data.has("ax"):
+                raise InputError(f"{data.path or 'track'}: no accelerometer columns (ax, ay, az) for --sensor accel")
+            m, unit = data.accel, data.accel_unit
+            cov = covariates or {}
+        return np.asarray(m, dtype=float), unit, dict(cov), data
+    m = np.asarray(data, dtype=float)
+    if m.ndim != 2 or m.shape[1] != 3:
+        raise InputError(f"measurements must be an (N,3) array, got shape {m.shape}")
+    bad = ~np.all(np.isfinite(m), axis=1)
+    if bad.any():
+        raise InputError(f"measurements row {int(np.flatnonzero(bad)[0])} is not finite")
+    return m, ("uT" if sensor == "mag" else "m/s^2"), dict(covariates or {}), None
+
+
+def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL,
+        add: str | Sequence[str] = (), kernel: str = "cauchy", method: str = "autocal",
+        tau: float | str | None = None, covariates: Mapping[str, np.ndarray] | None = None,
+        check_coverage: bool = True, stage1_max: int = 300, max_iter: int = 300,
+        rtol: float = 1e-6) -> Calibration:
+    """Calibrate a magnetometer (µT) or accelerometer (m/s²) from a Track or an (N,3) array.
+
+    Args:
+        data: :class:`streamcal.Track` or (N,3) measurements in the sensor unit.
+        sensor: ``"mag"`` or ``"accel"`` (gravity 9.80665 m/s² as the known field).
+        model: effect names (SPEC §3); default ``hard_iron, soft_iron``. ``add`` appends more.
+        kernel: ``cauchy`` (default), ``huber``, ``gm``, ``l1`` or ``l2`` (autocal only).
+        method: ``autocal`` or a reference method (SPEC §5).
+        tau: kernel width; None derives it from the data, ``"paper"`` uses √3, a number is
+            taken in sensor units.
+        covariates: per-sample columns for effects when ``data`` is an array.
+        check_coverage: refuse (InsufficientDataError) when the directions seen leave the
+            model undetermined.
+    Returns: a :class:`Calibration` whose ``inliers``, ``weights`` and ``directions`` cover the
+        samples used, in order.
+    """
+    if sensor not in ("mag", "accel"):
+        raise InputError(f"sensor must be 'mag' or 'accel', got {sensor!r}")
+    if method not in METHODS:
+        raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
+    names = parse_model(model, add)
+    m, unit, cov, track = _measurements(data, sensor, covariates)
+    extra = [n for n in names if n not in CORE_EFFECTS]
+    if extra and method != "autocal":
+        raise InputError(f"method {method!r} fits only {', '.join(CORE_EFFECTS)}; "
+                         f"use method 'autocal' for {', '.join(extra)}")
+    if any(n in REGISTRATION_EFFECTS for n in extra):
+        from ..model.registration import fit_with_registration
+
+        return fit_with_registration(data, model=names, kernel=kernel, tau=tau, sensor=sensor)
+    if len(m) < MIN_SAMPLES:
+        raise InsufficientDataError(f"{len(m)} {sensor} samples are too few: at least {MIN_SAMPLES} are needed")
+    structure = "full" if "soft_iron" in names else "diag" if "scale" in names else "sphere"
+    fit_b = "hard_iron" in names
+    effects = []
+    if extra:
+        from .. import model as model_pkg
+
+        if track is not None:
+            model_pkg.check_needs(extra, track)
+        effects = model_pkg.build_effects(extra, cov)
+
+    if method == "autocal":
+        res = autocal(m, kernel=kernel, tau=tau, structure=structure, fit_b=fit_b, effects=effects,
+                      covariates=cov, stage1_max=stage1_max, max_iter=max_iter, rtol=rtol,
+                      check_coverage=check_coverage)
+        K, b, x, inliers, weights = res.K, res.b, res.x, res.inliers, res.weights
+        residual_norm = np.linalg.norm(res.residuals, axis=1)
+        effect_params = {e.name: e.to_physical(t, res.scale) for e, t in zip(effects, res.thetas)}
+        obs = assess(x, structure, fit_b, K, m=m)
+        used_kernel = kernel
+        sigma, tau_used = res.sigma, res.tau
+    else:
+        K, b, x, obs = _fit_reference(m, method, structure, check_coverage)
+        residual_norm = estimation_error(K, b, m)
+        inliers = np.ones(len(m), dtype=bool)
+        weights = np.ones(len(m))
+        effect_params = {}
+        used_kernel = None
+        sigma, tau_used = float(np.sqrt(np.mean(residual_norm ** 2) / 3)), None
+    if check_coverage and not obs.ok:
+        raise InsufficientDataError(obs.message)
+    rms = float(np.sqrt(np.mean(residual_norm[inliers] ** 2))) if inliers.any() else float("nan")
+    field = GRAVITY if sensor == "accel" else (float(np.cbrt(np.linalg.det(K))) if unit == "uT" else None)
+    extra_keys = {"noise_sigma": sigma}
+    if tau_used is not None:
+        extra_keys["tau"] = tau_used
+    return Calibration(K=K, b=b, sensor=sensor, model=names, effects=effect_params, rms=rms,
+                       n=len(m), n_outliers=int((~inliers).sum()), coverage=obs.coverage, unit=unit,
+                       field=field, method=method, kernel=used_kernel, inliers=inliers,
+                       weights=weights, directions=x, extra=extra_keys)
+
+
+def _fit_reference(m, method, structure, check_coverage):
+    from .ellipsoid import directions_from_model, ellipsoid_to_model, fit_l1_ellipsoid, fit_l2_ellipsoid
+
+    m_n, center, scale = normalize(m)
+    if method in ("l1_ellipsoid", "l2_ellipsoid"):
+        solver = fit_l1_ellipsoid if method == "l1_ellipsoid" else fit_l2_ellipsoid
+        A, b_n = ellipsoid_to_model(*solver(m_n))
+    else:
+        A, b_n = _reference(method)(m_n)
+    A = np.asarray(A, dtype=float)
+    if not np.all(np.isfinite(A)) or abs(np.linalg.det(A)) < 1e-12:
+        raise InsufficientDataError(f"method {method!r} did not produce an invertible sensor matrix")
+    K_n, _ = canonical_form(A)
+    K, b = denormalize_model(K_n, b_n, center, scale)
+    x = optimal_directions(K, b, m)
+    return K, b, x, assess(x, structure, True, K, m=m)
+
+
+from .._callable import make_module_callable  # noqa: E402
+
+make_module_callable(__name__, "fit")

@@ -1,0 +1,178 @@
+"""Stage 1 (paper §II-C, Algorithm 1): algebraic ellipsoid fits and the model they give.
+
+The ellipsoid ``yᵀC y + 2dᵀy + e = 0`` (eq. 3) is linear in v = [C11 C22 C33 C12 C13 C23 d1 d2 d3 e],
+so the algebraic residuals of all samples are ``g = Φ v`` with the design matrix Φ (N,10).
+
+- L2 (Kok & Schön's SVD form): minimize ‖Φv‖₂ subject to ‖v‖ = 1.
+- L1 (Calafiore, eq. 6): minimize ‖Φv‖₁ subject to trace(C) = 1 and C ⪰ 0 — a convex program.
+  Two equivalent solvers: :class:`L1EllipsoidProblem` builds it once in cvxpy with a Parameter
+  for Φ (re-solved per call, Clarabel backend), and :func:`fit_l1_ellipsoid` hands the same
+  conic program straight to Clarabel, skipping cvxpy's canonicalization (~10× less overhead).
+  ``tests/test_ellipsoid.py`` checks that both reach the same optimum.
+"""
+from __future__ import annotations
+
+import numpy as np
+import scipy.sparse as sp
+
+from ..errors import InsufficientDataError
+
+SQRT2 = np.sqrt(2.0)
+
+
+def design_matrix(m: np.ndarray) -> np.ndarray:
+    """Φ (N,10) such that Φ v = mᵀCm + 2dᵀm + e for every sample (m (N,3), normalized)."""
+    x, y, z = np.asarray(m, dtype=float).T
+    one = np.ones_like(x)
+    return np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z,
+                            2 * x, 2 * y, 2 * z, one])
+
+
+def unpack(v: np.ndarray):
+    """(C (3,3), d (3,), e) from the 10-vector v."""
+    c11, c22, c33, c12, c13, c23, d1, d2, d3, e = v
+    C = np.array([[c11, c12, c13], [c12, c22, c23], [c13, c23, c33]])
+    return C, np.array([d1, d2, d3]), float(e)
+
+
+def fit_l2_ellipsoid(m: np.ndarray):
+    """Algebraic least-squares ellipsoid: the right singular vector of Φ for its smallest
+    singular value; returns (C, d, e) scaled to trace(C) = 1."""
+    phi = design_matrix(m)
+    # Φᵀ Φ (10×10) has the same right singular vectors; cheaper than an SVD of (N,10).
+    w, V = np.linalg.eigh(phi.T @ phi)
+    v = V[:, 0]
+    C, d, e = unpack(v)
+    tr = np.trace(C)
+    if tr == 0:
+        raise InsufficientDataError("the algebraic ellipsoid fit is degenerate (trace of C is 0)")
+    return unpack(v / tr)
+
+
+def fit_l1_ellipsoid(m: np.ndarray, *, tol: float = 1e-8):
+    """Calafiore's L1 ellipsoid fit (eq. 6) solved directly with Clarabel; returns (C, d, e).
+
+    Conic form, variables z = [v (10), γ (N)], minimize Σγ subject to
+    trace(C) = 1 (zero cone), γ ± Φv ≥ 0 (nonnegative cone, 2N rows), C ⪰ 0 (PSD cone).
+    """
+    import clarabel
+
+    phi = design_matrix(m)
+    n = phi.shape[0]
+    eye = sp.identity(n, format="csc")
+    phi_s = sp.csc_matrix(phi)
+    trace_row = sp.csc_matrix(np.r_[1.0, 1.0, 1.0, np.zeros(7)][None, :])
+    # s = −A z for the PSD cone must equal svec(C): upper triangle by columns, off-diagonals × √2.
+    svec = np.zeros((6, 10))
+    svec[0, 0] = 1.0
+    svec[1, 3] = SQRT2
+    svec[2, 1] = 1.0
+    svec[3, 4] = SQRT2
+    svec[4, 5] = SQRT2
+    svec[5, 2] = 1.0
+    A = sp.vstack([
+        sp.hstack([trace_row, sp.csc_matrix((1, n))]),
+        sp.hstack([phi_s, -eye]),
+        sp.hstack([-phi_s, -eye]),
+        sp.hstack([sp.csc_matrix(-svec), sp.csc_matrix((6, n))]),
+    ], format="csc")
+    b = np.zeros(A.shape[0])
+    b[0] = 1.0
+    q = np.r_[np.zeros(10), np.ones(n)]
+    P = sp.csc_matrix((10 + n, 10 + n))
+    cones = [clarabel.ZeroConeT(1), clarabel.NonnegativeConeT(2 * n), clarabel.PSDTriangleConeT(3)]
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
+    settings.tol_gap_abs = settings.tol_gap_rel = settings.tol_feas = tol
+    solution = clarabel.DefaultSolver(P, q, A, b, cones, settings).solve()
+    status = str(solution.status)
+    if "Solved" not in status:
+        raise InsufficientDataError(f"the L1 ellipsoid program did not solve (Clarabel: {status})")
+    return unpack(np.asarray(solution.x[:10]))
+
+
+class L1EllipsoidProblem:
+    """The same L1 program written in cvxpy once (Φ a Parameter), solved by Clarabel.
+
+    Build once per sample count and call repeatedly: cvxpy caches the canonicalization.
+    """
+
+    def __init__(self, n: int):
+        import cvxpy as cp
+
+        self.n = n
+        self.phi = cp.Parameter((n, 10), name="phi")
+        self.C = cp.Variable((3, 3), PSD=True, name="C")
+        self.d = cp.Variable(3, name="d")
+        self.e = cp.Variable(name="e")
+        C = self.C
+        v = cp.hstack([C[0, 0], C[1, 1], C[2, 2], C[0, 1], C[0, 2], C[1, 2], self.d, cp.reshape(self.e, (1,), order="C")])
+        self.problem = cp.Problem(cp.Minimize(cp.norm1(self.phi @ v)), [cp.trace(C) == 1])
+
+    def solve(self, m: np.ndarray):
+        import cvxpy as cp
+
+        phi = design_matrix(m)
+        if phi.shape[0] != self.n:
+            raise ValueError(f"problem built for {self.n} samples, got {phi.shape[0]}")
+        self.phi.value = phi
+        self.problem.solve(solver=cp.CLARABEL)
+        if self.problem.status not in ("optimal", "optimal_inaccurate"):
+            raise InsufficientDataError(f"the L1 ellipsoid program did not solve (cvxpy: {self.problem.status})")
+        C = np.asarray(self.C.value)
+        return 0.5 * (C + C.T), np.asarray(self.d.value), float(self.e.value)
+
+
+def ellipsoid_to_model(C: np.ndarray, d: np.ndarray, e: float):
+    """Algorithm 1, steps 2–4: b = −C⁻¹d, μ = −bᵀd − e, K = √μ · chol(C)⁻¹ (upper triangular).
+
+    Raises :class:`InsufficientDataError` when (C, d, e) is not a real ellipsoid.
+    """
+    C = 0.5 * (C + C.T)
+    try:
+        L = np.linalg.cholesky(C)
+    except np.linalg.LinAlgError:
+        raise InsufficientDataError(
+            "the fitted quadric is not an ellipsoid (C is not positive definite): the data do "
+            "not outline an ellipsoid — rotate the sensor through more orientations") from None
+    b = -np.linalg.solve(C, d)
+    mu = float(-b @ d - e)
+    if not np.isfinite(mu) or mu <= 0:
+        raise InsufficientDataError("the fitted quadric is empty or imaginary (μ ≤ 0)")
+    K = np.sqrt(mu) * np.linalg.inv(L.T)
+    return np.triu(K), b
+
+
+def directions_from_model(K: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
+    """Algorithm 1, steps 5–7: x_j = K⁻¹(m_j − b) / ‖·‖, shape (N,3)."""
+    x = np.linalg.solve(K, (np.asarray(m) - b).T).T
+    norm = np.linalg.norm(x, axis=1, keepdims=True)
+    return x / np.where(norm > 0, norm, 1.0)
+
+
+def spread_subset(m: np.ndarray, n_max: int, seed: int = 0) -> np.ndarray:
+    """Indices of at most ``n_max`` samples spread evenly over the directions seen from the
+    median: round-robin over 12×6 equal-area cells (12 azimuths × 6 bands of equal z-width),
+    so a long dwell in one orientation does not crowd out the rest."""
+    m = np.asarray(m, dtype=float)
+    n = m.shape[0]
+    if n <= n_max:
+        return np.arange(n)
+    v = m - np.median(m, axis=0)
+    v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+    az = np.floor((np.arctan2(v[:, 1], v[:, 0]) + np.pi) / (2 * np.pi) * 12).clip(0, 11)
+    band = np.floor((v[:, 2] + 1.0) / 2.0 * 6).clip(0, 5)
+    cell = (band * 12 + az).astype(int)
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(n)
+    cell_sorted = cell[order]
+    by_cell = np.argsort(cell_sorted, kind="stable")
+    # rank of each sample inside its cell (in the random order)
+    sorted_cells = cell_sorted[by_cell]
+    starts = np.r_[0, np.flatnonzero(np.diff(sorted_cells)) + 1]
+    counts = np.diff(np.r_[starts, n])
+    rank_sorted = np.arange(n) - np.repeat(starts, counts)
+    rank = np.empty(n, dtype=int)
+    rank[by_cell] = rank_sorted
+    pick = np.lexsort((rng.random(n), rank))[:n_max]
+    return np.sort(order[pick])

@@ -1,0 +1,124 @@
+"""When the data cannot decide, say so (issue 2, item 8).
+
+With unit directions x_j free, a sample tells the model only along the ellipsoid's normal at
+K x_j + b, n_j ∝ K⁻ᵀx_j; eliminating the directions leaves the reduced Fisher information
+
+    S = (1/N) Σ a_j a_jᵀ,   a_j = n_jᵀ ∂(K x_j + b)/∂p.
+
+Directions on a great circle or in one small cap leave combinations of p with no information
+(for a plane, a whole family of ellipsoids passes through the data, so S is singular at any of
+them — which is why S must be taken at the fitted K, not at the directions alone). We compare S
+with its value for directions spread uniformly over the sphere, at the same K (generalized
+eigenvalues): ``information`` is the smallest ratio, 1 for a full sphere, 0 for a plane.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .lm import K_ENTRIES
+
+#: Below this relative information the fit is refused. Calibrated so that a 75° cap (0.0015) or a
+#: ±20° band (0.007; about a third of the sphere) passes and a 60° cap (0.0002) or a ±10° band
+#: (0.0004) does not
+#: (tests/test_observability.py).
+MIN_INFORMATION = 1e-3
+AXES = ("x", "y", "z")
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """(n,3) nearly uniform unit vectors (Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    z = 1 - 2 * i / n
+    phi = np.pi * (1 + 5 ** 0.5) * i
+    rho = np.sqrt(1 - z * z)
+    return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
+
+
+def _rows(x: np.ndarray, K: np.ndarray, structure: str, fit_b: bool) -> np.ndarray:
+    n = np.linalg.solve(K.T, x.T).T
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    if structure == "sphere":
+        cols = [np.einsum("ij,ij->i", n, x)]
+    else:
+        cols = [n[:, i] * x[:, j] for i, j in K_ENTRIES[structure]]
+    if fit_b:
+        cols += [n[:, 0], n[:, 1], n[:, 2]]
+    return np.column_stack(cols)
+
+
+_UNIFORM_DIRECTIONS = None
+
+
+def _information(x, K, structure, fit_b):
+    a = _rows(x, K, structure, fit_b)
+    return a.T @ a / max(len(a), 1)
+
+
+def coverage_fraction(x: np.ndarray, n_cells: int = 100) -> float:
+    """Fraction of ``n_cells`` equal-area cells (nearest Fibonacci centre) holding a direction."""
+    x = np.asarray(x, dtype=float)
+    if len(x) == 0:
+        return 0.0
+    centres = fibonacci_sphere(n_cells)
+    cell = np.argmax(x @ centres.T, axis=1)
+    return float(np.unique(cell).size / n_cells)
+
+
+def _axis_name(v: np.ndarray) -> str:
+    i = int(np.argmax(np.abs(v)))
+    return ("+" if v[i] > 0 else "-") + AXES[i]
+
+
+@dataclass(frozen=True)
+class Observability:
+    information: float      # smallest generalized eigenvalue of S vs uniform, 0..1
+    coverage: float         # fraction of 100 equal-area cells hit
+    ok: bool
+    message: str
+
+
+def assess(x: np.ndarray, structure: str = "full", fit_b: bool = True, K: np.ndarray | None = None,
+           m: np.ndarray | None = None, min_information: float = MIN_INFORMATION) -> Observability:
+    """Judge whether directions x (N,3), seen through the fitted K (3,3; default I), determine
+    the model; say what is missing if not (``m``, the (N,3) measurements, lets the message name
+    the plane of a planar recording in body axes even when the fitted model is meaningless)."""
+    global _UNIFORM_DIRECTIONS
+    x = np.asarray(x, dtype=float)
+    K = np.eye(3) if K is None else np.asarray(K, dtype=float)
+    K = K / float(np.abs(np.linalg.det(K)) ** (1 / 3))  # the ratio below is scale-free
+    if _UNIFORM_DIRECTIONS is None:
+        _UNIFORM_DIRECTIONS = fibonacci_sphere(2000)
+    S = _information(x, K, structure, fit_b)
+    U = _information(_UNIFORM_DIRECTIONS, K, structure, fit_b)
+    Linv = np.linalg.inv(np.linalg.cholesky(U))
+    info = float(max(np.linalg.eigvalsh(Linv @ S @ Linv.T)[0], 0.0))
+    cover = coverage_fraction(x)
+    if info >= min_information:
+        return Observability(info, cover, True, "")
+    return Observability(info, cover, False, _what_is_missing(x, info, cover, m))
+
+
+def _what_is_missing(x: np.ndarray, info: float, cover: float, m: np.ndarray | None) -> str:
+    if m is not None:
+        centred = m - np.median(m, axis=0)
+        w, V = np.linalg.eigh(centred.T @ centred / len(m))
+        w = w / max(w[-1], 1e-300)
+    else:
+        w, V = np.linalg.eigh(x.T @ x / len(x))
+    mean = x.mean(axis=0)
+    head = (f"the directions seen cover {cover:.0%} of the sphere and leave the model "
+            f"undetermined (relative information {info:.3f} < {MIN_INFORMATION})")
+    if w[0] < 0.03:
+        normal = _axis_name(V[:, 0])
+        return (f"{head}: they lie on a great circle, never leaving the plane perpendicular to "
+                f"{normal}, so the scale along {normal[1]} and its cross terms are unknown. "
+                f"Tilt the board so that {normal[1]} points towards and away from the field "
+                f"(rotate it about the other two axes), then record again.")
+    if np.linalg.norm(mean) > 0.5:
+        seen = _axis_name(mean)
+        opposite = ("-" if seen[0] == "+" else "+") + seen[1]
+        return (f"{head}: they stay on one side, around {seen}. Turn the board over so the field "
+                f"also arrives from {opposite}, then record again.")
+    return f"{head}. Rotate the board through more orientations (all faces up in turn)."
