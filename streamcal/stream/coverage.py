@@ -1,0 +1,385 @@
+"""Bounded sample buffer organised by equal-area cells on the sphere of field directions.
+
+Directions are ``x = A (m − c)`` normalised, with ``(A, c)`` the current frame: ``K⁻¹, b`` of the
+calibration in use, or ``I/R, centre`` of the running sphere estimate before the first one.
+
+Cells: an equal-area zonal partition ("igloo"): the sphere is cut into an even number of bands of
+latitude (so the equator is a band edge and a hemisphere fills exactly half of the cells), band
+``k`` holds ``n_k`` cells of equal longitude width, ``n_k`` ∝ the band's circumference so cells are
+roughly square, and the band edges in ``z`` are placed so that every cell has the same area
+(a band's area is ``2π Δz``, Archimedes). Looking up a cell is one ``searchsorted`` and one
+``floor``, O(1) per sample — a nearest-centre search over a Fibonacci set would cost O(cells).
+HEALPix would do too but is not among our dependencies for this one small job.
+
+Each cell keeps at most ``slots`` samples, at least ``min_spacing_deg`` apart (ArduPilot keeps
+≥ 6.3°, PX4 6.7°); a new sample that is far from all stored samples of its cell takes a free
+slot or the oldest one; a sample close to exactly one stored sample refreshes it (one refresh per
+cell and block), so the buffer holds the newest samples. All arrays are preallocated: memory is
+fixed by configuration.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+class SphereCells:
+    """Equal-area partition of the unit sphere into about ``n_cells`` cells."""
+
+    def __init__(self, n_cells: int = 300):
+        if n_cells < 2:
+            raise ValueError(f"n_cells must be ≥ 2, got {n_cells}")
+        side = np.sqrt(4.0 * np.pi / n_cells)                 # side of a square cell, rad
+        n_bands = max(2, 2 * int(round(np.pi / side / 2.0)))   # even: the equator is an edge
+        theta_mid = (np.arange(n_bands) + 0.5) * np.pi / n_bands
+        counts = np.maximum(1, np.round(2.0 * np.pi * np.sin(theta_mid) / side)).astype(int)
+        counts = np.maximum(counts, counts[::-1])              # symmetric about the equator
+        self.counts = counts                                   # (B,) cells per band, north first
+        self.n_cells = int(counts.sum())
+        self.offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        # Band k spans area ∝ counts[k]: z edges from +1 (north) down to −1.
+        self.z_edges = 1.0 - 2.0 * np.concatenate([[0], np.cumsum(counts)]) / self.n_cells
+        self.z_edges[-1] = -1.0
+        band = np.repeat(np.arange(n_bands), counts)
+        j = np.arange(self.n_cells) - self.offsets[band]
+        z = 0.5 * (self.z_edges[band] + self.z_edges[band + 1])
+        phi = -np.pi + (j + 0.5) * 2.0 * np.pi / counts[band]
+        z = np.where(counts[band] == 1, np.sign(z), z)         # polar caps: centre on the pole
+        rho = np.sqrt(np.clip(1.0 - z * z, 0.0, None))
+        #: (C,3) unit centre of each cell.
+        self.centers = np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+
+    def cell_of(self, d: np.ndarray) -> np.ndarray:
+        """Cell index (n,) of unit directions ``d`` (n,3)."""
+        # z_edges decrease; search on the negated, increasing edges.
+        band = np.searchsorted(-self.z_edges[1:-1], -d[:, 2], side="right")
+        phi = np.arctan2(d[:, 1], d[:, 0])
+        n = self.counts[band]
+        j = np.minimum((phi + np.pi) * (n / (2.0 * np.pi)), n - 1).astype(np.intp)
+        return self.offsets[band] + j
+
+
+@dataclass(frozen=True)
+class CoverageReport:
+    """How well the stored samples cover the sphere of directions.
+
+    Attributes:
+        fraction: occupied cells / all cells (0..1).
+        n_samples: samples stored.
+        n_cells: cells of the partition.
+        empty_cap_deg: angular radius (degrees) of the largest cap holding no stored sample.
+        empty_cap_center: (3,) unit centre of that cap, body axes of the current frame.
+        hint: what to do, in plain language.
+    """
+
+    fraction: float
+    n_samples: int
+    n_cells: int
+    empty_cap_deg: float
+    empty_cap_center: np.ndarray = field(repr=False)
+    hint: str = ""
+
+    def to_dict(self) -> dict:
+        return {"coverage": round(self.fraction, 4), "n_samples": self.n_samples,
+                "n_cells": self.n_cells, "empty_cap_deg": round(self.empty_cap_deg, 1),
+                "empty_cap_center": [round(float(v), 3) for v in self.empty_cap_center],
+                "hint": self.hint}
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Stored samples for a fit, oldest first: ``m`` (K,3) sensor unit, ``t`` (K,) s,
+    ``covariates`` {name: (K,)} (NaN where absent), ``cells`` (K,) cell index."""
+
+    m: np.ndarray
+    t: np.ndarray
+    covariates: dict
+    cells: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.t)
+
+    def subset(self, mask) -> "Snapshot":
+        return Snapshot(self.m[mask], self.t[mask],
+                        {k: v[mask] for k, v in self.covariates.items()}, self.cells[mask])
+
+    def to_track(self):
+        """The samples as a :class:`streamcal.track.Track` (for fitters that use covariates)."""
+        from ..track import Track
+
+        aux = {k: v for k, v in self.covariates.items()
+               if k not in ("temp", "ax", "ay", "az", "gx", "gy", "gz")}
+        temp = self.covariates.get("temp")
+        accel = _stack(self.covariates, ("ax", "ay", "az"))
+        gyro = _stack(self.covariates, ("gx", "gy", "gz"))
+        return Track.from_arrays(self.t, mag=self.m, accel=accel, gyro=gyro,
+                                 temp=temp if temp is not None and np.isfinite(temp).any() else None,
+                                 aux=aux or None)
+
+
+def _stack(cov, names):
+    if all(n in cov for n in names) and np.isfinite(cov[names[0]]).any():
+        return np.stack([cov[n] for n in names], axis=1)
+    return None
+
+
+class CoverageBuffer:
+    """Fixed-size buffer of samples binned by direction.
+
+    Args:
+        n_cells: about how many equal-area cells (100–500 is sensible).
+        slots: samples kept per cell.
+        min_spacing_deg: least angle between two stored samples of a cell.
+        covariates: names of per-sample covariates kept with each sample (``temp``, ``ax``…,
+            aux channel names); absent ones are stored as NaN.
+
+    Usage::
+
+        buf = CoverageBuffer(n_cells=300)
+        buf.set_frame(center=b, A=np.linalg.inv(K))
+        added = buf.insert(m, t, {"temp": temp})
+        buf.fraction, buf.report().hint, buf.snapshot()
+    """
+
+    def __init__(self, n_cells: int = 300, slots: int = 4, min_spacing_deg: float = 6.3,
+                 covariates: tuple[str, ...] = ("temp",)):
+        self.cells = SphereCells(n_cells)
+        self.slots = int(slots)
+        self.min_spacing_deg = float(min_spacing_deg)
+        self._cos_min = float(np.cos(np.radians(min_spacing_deg)))
+        # Cells about 2/3 of the spacing wide, for thinning large batches.
+        self._fine = SphereCells(max(n_cells, int(4.0 * np.pi / np.radians(min_spacing_deg / 1.5) ** 2)))
+        self.covariate_names = tuple(covariates)
+        C, S = self.cells.n_cells, self.slots
+        self._m = np.zeros((C, S, 3))
+        self._d = np.zeros((C, S, 3))
+        self._t = np.full((C, S), -np.inf)
+        self._cov = np.full((C, S, len(self.covariate_names)), np.nan)
+        self._used = np.zeros((C, S), dtype=bool)
+        self.center = np.zeros(3)
+        self.A = np.eye(3)
+
+    # -- frame ----------------------------------------------------------------------------------
+    def directions(self, m: np.ndarray) -> np.ndarray:
+        """Unit directions (n,3) of samples ``m`` (n,3) in the current frame."""
+        x = (m - self.center) @ self.A.T
+        norm = np.linalg.norm(x, axis=1, keepdims=True)
+        return x / np.where(norm > 0, norm, 1.0)
+
+    def set_frame(self, center, A) -> None:
+        """Use ``x = A (m − center)`` for directions from now on and re-bin what is stored."""
+        self.center = np.asarray(center, dtype=float).reshape(3).copy()
+        self.A = np.asarray(A, dtype=float).reshape(3, 3).copy()
+        snap = self.snapshot()
+        self.clear()
+        if len(snap):
+            self.insert(snap.m, snap.t, snap.covariates)
+
+    # -- contents -------------------------------------------------------------------------------
+    @property
+    def capacity(self) -> int:
+        return self._used.size
+
+    @property
+    def n_samples(self) -> int:
+        return int(self._used.sum())
+
+    @property
+    def occupied(self) -> np.ndarray:
+        """(C,) bool: cells holding at least one sample."""
+        return self._used.any(axis=1)
+
+    @property
+    def fraction(self) -> float:
+        """Fraction of the sphere covered: occupied cells / cells."""
+        return float(self.occupied.mean())
+
+    def clear(self) -> None:
+        self._used[:] = False
+        self._t[:] = -np.inf
+        self._cov[:] = np.nan
+
+    def forget_before(self, t_cut: float) -> int:
+        """Drop samples older than ``t_cut`` (s); returns how many were dropped."""
+        old = self._used & (self._t < t_cut)
+        self._used &= ~old
+        self._t[old] = -np.inf
+        return int(old.sum())
+
+    def insert(self, m, t, covariates=None) -> tuple[int, int]:
+        """Offer samples ``m`` (n,3), times ``t`` (n,) s, ``covariates`` {name: (n,)}.
+
+        Returns ``(stored, new_cells)``: samples that took a slot (new or refreshed) and cells
+        that were empty before. Rows with non-finite ``m`` are ignored.
+        """
+        m = np.asarray(m, dtype=float).reshape(-1, 3)
+        t = np.asarray(t, dtype=float).reshape(-1)
+        ok = np.isfinite(m).all(axis=1)
+        cov = np.full((len(m), len(self.covariate_names)), np.nan)
+        for k, name in enumerate(self.covariate_names):
+            if covariates is not None and covariates.get(name) is not None:
+                cov[:, k] = covariates[name]
+        if not ok.all():
+            m, t, cov = m[ok], t[ok], cov[ok]
+        if not len(m):
+            return 0, 0
+        d = self.directions(m)
+        if len(m) > 2 * self._fine.n_cells:
+            # Large batch: keep the newest sample per fine cell (cells narrower than the spacing),
+            # so the rounds below cost O(fine cells), not O(batch).
+            keep = _newest_per_key(np.arange(len(m)), self._fine.cell_of(d), self._fine.n_cells)
+            m, t, cov, d = m[keep], t[keep], cov[keep], d[keep]
+        cell = self.cells.cell_of(d)
+        was_occupied = self.occupied
+        stored = 0
+        pending = np.arange(len(m))
+        # Round r stores at most one sample per cell: the newest one that is far from every
+        # stored sample of its cell. Later rounds see what earlier rounds stored.
+        for _ in range(self.slots + 1):
+            if not len(pending):
+                break
+            pc = cell[pending]
+            cos = np.einsum("nsk,nk->ns", self._d[pc], d[pending])
+            close = self._used[pc] & (cos > self._cos_min)
+            far = ~close.any(axis=1)
+            if not far.any():
+                break
+            pick = _newest_per_key(pending[far], cell[pending[far]], self.cells.n_cells)
+            pcell = cell[pick]
+            # Slot: a free one, else the oldest (free slots have t = −inf).
+            slot = np.argmin(self._t[pcell], axis=1)
+            self._write(pcell, slot, m[pick], d[pick], t[pick], cov[pick])
+            stored += len(pick)
+            keep = np.ones(len(m), dtype=bool)
+            keep[pick] = False
+            pending = pending[keep[pending]]
+        if len(pending):
+            stored += self._refresh(pending, cell, m, d, t, cov)
+        new_cells = int((self.occupied & ~was_occupied).sum())
+        return stored, new_cells
+
+    def _refresh(self, pending, cell, m, d, t, cov) -> int:
+        pc = cell[pending]
+        cos = np.einsum("nsk,nk->ns", self._d[pc], d[pending])
+        close = self._used[pc] & (cos > self._cos_min)
+        only_one = close.sum(axis=1) == 1
+        nearest = np.argmax(close, axis=1)
+        newer = t[pending] > self._t[pc, nearest]
+        sel = only_one & newer
+        if not sel.any():
+            return 0
+        # One refresh per cell and block: two refreshes could land within the spacing.
+        idx = pending[sel]
+        pick = _newest_per_key(idx, cell[idx], self.cells.n_cells)
+        slot = nearest[sel][np.searchsorted(idx, pick)]
+        self._write(cell[pick], slot, m[pick], d[pick], t[pick], cov[pick])
+        return len(pick)
+
+    def _write(self, c, s, m, d, t, cov) -> None:
+        self._m[c, s] = m
+        self._d[c, s] = d
+        self._t[c, s] = t
+        self._cov[c, s] = cov
+        self._used[c, s] = True
+
+    def snapshot(self) -> Snapshot:
+        """Copies of the stored samples, oldest first."""
+        c, s = np.nonzero(self._used)
+        order = np.argsort(self._t[c, s], kind="stable")
+        c, s = c[order], s[order]
+        cov = {name: self._cov[c, s, k].copy() for k, name in enumerate(self.covariate_names)}
+        return Snapshot(self._m[c, s].copy(), self._t[c, s].copy(), cov, c.copy())
+
+    # -- figures --------------------------------------------------------------------------------
+    def report(self, n_probe: int = 2000) -> CoverageReport:
+        """Coverage figures: occupied fraction, the largest empty cap and a hint."""
+        d = self._d[self._used]
+        center, radius = largest_empty_cap(d, n_probe)
+        return CoverageReport(self.fraction, len(d), self.cells.n_cells, radius, center,
+                              hint(center, radius, self.fraction))
+
+
+def _newest_per_key(idx: np.ndarray, key: np.ndarray, n_keys: int) -> np.ndarray:
+    """Of the sample indices ``idx`` (increasing = newer), the newest one per ``key`` value,
+    sorted by key."""
+    newest = np.full(n_keys, -1, dtype=np.intp)
+    np.maximum.at(newest, key, idx)
+    return newest[newest >= 0]
+
+
+def fibonacci_sphere(n: int) -> np.ndarray:
+    """``n`` nearly uniform unit vectors (n,3) on a Fibonacci spiral."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - 2.0 * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    rho = np.sqrt(1.0 - z * z)
+    return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+
+
+def fibonacci_cap(n: int, cos_radius: float) -> np.ndarray:
+    """``n`` nearly uniform unit vectors (n,3) over the cap ``z ≥ cos_radius``."""
+    i = np.arange(n) + 0.5
+    z = 1.0 - (1.0 - cos_radius) * i / n
+    phi = np.pi * (1.0 + np.sqrt(5.0)) * i
+    rho = np.sqrt(1.0 - z * z)
+    return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
+
+
+def largest_empty_cap(d: np.ndarray, n_probe: int = 2000) -> tuple[np.ndarray, float]:
+    """Centre (3,) and angular radius (degrees) of the largest spherical cap that contains none
+    of the unit directions ``d`` (n,3): the probe point farthest from its nearest sample over a
+    Fibonacci grid of ``n_probe`` points, then refined on a finer local grid around it."""
+    if not len(d):
+        return np.array([0.0, 0.0, -1.0]), 180.0
+    probes = fibonacci_sphere(n_probe)
+    best, cos_best = _farthest(probes, d)
+    # Refine on a dense grid over a cap of two grid spacings around the best probe.
+    spacing = np.sqrt(4.0 * np.pi / n_probe)
+    local = fibonacci_cap(n_probe // 4, np.cos(2.0 * spacing)) @ _rotation_to(best).T
+    best2, cos2 = _farthest(np.vstack([best[None, :], local]), d)
+    return best2, float(np.degrees(np.arccos(np.clip(cos2, -1.0, 1.0))))
+
+
+def _farthest(probes, d):
+    nearest = np.empty(len(probes))
+    for start in range(0, len(probes), 512):                 # bounded temporary memory
+        nearest[start:start + 512] = (probes[start:start + 512] @ d.T).max(axis=1)
+    k = int(np.argmin(nearest))
+    return probes[k], nearest[k]
+
+
+def _rotation_to(v):
+    """Rotation matrix taking +z to the unit vector ``v``."""
+    z = np.array([0.0, 0.0, 1.0])
+    axis = np.cross(z, v)
+    s, c = np.linalg.norm(axis), float(v @ z)
+    if s < 1e-12:
+        return np.eye(3) if c > 0 else np.diag([1.0, -1.0, -1.0])
+    k = axis / s
+    Kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + s * Kx + (1 - c) * Kx @ Kx
+
+
+_AXES = (("the nose (+X)", "the tail (−X)"), ("the left side (+Y)", "the right side (−Y)"),
+         ("the top (+Z)", "the underside (−Z)"))
+
+
+def describe_direction(v) -> str:
+    """Body-axis words for a unit vector: its (at most two) largest axes with |component| ≥
+    sin 22.5°."""
+    v = np.asarray(v, dtype=float)
+    order = np.argsort(-np.abs(v))
+    parts = [_AXES[k][0 if v[k] > 0 else 1] for k in order[:2] if abs(v[k]) >= 0.38]
+    return " and ".join(parts) if parts else _AXES[order[0]][0 if v[order[0]] > 0 else 1]
+
+
+def hint(center, radius_deg: float, fraction: float) -> str:
+    """What to do to fill the largest empty cap, in plain language."""
+    if radius_deg < 20.0:
+        return "coverage is good: no action needed"
+    where = describe_direction(center)
+    size = "half the sphere" if radius_deg >= 80 else f"a {radius_deg:.0f}° cap"
+    return (f"field directions around {where} are missing ({size}): turn the board to point "
+            f"{where} along the local field (north and down in the northern hemisphere, north "
+            f"and up in the southern), then rotate it slowly about that direction")

@@ -1,0 +1,119 @@
+"""When to fit: first when coverage suffices, later when new information arrived or the field
+disagrees with the calibration in use (the environment changed).
+
+Drift statistic: over the last ``window`` magnetometer samples, the median of
+``|‖K⁻¹(m − b)‖ − 1|`` (relative field error) under the calibration in use. Its limit is
+``max(k · rms / radius, floor)``: for Gaussian errors the median of |e| is 0.67 σ, so with the
+default ``k = 4`` a correct calibration exceeds it essentially never, while a new hard-iron
+offset of a few percent of the field does at once. The window is a preallocated ring.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class FitRequest:
+    """Why a fit is wanted now (``reason``) with the figures that triggered it."""
+
+    reason: str
+    data: dict
+
+
+class RecalPolicy:
+    """Decide when to fit.
+
+    Args:
+        min_coverage: sphere fraction needed for a first fit.
+        min_samples: stored samples needed for a first fit.
+        new_cells: refit after this fraction of the cells was newly filled since the last fit…
+        new_samples: …or this fraction of the buffer capacity was newly stored.
+        min_interval_s: least sample time between fit requests (s).
+        window: samples in the drift window.
+        drift_k, drift_floor: drift limit ``max(k · rms/radius, floor)`` (relative units).
+    """
+
+    def __init__(self, *, min_coverage: float = 0.35, min_samples: int = 100,
+                 new_cells: float = 0.05, new_samples: float = 0.25, min_interval_s: float = 2.0,
+                 window: int = 200, drift_k: float = 4.0, drift_floor: float = 0.03):
+        self.min_coverage = min_coverage
+        self.min_samples = min_samples
+        self.new_cells = new_cells
+        self.new_samples = new_samples
+        self.min_interval_s = min_interval_s
+        self.drift_k = drift_k
+        self.drift_floor = drift_floor
+        self._err = np.zeros(int(window))
+        self._t = np.zeros(int(window))
+        self.reset_counts()
+        self.reset_window()
+        self.last_request_t = -np.inf
+
+    # -- new information ----------------------------------------------------------------------
+    def reset_counts(self) -> None:
+        self.cells_since = 0
+        self.stored_since = 0
+
+    def note(self, stored: int, new_cells: int) -> None:
+        """Count what the buffer gained from the last block."""
+        self.stored_since += int(stored)
+        self.cells_since += int(new_cells)
+
+    def want_fit(self, *, calibrated: bool, coverage: float, n_samples: int, n_cells: int,
+                 capacity: int, t_now: float) -> FitRequest | None:
+        """A :class:`FitRequest` when a fit should start now, else None."""
+        if t_now - self.last_request_t < self.min_interval_s:
+            return None
+        if coverage < self.min_coverage or n_samples < self.min_samples:
+            return None
+        data = {"coverage": round(coverage, 4), "n_samples": n_samples,
+                "new_cells": self.cells_since, "new_samples": self.stored_since}
+        if not calibrated and self.last_request_t == -np.inf:
+            return FitRequest("coverage_reached", data)
+        if self.cells_since >= max(1, self.new_cells * n_cells):
+            return FitRequest("new_cells", data)
+        if self.stored_since >= max(1, self.new_samples * capacity):
+            return FitRequest("new_samples", data)
+        return None
+
+    def requested(self, t_now: float) -> None:
+        self.last_request_t = t_now
+        self.reset_counts()
+
+    def restart(self) -> None:
+        """Forget the fit history (after the environment changed): the next fit is a first one."""
+        self.last_request_t = -np.inf
+        self.reset_counts()
+        self.reset_window()
+
+    # -- drift --------------------------------------------------------------------------------
+    def reset_window(self) -> None:
+        self._n = 0
+
+    def observe(self, rel_err: np.ndarray, t: np.ndarray) -> None:
+        """Push relative errors ``|‖x‖ − 1|`` (n,) at times ``t`` (n,) s into the window."""
+        W = len(self._err)
+        rel_err, t = rel_err[-W:], t[-W:]
+        k = len(rel_err)
+        pos = (self._n + np.arange(k)) % W
+        self._err[pos] = rel_err
+        self._t[pos] = t
+        self._n += k
+
+    def drift_limit(self, rms: float, radius: float) -> float:
+        rel = rms / radius if np.isfinite(rms) and radius > 0 else 0.0
+        return max(self.drift_k * rel, self.drift_floor)
+
+    def drift(self, rms: float, radius: float) -> tuple[float, float, float] | None:
+        """``(statistic, limit, onset_t)`` when the full window disagrees with the calibration
+        (statistic > limit), else None; ``onset_t`` is the time of the window's first sample
+        beyond the limit (s)."""
+        if self._n < len(self._err):
+            return None
+        stat = float(np.median(self._err))
+        limit = self.drift_limit(rms, radius)
+        if stat > limit:
+            return stat, limit, float(self._t[self._err > limit].min())
+        return None

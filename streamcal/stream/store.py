@@ -1,0 +1,160 @@
+"""The state directory: the calibration in use and a bounded history of accepted calibrations.
+
+Layout::
+
+    STATE_DIR/            0700
+      calibration.json    0600, the calibration in use (SPEC §2), replaced atomically
+      history/NNNN.json   0600, the last ``keep`` accepted calibrations, NNNN increasing
+
+Every write goes through :func:`streamcal.atomic.atomic_write_text` (temp file, fsync, rename),
+so a crash at any instant leaves a complete file. Loading validates and, if the current file is
+damaged or missing, falls back to the newest good history file, saying why. Symbolic links are
+refused everywhere (a link planted in a state dir must not redirect our writes or reads).
+"""
+from __future__ import annotations
+
+import os
+import re
+import stat
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from ..calibration import MAX_FILE_BYTES, Calibration
+from ..errors import CalibrationFileError, InputError
+
+CURRENT = "calibration.json"
+HISTORY = "history"
+_HISTORY_NAME = re.compile(r"^(\d{4,})\.json$")
+_TEMP_NAME = re.compile(r"^\..+\.tmp$")
+#: Temp files older than this (s) are leftovers of a crash.
+_STALE_TEMP_S = 60.0
+
+
+@dataclass
+class LoadResult:
+    """What :meth:`CalibrationStore.load` found: the calibration (or None), the file it came
+    from, and the problems met on the way (one message per rejected file)."""
+
+    calibration: Calibration | None
+    path: Path | None
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def fell_back(self) -> bool:
+        return self.path is not None and self.path.name != CURRENT
+
+
+class CalibrationStore:
+    """Atomic calibration file plus bounded history in a private state directory.
+
+    Usage::
+
+        store = CalibrationStore("~/.local/state/streamcal", keep=20)
+        result = store.load()          # .calibration, .path, .problems
+        store.save(cal)                # history/NNNN.json, then calibration.json
+    """
+
+    def __init__(self, state_dir: str | os.PathLike, keep: int = 20):
+        if keep < 1:
+            raise ValueError(f"keep must be ≥ 1, got {keep}")
+        self.dir = Path(os.path.expanduser(os.fspath(state_dir)))
+        self.keep = int(keep)
+        self.history_dir = self.dir / HISTORY
+        for d in (self.dir, self.history_dir):
+            _private_dir(d)
+        self._clean_temp_files()
+
+    @property
+    def current_path(self) -> Path:
+        return self.dir / CURRENT
+
+    def history(self) -> list[Path]:
+        """History files, oldest first."""
+        found = []
+        for entry in os.scandir(self.history_dir):
+            match = _HISTORY_NAME.match(entry.name)
+            if match and entry.is_file(follow_symlinks=False):
+                found.append((int(match.group(1)), Path(entry.path)))
+        return [p for _, p in sorted(found)]
+
+    def save(self, cal: Calibration) -> Path:
+        """Record ``cal`` in the history and make it the current calibration; returns the
+        history file. Old history beyond ``keep`` files is removed."""
+        text = cal.to_json() + "\n"
+        files = self.history()
+        number = int(_HISTORY_NAME.match(files[-1].name).group(1)) + 1 if files else 1
+        entry = self.history_dir / f"{number:04d}.json"
+        _write(entry, text)
+        _write(self.current_path, text)
+        for old in self.history()[:-self.keep]:
+            old.unlink(missing_ok=True)
+        return entry
+
+    def load(self) -> LoadResult:
+        """The current calibration, or the newest good history file if the current one is
+        missing or damaged; ``problems`` says why each rejected file was rejected."""
+        problems = []
+        for path in [self.current_path] + self.history()[::-1]:
+            if not os.path.lexists(path):
+                problems.append(f"{path}: missing")
+                continue
+            try:
+                return LoadResult(_read(path), path, problems)
+            except CalibrationFileError as exc:
+                problems.append(str(exc))
+        return LoadResult(None, None, problems)
+
+    def _clean_temp_files(self) -> None:
+        # Leftovers of writes interrupted by a crash (the renamed-over files are intact); only
+        # old ones, so that a write in progress in another process is left alone.
+        now = time.time()
+        for d in (self.dir, self.history_dir):
+            for entry in os.scandir(d):
+                if (_TEMP_NAME.match(entry.name) and entry.is_file(follow_symlinks=False)
+                        and now - entry.stat(follow_symlinks=False).st_mtime > _STALE_TEMP_S):
+                    try:
+                        os.unlink(entry.path)
+                    except FileNotFoundError:
+                        pass
+
+
+def _private_dir(path: Path) -> None:
+    if path.is_symlink():
+        raise InputError(f"{path}: state directory is a symbolic link; refusing to use it")
+    if not path.exists():
+        os.makedirs(path, mode=0o700, exist_ok=True)
+    info = os.lstat(path)
+    if not stat.S_ISDIR(info.st_mode):
+        raise InputError(f"{path}: exists and is not a directory")
+    if hasattr(os, "getuid") and info.st_uid != os.getuid():
+        raise InputError(f"{path}: state directory belongs to another user (uid {info.st_uid})")
+    if stat.S_IMODE(info.st_mode) & 0o077:
+        os.chmod(path, 0o700)
+
+
+def _write(path: Path, text: str) -> None:
+    try:
+        from ..atomic import atomic_write_text
+
+        atomic_write_text(path, text, mode=0o600)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot write calibration ({exc})") from None
+
+
+def _read(path: Path) -> Calibration:
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+    except OSError as exc:
+        reason = "is a symbolic link; refusing to follow it" if os.path.islink(path) \
+            else f"cannot read ({exc.strerror or exc})"
+        raise CalibrationFileError(f"{path}: {reason}") from None
+    with os.fdopen(fd, "rb") as handle:
+        raw = handle.read(MAX_FILE_BYTES + 1)
+    if len(raw) > MAX_FILE_BYTES:
+        raise CalibrationFileError(f"{path}: too large for a calibration file")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise CalibrationFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    return Calibration.from_json(text, source=str(path))
