@@ -63,6 +63,8 @@ class I2CSource:
     Args:
         driver: an initialised driver.
         block_size: samples per block (a block may be shorter: timeout, outage, end of a fake).
+        rate_hz: poll rate while no new sample is ready; default twice the sensor's rate
+            (a rate below the magnetometer's 100 Hz loses samples, counted as overruns).
         block_timeout: seconds to wait for a full block before yielding what there is.
         max_outage_s: give up (re-raise the :class:`DeviceIOError`) when the sensor has not
             answered for this long; None = keep trying forever (a service).
@@ -71,11 +73,15 @@ class I2CSource:
         sleep, clock: injected; default the driver's.
     """
 
-    def __init__(self, driver: MPU9250, *, block_size: int = 50, block_timeout: float = 1.0,
+    def __init__(self, driver: MPU9250, *, block_size: int = 50, rate_hz: float | None = None,
+                 block_timeout: float = 1.0,
                  max_outage_s: float | None = 30.0, retry_interval_s: float = 0.5,
                  source: str = "", sleep: Callable[[float], None] | None = None,
                  clock: Callable[[], float] | None = None):
         self.driver, self.block_size, self.block_timeout = driver, block_size, block_timeout
+        if rate_hz is not None and not rate_hz > 0:
+            raise InputError(f"--rate must be a positive number of Hz, got {rate_hz}")
+        self.poll_s = None if rate_hz is None else 1.0 / rate_hz
         self.max_outage_s, self.retry_interval_s, self.source = max_outage_s, retry_interval_s, source
         self._sleep = sleep or driver._sleep
         self._clock = clock or driver.clock
@@ -89,7 +95,7 @@ class I2CSource:
         while True:
             try:
                 block = self.driver.read_block(self.block_size, timeout=self.block_timeout,
-                                               source=self.source)
+                                               source=self.source, poll_s=self.poll_s)
             except DeviceIOError as e:
                 now = self._clock()
                 if outage_since is None:
@@ -111,7 +117,8 @@ class I2CSource:
 
 
 def open_i2c_source(spec, address: int = R.MPU_ADDRESS_AD0_LOW, *, block_size: int = 50,
-                    fake_kwargs: dict | None = None, **driver_kwargs) -> I2CSource:
+                    rate_hz: float | None = None, fake_kwargs: dict | None = None,
+                    **driver_kwargs) -> I2CSource:
     """Bus from ``spec`` (see :func:`open_bus`), driver brought up, source ready to iterate.
 
     With a fake bus the driver's clock is the track's clock, so block times are track times.
@@ -124,4 +131,4 @@ def open_i2c_source(spec, address: int = R.MPU_ADDRESS_AD0_LOW, *, block_size: i
             driver_kwargs.setdefault("sleep", lambda s: None)   # step mode: time is the track's
     driver = MPU9250(bus, address, **driver_kwargs)
     label = spec if fake else f"i2c:{int(spec)}:0x{address:02X}"
-    return I2CSource(driver, block_size=block_size, source=label)
+    return I2CSource(driver, block_size=block_size, rate_hz=rate_hz, source=label)

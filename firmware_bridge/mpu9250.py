@@ -406,14 +406,16 @@ class MPU9250:
         return Reading(float(block.t[0]), block.mag[0], block.accel[0], block.gyro[0],
                        float(block.temp[0]))
 
-    def read_block(self, n: int, timeout: float | None = None, source: str = "") -> SampleBlock:
-        """Up to ``n`` samples, polling at twice the magnetometer rate; decoding is vectorized.
+    def read_block(self, n: int, timeout: float | None = None, source: str = "",
+                   poll_s: float | None = None) -> SampleBlock:
+        """Up to ``n`` samples, polling every ``poll_s`` seconds while nothing is new (default
+        half a magnetometer period); decoding is vectorized.
 
         Returns early (a shorter block) after ``timeout`` seconds on the driver clock — default
         1 s plus 2 magnetometer periods per sample — or as many empty polls, whichever comes
         first. An I/O error after some samples returns them and is raised by the next call."""
         period = 1.0 / self.mag_rate_hz if self.has_magnetometer else 1.0 / self.imu_rate_hz
-        poll = period / _POLLS_PER_PERIOD
+        poll = period / _POLLS_PER_PERIOD if poll_s is None else poll_s
         timeout = 1.0 + 2.0 * n * period if timeout is None else timeout
         max_empty = int(timeout / poll) + 1
         got, empty, t0 = [], 0, self.clock()

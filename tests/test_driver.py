@@ -281,6 +281,28 @@ def test_clock_mode_polling_at_twice_the_rate_keeps_up():
     assert d.stats["overruns"] == 0 and d.stats["empty_polls"] > 0
 
 
+def test_slow_polling_in_clock_mode_counts_overruns():
+    now = [0.0]
+
+    def sleep(s):
+        now[0] += s
+    bus = FakeMPU9250Bus(**make_track(400), clock=lambda: now[0])
+    src = I2CSource(MPU9250(bus, clock=bus.now, sleep=sleep), rate_hz=40.0, block_size=10)
+    block = next(iter(src))
+    assert len(block) == 10
+    assert src.driver.stats["overruns"] == bus.counters.dor_reported > 0
+    assert bus.counters.skipped >= 10
+
+
+def test_8hz_mode_selectable():
+    bus = FakeMPU9250Bus(**make_track(50))
+    d = driver(bus, mag_mode=R.AkMode.CONTINUOUS_8HZ)
+    assert bus.read_byte_data(R.AK8963_ADDRESS, R.AkReg.CNTL1) == 0x12
+    assert d.mag_rate_hz == 8.0 and d.read_sample() is not None
+    with pytest.raises(ValueError):
+        driver(FakeMPU9250Bus(**make_track(50)), mag_mode=R.AkMode.SINGLE)
+
+
 def test_periodic_health_check():
     d = driver(FakeMPU9250Bus(**make_track()), health_every=50)
     d.read_block(150)
