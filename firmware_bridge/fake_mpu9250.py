@@ -296,6 +296,7 @@ class FakeMPU9250Bus:
         for reg, value in R.MPU_RESET_VALUES.items():
             self._mpu[reg] = value
         self._mpu[R.MpuReg.WHO_AM_I] = self.who_am_i
+        self._imu_seen = -1
 
     def _mpu_write(self, reg: int, value: int) -> None:
         if reg == R.MpuReg.PWR_MGMT_1 and R.H_RESET.get(value):
@@ -308,15 +309,21 @@ class FakeMPU9250Bus:
     def _mpu_read(self, reg: int, length: int) -> list[int]:
         regs = [(reg + i) & 0x7F for i in range(length)]
         view = bytearray(self._mpu)
-        if any(r in _MPU_DATA for r in regs):
-            view[_MPU_DATA.start:_MPU_DATA.stop] = self._imu_bytes(
-                advance=self._clock is None and not self.has_mag)
+        data = any(r in _MPU_DATA for r in regs)
+        if data and self._clock is None and not self.has_mag \
+                and self._imu_next < len(self._imu_clock_t):
+            self._tau = self._imu_clock_t[self._imu_next]   # step mode without magnetometer
+            self._imu_next += 1
+        if R.MpuReg.INT_STATUS in regs:
+            k = int(np.searchsorted(self._imu_clock_t, self.now(), side="right")) - 1
+            ready = k > self._imu_seen and R.RAW_RDY_EN.get(self._mpu[R.MpuReg.INT_ENABLE])
+            view[R.MpuReg.INT_STATUS] = R.RAW_DATA_RDY_INT.set(0, int(bool(ready)))
+            self._imu_seen = k                               # cleared by this read
+        if data:
+            view[_MPU_DATA.start:_MPU_DATA.stop] = self._imu_bytes()
         return [view[r] for r in regs]
 
-    def _imu_bytes(self, advance: bool) -> bytes:
-        if advance and self._imu_next < len(self._imu_clock_t):
-            self._tau = self._imu_clock_t[self._imu_next]
-            self._imu_next += 1
+    def _imu_bytes(self) -> bytes:
         if R.SLEEP.get(self._mpu[R.MpuReg.PWR_MGMT_1]):
             return bytes(R.IMU_BURST_LEN)
         tau = self.now()

@@ -37,7 +37,7 @@ from typing import Callable
 
 import numpy as np
 
-from streamcal.errors import StreamcalError
+from streamcal.errors import InputError, StreamcalError
 
 from . import registers as R
 from .sample import SampleBlock
@@ -125,15 +125,15 @@ class MPU9250:
                  clock: Callable[[], float] = time.monotonic, use_i2c_rdwr: bool = False,
                  health_every: int = 1000, init: bool = True):
         if address not in R.MPU_ADDRESSES:
-            raise ValueError(f"MPU-9250 address must be 0x68 or 0x69, got 0x{address:02X}")
+            raise InputError(f"MPU-9250 address must be 0x68 or 0x69, got 0x{address:02X}")
         if accel_fs not in range(4) or gyro_fs not in range(4):
-            raise ValueError("accel_fs and gyro_fs are codes 0..3")
+            raise InputError("accel_fs and gyro_fs are codes 0..3")
         if dlpf not in R.DLPF_BANDWIDTH_HZ:
-            raise ValueError(f"dlpf must be one of {sorted(R.DLPF_BANDWIDTH_HZ)} (1 kHz path)")
+            raise InputError(f"dlpf must be one of {sorted(R.DLPF_BANDWIDTH_HZ)} (1 kHz path)")
         if mag_mode not in R.AK_CONTINUOUS_RATE_HZ:
-            raise ValueError("mag_mode must be AkMode.CONTINUOUS_8HZ or AkMode.CONTINUOUS_100HZ")
+            raise InputError("mag_mode must be AkMode.CONTINUOUS_8HZ or AkMode.CONTINUOUS_100HZ")
         if not 0 <= sample_rate_div <= 255:
-            raise ValueError("sample_rate_div is a byte (0..255)")
+            raise InputError("sample_rate_div is a byte (0..255)")
         self.bus, self.address = bus, address
         self.accel_fs, self.gyro_fs, self.dlpf = accel_fs, gyro_fs, dlpf
         self.sample_rate_div, self.mag_mode = sample_rate_div, R.AkMode(mag_mode)
@@ -175,7 +175,9 @@ class MPU9250:
                       R.A_DLPFCFG.set(0, self.dlpf)))
 
     def _int_pin_cfg(self) -> int:
-        return R.BYPASS_EN.set(0, 1) if self.has_magnetometer else 0
+        # Bypass on for every chip (harmless on an MPU-6500): a set bit that a reset clears is
+        # what lets each data burst prove the chip kept its configuration.
+        return R.BYPASS_EN.set(0, 1)
 
     def _cntl1(self) -> int:
         return R.AK_BIT_16.set(R.AK_MODE.set(0, self.mag_mode), 1)
@@ -275,6 +277,7 @@ class MPU9250:
             self._write(a, reg, value)
         self._write(a, R.MpuReg.USER_CTRL, 0x00)           # I2C master off, so bypass works
         self._write(a, R.MpuReg.INT_PIN_CFG, self._int_pin_cfg())
+        self._write(a, R.MpuReg.INT_ENABLE, R.RAW_RDY_EN.set(0, 1))  # INT_STATUS.RAW_DATA_RDY
         got = self.read_registers(a, R.MpuReg.SMPLRT_DIV, 5)
         if got != self._config_bytes():
             raise DeviceError(f"configuration did not stick at 0x{a:02X}: SMPLRT_DIV..ACCEL_CONFIG2 "
@@ -391,6 +394,9 @@ class MPU9250:
         imu = self.read_registers(self.address, _IMU_BURST_START, _IMU_LEAD + R.IMU_BURST_LEN)
         if imu[0] != self._int_pin_cfg():
             self._suspect = True          # INT_PIN_CFG at its reset value: the MPU was reset
+            return None
+        if mag is None and not R.RAW_DATA_RDY_INT.get(imu[R.MpuReg.INT_STATUS - _IMU_BURST_START]):
+            self.stats["empty_polls"] += 1    # no magnetometer to pace us: wait for new IMU data
             return None
         self.stats["samples"] += 1
         self._since_health += 1

@@ -120,10 +120,23 @@ def test_mpu6500_has_no_magnetometer_and_says_so():
     assert not d.has_magnetometer
     block = d.read_block(20)
     assert len(block) == 20 and np.all(np.isnan(block.mag))
+    np.testing.assert_array_equal(block.t, tr["t"][:20])     # paced by RAW_DATA_RDY: no repeats
     k = np.searchsorted(tr["t"], block.t)
     assert np.all(np.abs(block.accel - tr["accel"][k]) <= bounds_accel(d))
     with pytest.raises(OSError):              # nothing at 0x0C, as on the real part
         bus.read_byte_data(R.AK8963_ADDRESS, 0)
+
+
+def test_mpu6500_reset_detected_too():
+    tr = make_track(800)
+    bus = FakeMPU9250Bus(**tr, who_am_i=0x70, faults=Faults(self_resets=[(1.0, "mpu")]))
+    d = driver(bus, require_magnetometer=False, accel_fs=3)
+    blocks = list(I2CSource(d, block_size=100))             # ends with the track: no repeats
+    t = np.concatenate([b.t for b in blocks])
+    assert d.stats["reinits"] == 1 and np.all(np.diff(t) > 0) and t[-1] == tr["t"][-1]
+    for b in blocks:
+        k = np.searchsorted(tr["t"], b.t)
+        assert np.all(np.abs(b.accel - tr["accel"][k]) <= bounds_accel(d))
 
 
 def bounds_accel(d):
@@ -299,7 +312,7 @@ def test_8hz_mode_selectable():
     d = driver(bus, mag_mode=R.AkMode.CONTINUOUS_8HZ)
     assert bus.read_byte_data(R.AK8963_ADDRESS, R.AkReg.CNTL1) == 0x12
     assert d.mag_rate_hz == 8.0 and d.read_sample() is not None
-    with pytest.raises(ValueError):
+    with pytest.raises(InputError, match="mag_mode"):
         driver(FakeMPU9250Bus(**make_track(50)), mag_mode=R.AkMode.SINGLE)
 
 

@@ -205,3 +205,13 @@ def test_from_track():
     for b in (bus, direct):
         start_mag(b)
     assert bus.read_i2c_block_data(AK, 2, 8) == direct.read_i2c_block_data(AK, 2, 8)
+
+
+def test_raw_data_ready_flag_follows_new_imu_rows():
+    now = [0.0]
+    bus = FakeMPU9250Bus(**make_track(), clock=lambda: now[0])
+    status = lambda: bus.read_byte_data(MPU, R.MpuReg.INT_STATUS) & 1   # noqa: E731
+    assert status() == 0                                   # RAW_RDY_EN not set
+    bus.write_byte_data(MPU, R.MpuReg.INT_ENABLE, 0x01)
+    now[0] += 0.0051                                       # one 200 Hz row later
+    assert status() == 1 and status() == 0                 # cleared by reading
