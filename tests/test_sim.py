@@ -356,3 +356,29 @@ def test_paper_protocol_statistics():
     np.testing.assert_array_equal(paper_protocol(seed=4)[0], m)
     bs = np.array([paper_protocol(n=1, seed=s)[2] for s in range(400)])
     assert abs(bs.mean() - 20) < 2.5 and abs(bs.std() - 20) < 2.5
+
+
+# ---------------------------------------------------------------- the bundled demo track
+
+def test_bundled_demo_track_is_reproducible_and_does_not_tell_the_effect():
+    import importlib.util
+    from pathlib import Path
+
+    from streamcal.track import Track
+    root = Path(__file__).resolve().parent.parent
+    path = root / "streamcal" / "data" / "demo_track.csv.gz"
+    assert path.stat().st_size <= 1.5e6
+    spec = importlib.util.spec_from_file_location("make_demo_track",
+                                                  root / "tools" / "make_demo_track.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    made = tool.make()
+    track = Track.read(path)
+    assert set(track.columns) == set(made.track.columns)
+    for name, col in made.track.columns.items():
+        np.testing.assert_allclose(track.columns[name], col, atol=1e-9, equal_nan=True)
+    meta = " ".join(f"{k} {v}" for k, v in track.metadata.items()).lower()
+    assert "simulated" in meta and str(tool.SEED) in meta
+    assert not any(name in meta for name in ("temperature_offset", "temperature", "effect"))
+    assert np.ptp(made.truth.temp) > 12 and len(made.truth.outlier_spans) == 1
+    assert abs(track.t[-1] - 180) < 0.1 and track.has("motor_current")

@@ -23,6 +23,7 @@ Coverage patterns (the set of unit field directions ``x = R⁻¹ B̂`` seen in t
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.signal import lfilter
@@ -55,16 +56,26 @@ def activity_envelope(t: np.ndarray, pauses: np.ndarray, edge_s: float = 0.3) ->
     return 1.0 - still
 
 
+def _qmul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton products of scalar-last quaternions (..., 4). Written out because scipy's
+    ``Rotation.__mul__`` costs ~0.2 s per 10⁵ compositions here, 30× this."""
+    ax, ay, az, aw = np.moveaxis(a, -1, 0)
+    bx, by, bz, bw = np.moveaxis(b, -1, 0)
+    return np.stack([aw * bx + ax * bw + ay * bz - az * by,
+                     aw * by - ax * bz + ay * bw + az * bx,
+                     aw * bz + ax * by - ay * bx + az * bw,
+                     aw * bw - ax * bx - ay * by - az * bz], axis=-1)
+
+
 def cumulative_rotation(steps: Rotation) -> Rotation:
     """Prefix products ``P_k = steps[0] * steps[1] * … * steps[k]`` (Hillis–Steele scan:
     ⌈log₂ n⌉ vectorized compositions instead of a per-sample loop)."""
-    acc = steps
+    acc = steps.as_quat()
     offset = 1
-    n = len(steps)
-    while offset < n:
-        acc = Rotation.concatenate([acc[:offset], acc[:-offset] * acc[offset:]])
+    while offset < len(acc):
+        acc = np.concatenate([acc[:offset], _qmul(acc[:-offset], acc[offset:])])
         offset *= 2
-    return acc
+    return Rotation.from_quat(acc)  # normalizes the rounding drift
 
 
 def _tilt(theta1: np.ndarray, theta2: np.ndarray, max_rad: float) -> Rotation:
@@ -104,11 +115,15 @@ class Motion:
     accel: np.ndarray
     envelope: np.ndarray
 
+    @cached_property
+    def _slerp(self) -> Slerp:
+        return Slerp(self.t, self.rotation)
+
     def at(self, t: np.ndarray) -> tuple[Rotation, np.ndarray, np.ndarray]:
         """Orientation (slerp), body rate and linear acceleration (linear interpolation) at the
         instants ``t`` (M,) s, which must lie inside the grid."""
         t = np.asarray(t, dtype=float)
-        rot = Slerp(self.t, self.rotation)(t)
+        rot = self._slerp(t)
         omega = np.stack([np.interp(t, self.t, self.omega[:, i]) for i in range(3)], axis=1)
         accel = np.stack([np.interp(t, self.t, self.accel[:, i]) for i in range(3)], axis=1)
         return rot, omega, accel
@@ -147,22 +162,25 @@ def hand_motion(t0: float, t1: float, rng: np.random.Generator, *, coverage: str
 
     # Scripted patterns: angles are integrals of the (paused) rates, so they stop when still.
     angles = np.cumsum(rates, axis=0) * dt + rng.uniform(0, 2 * np.pi, 3)
-    yaw = _about_z(angles[:, 0])
     if coverage == "planar":
-        rotation = yaw
+        chain = [_about_z(angles[:, 0])]
     elif coverage == "band":
         east = np.cross(field_dir, [0.0, 0.0, 1.0])
         east = east / np.linalg.norm(east) if np.linalg.norm(east) > 1e-9 else np.array([1.0, 0, 0])
-        rotation = _align_z_to(east) * yaw * _tilt(angles[:, 1], angles[:, 2], np.radians(band_deg))
+        chain = [_align_z_to(east), _about_z(angles[:, 0]),
+                 _tilt(angles[:, 1], angles[:, 2], np.radians(band_deg))]
     else:  # hemisphere: three angles move at once, so each goes slower
         angles = 0.6 * angles
-        yaw = _about_z(angles[:, 0])
-        spin = _about_z(0.7 * angles[:, 2])
-        rotation = _align_z_to(field_dir) * yaw * _tilt(angles[:, 1], 1.3 * angles[:, 0],
-                                                        np.pi / 2) * spin
+        chain = [_align_z_to(field_dir), _about_z(angles[:, 0]),
+                 _tilt(angles[:, 1], 1.3 * angles[:, 0], np.pi / 2), _about_z(0.7 * angles[:, 2])]
+    q = chain[0].as_quat()
+    for r in chain[1:]:
+        q = _qmul(q, r.as_quat())
+    q = np.broadcast_to(q, (n, 4))
     # Body rate from the orientation path: ω_k ≈ log(R_kᵀ R_{k+1}) / dt, centred.
-    step = (rotation[:-1].inv() * rotation[1:]).as_rotvec() / dt
+    conj = q[:-1] * np.array([-1.0, -1.0, -1.0, 1.0])
+    step = Rotation.from_quat(_qmul(conj, q[1:])).as_rotvec() / dt
     omega = np.empty((n, 3))
     omega[1:-1] = 0.5 * (step[:-1] + step[1:])
     omega[0], omega[-1] = step[0], step[-1]
-    return Motion(t, rotation, omega, accel, env)
+    return Motion(t, Rotation.from_quat(q), omega, accel, env)
