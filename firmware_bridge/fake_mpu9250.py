@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import ctypes
 import errno as errno_mod
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
@@ -74,7 +74,9 @@ def _rows(t: np.ndarray, values, width: int):
 
 
 def _to_int16(x: np.ndarray, limit: int = 32767) -> np.ndarray:
-    return np.clip(np.rint(x), -limit - (limit == 32767), limit).astype(np.int16)
+    """Round and saturate at ±limit (-32768..32767 for the full int16 range)."""
+    low = -32768 if limit == 32767 else -limit
+    return np.clip(np.rint(x), low, limit).astype(np.int16)
 
 
 @dataclass
@@ -100,6 +102,8 @@ class FakeMPU9250Bus:
         who_am_i: value of WHO_AM_I (0x71 MPU-9250, 0x73 MPU-9255, 0x70 MPU-6500…).
         magnetometer: whether an AK8963 is present; default from the WHO_AM_I table.
         ak_wia: AK8963 WIA value; asa: fuse-ROM ASAX/ASAY/ASAZ bytes.
+        power_on_pwr_mgmt_1: PWR_MGMT_1 after reset/power-on; 0x01 per [RM p9], 0x41 to model a
+            part that wakes up asleep (SLEEP set: data registers read 0).
         clock: seconds callable; None → step mode (see module docstring).
         faults: :class:`Faults`; seed: RNG seed for them.
     """
@@ -108,13 +112,15 @@ class FakeMPU9250Bus:
                  address: int = R.MPU_ADDRESS_AD0_LOW, who_am_i: int = 0x71,
                  magnetometer: bool | None = None, ak_wia: int = R.AK8963_WIA,
                  asa: Sequence[int] = (0xB0, 0xB2, 0xA5), clock: Callable[[], float] | None = None,
-                 faults: Faults = Faults(), seed: int = 0):
+                 faults: Faults = Faults(), seed: int = 0,
+                 power_on_pwr_mgmt_1: int = R.MPU_RESET_VALUES[R.MpuReg.PWR_MGMT_1]):
         if address not in R.MPU_ADDRESSES:
             raise ValueError(f"address must be 0x68 or 0x69, got 0x{address:02X}")
         self.t = np.asarray(t, dtype=float).reshape(-1)
         if self.t.size == 0:
             raise ValueError("the track to replay is empty")
         self.address, self.who_am_i, self.ak_wia = address, who_am_i, ak_wia
+        self.power_on_pwr_mgmt_1 = power_on_pwr_mgmt_1
         chip = R.WHO_AM_I_TABLE.get(who_am_i)
         self.has_mag = (chip.has_magnetometer if chip else False) if magnetometer is None \
             else bool(magnetometer)
@@ -296,6 +302,7 @@ class FakeMPU9250Bus:
         for reg, value in R.MPU_RESET_VALUES.items():
             self._mpu[reg] = value
         self._mpu[R.MpuReg.WHO_AM_I] = self.who_am_i
+        self._mpu[R.MpuReg.PWR_MGMT_1] = self.power_on_pwr_mgmt_1
         self._imu_seen = -1
 
     def _mpu_write(self, reg: int, value: int) -> None:

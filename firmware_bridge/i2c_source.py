@@ -13,7 +13,6 @@ Example::
 from __future__ import annotations
 
 import logging
-import time
 from typing import Callable, Iterator
 
 from streamcal.errors import InputError

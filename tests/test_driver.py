@@ -248,9 +248,10 @@ def read_all(d, bus, limit=2000):
     return t, blocks, errors
 
 
-def test_vanished_device_is_reinitialised_when_it_returns():
+@pytest.mark.parametrize("pwr_mgmt_1", [0x01, 0x41])     # datasheet reset value; wakes asleep
+def test_vanished_device_is_reinitialised_when_it_returns(pwr_mgmt_1):
     tr = make_track(800)
-    bus = FakeMPU9250Bus(**tr, faults=Faults(vanish=[(1.0, 1.6)]))
+    bus = FakeMPU9250Bus(**tr, faults=Faults(vanish=[(1.0, 1.6)]), power_on_pwr_mgmt_1=pwr_mgmt_1)
     d = driver(bus, accel_fs=3, gyro_fs=3)
     t, blocks, errors = read_all(d, bus)
     assert errors and all(e.address == 0x68 and "WHO_AM_I" in str(e) for e in errors)
