@@ -4,13 +4,24 @@ recalibration policy, fits off the ingest path, an acceptance guard and an atomi
     from streamcal.stream import StreamingCalibrator, CalibrationStore
     cal = StreamingCalibrator(store=CalibrationStore("state"))
     events = cal.ingest(block)          # block: firmware_bridge.sample.SampleBlock
-"""
-from .calibrator import Event, StreamingCalibrator, default_fitter
-from .coverage import CoverageBuffer, CoverageReport, Snapshot, SphereCells
-from .guard import AcceptanceGuard, Decision
-from .policy import RecalPolicy
-from .store import CalibrationStore, LoadResult
 
-__all__ = ["AcceptanceGuard", "CalibrationStore", "CoverageBuffer", "CoverageReport", "Decision",
-           "Event", "LoadResult", "RecalPolicy", "Snapshot", "SphereCells", "StreamingCalibrator",
-           "default_fitter"]
+Names are imported lazily so that e.g. ``streamcal.stream.store`` loads without the fit code.
+"""
+from __future__ import annotations
+
+import importlib
+
+_WHERE = {
+    "StreamingCalibrator": "calibrator", "Event": "calibrator", "default_fitter": "calibrator",
+    "CoverageBuffer": "coverage", "CoverageReport": "coverage", "Snapshot": "coverage",
+    "SphereCells": "coverage", "AcceptanceGuard": "guard", "Decision": "guard",
+    "RecalPolicy": "policy", "CalibrationStore": "store", "LoadResult": "store",
+}
+
+__all__ = sorted(_WHERE)
+
+
+def __getattr__(name):
+    if name in _WHERE:
+        return getattr(importlib.import_module(f".{_WHERE[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
