@@ -19,6 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError, UnknownEffectError
+from ..track import Track
 from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
 from . import sensor
 from .motion import COVERAGES, hand_motion
@@ -106,7 +107,7 @@ class SimTruth:
 class SimResult:
     """``track``: the simulated :class:`streamcal.track.Track`; ``truth``: :class:`SimTruth`."""
 
-    track: Any
+    track: Track
     truth: SimTruth
 
     def write(self, path, truth_path=None) -> None:
@@ -398,71 +399,4 @@ def _assemble(t_mag, mag, t_imu, accel, gyro, temp, aux: dict, metadata: dict):
         gyro=spread(np.round(gyro, DECIMALS["gx"]), False),
         temp=spread(np.round(temp, DECIMALS["temp"]), False),
         aux={k: spread(np.round(v, DECIMALS.get(k, 4)), False) for k, v in aux.items()})
-    return _track_from_arrays(cols, metadata)
-
-
-def _track_from_arrays(cols: dict, metadata: dict):
-    try:
-        from ..track import Track
-    except ImportError:  # the Track module is being written in parallel; see _ColumnsTrack
-        return _ColumnsTrack.from_arrays(**cols, metadata=metadata)
     return Track.from_arrays(**cols, metadata=metadata)
-
-
-class _ColumnsTrack:
-    """Stand-in for :class:`streamcal.track.Track` until it exists: the columns and a writer."""
-
-    def __init__(self, columns: dict, metadata: dict):
-        self.columns, self.metadata = columns, dict(metadata)
-
-    @classmethod
-    def from_arrays(cls, t, mag=None, accel=None, gyro=None, temp=None, aux=None, metadata=None):
-        cols = {"t": np.asarray(t, float)}
-        for names, arr in (("ax ay az", accel), ("gx gy gz", gyro), ("mx my mz", mag)):
-            if arr is not None:
-                cols.update(zip(names.split(), np.asarray(arr, float).T))
-        if temp is not None:
-            cols["temp"] = np.asarray(temp, float)
-        cols.update({k: np.asarray(v, float) for k, v in (aux or {}).items()})
-        return cls(cols, metadata or {})
-
-    @property
-    def t(self):
-        return self.columns["t"]
-
-    @property
-    def mag_rows(self):
-        return np.all(np.isfinite([self.columns[c] for c in ("mx", "my", "mz")]), axis=0)
-
-    @property
-    def mag(self):
-        return np.stack([self.columns[c][self.mag_rows] for c in ("mx", "my", "mz")], axis=1)
-
-    @property
-    def t_mag(self):
-        return self.t[self.mag_rows]
-
-    def has(self, name):
-        return name in self.columns
-
-    def write(self, path) -> None:
-        import gzip
-        import io
-
-        from ..atomic import atomic_write_bytes
-        buf = io.StringIO()
-        buf.write("# streamcal-track: 1\n")
-        for k, v in self.metadata.items():
-            buf.write(f"# {k}: {v}\n")
-        names = list(self.columns)
-        buf.write(",".join(names) + "\n")
-        text = [np.where(np.isnan(self.columns[n]), "",
-                         np.char.mod(f"%.{DECIMALS.get(n, 6)}f", self.columns[n])) for n in names]
-        rows = text[0]
-        for col in text[1:]:
-            rows = np.char.add(np.char.add(rows, ","), col)
-        buf.write("\n".join(rows.tolist()) + "\n")
-        data = buf.getvalue().encode()
-        if str(path).endswith(".gz"):
-            data = gzip.compress(data, mtime=0)
-        atomic_write_bytes(path, data, 0o644)
