@@ -131,7 +131,7 @@ class Motion:
 
 def hand_motion(t0: float, t1: float, rng: np.random.Generator, *, coverage: str = "full",
                 field_dir: np.ndarray, dt: float = 1e-3, rate_rad_s: float = 1.0,
-                rate_tau_s: float = 0.5, pauses: np.ndarray = np.empty((0, 2)),
+                rate_tau_s: float = 0.5, pauses: np.ndarray | None = None,
                 lin_accel_m_s2: float = 0.4, band_deg: float = 20.0) -> Motion:
     """Simulate a board turned by hand from ``t0`` to ``t1`` seconds.
 
@@ -149,7 +149,7 @@ def hand_motion(t0: float, t1: float, rng: np.random.Generator, *, coverage: str
         raise ValueError(f"coverage must be one of {', '.join(COVERAGES)}, found {coverage!r}")
     n = int(np.ceil((t1 - t0) / dt)) + 1
     t = t0 + dt * np.arange(n)
-    env = activity_envelope(t, pauses)
+    env = activity_envelope(t, np.empty((0, 2)) if pauses is None else pauses)
     rates = env[:, None] * smooth_noise(n, dt, rate_tau_s, rate_rad_s, rng)
     accel = env[:, None] * smooth_noise(n, dt, 0.3, lin_accel_m_s2, rng)
     start = Rotation.random(random_state=rng)

@@ -296,8 +296,8 @@ def _clock(duration_s: float, rate_hz: float, rng: np.random.Generator):
     period = 1.0 / rate_hz
     phase = rng.uniform(3 * JITTER_S, period)
     sample = phase + period * np.arange(int(np.floor((duration_s - phase) * rate_hz)))
-    jitter = np.clip(JITTER_S * rng.standard_normal(len(sample)), -3 * JITTER_S, 3 * JITTER_S)
-    jitter = np.minimum(jitter, 0.3 * period)
+    limit = min(3 * JITTER_S, 0.45 * period)  # < period/2: stamps never swap
+    jitter = np.clip(JITTER_S * rng.standard_normal(len(sample)), -limit, limit)
     return np.round(sample + jitter, DECIMALS["t"]), sample
 
 
