@@ -41,15 +41,18 @@ class NoiseFloor:
 
 
 def estimate_lsb(values: np.ndarray) -> float:
-    """Grid step of ``values`` (N,) when they are quantized, else 0."""
+    """Grid step of ``values`` (N,) when they are quantized (also when printed with a few
+    decimals, which blurs the grid slightly), else 0."""
     u = np.unique(values[np.isfinite(values)])
-    if u.size < 3:
+    if u.size < 2:
         return 0.0
     step = float(np.min(np.diff(u)))
-    if step <= 0:
+    span = float(u[-1] - u[0])
+    if step <= 0 or span / step > 1e6:
         return 0.0
+    step = span / round(span / step)  # refined over the whole span
     ratio = (u - u[0]) / step
-    on_grid = np.mean(np.abs(ratio - np.round(ratio)) < 1e-3)
+    on_grid = np.mean(np.abs(ratio - np.round(ratio)) < 0.05)
     return step if on_grid > 0.99 else 0.0
 
 
