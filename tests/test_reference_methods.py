@@ -199,3 +199,18 @@ def test_rejects_bad_shapes_and_too_few_samples(method):
         fit(bad)
     with pytest.raises(InsufficientDataError, match=method):
         fit(synthetic(12, n=3)[0])
+
+
+# -- through the dispatcher -----------------------------------------------------------------
+@pytest.mark.parametrize("method", METHODS)
+def test_dispatcher_returns_canonical_calibration(method):
+    from streamcal.fit import fit
+
+    m, K_true, b_true, x = synthetic(13)
+    cal = fit(m, method=method)
+    assert cal.method == method
+    assert np.all(np.tril(cal.K, -1) == 0) and np.all(np.diag(cal.K) > 0)
+    K, b = run(method, m)
+    np.testing.assert_allclose(cal.K, K, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(cal.b, b, rtol=1e-9, atol=1e-9)
+    assert cal.model_error(cal.replace(K=K_true, b=b_true)) < 5 * oracle_rms_error(x, K_true, b_true, 1.0)
