@@ -205,3 +205,17 @@ def test_with_the_real_batch_fit():
     assert "accepted" in kinds(events), [e.message for e in events if e.kind != "coverage"]
     cal = sc.calibration
     assert cal.model_error(Calibration(K=K, b=B_TRUE, n=1)) < 0.02
+
+
+def test_covariates_sampled_at_other_rows_are_held():
+    t = np.arange(10.0)
+    mag = np.full((10, 3), np.nan)
+    mag[1::2] = [[60.0, 0.0, 0.0]]
+    temp = np.where(np.arange(10) % 2 == 0, 20.0 + t, np.nan)     # temp only on the other rows
+    sc = StreamingCalibrator(fitter=sphere_fitter, synchronous=True, stage=1,
+                             buffer=CoverageBuffer(covariates=("temp",)))
+    sc.ingest(SampleBlock(t=t[:5], mag=mag[:5], temp=temp[:5]))
+    sc.ingest(SampleBlock(t=t[5:], mag=mag[5:], temp=temp[5:]))
+    # the stored sample of that direction is the newest: t=9 with temp held from t=8
+    snap = sc.buffer.snapshot()
+    np.testing.assert_allclose(snap.covariates["temp"], snap.t + 19.0)

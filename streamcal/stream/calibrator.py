@@ -132,6 +132,7 @@ class StreamingCalibrator:
         self._stage_m = np.empty((max(1, stage), 3))
         self._stage_t = np.empty(max(1, stage))
         self._stage_cov = np.empty((max(1, stage), len(names)))
+        self._held = np.full(len(names), np.nan)
         self._n_staged = 0
         self._pending: list[Event] = []
         if store is not None:
@@ -384,6 +385,8 @@ class StreamingCalibrator:
         return out
 
     def _covariate_matrix(self, block, ok, n) -> np.ndarray:
+        """Covariates at the magnetometer rows (n, P). Sensors run at different rates, so a
+        covariate missing on a mag row takes its last value seen (sample and hold)."""
         names = self.buffer.covariate_names
         cov = np.full((n, len(names)), np.nan)
         for k, name in enumerate(names):
@@ -394,8 +397,15 @@ class StreamingCalibrator:
                 src = None if arr is None else np.asarray(arr)[:, _IMU[name][1]]
             else:
                 src = block.aux.get(name)
-            if src is not None:
-                cov[:, k] = np.asarray(src)[ok]
+            if src is None:
+                continue
+            src = np.asarray(src, dtype=float)
+            seen = np.isfinite(src)
+            idx = np.maximum.accumulate(np.where(seen, np.arange(len(src)), -1))
+            held = np.where(idx >= 0, src[np.maximum(idx, 0)], self._held[k])
+            if seen.any():
+                self._held[k] = src[seen][-1]
+            cov[:, k] = held[ok]
         return cov
 
 
