@@ -85,7 +85,8 @@ def apply_calibration_f32(cal: fr.SetCalibration, mag_uT: np.ndarray) -> np.ndar
 
 @dataclass(frozen=True)
 class Faults:
-    """Per-frame probabilities of line faults injected by the fake board (seeded, repeatable)."""
+    """Per-frame probabilities of line faults injected by the fake board (seeded, repeatable);
+    the boot HELLO (sequence 0) is always sent intact."""
 
     drop: float = 0.0       # the frame never leaves (its sequence number is used up)
     corrupt: float = 0.0    # one bit of header/body/CRC flipped before COBS
@@ -286,6 +287,9 @@ class FakeBoard:
         seq = self.seq
         self.seq += 1
         f, rng = self.faults, self._rng
+        if seq == 0:  # the boot HELLO always arrives: it anchors the host's loss count in tests
+            self._out += fr.encode(msg, seq)
+            return
         if f.garbage and rng.random() < f.garbage:
             self._out += bytes(rng.integers(1, 256, size=int(rng.integers(1, 40)), dtype=np.uint8)) + b"\x00"
         if f.drop and rng.random() < f.drop:

@@ -118,3 +118,8 @@ def test_cpp_applies_calibration_like_fake_board(sc_vectors, vectors):
     chk = vectors["cal_check"]
     crc, reason = sc_vectors(["chk " + " ".join(map(str, chk["k"] + chk["b"] + [chk["cal_id"]]))])[0].split()
     assert (int(crc), int(reason)) == (chk["crc"], 0)
+    negative_k22 = chk["k"][:3] + [chk["k"][3] | 0x80000000] + chk["k"][4:]
+    nan_b = chk["b"][:2] + [0x7FC00000]
+    out = sc_vectors(["chk " + " ".join(map(str, k + b + [1])) for k, b in
+                      ((negative_k22, chk["b"]), (chk["k"], nan_b))])
+    assert [int(line.split()[1]) for line in out] == [fr.NakReason.BAD_CAL_VALUES] * 2
