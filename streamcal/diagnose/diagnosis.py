@@ -135,7 +135,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         cur_model, current = (*cur_model, top.effect), top._evaluated
         steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
                       "p_value": top.p_value})
-        rest = [c.effect for c in cur_ranked[1:]]
+        # Effects that explained nothing significant alone are not retried (saves refits).
+        rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(current, cur_model, rest, fitter, track, m, cov, nf.floor) if rest else []
     verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
     outliers = ~base.inliers
