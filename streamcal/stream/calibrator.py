@@ -223,7 +223,10 @@ class StreamingCalibrator:
         self._t_last = t_now = float(t[-1])
         self.stats.update(m)
         self._since_coarse += len(m)
-        if self._since_coarse >= self.coarse_every:
+        # The coarse estimate frames directions until a calibration is in use; after that it
+        # is only the guard's reference radius and is refreshed ten times less often.
+        calibrated = self._cal is not None and not self.stale
+        if self._since_coarse >= self.coarse_every * (10 if calibrated else 1):
             self._update_coarse()
         cov_dict = {name: cov[:, k] for k, name in enumerate(self.buffer.covariate_names)}
         stored, new_cells = self.buffer.insert(m, t, cov_dict)
@@ -263,15 +266,20 @@ class StreamingCalibrator:
 
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
+        if from_cal:
+            self._cal_AT = np.asarray(A).T.copy()
+            self._cal_R = radius_of(self._cal)
         self._frame_is_cal = from_cal
         self._milestone = _floor_milestone(self.buffer.fraction)
 
     def _check_drift(self, m, t, cov, events) -> None:
         cal = self._cal
-        covs = {"t": t, **cov} if cal.effects else None
-        x = cal.apply(m, covs) if cal.effects else np.linalg.solve(cal.K, (m - cal.b).T).T
-        self.policy.observe(np.abs(np.linalg.norm(x, axis=1) - 1.0), t)
-        found = self.policy.drift(cal.rms, radius_of(cal))
+        if cal.effects:
+            x = cal.apply(m, {"t": t, **cov})
+        else:
+            x = (m - cal.b) @ self._cal_AT
+        self.policy.observe(np.abs(np.sqrt(np.einsum("nk,nk->n", x, x)) - 1.0), t)
+        found = self.policy.drift(cal.rms, self._cal_R)
         if found is None:
             return
         stat, limit, onset = found

@@ -157,6 +157,9 @@ class CoverageBuffer:
         self._t = np.full((C, S), -np.inf)
         self._cov = np.full((C, S, len(self.covariate_names)), np.nan)
         self._used = np.zeros((C, S), dtype=bool)
+        self._scratch_hit = np.zeros(C, dtype=bool)
+        self._scratch_d = np.zeros((C, 3))
+        self._n_occupied = 0
         self.center = np.zeros(3)
         self.A = np.eye(3)
 
@@ -193,25 +196,28 @@ class CoverageBuffer:
     @property
     def fraction(self) -> float:
         """Fraction of the sphere covered: occupied cells / cells."""
-        return float(self.occupied.mean())
+        return self._n_occupied / self.cells.n_cells
 
     def clear(self) -> None:
         self._used[:] = False
         self._t[:] = -np.inf
         self._cov[:] = np.nan
+        self._n_occupied = 0
 
     def forget_before(self, t_cut: float) -> int:
         """Drop samples older than ``t_cut`` (s); returns how many were dropped."""
         old = self._used & (self._t < t_cut)
         self._used &= ~old
         self._t[old] = -np.inf
+        self._n_occupied = int(self.occupied.sum())
         return int(old.sum())
 
     def insert(self, m, t, covariates=None) -> tuple[int, int]:
         """Offer samples ``m`` (n,3), times ``t`` (n,) s, ``covariates`` {name: (n,)}.
 
-        Returns ``(stored, new_cells)``: samples that took a slot (new or refreshed) and cells
-        that were empty before. Rows with non-finite ``m`` are ignored.
+        Returns ``(stored, new_cells)``: samples that took a new slot (or the oldest slot of a
+        full cell; refreshes of a nearby stored sample do not count) and cells that were empty
+        before. Rows with non-finite ``m`` are ignored.
         """
         m = np.asarray(m, dtype=float).reshape(-1, 3)
         t = np.asarray(t, dtype=float).reshape(-1)
@@ -231,32 +237,37 @@ class CoverageBuffer:
             keep = _newest_per_key(np.arange(len(m)), self._fine.cell_of(d), self._fine.n_cells)
             m, t, cov, d = m[keep], t[keep], cov[keep], d[keep]
         cell = self.cells.cell_of(d)
-        was_occupied = self.occupied
-        stored = 0
-        pending = np.arange(len(m))
-        # Round r stores at most one sample per cell: the newest one that is far from every
-        # stored sample of its cell. Later rounds see what earlier rounds stored.
+        C = self.cells.n_cells
+        stored = new_cells = 0
+        # Samples far from every stored sample of their cell; each round stores the newest of
+        # them per cell, then only the samples just stored need checking against the rest.
+        cos = np.einsum("nsk,nk->ns", self._d[cell], d)
+        far = ~(self._used[cell] & (cos > self._cos_min)).any(axis=1)
+        done = np.zeros(len(m), dtype=bool)
         for _ in range(self.slots + 1):
-            if not len(pending):
+            cand = np.flatnonzero(far & ~done)
+            if not len(cand):
                 break
-            pc = cell[pending]
-            cos = np.einsum("nsk,nk->ns", self._d[pc], d[pending])
-            close = self._used[pc] & (cos > self._cos_min)
-            far = ~close.any(axis=1)
-            if not far.any():
-                break
-            pick = _newest_per_key(pending[far], cell[pending[far]], self.cells.n_cells)
+            pick = _newest_per_key(cand, cell[cand], C)
             pcell = cell[pick]
+            new_cells += int((~self._used[pcell].any(axis=1)).sum())
             # Slot: a free one, else the oldest (free slots have t = −inf).
             slot = np.argmin(self._t[pcell], axis=1)
             self._write(pcell, slot, m[pick], d[pick], t[pick], cov[pick])
             stored += len(pick)
-            keep = np.ones(len(m), dtype=bool)
-            keep[pick] = False
-            pending = pending[keep[pending]]
+            done[pick] = True
+            rest = np.flatnonzero(far & ~done)
+            self._scratch_hit[pcell] = True
+            self._scratch_d[pcell] = d[pick]
+            rc = cell[rest]
+            near = self._scratch_hit[rc] & (np.einsum("nk,nk->n", self._scratch_d[rc], d[rest])
+                                            > self._cos_min)
+            far[rest[near]] = False
+            self._scratch_hit[pcell] = False
+        self._n_occupied += new_cells
+        pending = np.flatnonzero(~done)
         if len(pending):
-            stored += self._refresh(pending, cell, m, d, t, cov)
-        new_cells = int((self.occupied & ~was_occupied).sum())
+            self._refresh(pending, cell, m, d, t, cov)
         return stored, new_cells
 
     def _refresh(self, pending, cell, m, d, t, cov) -> int:
@@ -292,7 +303,7 @@ class CoverageBuffer:
         return Snapshot(self._m[c, s].copy(), self._t[c, s].copy(), cov, c.copy())
 
     # -- figures --------------------------------------------------------------------------------
-    def report(self, n_probe: int = 2000) -> CoverageReport:
+    def report(self, n_probe: int = 1000) -> CoverageReport:
         """Coverage figures: occupied fraction, the largest empty cap and a hint."""
         d = self._d[self._used]
         center, radius = largest_empty_cap(d, n_probe)
@@ -326,7 +337,7 @@ def fibonacci_cap(n: int, cos_radius: float) -> np.ndarray:
     return np.stack([rho * np.cos(phi), rho * np.sin(phi), z], axis=1)
 
 
-def largest_empty_cap(d: np.ndarray, n_probe: int = 2000) -> tuple[np.ndarray, float]:
+def largest_empty_cap(d: np.ndarray, n_probe: int = 1000) -> tuple[np.ndarray, float]:
     """Centre (3,) and angular radius (degrees) of the largest spherical cap that contains none
     of the unit directions ``d`` (n,3): the probe point farthest from its nearest sample over a
     Fibonacci grid of ``n_probe`` points, then refined on a finer local grid around it."""

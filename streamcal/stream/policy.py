@@ -29,20 +29,25 @@ class RecalPolicy:
         min_coverage: sphere fraction needed for a first fit.
         min_samples: stored samples needed for a first fit.
         new_cells: refit after this fraction of the cells was newly filled since the last fit…
-        new_samples: …or this fraction of the buffer capacity was newly stored.
+        new_samples: …or this fraction of the buffer capacity was newly stored (new slots, not
+            refreshes) and ``refit_interval_s`` passed: coverage is complete, the fit only
+            follows slow changes.
         min_interval_s: least sample time between fit requests (s).
+        refit_interval_s: least sample time between fits triggered by new samples alone (s).
         window: samples in the drift window.
         drift_k, drift_floor: drift limit ``max(k · rms/radius, floor)`` (relative units).
     """
 
     def __init__(self, *, min_coverage: float = 0.35, min_samples: int = 100,
                  new_cells: float = 0.05, new_samples: float = 0.25, min_interval_s: float = 2.0,
-                 window: int = 200, drift_k: float = 4.0, drift_floor: float = 0.03):
+                 refit_interval_s: float = 30.0, window: int = 200, drift_k: float = 4.0,
+                 drift_floor: float = 0.03):
         self.min_coverage = min_coverage
         self.min_samples = min_samples
         self.new_cells = new_cells
         self.new_samples = new_samples
         self.min_interval_s = min_interval_s
+        self.refit_interval_s = refit_interval_s
         self.drift_k = drift_k
         self.drift_floor = drift_floor
         self._err = np.zeros(int(window))
@@ -74,7 +79,8 @@ class RecalPolicy:
             return FitRequest("coverage_reached", data)
         if self.cells_since >= max(1, self.new_cells * n_cells):
             return FitRequest("new_cells", data)
-        if self.stored_since >= max(1, self.new_samples * capacity):
+        if (self.stored_since >= max(1, self.new_samples * capacity)
+                and t_now - self.last_request_t >= self.refit_interval_s):
             return FitRequest("new_samples", data)
         return None
 
@@ -91,6 +97,7 @@ class RecalPolicy:
     # -- drift --------------------------------------------------------------------------------
     def reset_window(self) -> None:
         self._n = 0
+        self._checked_at = 0
 
     def observe(self, rel_err: np.ndarray, t: np.ndarray) -> None:
         """Push relative errors ``|‖x‖ − 1|`` (n,) at times ``t`` (n,) s into the window."""
@@ -110,8 +117,11 @@ class RecalPolicy:
         """``(statistic, limit, onset_t)`` when the full window disagrees with the calibration
         (statistic > limit), else None; ``onset_t`` is the time of the window's first sample
         beyond the limit (s)."""
-        if self._n < len(self._err):
+        W = len(self._err)
+        # Judge a full window, and then once per quarter window of new samples.
+        if self._n < W or self._n - self._checked_at < W // 4:
             return None
+        self._checked_at = self._n
         stat = float(np.median(self._err))
         limit = self.drift_limit(rms, radius)
         if stat > limit:
