@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from firmware_bridge import frames as fr
-from firmware_bridge.fake_board import apply_calibration_f32, sphere_sums_add
+from firmware_bridge.fake_board import sphere_sums_add
 
 REPO = Path(__file__).resolve().parent.parent
 VECTORS_DIR = REPO / "arduino" / "test_vectors"
