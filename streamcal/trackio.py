@@ -39,17 +39,12 @@ VERSION = "1"
 NUMBER = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
 #: Column names: an identifier, also allowing '.' and '-' after the first character.
 COLUMN_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.\-]*")
-_NEWLINE, _COMMA = ord("\n"), ord(",")
-
-
-def _byte_set(chars: bytes) -> np.ndarray:
-    table = np.zeros(256, dtype=bool)
-    table[list(chars)] = True
-    return table
-
-
-_PLAIN = _byte_set(b"0123456789eE.,+- \t\n")  # the only bytes the fast path accepts
-_SUSPECT_START = _byte_set(b"\n#\r \t")  # a line starting so may be blank or a comment
+# Fast-path scans, each a single C pass (bytes.translate, regexes with a literal first byte).
+_PLAIN = b"0123456789eE.,+- \t\n"  # the only bytes the fast path accepts
+_EMPTY_CELL = re.compile(rb",[,\n]")
+_EMPTY_FIRST_CELL = re.compile(rb"\n,")
+_SUSPECT_START = "\n#\r \t"  # a line starting so may be blank or a comment
+_SUSPECT_LINE = re.compile("\n[\n#\r \t]")
 _GZIP_MAGIC = b"\x1f\x8b"
 _UNDECODED = re.compile("[\udc80-\udcff]")  # bytes kept by errors="surrogateescape"
 _NON_FINITE_WORDS = {"nan", "+nan", "-nan", "inf", "+inf", "-inf", "infinity", "+infinity",
@@ -119,7 +114,7 @@ def _split_preamble(text: str, path: str):
         end = text.find("\n", pos)
         end = len(text) if end < 0 else end
         line = text[pos:end]
-        stripped = line.strip()
+        stripped = line.strip(" \t\r")
         if stripped and not stripped.startswith("#"):
             if _has_bad_bytes(line):
                 raise TrackError(_bad_byte(line), path, index + 1)
@@ -131,7 +126,7 @@ def _split_preamble(text: str, path: str):
             if colon and key.strip():
                 metadata[key.strip()] = value.strip()
         pos, index = end + 1, index + 1
-    if not text.strip():
+    if not text.strip(" \t\r\n"):
         raise TrackError("empty file", path)
     raise TrackError("no header row (only '#' metadata lines)", path)
 
@@ -171,32 +166,29 @@ def _parse_header(line: str, line_no: int, path: str) -> list[str]:
 
 
 def _body_lines(body: str, first_line: int):
-    """Data lines without blank/comment lines, their physical line numbers, and their text."""
+    """The data section without blank/comment lines: its text, the physical line number of
+    each row, and its lines (None when the text needs no filtering: split later if needed)."""
     body = body.rstrip("\n \t\r")
     if not body:
-        return [], np.zeros(0, dtype=np.int64), ""
+        return "", np.zeros(0, dtype=np.int64), []
+    if body[0] not in _SUSPECT_START and not _SUSPECT_LINE.search(body):
+        count = body.count("\n") + 1
+        return body, np.arange(first_line, first_line + count, dtype=np.int64), None
     lines = body.split("\n")
     numbers = np.arange(first_line, first_line + len(lines), dtype=np.int64)
-    codes = np.frombuffer(body.encode("utf-8", errors="surrogateescape"), dtype=np.uint8)
-    starts = codes[np.concatenate(([0], np.flatnonzero(codes == _NEWLINE) + 1))]
-    if _SUSPECT_START[starts].any():
-        keep = [i for i, line in enumerate(lines)
-                if (s := line.strip()) and not s.startswith("#")]
-        if len(keep) < len(lines):
-            lines = [lines[i] for i in keep]
-            numbers = numbers[keep]
-            body = "\n".join(lines)
-    return lines, numbers, body
+    keep = [i for i, line in enumerate(lines)
+            if (s := line.strip(" \t\r")) and not s.startswith("#")]
+    lines = [lines[i] for i in keep]
+    return "\n".join(lines), numbers[keep], lines
 
 
 def _parse_fast(text: str, nrow: int, ncol: int) -> np.ndarray | None:
     """(nrow, ncol) values, NaN for empty cells; None when the slow path must decide."""
-    codes = np.frombuffer(text.encode("utf-8", errors="surrogateescape"), dtype=np.uint8)
-    if not _PLAIN[codes].all():
+    data = text.encode("utf-8", errors="surrogateescape")
+    if data.translate(None, _PLAIN):
         return None
-    sep = (codes == _COMMA) | (codes == _NEWLINE)
-    comma = codes == _COMMA
-    if comma[0] or comma[-1] or (sep[:-1] & sep[1:] & (comma[:-1] | comma[1:])).any():
+    if text[0] == "," or text[-1] == "," or _EMPTY_CELL.search(data) or \
+            _EMPTY_FIRST_CELL.search(data):
         text = ("\n" + text + "\n").replace(",,", ",nan,").replace(",,", ",nan,")
         text = text.replace("\n,", "\nnan,").replace(",\n", ",nan\n")
     try:
@@ -220,6 +212,22 @@ def _cell_problem(cell: str) -> str:
     return f"not a number: {shown!r}"
 
 
+def _column_values(cells: list[str]):
+    """One column's cells as (values, numeric): NaN where empty or not a number."""
+    stripped = np.char.strip(np.array(cells, dtype=np.str_), " \t\r")
+    empty = stripped == ""
+    joined = "\n".join(cells)
+    if joined.isascii() and not joined.encode("ascii").translate(None, _PLAIN):
+        try:  # plain characters only: one vectorized conversion decides for the whole column
+            return (np.where(empty, "nan", stripped).astype(np.float64),
+                    np.ones(len(cells), dtype=bool))
+        except ValueError:
+            pass  # e.g. '1e' or '1.2.3' somewhere: find it cell by cell
+    numeric = empty | np.array([NUMBER.fullmatch(c) is not None for c in stripped.tolist()],
+                               dtype=bool)
+    return np.where(numeric & ~empty, stripped, "nan").astype(np.float64), numeric
+
+
 def _parse_slow(lines: list[str], names: list[str]):
     """Check every cell. Returns (values (R,C) NaN where empty or bad, {row: (column, reason)})."""
     ncol = len(names)
@@ -240,17 +248,13 @@ def _parse_slow(lines: list[str], names: list[str]):
         else:
             good_rows.append(r)
     for j, name in enumerate(names):
-        column = [split[r][j].strip(" \t\r") for r in good_rows]
-        numeric = np.array([cell == "" or NUMBER.fullmatch(cell) is not None for cell in column],
-                           dtype=bool)
-        filled = np.array([cell if ok and cell else "nan" for cell, ok in zip(column, numeric)],
-                          dtype=np.str_)
-        col_values = filled.astype(np.float64) if len(filled) else np.zeros(0)
+        column = [split[r][j] for r in good_rows]
+        col_values, numeric = _column_values(column)
         for k in np.flatnonzero(~numeric):
             problems.setdefault(good_rows[k], (name, _cell_problem(split[good_rows[k]][j])))
         overflow = np.isinf(col_values)
         for k in np.flatnonzero(overflow):
-            problems.setdefault(good_rows[k], (name, f"value {column[k]!r} overflows to "
+            problems.setdefault(good_rows[k], (name, f"value {column[k].strip()!r} overflows to "
                                                      "infinity (beyond ±1.8e308)"))
         col_values[overflow] = np.nan
         values[good_rows, j] = col_values
@@ -306,13 +310,13 @@ def read(path: str | os.PathLike, skip_bad_rows: bool = False) -> Parsed:
         raise TrackError(f"unsupported track format version {version!r} (this reader knows "
                          f"{VERSION})", where, None, None)
     names = _parse_header(header, header_index + 1, where)
-    lines, numbers, body = _body_lines(body, header_index + 2)
-    if not lines:
+    body, numbers, lines = _body_lines(body, header_index + 2)
+    if not len(numbers):
         raise TrackError("no data rows after the header", where, header_index + 1)
-    values = _parse_fast(body, len(lines), len(names))
+    values = _parse_fast(body, len(numbers), len(names))
     problems: dict[int, tuple[str | None, str]] = {}
     if values is None:
-        values, problems = _parse_slow(lines, names)
+        values, problems = _parse_slow(body.split("\n") if lines is None else lines, names)
     _semantic_problems(values, names, problems)
     reasons: list[str] = []
     if problems:
