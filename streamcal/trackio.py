@@ -214,18 +214,20 @@ def _cell_problem(cell: str) -> str:
 
 def _column_values(cells: list[str]):
     """One column's cells as (values, numeric): NaN where empty or not a number."""
-    stripped = np.char.strip(np.array(cells, dtype=np.str_), " \t\r")
-    empty = stripped == ""
-    joined = "\n".join(cells)
+    stripped = [cell.strip(" \t\r") for cell in cells]
+    empty = np.array([not cell for cell in stripped], dtype=bool)
+    joined = "\n".join(stripped)
+    # numpy str arrays drop trailing NULs, so only NUL-free plain text goes through them
     if joined.isascii() and not joined.encode("ascii").translate(None, _PLAIN):
-        try:  # plain characters only: one vectorized conversion decides for the whole column
-            return (np.where(empty, "nan", stripped).astype(np.float64),
+        try:  # one vectorized conversion decides for the whole column
+            return (np.where(empty, "nan", np.array(stripped, dtype=np.str_)).astype(np.float64),
                     np.ones(len(cells), dtype=bool))
         except ValueError:
             pass  # e.g. '1e' or '1.2.3' somewhere: find it cell by cell
-    numeric = empty | np.array([NUMBER.fullmatch(c) is not None for c in stripped.tolist()],
-                               dtype=bool)
-    return np.where(numeric & ~empty, stripped, "nan").astype(np.float64), numeric
+    numeric = np.array([not cell or NUMBER.fullmatch(cell) is not None for cell in stripped],
+                       dtype=bool)
+    filled = [cell if ok and cell else "nan" for cell, ok in zip(stripped, numeric)]
+    return np.array(filled, dtype=np.str_).astype(np.float64), numeric
 
 
 def _parse_slow(lines: list[str], names: list[str]):

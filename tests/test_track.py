@@ -152,6 +152,9 @@ ROW_ERRORS = [
     ('0,1,2,3,20\n1,"1",2,3,20\n', 5, "mx", "not a number"),
     ("0,1,2,3,20\n1,0x10,2,3,20\n", 5, "mx", "not a number"),
     ("0,1,2,3,20\n1,1.2.3,2,3,20\n", 5, "mx", "not a number"),
+    ("0,1,2,3,20\n1,\x00,2,3,20\n", 5, "mx", "not a number"),  # numpy str would drop it
+    ("0,1,2,3,20\n1,1,2\x00,3,20\n", 5, "my", "not a number"),
+    ("0,1,2,3,20\n1,1,2,3,\u0662\n", 5, "temp", "not a number"),  # non-ASCII digit
 ]
 
 
