@@ -185,7 +185,8 @@ def test_partial_mag_row_is_located(workdir, track, data):
 
 
 chaos_ops = st.sampled_from(["truncate", "insert_bytes", "flip", "utf16", "latin1", "gzip_cut",
-                             "gzip_garbage", "empty", "only_meta", "nul", "huge", "swap_lines"])
+                             "gzip_garbage", "empty", "only_meta", "nul", "huge", "swap_lines",
+                             "crlf", "blank_lines", "gzip"])
 
 
 @FUZZ
@@ -229,6 +230,12 @@ def test_chaos_loads_or_raises_track_error(workdir, track, ops, data, skip):
             blob = b""
         elif op == "only_meta":
             blob = b"# streamcal-track: 1\n# sensor: x\n"
+        elif op == "crlf":
+            blob = blob.replace(b"\n", b"\r\n")
+        elif op == "blank_lines":
+            blob = blob.replace(b"\n", b"\n\n# comment\n \n", data.draw(st.integers(0, 3)))
+        elif op == "gzip":
+            blob = gzip.compress(blob)
         elif op == "nul":
             blob = blob.replace(b",", b",\x00", 1)
     path = store(workdir, blob)
