@@ -15,7 +15,6 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, Calibration, canonical_form
 from ..errors import InputError, InsufficientDataError, UnknownEffectError
 from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
-from .autocal import autocal
 from .lm import estimation_error, optimal_directions
 from .normalize import denormalize_model, normalize
 from .observability import assess
@@ -94,7 +93,7 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         add: str | Sequence[str] = (), kernel: str = "cauchy", method: str = "autocal",
         tau: float | str | None = None, covariates: Mapping[str, np.ndarray] | None = None,
         check_coverage: bool = True, stage1_max: int = 300, max_iter: int = 300,
-        rtol: float = 1e-6) -> Calibration:
+        rtol: float = 1e-6, initial: Calibration | None = None) -> Calibration:
     """Calibrate a magnetometer (µT) or accelerometer (m/s²) from a Track or an (N,3) array.
 
     Args:
@@ -108,6 +107,8 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         covariates: per-sample columns for effects when ``data`` is an array.
         check_coverage: refuse (InsufficientDataError) when the directions seen leave the
             model undetermined.
+        initial: warm start (autocal only): skip stage 1 and start the LM from this
+            calibration's K and b (its effect parameters are not reused).
     Returns: a :class:`Calibration` whose ``inliers``, ``weights`` and ``directions`` cover the
         samples used, in order.
     """
@@ -122,9 +123,8 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         raise InputError(f"method {method!r} fits only {', '.join(CORE_EFFECTS)}; "
                          f"use method 'autocal' for {', '.join(extra)}")
     if any(n in REGISTRATION_EFFECTS for n in extra):
-        from ..model.registration import fit_with_registration
-
-        return fit_with_registration(data, model=names, kernel=kernel, tau=tau, sensor=sensor)
+        raise InputError("registration effects (mag_accel_misalignment, time_lag) cannot be fitted "
+                         "yet: their gravity-tied solver is not built")
     if len(m) < MIN_SAMPLES:
         raise InsufficientDataError(f"{len(m)} {sensor} samples are too few: at least {MIN_SAMPLES} are needed")
     structure = "full" if "soft_iron" in names else "diag" if "scale" in names else "sphere"
@@ -138,17 +138,20 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         effects = model_pkg.build_effects(extra, cov)
 
     if method == "autocal":
+        from .autocal import autocal
+
         res = autocal(m, kernel=kernel, tau=tau, structure=structure, fit_b=fit_b, effects=effects,
                       covariates=cov, stage1_max=stage1_max, max_iter=max_iter, rtol=rtol,
-                      check_coverage=check_coverage)
+                      check_coverage=check_coverage,
+                      initial=None if initial is None else (initial.K, initial.b))
         K, b, x, inliers, weights = res.K, res.b, res.x, res.inliers, res.weights
         residual_norm = np.linalg.norm(res.residuals, axis=1)
         effect_params = {e.name: e.to_physical(t, res.scale) for e, t in zip(effects, res.thetas)}
-        obs = assess(x, structure, fit_b, K, m=m)
+        obs = assess(x[inliers], structure, fit_b, K, m=m[inliers])
         used_kernel = kernel
         sigma, tau_used = res.sigma, res.tau
     else:
-        K, b, x, obs = _fit_reference(m, method, structure, check_coverage)
+        K, b, x, obs = _fit_reference(m, method, structure, max_iter=max_iter, rtol=rtol)
         residual_norm = estimation_error(K, b, m)
         inliers = np.ones(len(m), dtype=bool)
         weights = np.ones(len(m))
@@ -168,7 +171,7 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
                        weights=weights, directions=x, extra=extra_keys)
 
 
-def _fit_reference(m, method, structure, check_coverage):
+def _fit_reference(m, method, structure, *, max_iter=300, rtol=1e-6):
     from .ellipsoid import directions_from_model, ellipsoid_to_model, fit_l1_ellipsoid, fit_l2_ellipsoid
 
     m_n, center, scale = normalize(m)
@@ -176,7 +179,8 @@ def _fit_reference(m, method, structure, check_coverage):
         solver = fit_l1_ellipsoid if method == "l1_ellipsoid" else fit_l2_ellipsoid
         A, b_n = ellipsoid_to_model(*solver(m_n))
     else:
-        A, b_n = _reference(method)(m_n)
+        kwargs = {} if method == "sphere_stream" else {"max_iter": max_iter, "rtol": rtol}
+        A, b_n = _reference(method)(m_n, **kwargs)
     A = np.asarray(A, dtype=float)
     if not np.all(np.isfinite(A)) or abs(np.linalg.det(A)) < 1e-12:
         raise InsufficientDataError(f"method {method!r} did not produce an invertible sensor matrix")

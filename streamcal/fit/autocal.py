@@ -82,19 +82,26 @@ def autocal(m: np.ndarray, *, kernel: str = "cauchy", tau: float | str | None = 
             structure: str = "full", fit_b: bool = True, effects: Sequence = (),
             covariates: Mapping[str, np.ndarray] | None = None, stage1_method: str = "l1",
             stage1_max: int = 300, max_iter: int = 300, rtol: float = 1e-6,
-            max_width_rounds: int = 4, check_coverage: bool = False) -> AutocalResult:
+            max_width_rounds: int = 4, check_coverage: bool = False,
+            initial: tuple[np.ndarray, np.ndarray] | None = None) -> AutocalResult:
     """Run both stages on measurements ``m`` (N,3) in the sensor unit.
 
     ``tau``: None → from the data (see module doc); ``"paper"`` → √3 sensor units; a number →
     that width in sensor units. Effects (``streamcal.model`` objects) are fitted jointly.
-    ``check_coverage`` refuses, before refining, directions that leave the model undetermined.
+    ``check_coverage``: when stage 1 finds no ellipsoid, say whether the coverage is to blame.
+    (Coverage of the refined fit is judged by the caller, on its inliers: stage-1 directions
+    can be distorted by outliers.)
+    ``initial``: (K, b) in sensor units to start the LM from instead of stage 1 (warm start).
     """
     m = np.asarray(m, dtype=float)
     if m.ndim != 2 or m.shape[1] != 3:
         raise ValueError(f"measurements must have shape (N,3), got {m.shape}")
     m_n, center, scale = normalize(m)
     try:
-        K0, b0 = stage1(m_n, structure, fit_b, stage1_method, stage1_max)
+        if initial is not None:
+            K0, b0 = np.asarray(initial[0]) / scale, (np.asarray(initial[1]) - center) / scale
+        else:
+            K0, b0 = stage1(m_n, structure, fit_b, stage1_method, stage1_max)
     except InsufficientDataError:
         if check_coverage:  # a degenerate ellipsoid is most often a coverage problem: say which
             seen = assess(m_n / np.linalg.norm(m_n, axis=1, keepdims=True), structure, fit_b, m=m_n)
@@ -102,10 +109,6 @@ def autocal(m: np.ndarray, *, kernel: str = "cauchy", tau: float | str | None = 
                 raise InsufficientDataError(seen.message) from None
         raise
     x0 = directions_from_model(K0, b0, m_n)
-    if check_coverage:
-        seen = assess(x0, structure, fit_b, K0, m=m_n)
-        if not seen.ok:
-            raise InsufficientDataError(seen.message)
     r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
     sigma_n = max(robust_sigma(r0), 1e-9)
 
