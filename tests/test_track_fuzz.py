@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from streamcal import trackio
 from streamcal.errors import TrackError
 from streamcal.track import Track
 from streamcal.trackio import NUMBER
@@ -184,6 +185,22 @@ def test_partial_mag_row_is_located(workdir, track, data):
     assert "partial mag" in err.reason
 
 
+@FUZZ
+@given(tokens=st.lists(st.text(alphabet="0123456789eE.+- \t", max_size=9), min_size=1,
+                       max_size=6))
+def test_fast_and_slow_parsers_agree_on_plain_characters(tokens):
+    """The fast path (loadtxt) must accept exactly what NUMBER accepts, with the same values."""
+    TRIED["fast_vs_slow"] += 1
+    lines = [f"{i},{tok},1,1" for i, tok in enumerate(tokens)]
+    fast = trackio._parse_fast("\n".join(lines), len(lines), 4)
+    slow, problems = trackio._parse_slow(lines, ["t", "mx", "my", "mz"])
+    if fast is None:  # the fast path may only decline bad cells or blank-but-not-empty ones
+        assert problems or any(tok and not tok.strip(" \t") for tok in tokens), tokens
+    else:
+        assert not problems
+        np.testing.assert_array_equal(fast, slow)
+
+
 chaos_ops = st.sampled_from(["truncate", "insert_bytes", "flip", "utf16", "latin1", "gzip_cut",
                              "gzip_garbage", "empty", "only_meta", "nul", "huge", "swap_lines",
                              "crlf", "blank_lines", "gzip"])
@@ -254,7 +271,8 @@ def test_chaos_loads_or_raises_track_error(workdir, track, ops, data, skip):
 
 
 def test_enough_cases_were_tried():
-    properties = ["valid", "bad_cell", "cell_count", "backwards", "partial_mag", "chaos"]
+    properties = ["valid", "bad_cell", "cell_count", "backwards", "partial_mag", "chaos",
+                  "fast_vs_slow"]
     if not all(TRIED[p] for p in properties):
         pytest.skip("run the whole module to count the cases")
     assert all(TRIED[p] >= MIN_TRIED for p in properties), dict(TRIED)
