@@ -18,7 +18,8 @@ def register(sub) -> None:
                    help="comma-separated effects (default: %(default)s)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
                    help="add an effect to the model (repeatable)")
-    p.add_argument("--kernel", choices=("cauchy", "huber", "l1", "gm", "l2"), default="cauchy")
+    p.add_argument("--kernel", choices=("auto", "cauchy", "huber", "l1", "gm", "l2"), default="auto",
+                   help="robust kernel (default: auto = Cauchy, then a Geman–McClure polish)")
     p.add_argument("--method", default="autocal",
                    help="autocal (default), l1_ellipsoid, l2_ellipsoid, magical, dorveaux, "
                         "vasconcelos, kok_schon, sphere_stream")

@@ -90,7 +90,7 @@ def _measurements(data, sensor: str, covariates):
 
 
 def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL,
-        add: str | Sequence[str] = (), kernel: str = "cauchy", method: str = "autocal",
+        add: str | Sequence[str] = (), kernel: str = "auto", method: str = "autocal",
         tau: float | str | None = None, covariates: Mapping[str, np.ndarray] | None = None,
         check_coverage: bool = True, stage1_max: int = 300, max_iter: int = 300,
         rtol: float = 1e-6, initial: Calibration | None = None) -> Calibration:
@@ -100,7 +100,8 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         data: :class:`streamcal.Track` or (N,3) measurements in the sensor unit.
         sensor: ``"mag"`` or ``"accel"`` (gravity 9.80665 m/s² as the known field).
         model: effect names (SPEC §3); default ``hard_iron, soft_iron``. ``add`` appends more.
-        kernel: ``cauchy`` (default), ``huber``, ``gm``, ``l1`` or ``l2`` (autocal only).
+        kernel: ``auto`` (default: Cauchy, then a Geman–McClure polish), ``cauchy``,
+            ``huber``, ``gm``, ``l1`` or ``l2`` (autocal only).
         method: ``autocal`` or a reference method (SPEC §5).
         tau: kernel width; None derives it from the data, ``"paper"`` uses √3, a number is
             taken in sensor units.
@@ -114,6 +115,8 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
     """
     if sensor not in ("mag", "accel"):
         raise InputError(f"sensor must be 'mag' or 'accel', got {sensor!r}")
+    if kernel not in ("auto", "cauchy", "huber", "gm", "l1", "l2"):
+        raise InputError(f"unknown kernel {kernel!r}; choose auto, cauchy, huber, gm, l1 or l2")
     if method not in METHODS:
         raise InputError(f"unknown method {method!r}; choose one of {', '.join(METHODS)}")
     names = parse_model(model, add)
