@@ -1,0 +1,51 @@
+"""Pictures of a diagnosis (DESIGN §2 ``streamcal/report``): figures as PNG, one self-contained
+HTML page, and a compact terminal view of sphere coverage.
+
+    from streamcal.report import write_report, write_diagnosis_plots, coverage_view
+    d = streamcal.diagnose(track)
+    write_report("report.html", track, d)          # or d=None, reason="why the fit refused"
+    write_diagnosis_plots(d, track, "plots/")      # the same figures as PNG files
+    print(coverage_view(calibrator.buffer))        # terminal map of the sphere
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from .figures import FigureData, RenderedFigure, render_figures
+from .html import render_html, write_report
+from .terminal import coverage_map, coverage_view
+
+__all__ = ["FigureData", "RenderedFigure", "coverage_map", "coverage_view", "diagnose_or_reason",
+           "render_figures", "render_html", "write_diagnosis_plots", "write_report"]
+
+
+def write_diagnosis_plots(diagnosis, track, directory: str | os.PathLike,
+                          reason: str | None = None) -> list[Path]:
+    """Write every figure of ``diagnosis`` (None: the raw-data figures, ``reason`` saying why)
+    on ``track`` as ``DIRECTORY/<name>.png`` (atomically; the directory is created). Returns the
+    paths written."""
+    from ..atomic import atomic_write_bytes
+
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for fig in render_figures(FigureData.build(track, diagnosis, reason)):
+        path = directory / f"{fig.name}.png"
+        atomic_write_bytes(path, fig.png, mode=0o644)
+        paths.append(path)
+    return paths
+
+
+def diagnose_or_reason(track, model=None, **kwargs):
+    """``(diagnosis, None)``, or ``(None, reason)`` when the data cannot support a fit
+    (:class:`~streamcal.errors.InsufficientDataError`: too little coverage, too few samples).
+    Other errors (bad input, unknown effect) propagate."""
+    from ..calibration import DEFAULT_MODEL
+    from ..diagnose import diagnose
+    from ..errors import InsufficientDataError
+
+    try:
+        return diagnose(track, model=tuple(model or DEFAULT_MODEL), **kwargs), None
+    except InsufficientDataError as exc:
+        return None, str(exc)

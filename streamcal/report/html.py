@@ -1,0 +1,233 @@
+"""The HTML report: one self-contained page (figures inline as base64 PNG, no external
+resources, no timestamps) saying what the model misses, with the figures of
+:mod:`streamcal.report.figures` and tables of the candidates, the model ladder and the
+calibration parameters with their units.
+
+A small inline script sets ``data-images="loaded"`` on ``<body>`` once every image has decoded
+(``img.complete && img.naturalWidth > 0``), or ``data-images="broken"``: the browser test reads it.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ..atomic import atomic_write_text
+from .figures import FigureData, RenderedFigure, render_figures, unit_label
+
+_CSS = """
+body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;max-width:1240px;margin:0 auto;
+padding:16px 24px;color:#222;line-height:1.45}
+h1{font-size:1.5em;margin-bottom:.2em}h2{font-size:1.2em;margin-top:1.6em;border-bottom:1px solid #ddd}
+.sub{color:#666;margin-top:0}.box{padding:10px 14px;border-radius:6px;margin:12px 0}
+.missing{background:#fff4e5;border:1px solid #f0b35a}.floor{background:#eaf7ea;border:1px solid #7cc47c}
+.refused{background:#fdecec;border:1px solid #e08080}
+table{border-collapse:collapse;margin:8px 0;font-size:.92em}
+th,td{border:1px solid #ccc;padding:3px 8px;text-align:left;vertical-align:top}
+th{background:#f3f3f3}td.num{text-align:right;font-variant-numeric:tabular-nums}
+figure{margin:14px 0}figure img{max-width:100%;height:auto;border:1px solid #eee}
+figcaption{color:#555;font-size:.92em}code{background:#f3f3f3;padding:1px 4px;border-radius:3px}
+"""
+
+_SCRIPT = """
+(function(){
+  function check(){
+    var imgs=document.images, ok=true;
+    for(var i=0;i<imgs.length;i++){
+      if(!imgs[i].complete){return false;}
+      if(!(imgs[i].naturalWidth>0)){ok=false;}
+    }
+    document.body.setAttribute('data-images', ok ? 'loaded' : 'broken');
+    document.body.setAttribute('data-image-count', String(imgs.length));
+    return true;
+  }
+  function poll(){ if(!check()){ setTimeout(poll, 20); } }
+  if(document.readyState==='complete'){poll();}else{window.addEventListener('load', poll);}
+})();
+"""
+
+#: Units of effect parameters (``{u}``: the sensor unit).
+_PARAM_UNITS = {
+    ("temperature_offset", "T0"): "°C", ("temperature_offset", "c"): "{u}/°C",
+    ("temperature_scale", "T0"): "°C", ("temperature_scale", "s"): "1/°C",
+    ("time_drift", "t0"): "s", ("time_drift", "d"): "{u}/s",
+    ("axis_nonlinearity", "R"): "{u}", ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
+    ("aux_interference", "a0"): "channel unit", ("aux_interference", "g"): "{u} per channel unit",
+}
+
+
+def _e(value) -> str:
+    return html.escape(str(value), quote=True)
+
+
+def _num(value, fmt: str = ".4g") -> str:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        return _e(value)
+    return format(v, fmt) if np.isfinite(v) else "–"
+
+
+def _vec(values, fmt: str = ".4g") -> str:
+    return "[" + ", ".join(_num(v, fmt) for v in np.ravel(values)) + "]"
+
+
+def _table(header, rows, numeric=()) -> str:
+    head = "".join(f"<th>{_e(h)}</th>" for h in header)
+    body = "".join("<tr>" + "".join(
+        f'<td class="num">{c}</td>' if k in numeric else f"<td>{c}</td>" for k, c in enumerate(r))
+        + "</tr>" for r in rows)
+    return f"<table><thead><tr>{head}</tr></thead><tbody>{body}</tbody></table>"
+
+
+def _img(fig: RenderedFigure) -> str:
+    data = base64.b64encode(fig.png).decode("ascii")
+    return (f'<figure id="fig-{_e(fig.name)}"><h3>{_e(fig.title)}</h3>'
+            f'<img src="data:image/png;base64,{data}" alt="{_e(fig.title)}">'
+            f"<figcaption>{_e(fig.caption)}</figcaption></figure>")
+
+
+def _summary(d, track_name: str, unit: str) -> str:
+    if d.verdict == "effect_missing" and d.candidates:
+        top = d.candidates[0]
+        cmd = f"streamcal fit {track_name} --add {top.effect}"
+        return (f'<div class="box missing"><b>An effect is missing.</b> The model '
+                f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
+                f"<b>{_num(d.rms)} {unit}</b>, {_num(d.rms / d.noise_floor, '.2f')}× the noise "
+                f"floor ({_num(d.noise_floor)} {unit}). The best candidate is "
+                f"<b>{_e(top.effect)}</b> ({_e(top.evidence)}): adding it gives "
+                f"<b>{_num(top.rms_after)} {unit}</b> "
+                f"({_num(top.rms_after / d.noise_floor, '.2f')}× the floor). Try "
+                f"<code>{_e(cmd)}</code>.</div>")
+    return (f'<div class="box floor"><b>The model is at the noise floor.</b> rms residual '
+            f"{_num(d.rms)} {unit} against a noise floor of {_num(d.noise_floor)} {unit}; no "
+            f"candidate effect lowers it materially.</div>")
+
+
+def _candidates(d, unit: str) -> str:
+    if not d.candidates:
+        return "<p>No candidate effect could be tried: the track has no column they need, or " \
+               "the model already holds them.</p>"
+    rows = [(_e(c.effect), _num(c.rms_after), _num(c.rms_after / d.noise_floor, ".2f"),
+             _num(c.p_value, ".2e"), "yes" if c.significant else "no", _e(c.evidence))
+            for c in d.candidates]
+    return _table(("effect", f"rms after ({unit})", "× floor", "p-value", "significant",
+                   "evidence"), rows, numeric=(1, 2, 3))
+
+
+def _ladder(d, unit: str) -> str:
+    rows = []
+    for step in d.ladder or [{"model": list(d.model), "rms": d.rms}]:
+        name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
+        rows.append((_e(name), _num(step["rms"]), _num(step["rms"] / d.noise_floor, ".2f"),
+                     _num(step.get("p_value"), ".2e") if "p_value" in step else ""))
+    rows.append(("noise floor", _num(d.noise_floor), "1.00", ""))
+    return _table(("step", f"rms ({unit})", "× floor", "p-value"), rows, numeric=(1, 2, 3))
+
+
+def _parameters(cal, unit: str) -> str:
+    K = np.asarray(cal.K)
+    rows = [("model", _e(", ".join(cal.model)), ""), ("method / kernel",
+             _e(f"{cal.method} / {cal.kernel or '–'}"), "")]
+    rows += [(f"K row {i + 1}", _vec(K[i]), unit) for i in range(3)]
+    rows += [("b (hard iron)", _vec(cal.b), unit)]
+    for effect, params in (cal.effects or {}).items():
+        for key, value in (params or {}).items():
+            if key == "channels" and isinstance(value, dict):
+                for ch, p in value.items():
+                    for k2, v2 in p.items():
+                        u = _PARAM_UNITS.get((effect, k2), "").format(u=unit)
+                        rows.append((_e(f"{effect}: {ch}.{k2}"),
+                                     _vec(v2) if np.ndim(v2) else _num(v2), _e(u)))
+                continue
+            u = _PARAM_UNITS.get((effect, key), "").format(u=unit)
+            rows.append((_e(f"{effect}: {key}"), _vec(value) if np.ndim(value) else _num(value),
+                         _e(u)))
+    rows += [("field strength", _num(cal.field), unit), ("rms (inliers)", _num(cal.rms), unit),
+             ("samples / outliers", f"{cal.n} / {cal.n_outliers}", "")]
+    return _table(("parameter", "value", "unit"), rows)
+
+
+def _noise(d, unit: str) -> str:
+    n = d.noise or {}
+    rows = [("noise floor", _num(d.noise_floor), unit),
+            ("σ per axis", _vec(n.get("sigma_axes", [])), unit),
+            ("quantization step (LSB) per axis", _vec(n.get("lsb", [])), unit),
+            ("estimated by", _e(n.get("method", "")), ""), ("samples used", _e(n.get("n_used", "")), "")]
+    return _table(("", "value", "unit"), rows)
+
+
+def _metadata(track) -> str:
+    keep = [(k, v) for k, v in track.metadata.items() if k in _SHOWN_METADATA]
+    return "".join(f'<p class="sub">{_e(k)}: {_e(v)}</p>' for k, v in keep)
+
+
+_SHOWN_METADATA = ("sensor", "source", "origin", "description")
+
+
+def render_html(track, diagnosis=None, *, reason: str | None = None, title: str | None = None,
+                figures: list[RenderedFigure] | None = None, intro: str = "",
+                name: str | None = None) -> str:
+    """The report page as a string.
+
+    Args:
+        track: the :class:`streamcal.track.Track` diagnosed.
+        diagnosis: its :class:`~streamcal.diagnose.Diagnosis`, or None when the fit refused the
+            track; ``reason`` then says why, and the page shows what needs no calibration.
+        title: page title (default: the track's name).
+        figures: already rendered figures (default: rendered here).
+        intro: extra HTML placed under the title (e.g. the demo's streaming summary).
+        name: how to call the track file in the text (default: its file name).
+    """
+    data = None
+    if figures is None:
+        data = FigureData.build(track, diagnosis, reason)
+        figures = render_figures(data)
+    if name is None:
+        name = track.path.name if getattr(track, "path", None) else "track.csv"
+    unit = unit_label(track.mag_unit)
+    title = title or f"streamcal report: {name}"
+    parts = [f"<h1>{_e(title)}</h1>",
+             f'<p class="sub">{len(track.t_mag)} magnetometer samples over '
+             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(unit)}; "
+             f"columns {_e(', '.join(track.columns))}</p>", _metadata(track), intro]
+    if diagnosis is None:
+        parts.append(f'<div class="box refused"><b>No calibration: the fit refused this track.'
+                     f"</b> {_e(reason or 'unknown reason')}<br>The figures below show what needs "
+                     f"no calibration: the raw readings, their magnitude and the directions "
+                     f"seen from the centre of a one-pass sphere fit.</div>")
+    else:
+        parts.append(_summary(diagnosis, name, unit))
+        if diagnosis.outlier_spans:
+            spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
+            parts.append(f"<p><b>{diagnosis.n_outliers}</b> of {diagnosis.n} samples are "
+                         f"outliers; they cluster in {_e(spans)}.</p>")
+    parts += [_img(f) for f in figures]
+    if diagnosis is not None:
+        parts += ["<h2>Candidate effects</h2>", _candidates(diagnosis, unit),
+                  "<h2>Model ladder</h2>", _ladder(diagnosis, unit),
+                  "<h2>Calibration of the model as given</h2>",
+                  _parameters(diagnosis.calibration, unit)]
+        top = diagnosis.candidates[0] if diagnosis.candidates else None
+        if diagnosis.verdict == "effect_missing" and top is not None and top.calibration is not None:
+            parts += [f"<h2>Calibration with {_e(top.effect)} added</h2>",
+                      _parameters(top.calibration, unit)]
+        parts += ["<h2>Noise floor</h2>", _noise(diagnosis, unit)]
+    from .. import __version__
+
+    body = "\n".join(p for p in parts if p)
+    return ("<!DOCTYPE html>\n<html lang=\"en\"><head><meta charset=\"utf-8\">"
+            f"<meta name=\"generator\" content=\"streamcal {_e(__version__)}\">"
+            f"<title>{_e(title)}</title><style>{_CSS}</style></head>\n<body>\n{body}\n"
+            f"<p class=\"sub\">made by streamcal {_e(__version__)}</p>\n"
+            f"<script>{_SCRIPT}</script>\n</body></html>\n")
+
+
+def write_report(path: str | os.PathLike, track, diagnosis=None, **kwargs) -> Path:
+    """Write :func:`render_html` atomically to ``path``; returns the path."""
+    path = Path(path)
+    atomic_write_text(path, render_html(track, diagnosis, **kwargs), mode=0o644)
+    return path
