@@ -1,0 +1,292 @@
+"""The real ``streamcal_bridge`` firmware in the loop: the compiled Uno sketch in simavr.
+
+:class:`SimavrBoard` builds the sketch (``tools/build_sketch.sh``) and the C harness
+(``tools/simavr_harness``, a separate GPL-3 program because it links libsimavr), turns a track into
+the raw counts the harness's register-level MPU-9250/AK8963 replay (the same conversion as
+:class:`~firmware_bridge.fake_mpu9250.FakeMPU9250Bus`, called, not re-derived), starts the
+harness and exposes the pseudo-terminal that carries the simulated UART0::
+
+    with SimavrBoard.from_track("track.csv") as board:
+        link = board.open_link()            # a SerialLink on the board's pty
+        for block in link.blocks(idle_timeout=2.0): ...
+
+Time: the AVR starts at cycle 0 when the host sends its first byte; track row ``t`` becomes the
+chips' current value at simulated time ``t - t[0] + lead_s`` (16 MHz cycles), so the sketch's
+``micros()`` reads about ``(t - t[0] + lead_s)·1e6`` when it samples row ``t``
+(:meth:`SimavrBoard.track_time`). The simulation runs as fast as the host reads (the UART is
+modelled at 115200 baud in simulated time), then in real time once the track is over.
+
+Builds are cached by content hash under ``$STREAMCAL_SIMAVR_CACHE`` (default
+``~/.cache/streamcal/simavr``). Needs Debian's ``arduino-builder arduino-core-avr gcc-avr avr-libc
+binutils-avr simavr libsimavr-dev libsimavrparts1 libelf-dev pkg-config make`` and a C compiler
+(HARDWARE.md §7); :func:`missing_toolchain` names what is absent.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import select
+import shutil
+import signal
+import struct
+import subprocess
+import tempfile
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from streamcal.errors import InputError, StreamcalError
+
+from . import registers as R
+from .fake_mpu9250 import FakeMPU9250Bus
+
+REPO = Path(__file__).resolve().parent.parent
+SKETCH_DIR = REPO / "arduino" / "streamcal_bridge"
+BUILD_SCRIPT = REPO / "tools" / "build_sketch.sh"
+HARNESS_DIR = REPO / "tools" / "simavr_harness"
+F_CPU_HZ = 16_000_000
+REPLAY_MAGIC = b"SCSIMRP1"
+DEFAULT_LEAD_S = 0.3      # simulated seconds before the first track row (sensor setup takes ~0.13 s)
+_TOOLS = ("arduino-builder", "avr-size", "avr-gcc", "make", "cc", "pkg-config")
+_SIMAVR_HEADER = Path("/usr/include/simavr/sim_avr.h")
+
+
+class SimavrError(StreamcalError):
+    """The simulated board could not be built, started or stopped; says which step and why."""
+
+    exit_code = 2
+
+
+def missing_toolchain() -> list[str]:
+    """Names of the tools/headers needed here that are not installed (empty when all are)."""
+    missing = [tool for tool in _TOOLS if shutil.which(tool) is None]
+    if not _SIMAVR_HEADER.exists():
+        missing.append(f"{_SIMAVR_HEADER} (libsimavr-dev)")
+    return missing
+
+
+def _cache_dir(cache_dir) -> Path:
+    base = Path(cache_dir) if cache_dir is not None else Path(
+        os.environ.get("STREAMCAL_SIMAVR_CACHE", Path.home() / ".cache" / "streamcal" / "simavr"))
+    base.mkdir(parents=True, exist_ok=True)
+    return base
+
+
+def _digest(paths: Sequence[Path]) -> str:
+    h = hashlib.sha256()
+    for p in sorted(paths):
+        h.update(p.name.encode() + b"\0" + p.read_bytes() + b"\0")
+    return h.hexdigest()[:16]
+
+
+def _run(cmd, what: str, **kw) -> None:
+    res = subprocess.run(cmd, capture_output=True, text=True, **kw)
+    if res.returncode != 0:
+        raise SimavrError(f"{what} failed (exit {res.returncode}): {(res.stderr or res.stdout).strip()[-2000:]}")
+
+
+def _cached_build(name: str, sources: Sequence[Path], build, cache_dir) -> Path:
+    """Return ``cache/name-<hash>``; ``build(tmpdir) -> Path`` makes it if absent (atomic rename)."""
+    cache = _cache_dir(cache_dir)
+    target = cache / f"{name}-{_digest(sources)}"
+    if target.exists():
+        return target
+    with tempfile.TemporaryDirectory(dir=cache) as tmp:
+        product = build(Path(tmp))
+        os.replace(product, target)
+    return target
+
+
+def build_firmware(cache_dir=None) -> Path:
+    """Compile the sketch for an Uno (``tools/build_sketch.sh``); return the ``.elf`` path."""
+    sources = [p for p in SKETCH_DIR.iterdir() if p.is_file()] + [BUILD_SCRIPT]
+
+    def build(tmp: Path) -> Path:
+        _run(["sh", str(BUILD_SCRIPT), str(tmp / "build")], "building the sketch (tools/build_sketch.sh)")
+        return tmp / "build" / "streamcal_bridge.ino.elf"
+    return _cached_build("streamcal_bridge.elf", sources, build, cache_dir)
+
+
+def build_harness(cache_dir=None) -> Path:
+    """Compile ``tools/simavr_harness`` with make; return the executable's path."""
+    sources = [HARNESS_DIR / "simavr_harness.c", HARNESS_DIR / "Makefile"]
+
+    def build(tmp: Path) -> Path:
+        _run(["make", "-s", "-C", str(HARNESS_DIR), f"OUT={tmp}"], "building tools/simavr_harness")
+        return tmp / "simavr_harness"
+    return _cached_build("simavr_harness", sources, build, cache_dir)
+
+
+def _mag_counts(bus: FakeMPU9250Bus, bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """(M,3) int16 AK8963-axis counts and (M,) HOFL flags of every mag row for a CNTL1.BIT
+    setting, from the fake chip's own encoder (its per-setting cache, filled by serving row 0)."""
+    if bus._mag_t.size == 0:
+        return np.zeros((0, 3), np.int16), np.zeros(0, bool)
+    saved = (bus._ak[R.AkReg.CNTL1], bus._ak_k)
+    bus._ak[R.AkReg.CNTL1] = R.AK_BIT_16.set(0, 1 if bits == 16 else 0)
+    bus._ak_k = 0
+    try:
+        bus._ak_sample_bytes()
+        counts, over = bus._cache["mag", bits]
+    finally:
+        bus._ak[R.AkReg.CNTL1], bus._ak_k = saved
+    return np.asarray(counts, dtype=np.int16).reshape(-1, 3), np.asarray(over, dtype=bool)
+
+
+def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=(0xB0, 0xB2, 0xA5), who_am_i: int = 0x71,
+                 ak_wia: int = R.AK8963_WIA, magnetometer: bool | None = None, hofl_rate: float = 0.0,
+                 seed: int = 0) -> bytes:
+    """The harness's replay file for ``track`` (a :class:`~streamcal.track.Track`, mag in µT).
+
+    Raw counts come from :class:`FakeMPU9250Bus` (every ACCEL_FS_SEL/GYRO_FS_SEL setting, 14- and
+    16-bit magnetometer output, ASA and axis remap inverted); row times become 16 MHz cycles
+    ``round((t - t[0] + lead_s)·F_CPU)``. Layout: ``tools/simavr_harness/simavr_harness.c``.
+    """
+    from .fake_mpu9250 import Faults
+
+    if lead_s < 0:
+        raise InputError(f"lead_s must be >= 0, got {lead_s}")
+    bus = FakeMPU9250Bus.from_track(track, asa=asa, who_am_i=who_am_i, ak_wia=ak_wia,
+                                    magnetometer=magnetometer, faults=Faults(hofl_rate=hofl_rate), seed=seed)
+    t0 = float(bus.t[0])
+    cyc = lambda t: np.rint((np.asarray(t, float) - t0 + lead_s) * F_CPU_HZ).astype("<i8")  # noqa: E731
+    acc = np.stack([bus._imu_counts("acc", fs) for fs in range(4)], axis=1) if bus._acc_t.size \
+        else np.zeros((0, 4, 3), np.int16)
+    gyr = np.stack([bus._imu_counts("gyr", fs) for fs in range(4)], axis=1) if bus._gyr_t.size \
+        else np.zeros((0, 4, 3), np.int16)
+    tmp = bus._imu_counts("tmp", 0)[:, 0] if bus._tmp_t.size else np.zeros(0, np.int16)
+    (m14, o14), (m16, o16) = _mag_counts(bus, 14), _mag_counts(bus, 16)
+    mag = np.stack([m14, m16], axis=1)
+    hofl = np.stack([o14, o16], axis=1).astype("u1")
+    asa_b = bytes(np.asarray(asa, dtype=np.uint8))
+    header = REPLAY_MAGIC + struct.pack("<4I", len(bus._acc_t), len(bus._gyr_t), len(bus._tmp_t),
+                                        len(bus._mag_t)) \
+        + bytes([who_am_i & 0xFF, ak_wia & 0xFF, int(bus.has_mag)]) + asa_b + b"\0\0"
+    parts = [header,
+             cyc(bus._acc_t).tobytes(), acc.astype("<i2").tobytes(),
+             cyc(bus._gyr_t).tobytes(), gyr.astype("<i2").tobytes(),
+             cyc(bus._tmp_t).tobytes(), tmp.astype("<i2").tobytes(),
+             cyc(bus._mag_t).tobytes(), mag.astype("<i2").tobytes(), hofl.tobytes()]
+    return b"".join(parts)
+
+
+class SimavrBoard:
+    """The compiled sketch running in simavr on a pty, replaying ``track``.
+
+    ``track``: a :class:`~streamcal.track.Track` or a track file path. ``eeprom``: a 1024-byte
+    EEPROM image file, loaded at start if it exists and saved at close (a calibration survives a
+    "reboot"). ``tail_s``: simulated seconds after the last row before the AVR drops to real time.
+    Other keywords go to :func:`replay_bytes`. After :meth:`close`, :attr:`stats` holds the
+    harness's counters (``sim_s``, ``wall_s``, ``samples_latched``, ``skipped``, ``dor_reported``,
+    ``violations``, ``uart_tx_bytes``…).
+    """
+
+    def __init__(self, track, *, lead_s: float = DEFAULT_LEAD_S, eeprom=None, tail_s: float = 1.0,
+                 cache_dir=None, start_timeout: float = 120.0, **replay_options):
+        from streamcal.track import Track
+
+        self.track = track if isinstance(track, Track) else Track.read(track)
+        self.lead_s = float(lead_s)
+        self.t0 = float(self.track.t[0])
+        self.eeprom = None if eeprom is None else Path(eeprom)
+        self.tail_s = float(tail_s)
+        self.cache_dir = cache_dir
+        self.start_timeout = start_timeout
+        self.replay_options = replay_options
+        self.port_name: str | None = None
+        self.stats: dict | None = None
+        self.proc: subprocess.Popen | None = None
+        self._tmp: tempfile.TemporaryDirectory | None = None
+
+    @classmethod
+    def from_track(cls, track, **options) -> "SimavrBoard":
+        return cls(track, **options).start()
+
+    def track_time(self, t_board_s):
+        """Board clock (s since reset, as ``SampleBlock.t``) → track time, s."""
+        return np.asarray(t_board_s, dtype=float) + self.t0 - self.lead_s
+
+    def start(self) -> "SimavrBoard":
+        """Build what is missing, write the replay file, start the harness, learn its pty."""
+        missing = missing_toolchain()
+        if missing:
+            raise SimavrError(f"simavr board: missing {', '.join(missing)} (see HARDWARE.md §7)")
+        elf, harness = build_firmware(self.cache_dir), build_harness(self.cache_dir)
+        self._tmp = tempfile.TemporaryDirectory(prefix="streamcal-simavr-")
+        work = Path(self._tmp.name)
+        replay = work / "replay.bin"
+        replay.write_bytes(replay_bytes(self.track, lead_s=self.lead_s, **self.replay_options))
+        self._stats_path = work / "stats.json"
+        self._log_path = work / "harness.log"
+        cmd = [str(harness), str(elf), str(replay), "--stats", str(self._stats_path), "--tail", str(self.tail_s)]
+        if self.eeprom is not None:
+            cmd += ["--eeprom", str(self.eeprom)]
+        self._log = open(self._log_path, "wb")
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL)
+        ready, _, _ = select.select([self.proc.stdout], [], [], self.start_timeout)
+        line = self.proc.stdout.readline().decode(errors="replace").strip() if ready else ""
+        if not line.startswith("/dev/"):
+            self.close()
+            raise SimavrError(f"simavr harness did not report its pty within {self.start_timeout:g} s "
+                              f"(got {line!r}); log: {self.log()[-1000:]}")
+        self.port_name = line
+        return self
+
+    def open_link(self, baud: int = 115200, timeout: float = 0.05, **link_options):
+        """A :class:`~firmware_bridge.serial_link.SerialLink` on this board's pty, woken up;
+        closing the link closes the board."""
+        import serial
+
+        from .serial_link import SerialLink
+
+        port = serial.Serial(self.port_name, baud, timeout=timeout)
+        link = SerialLink(port, source=f"simavr:{self.port_name}", board=self, **link_options)
+        link.wake()
+        return link
+
+    def log(self) -> str:
+        """What the harness wrote on stderr so far."""
+        try:
+            return self._log_path.read_text(errors="replace")
+        except (AttributeError, OSError):
+            return ""
+
+    def close(self, timeout: float = 10.0) -> dict | None:
+        """SIGTERM the harness, wait for it, collect :attr:`stats`; idempotent."""
+        if self.proc is not None:
+            if self.proc.poll() is None:
+                self.proc.send_signal(signal.SIGTERM)
+                try:
+                    self.proc.wait(timeout)
+                except subprocess.TimeoutExpired:
+                    self.proc.kill()
+                    self.proc.wait()
+                    raise SimavrError(f"simavr harness (pid {self.proc.pid}) ignored SIGTERM for {timeout:g} s")
+            self.proc.stdout.close()
+            self._log.close()
+            try:
+                self.stats = json.loads(self._stats_path.read_text())
+            except (OSError, ValueError):
+                self.stats = None
+            self.returncode = self.proc.returncode
+            self.proc = None
+        if self._tmp is not None:
+            self._tmp.cleanup()
+            self._tmp = None
+        return self.stats
+
+    def __enter__(self) -> "SimavrBoard":
+        return self if self.proc is not None else self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def __del__(self):
+        try:
+            if self.proc is not None and self.proc.poll() is None:
+                self.proc.kill()
+        except Exception:
+            pass
+
