@@ -224,7 +224,12 @@ class SimavrBoard:
         if self.eeprom is not None:
             cmd += ["--eeprom", str(self.eeprom)]
         self._log = open(self._log_path, "wb")
-        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL)
+        try:
+            self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL)
+        except OSError as exc:
+            self._log.close()
+            self.close()
+            raise SimavrError(f"simavr harness {harness}: cannot start ({exc})") from None
         ready, _, _ = select.select([self.proc.stdout], [], [], self.start_timeout)
         line = self.proc.stdout.readline().decode(errors="replace").strip() if ready else ""
         if not line.startswith("/dev/"):
