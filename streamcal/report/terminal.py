@@ -34,7 +34,7 @@ def _disc(cells, occupied: np.ndarray, rows: int, north: bool, gap=None) -> list
     U, V = np.meshgrid(u, v)
     rho2 = U * U + V * V
     inside = rho2 <= 2.0 * (1 + 0.5 / rows) ** 2
-    rho2c = np.minimum(rho2, 2.0)
+    rho2c = np.minimum(rho2, 2.0 - 1e-6)          # rim points stay in their own hemisphere
     z = 1.0 - rho2c / 2.0
     k = np.sqrt(np.clip(1.0 - z * z, 0, None)) / np.where(rho2c > 0, np.sqrt(rho2c), 1.0)
     Y = V if north else -V

@@ -1,0 +1,58 @@
+"""``streamcal report TRACK [--model a,b] [--add EFFECT] -o report.html`` (SPEC §4).
+
+Diagnoses the track and writes one self-contained HTML page of figures and tables. When the fit
+refuses the track (too little coverage…), the page shows what needs no calibration and says why;
+the exit code is then 1, as for ``streamcal fit``.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from ..calibration import DEFAULT_MODEL
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("report", help="diagnose a track and write a self-contained HTML "
+                              "report of figures", description=__doc__.splitlines()[0])
+    p.add_argument("track", help="track file (.csv or .csv.gz, SPEC §1)")
+    p.add_argument("--model", default=",".join(DEFAULT_MODEL),
+                   help="comma-separated effects of SPEC §3 (default: %(default)s)")
+    p.add_argument("--add", action="append", default=[], metavar="EFFECT",
+                   help="add an effect to the model (repeatable, or comma-separated)")
+    p.add_argument("-o", "--output", metavar="HTML",
+                   help="report file (default: <track name>-report.html in the current directory)")
+    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
+    p.set_defaults(func=run)
+
+
+def model_from_args(model: str, add) -> tuple[str, ...]:
+    """The model named by ``--model`` plus every ``--add`` (duplicates dropped, order kept)."""
+    names = [n.strip() for n in model.split(",") if n.strip()]
+    for item in add or ():
+        names += [n.strip() for n in item.split(",") if n.strip()]
+    return tuple(dict.fromkeys(names))
+
+
+def default_output(track_path: str) -> Path:
+    name = Path(track_path).name
+    for suffix in (".gz", ".csv"):
+        name = name[: -len(suffix)] if name.endswith(suffix) else name
+    return Path(f"{name or 'track'}-report.html")
+
+
+def run(args) -> int:
+    from ..report import diagnose_or_reason, write_report
+    from ..track import Track
+
+    model = model_from_args(args.model, args.add)
+    track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
+    diagnosis, reason = diagnose_or_reason(track, model)
+    out = write_report(args.output or default_output(args.track), track, diagnosis,
+                       reason=reason, name=args.track)
+    print(f"report written to {out}")
+    if diagnosis is None:
+        print(f"streamcal report: no calibration: {reason} (the report shows the raw data)",
+              file=sys.stderr)
+        return 1
+    return 0
