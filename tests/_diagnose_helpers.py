@@ -6,13 +6,13 @@ from streamcal.calibration import Calibration
 from streamcal.model import build_effects
 
 
-def fitter(track, model):
+def fitter(track, model, initial=None):
     try:
         from streamcal.fit import fit
     except ImportError:
         fit = None
     if fit is not None:
-        return fit(track, model=tuple(model), kernel="cauchy")
+        return fit(track, model=tuple(model), kernel="cauchy", initial=initial)
     from streamcal.fit.kernels import Cauchy
     from streamcal.fit.lm import refine
     from streamcal.fit.normalize import normalize

@@ -11,6 +11,16 @@ is referred to F(P, n − p₁). With thousands of samples a physically negligib
 "significant", so an effect is only called missing when it is also material (the rms drops by
 at least :data:`MIN_DROP`) and the base rms is clearly above the noise floor
 (:data:`ABOVE_FLOOR`): a clean track must come out ``at_noise_floor``.
+
+Registration effects (``mag_accel_misalignment``, ``time_lag``) leave no trace in the eq. 41
+residual (every direction is free), so they are judged on the gravity-tied residual of
+:mod:`streamcal.model.registration` instead: the candidate's refit is compared — same F test,
+same materiality rule — with the gravity-tied fit of the current model *without* the effect.
+Both rms values are sqrt(mean ‖r_j‖²) over each fit's inliers in the sensor unit, computed the
+same way, and "add the effect and refit" returns exactly the promised ``rms_after``; but that
+scale includes the error of the gravity reference, so it is compared with the tied base (given
+in the evidence text), not with the diagnosis' free-direction ``rms``. Candidates are ranked by
+``rms_after`` / the rms each was compared with.
 """
 from __future__ import annotations
 
@@ -83,3 +93,16 @@ def evidence(effect: str, term, s: np.ndarray, normal: np.ndarray, u: np.ndarray
     r = float(np.sqrt(max(0.0, 1 - np.sum((y - A @ coef) ** 2) / sst))) if sst > 0 else 0.0
     subject = _SUBJECT.get(effect) or ", ".join(getattr(term, "channels", ())) or effect
     return f"residual follows {subject} (r={r:.2f})"
+
+
+def registration_evidence(effect: str, rms_before: float, rms_after: float, cal, unit: str) -> str:
+    """Sentence for a registration candidate: the gravity-tied rms it is compared with (the
+    fit without the effect) and what the refit found."""
+    text = f"gravity-tied rms {rms_before:.3g} → {rms_after:.3g} {unit}"
+    params = cal.effects.get(effect, {}) if cal is not None else {}
+    if effect == "mag_accel_misalignment" and "rotation" in params:
+        angle = np.degrees(np.linalg.norm(params["rotation"]))
+        text += f"; mag frame rotated {angle:.2f}° from the accel frame"
+    elif effect == "time_lag" and "tau" in params:
+        text += f"; mag lags the IMU by {1e3 * params['tau']:.1f} ms"
+    return text

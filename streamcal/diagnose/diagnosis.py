@@ -2,6 +2,7 @@
 effect is missing (SPEC §4 ``streamcal diagnose``)."""
 from __future__ import annotations
 
+import inspect
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -9,8 +10,9 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL
 from ..errors import StreamcalError
-from ..model import TERMS, build_effects, check_needs, missing_columns
+from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
 from ..model.build import check_known
+from ..model.registration import gravity_reference, registration_fit
 from . import candidates as cand
 from .noise import noise_floor
 from .residuals import families, rms, sensor_residual
@@ -18,6 +20,10 @@ from .spans import outlier_spans
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
 OUTLIER_SIGMAS = 5.0
+#: A fit's inliers: residual within this many kernel widths (as streamcal.fit.autocal).
+OUTLIER_WIDTHS = 2.0
+#: Candidate refits for the ranking use at most this many well-spread samples.
+SUBSET_MAX = 6000
 #: Most effects the ladder adds.
 LADDER_STEPS = 3
 
@@ -49,63 +55,150 @@ class Diagnosis:
 
 
 def _default_fitter(kernel: str) -> Callable:
-    def fit(track, model):
+    def fit(track, model, initial=None):
         from ..fit import fit as _fit
 
-        return _fit(track, model=tuple(model), kernel=kernel)
+        return _fit(track, model=tuple(model), kernel=kernel, initial=initial)
     return fit
 
 
 def _candidate_names(model: Sequence[str], track) -> list[str]:
-    names = [n for n in TERMS if n not in model]
+    names = [n for n in (*TERMS, *REGISTRATION_EFFECTS) if n not in model]
     if "soft_iron" not in model:
         names.insert(0, "soft_iron")
     if "hard_iron" not in model:
         names.insert(0, "hard_iron")
     missing = missing_columns(names, track)
-    return [n for n in names if n not in missing]
+    # The gravity-tied solver needs the accelerometer, also for time_lag (a gyro alone is not
+    # used yet).
+    no_accel = not track.has("accel")
+    return [n for n in names if n not in missing
+            and not (n in REGISTRATION_EFFECTS and no_accel)]
+
+
+def _tied(model) -> bool:
+    return any(n in REGISTRATION_EFFECTS for n in model)
 
 
 class _Evaluated:
-    """One fitted model with its eq. 41 residuals and inlier set."""
+    """One fitted model with its residuals (eq. 41, or the gravity-tied residual of
+    :mod:`streamcal.model.registration` when ``reg`` is given) and inlier set."""
 
-    def __init__(self, cal, m, cov, floor):
-        self.cal = cal
-        self.r, self.x, self.s, self.normal = sensor_residual(cal, m, cov)
-        norm = np.linalg.norm(self.r, axis=1)
-        inl = getattr(cal, "inliers", None)
-        if inl is None or np.shape(inl) != (len(m),):
-            scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
-            inl = norm <= OUTLIER_SIGMAS * scale
-        self.inliers = np.asarray(inl, bool)
+    def __init__(self, cal, m, cov, floor, reg=None):
+        self.cal, self.tied = cal, reg is not None
+        if reg is not None:
+            self.r, self.x = reg.residuals, reg.directions
+            self.s = self.normal = None
+            self.inliers = np.asarray(reg.inliers, bool)
+            self.p = reg.n_params
+        else:
+            self.r, self.x, self.s, self.normal = sensor_residual(cal, m, cov)
+            norm = np.linalg.norm(self.r, axis=1)
+            inl = getattr(cal, "inliers", None)
+            width = (getattr(cal, "extra", None) or {}).get("tau")
+            if (inl is None or np.shape(inl) != (len(m),)) and width:
+                inl = norm <= OUTLIER_WIDTHS * float(width)   # the fit's own inlier rule
+            elif inl is None or np.shape(inl) != (len(m),):
+                scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
+                inl = norm <= OUTLIER_SIGMAS * scale
+            self.inliers = np.asarray(inl, bool)
+            self.p = cand.n_global_params(cal)
         self.rms = rms(self.r, self.inliers)
         self.rss = np.sum(self.r ** 2, axis=1)
-        self.p = cand.n_global_params(cal)
 
 
-def _rank(base: _Evaluated, model, names, fitter, track, m, cov, floor) -> list:
+class _Context:
+    """What every refit of one diagnosis shares: the track, its arrays, the fitter and the
+    gravity reference (built once, on demand)."""
+
+    def __init__(self, track, fitter, kernel, floor, subset_max=None):
+        self.track, self.fitter, self.kernel, self.floor = track, fitter, kernel, floor
+        self.m = np.asarray(track.mag, dtype=float)
+        self.cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
+        self.cov.setdefault("t", np.asarray(track.t_mag, dtype=float))
+        self._gref = None
+        self._warm = "initial" in inspect.signature(fitter).parameters
+        self.subset = None    # (mag sample indices, sub-track) for the ranking refits
+        if subset_max and len(self.m) > subset_max:
+            from ..fit.ellipsoid import spread_subset
+
+            idx = spread_subset(self.m, subset_max)
+            keep = ~np.asarray(track.mag_rows, bool)
+            keep[np.flatnonzero(track.mag_rows)[idx]] = True
+            self.subset = (idx, track.select(keep))
+
+    @property
+    def gref(self):
+        if self._gref is None:
+            self._gref = gravity_reference(self.track)
+        return self._gref
+
+    def evaluate(self, model, initial=None, *, tied=False, quick=False) -> _Evaluated:
+        """Fit ``model`` (warm-started from ``initial``) and evaluate it on every sample;
+        ``tied`` forces the gravity-tied fit even without a registration effect (the
+        registration base); ``quick`` fits on the spread subset only (see :func:`diagnose`)."""
+        if tied or _tied(model):
+            reg = registration_fit(self.track, model, kernel=self.kernel, initial=initial,
+                                   gref=self.gref)
+            return _Evaluated(reg.calibration, self.m, self.cov, self.floor, reg)
+        track = self.subset[1] if quick and self.subset is not None else self.track
+        if self._warm and initial is not None:
+            cal = self.fitter(track, model, initial=initial)
+        else:
+            cal = self.fitter(track, model)
+        if track is not self.track:
+            cal = cal.replace(inliers=None, weights=None, directions=None)
+        return _Evaluated(cal, self.m, self.cov, self.floor)
+
+
+def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
+    """Refit ``model`` + each of ``names`` and rank them. A registration candidate is compared
+    with the gravity-tied fit of ``model`` (``base`` itself when it is tied already)."""
     out = []
+    tied_base = base if base.tied else None
     for name in names:
+        ref = base
         try:
-            ev = _Evaluated(fitter(track, (*model, name)), m, cov, floor)
+            if name in REGISTRATION_EFFECTS and not base.tied:
+                if tied_base is None:
+                    tied_base = ctx.evaluate(model, base.cal, tied=True)
+                ref = tied_base
+            ev = ctx.evaluate((*model, name), base.cal, quick=True)
         except StreamcalError:
             continue  # the data cannot support this effect (e.g. a constant temperature)
-        common = base.inliers & ev.inliers
-        p_value = cand.f_test(float(base.rss[common].sum()), float(ev.rss[common].sum()),
-                              max(ev.p - base.p, 1), int(common.sum()), ev.p)
-        term = build_effects([name], cov)[0] if name in TERMS else None
-        text = cand.evidence(name, term, base.s, base.normal, base.x @ base.cal.K.T, cov, base.inliers)
-        c = cand.Candidate(name, ev.rms, p_value, text, ev.p - base.p,
-                           cand.is_significant(base.rms, ev.rms, p_value, floor), ev.cal)
+        common = ref.inliers & ev.inliers
+        p_value = cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
+                              max(ev.p - ref.p, 1), int(common.sum()), ev.p)
+        if name in REGISTRATION_EFFECTS:
+            text = cand.registration_evidence(name, ref.rms, ev.rms, ev.cal, ctx.track.mag_unit)
+        elif base.s is not None:
+            term = build_effects([name], ctx.cov)[0] if name in TERMS else None
+            text = cand.evidence(name, term, base.s, base.normal, base.x @ base.cal.K.T, ctx.cov,
+                                 base.inliers)
+        else:
+            text = f"gravity-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
+        c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
+                           cand.is_significant(ref.rms, ev.rms, p_value, ctx.floor), ev.cal)
+        c.rms_before = ref.rms
         c._evaluated = ev
         out.append(c)
-    out.sort(key=lambda c: (not c.significant, c.rms_after))
+    # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
+    # the rms each was compared with (the same order as rms_after among the others).
+    out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
+    if out and ctx.subset is not None and not out[0]._evaluated.tied:
+        top = out[0]   # the winner is refitted on every sample: its promise is exact
+        try:
+            ev = ctx.evaluate((*model, top.effect), top.calibration)
+        except StreamcalError:
+            return out
+        top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
     return out
 
 
 def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
              fitter: Callable | None = None, kernel: str = "cauchy",
-             candidates: Sequence[str] | None = None, ladder: bool = True) -> Diagnosis:
+             candidates: Sequence[str] | None = None, ladder: bool = True,
+             subset_max: int | None = SUBSET_MAX) -> Diagnosis:
     """Diagnose ``model`` on ``track`` (a :class:`streamcal.track.Track`).
 
     ``calibration``: an existing fit of ``model`` to use instead of fitting; ``fitter(track,
@@ -113,38 +206,57 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     tried (default: every catalog effect the track supports that the model lacks); ``ladder``
     keeps adding the best significant effect (up to :data:`LADDER_STEPS`) and records the rms
     after each.
+
+    Speed: every refit is warm-started from the model it extends (``fitter(track, model,
+    initial=cal)`` when the fitter takes ``initial``). With more than ``subset_max`` samples the
+    candidates are refitted on a well-spread subset of that size
+    (:func:`streamcal.fit.ellipsoid.spread_subset`) and evaluated on every sample (residual,
+    inliers by the fit's own 2-kernel-width rule); the winner of each ranking is then refitted on
+    every sample, so the top candidate's ``rms_after`` is exactly "add it and refit". None
+    refits every candidate on every sample.
+
+    Registration candidates are judged on the gravity-tied residual (see
+    :mod:`streamcal.diagnose.candidates`). Outlier spans come from the last
+    magnetometer-only model of the ladder, not the base model.
     """
     model = check_known(calibration.model if calibration is not None else model)
     check_needs(model, track)
     fitter = fitter or _default_fitter(kernel)
     m = np.asarray(track.mag, dtype=float)
-    cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
-    t = cov.get("t", np.asarray(track.t_mag, dtype=float))
-    cov.setdefault("t", t)
-    gyro = np.stack([cov[k] for k in ("gx", "gy", "gz")], 1) if all(
-        k in cov for k in ("gx", "gy", "gz")) else None
+    t = np.asarray(track.t_mag, dtype=float)
+    cov0 = track.covariates_at_mag()
+    gyro = np.stack([cov0[k] for k in ("gx", "gy", "gz")], 1) if all(
+        k in cov0 for k in ("gx", "gy", "gz")) else None
     nf = noise_floor(m, t, gyro)
-    base = _Evaluated(calibration if calibration is not None else fitter(track, model), m, cov, nf.floor)
+    ctx = _Context(track, fitter, kernel, nf.floor, subset_max)
+    cov = ctx.cov
+    base = (_Evaluated(calibration, m, cov, nf.floor) if calibration is not None and not _tied(model)
+            else ctx.evaluate(model, calibration))
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
-    ranked = _rank(base, model, names, fitter, track, m, cov, nf.floor)
+    ranked = _rank(ctx, base, model, names)
     steps = [{"model": list(model), "rms": base.rms}]
     current, cur_model, cur_ranked = base, tuple(model), ranked
+    spans_from = base
     while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
         top = cur_ranked[0]
         cur_model, current = (*cur_model, top.effect), top._evaluated
         steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
                       "p_value": top.p_value})
+        if not current.tied:
+            spans_from = current
         # Effects that explained nothing significant alone are not retried (saves refits).
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
-        cur_ranked = _rank(current, cur_model, rest, fitter, track, m, cov, nf.floor) if rest else []
+        cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
     verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
-    outliers = ~base.inliers
+    # Outlier spans from the last magnetometer-only model of the ladder: a missing effect makes
+    # the base model's residual large wherever the effect is (e.g. far from T0) — not outliers.
     return Diagnosis(
-        model=tuple(model), n=len(m), n_outliers=int(outliers.sum()), rms=base.rms,
+        model=tuple(model), n=len(m), n_outliers=int((~base.inliers).sum()), rms=base.rms,
         noise_floor=nf.floor, verdict=verdict, candidates=ranked,
-        outlier_spans=outlier_spans(t, outliers), ladder=steps,
-        residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x),
+        outlier_spans=outlier_spans(t, ~spans_from.inliers), ladder=steps,
+        residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x)
+        if not base.tied else {},
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used},
         calibration=base.cal)
