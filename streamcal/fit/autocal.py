@@ -110,8 +110,14 @@ def stage1(m_n: np.ndarray, structure: str = "full", fit_b: bool = True, method:
            stage1_max: int = 300):
     """Initial (K, b) in normalized units from an ellipsoid fit on a well-spread subset."""
     subset = m_n[spread_subset(m_n, stage1_max)]
-    fitter = fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid
-    K, b = ellipsoid_to_model(*fitter(subset))
+    try:
+        K, b = ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
+    except InsufficientDataError:
+        if method != "l1":
+            raise
+        # One-sided data can push the L1 quadric onto the PSD boundary (a cylinder); the L2
+        # quadric usually remains an ellipsoid and is a fair start for the robust LM.
+        K, b = ellipsoid_to_model(*fit_l2_ellipsoid(subset))
     if not fit_b:
         b = np.zeros(3)
     if structure == "diag":
@@ -162,7 +168,8 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
     r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
     if initial is None and _looks_contaminated(r0, radial_error(K0, b0, m_n)):
         K1, b1 = robust_start(K0, b0, m_n)
-        if lqs_score(K1, b1, m_n) < lqs_score(K0, b0, m_n):
+        spread = m_n[spread_subset(m_n, 2000)]
+        if lqs_score(K1, b1, spread) < lqs_score(K0, b0, spread):
             K0, b0 = K1, b1
             x0 = directions_from_model(K0, b0, m_n)
             r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)

@@ -6,7 +6,8 @@ algebraic ellipsoid to the quarter of samples nearest the current surface, repea
 (the "C-steps" of least-trimmed-squares) — then lock onto the thin shell of inliers, provided the
 start has the right size; so we start from several radial scalings of the L1 ellipsoid and keep
 the model with the smallest low quantile of radial errors (an LQS criterion, which still works
-when the inliers are a minority).
+when the inliers are a minority). Both run on a direction-spread subset, so rest periods (dense
+clusters of identical samples) cannot pose as a shell.
 """
 from __future__ import annotations
 
@@ -47,8 +48,12 @@ def concentrate(K: np.ndarray, b: np.ndarray, m: np.ndarray, steps: int = 20):
     return K, b
 
 
-def robust_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray):
-    """Best (K, b) by :func:`lqs_score` over concentration runs from scaled copies of (K0, b0)."""
+def robust_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray, n_max: int = 2000):
+    """Best (K, b) by :func:`lqs_score` over concentration runs from scaled copies of (K0, b0).
+
+    Works on at most ``n_max`` samples spread over directions: a board resting in one pose
+    gives a dense cluster that any thin shell through it would "fit" with a tiny score."""
+    m = m[spread_subset(m, n_max)]
     best = None
     for scale in SCALES:
         K, b = concentrate(K0 * scale, b0, m)
