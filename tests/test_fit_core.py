@@ -217,11 +217,11 @@ def test_triggs_identities(name):
 
 
 # -- recovery and canonical form ---------------------------------------------------------------
-FIT_CASES = [("autocal", {"kernel": k}) for k in KERNEL_NAMES] + \
+FIT_CASES = [("autocal", {})] + [("autocal", {"kernel": k}) for k in KERNEL_NAMES] + \
     [(mt, {"method": mt}) for mt in METHODS if mt not in ("autocal", "sphere_stream")]
 
 
-@pytest.mark.parametrize("label,kw", FIT_CASES, ids=[f"{a}-{b.get('kernel', '')}" for a, b in FIT_CASES])
+@pytest.mark.parametrize("label,kw", FIT_CASES, ids=[f"{a}-{b.get('kernel', 'default')}" for a, b in FIT_CASES])
 @pytest.mark.parametrize("seed", (11, 12))
 def test_recovers_known_model_without_outliers(label, kw, seed):
     m, K, b, x, _ = synthetic(seed)
@@ -229,7 +229,7 @@ def test_recovers_known_model_without_outliers(label, kw, seed):
     assert model_error(cal.K, cal.b, K, b) < 3 * crlb(K, b, x, 1.0)
 
 
-@pytest.mark.parametrize("kernel", ("cauchy", "huber", "gm", "l1"))
+@pytest.mark.parametrize("kernel", ("auto", "cauchy", "huber", "gm", "l1"))
 def test_robust_kernels_recover_model_with_outliers(kernel):
     m, K, b, x, inl = synthetic(21, eta=0.05)
     cal = fit(m, kernel=kernel, check_coverage=False)

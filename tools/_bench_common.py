@@ -67,8 +67,9 @@ def crlb_normalized(K, b, x, sigma) -> float:
 
 def run_stamp(argv=None) -> str:
     """One line: date (UTC), git commit, host, numpy/BLAS threads, and the command line."""
+    commit = os.environ.get("STREAMCAL_BENCH_COMMIT")  # set when run from an exported snapshot
     try:
-        commit = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
+        commit = commit or subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"],
                                 capture_output=True, text=True, timeout=5).stdout.strip()
     except Exception:  # no git: the stamp is informative only
         commit = "?"

@@ -65,7 +65,7 @@ def table_vi(n: int, repeats: int, seed: int) -> None:
 
     base_l2 = med(lambda i: fit_l2_ellipsoid(normed[i]))
     base_cvx = med(lambda i: problem.solve(normed[i]))
-    rows = {}
+    rows = {"autocal (default)": med(lambda i: fit(data[i], check_coverage=False))}
     for k in ("cauchy", "huber", "gm", "l1", "l2"):
         rows[f"autocal/{k}"] = med(lambda i, k=k: fit(data[i], kernel=k, check_coverage=False))
     for method in METHODS:
