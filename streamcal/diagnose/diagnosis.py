@@ -138,8 +138,9 @@ class _Context:
         ``tied`` forces the gravity-tied fit even without a registration effect (the
         registration base); ``quick`` fits on the spread subset only (see :func:`diagnose`)."""
         if tied or _tied(model):
+            rows = self.subset[0] if quick and self.subset is not None else None
             reg = registration_fit(self.track, model, kernel=self.kernel, initial=initial,
-                                   gref=self.gref)
+                                   gref=self.gref, rows=rows)
             return _Evaluated(reg.calibration, self.m, self.cov, self.floor, reg)
         track = self.subset[1] if quick and self.subset is not None else self.track
         if self._warm and initial is not None:
@@ -161,7 +162,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         try:
             if name in REGISTRATION_EFFECTS and not base.tied:
                 if tied_base is None:
-                    tied_base = ctx.evaluate(model, base.cal, tied=True)
+                    tied_base = ctx.evaluate(model, base.cal, tied=True, quick=True)
                 ref = tied_base
             ev = ctx.evaluate((*model, name), base.cal, quick=True)
         except StreamcalError:
@@ -185,7 +186,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
     # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
     # the rms each was compared with (the same order as rms_after among the others).
     out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
-    if out and ctx.subset is not None and not out[0]._evaluated.tied:
+    if out and ctx.subset is not None:
         top = out[0]   # the winner is refitted on every sample: its promise is exact
         try:
             ev = ctx.evaluate((*model, top.effect), top.calibration)

@@ -349,7 +349,8 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     with R = I and τ = 0 (only δ free), the base the registration effects are compared with.
     ``tau``: kernel width in sensor units (None: from the data). ``initial``: a Calibration to
     start from (else an ellipsoid fit of the non-registration part of the model). ``rows``:
-    indices of the magnetometer samples to use (default all). ``gref``: a precomputed
+    indices of the magnetometer samples to fit on (default all); the residuals, inliers and rms
+    returned are still over every sample (headings re-solved there, step (a)). ``gref``: a precomputed
     :func:`gravity_reference`.
     """
     from ..calibration import Calibration
@@ -423,6 +424,11 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     if not np.all(np.isfinite(K)) or np.any(np.diag(K) <= 0):
         raise InsufficientDataError("the gravity-tied fit diverged: the data do not determine "
                                     "the registration")
+    if len(m) < len(m_all):   # fitted on a subset: residuals, inliers and rms over every sample
+        prob = _Problem(m_all, cov_all, gref, terms, fit_rot, fit_lag)
+        h = prob.headings(K, b, thetas, R, dip, lag)
+        r = prob.residual(K, b, thetas, R, dip, lag, h)
+        m = m_all
     rn = np.linalg.norm(r, axis=1)
     width = width_given or EFFICIENCY_TAU.get(kernel, 2.3849) * float(np.median(rn) / 0.6744897501960817)
     inliers = rn <= OUTLIER_WIDTHS * width if kernel != "l2" else np.ones(len(rn), bool)
