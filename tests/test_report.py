@@ -2,6 +2,7 @@
 and says what the diagnosis found (or why there is none), ``diagnose --plots`` writes the PNGs,
 and the terminal coverage view shows the sphere as the coverage buffer sees it."""
 import base64
+import html
 import io
 import re
 
@@ -164,7 +165,7 @@ def test_broad_32_is_refused_and_the_report_says_why(real_tracks_dir, tmp_path, 
     if code == 1:                                # the fit refused the track: the page says why
         err = capsys.readouterr().err
         reason = err.split("no calibration: ", 1)[1].split(" (the report", 1)[0]
-        assert 'class="box refused"' in page and reason in page.replace("&#x27;", "'")
+        assert 'class="box refused"' in page and reason in html.unescape(page)
     else:
         assert code == 0 and ('class="box missing"' in page or 'class="box floor"' in page)
 

@@ -52,10 +52,8 @@ def bundled_track():
 
 def report_path(output: str, out_dir: str | None) -> Path:
     path = Path(output)
-    if out_dir:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
-        if not path.is_absolute():
-            path = Path(out_dir) / path
+    if out_dir and not path.is_absolute():
+        path = Path(out_dir) / path
     return path
 
 
@@ -93,6 +91,7 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
         print(_verdict(diagnosis))
         say(_candidates(diagnosis))
         say(_ladder(diagnosis))
+    out.parent.mkdir(parents=True, exist_ok=True)
     path = write_report(out, track, diagnosis, reason=reason, name=track_path.name,
                         title=f"streamcal demo: {track_path.name}",
                         intro=_stream_html(accepted, track.mag_unit))

@@ -48,7 +48,9 @@ def run(args) -> int:
     model = model_from_args(args.model, args.add)
     track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
     diagnosis, reason = diagnose_or_reason(track, model)
-    out = write_report(args.output or default_output(args.track), track, diagnosis,
+    out = Path(args.output) if args.output else default_output(args.track)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out = write_report(out, track, diagnosis,
                        reason=reason, name=args.track)
     print(f"report written to {out}")
     if diagnosis is None:

@@ -200,7 +200,8 @@ def ellipsoid_figure(data: FigureData) -> Figure:
         for line in lines:
             ax.plot(line[:, i], line[:, j], color=_FIT, lw=0.6, alpha=0.55)
         ax.scatter(data.m[inl, i], data.m[inl, j], s=2, color=_INLIER, alpha=0.35, lw=0,
-                   rasterized=True, label=f"inliers ({int(data.inliers.sum())})")
+                   rasterized=True, label=(f"inliers ({int(data.inliers.sum())})" if cal is not None
+                                           else f"readings ({len(data.m)})"))
         if len(out):
             ax.scatter(data.m[out, i], data.m[out, j], s=10, color=_OUTLIER, marker="x", lw=0.8,
                        label=f"outliers ({int((~data.inliers).sum())})")
@@ -218,9 +219,10 @@ def ellipsoid_figure(data: FigureData) -> Figure:
 # -- magnitude and dip -------------------------------------------------------------------------
 def _dip(v: np.ndarray, accel: np.ndarray) -> np.ndarray:
     """Angle of ``v`` (N,3) below the plane ⟂ gravity, degrees (accel points up when still)."""
-    up = accel / np.linalg.norm(accel, axis=1, keepdims=True)
-    vn = v / np.linalg.norm(v, axis=1, keepdims=True)
-    return np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", vn, up), -1, 1))) - 90.0
+    with np.errstate(invalid="ignore", divide="ignore"):     # zero rows → NaN, not drawn
+        up = accel / np.linalg.norm(accel, axis=1, keepdims=True)
+        vn = v / np.linalg.norm(v, axis=1, keepdims=True)
+        return np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", vn, up), -1, 1))) - 90.0
 
 
 def magnitude_figure(data: FigureData) -> Figure:
@@ -241,8 +243,10 @@ def magnitude_figure(data: FigureData) -> Figure:
     _shade_spans(ax, data)
     if accel is not None:
         ax = axes[1]
-        ax.plot(t, _dip(data.m[idx] - data.center, accel[idx]), color="#999999", lw=0.7,
-                label="before (raw, centred)" if data.calibration is not None else "raw, centred on the coarse sphere")
+        calibrated = data.calibration is not None
+        raw = data.m[idx] - data.center if calibrated else data.m[idx]
+        ax.plot(t, _dip(raw, accel[idx]), color="#999999", lw=0.7,
+                label="before (raw minus b)" if calibrated else "raw readings")
         if data.calibration is not None:
             ax.plot(t, _dip(data.directions[idx], accel[idx]), color=_AFTER, lw=0.8,
                     label="after calibration")
@@ -379,9 +383,14 @@ def coverage_figure(data: FigureData) -> Figure:
             label += "; white line: noise floor"
         bar.set_label(label)
     seen = int((count > 0).sum())
+    if data.calibration is not None:
+        second = _wrap(hint(gap_c, gap_r, fraction), 140)
+    else:
+        second = ("approximate: directions seen from the centre of a one-pass sphere fit, "
+                  "because the full fit was refused")
     fig.suptitle(f"coverage of the sphere of field directions: {100 * fraction:.0f}% "
-                 f"({seen}/{cells.n_cells} equal-area cells; grey = never seen)\n"
-                 + _wrap(hint(gap_c, gap_r, fraction), 140), fontsize=10)
+                 f"({seen}/{cells.n_cells} equal-area cells; grey = never seen)\n" + second,
+                 fontsize=10)
     return fig
 
 
@@ -484,8 +493,8 @@ def ladder_figure(data: FigureData) -> Figure:
         ax2.text(d.rms, 1.01, f"model now {d.rms:.3g}", transform=top, ha="center", fontsize=8)
         if np.isfinite(d.noise_floor):
             ax2.axvline(d.noise_floor, color=_AFTER, ls="--", lw=1.5)
-            ax2.text(d.noise_floor, 1.01, "noise floor", transform=top, ha="center",
-                     fontsize=8, color=_AFTER)
+            ax2.text(d.noise_floor, 0.01, "noise floor ", transform=top, ha="right",
+                     va="bottom", fontsize=8, color=_AFTER)
         ax2.set_xlabel(f"rms after adding it ({unit}); green = significant")
     else:
         _note(ax2, "no candidate effect can be tried on this track")
