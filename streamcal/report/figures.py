@@ -429,7 +429,7 @@ def residuals_figure(data: FigureData) -> Figure:
         if key == "t":
             _shade_spans(ax, data)
         ax.scatter(xv[inl], y[inl], s=2, color=_INLIER, alpha=0.3, lw=0, rasterized=True,
-                   label="inliers")
+                   label="inliers" if data.residual is not None else "readings")
         if len(out):
             ax.scatter(xv[out], y[out], s=8, color=_OUTLIER, marker="x", lw=0.7, label="outliers")
         b = by.get(key)
