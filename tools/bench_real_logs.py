@@ -76,6 +76,16 @@ class Fitted:
         return "*" if self.forced or (ref is not None and ref.forced) else ""
 
 
+def scale_free(f: Fitted, ref: Fitted) -> tuple[float, float]:
+    """(shape deviation of K/det(K)^⅓, ‖b − b_ref‖ / det(K_ref)^⅓): eq. 40 with the field
+    strength divided out (indoor sessions see different field magnitudes)."""
+    if f.cal is None or ref.cal is None:
+        return np.nan, np.nan
+    r, r0 = np.cbrt(np.linalg.det(f.cal.K)), np.cbrt(np.linalg.det(ref.cal.K))
+    shape = float(np.linalg.norm(f.cal.K / r - ref.cal.K / r0) / np.linalg.norm(ref.cal.K / r0))
+    return shape, float(np.linalg.norm(f.cal.b - ref.cal.b) / r0)
+
+
 def cell(value: float, mark: str = "", digits: int = 2) -> str:
     return ("fail" if not np.isfinite(value) else f"{100 * value:.{digits}f}%") + mark
 
@@ -163,9 +173,7 @@ def part_c() -> None:
     tracks = {s: real_track(f"tiva_mpu9250_mag_{s}").mag for s in TIVA}
     test = tracks[TIVA_REF]
     cols = all_variants()
-    dev = {}
-    err = {}
-    secs = {}
+    dev, err, secs, split, radius = {}, {}, {}, {}, {}
     for label, kw in cols.items():
         fits = {}
         t0 = time.perf_counter()
@@ -174,6 +182,9 @@ def part_c() -> None:
         secs[label] = (time.perf_counter() - t0) / len(TIVA)
         ref = fits[TIVA_REF]
         dev[label] = {s: (fits[s].dev(ref), fits[s].mark(ref)) for s in TIVA if s != TIVA_REF}
+        split[label] = {s: scale_free(fits[s], ref) for s in TIVA if s != TIVA_REF}
+        radius[label] = {s: (np.nan if fits[s].cal is None else float(np.cbrt(np.linalg.det(fits[s].cal.K))))
+                         for s in TIVA}
         err[label] = {}
         for s in TIVA:
             c = fits[s].cal
@@ -197,6 +208,16 @@ def part_c() -> None:
             e, mk = err[label][s]
             row.append(("fail" if not np.isfinite(e) else f"{e:.2f}") + mk)
         print(f"| {label} | " + " | ".join(row) + " |")
+    print(f"\n### (c) The same deviation split: shape of K (K / det(K)^⅓, eq. 40 on it) / hard-iron "
+          f"offset ‖b − b_ref‖ in field radii, vs session {TIVA_REF}\n")
+    print("| method | " + " | ".join(others) + " |")
+    print("|---|" + "---|" * len(others))
+    for label in cols:
+        print(f"| {label} | " + " | ".join(
+            "fail" if not np.isfinite(split[label][s][0]) else
+            f"{100 * split[label][s][0]:.1f}% / {100 * split[label][s][1]:.1f}%" for s in others) + " |")
+    print("\nField radius det(K)^⅓ (counts) per session, autocal: "
+          + ", ".join(f"{s}: {radius['autocal'][s]:.1f}" for s in TIVA))
     lengths = ", ".join(f"{s}: {len(tracks[s])}" for s in TIVA)
     print(f"\nSamples per session: {lengths}.")
 
