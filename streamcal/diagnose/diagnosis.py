@@ -243,7 +243,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         top = cur_ranked[0]
         cur_model, current = (*cur_model, top.effect), top._evaluated
         steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
-                      "p_value": top.p_value})
+                      "p_value": top.p_value, "gravity_tied": current.tied})
         if not current.tied:
             spans_from = current
         # Effects that explained nothing significant alone are not retried (saves refits).

@@ -92,6 +92,8 @@ STILL_RATE = 0.05
 #: Grid of τ (s) searched before refining.
 LAG_GRID = np.arange(-0.25, 0.2501, 0.01)
 LAG_GRID_SAMPLES = 1500
+#: A fitted |τ| beyond this (s) means the data do not determine the lag (the grid spans ±0.25).
+MAX_LAG = 0.3
 LAG_STEP = 1e-3
 MAX_ROUNDS = 40
 RTOL = 1e-7
@@ -421,6 +423,9 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
         K, b, thetas, R, dip, lag, h, r = K1, b1, th1, R1, dip1, lag1, h1, r1
         if cost - cost1 <= RTOL * cost:
             break
+    if fit_lag and abs(lag) > MAX_LAG:
+        raise InsufficientDataError(f"the time lag is not determined by the data: the fit "
+                                    f"wandered to {lag:.3f} s, beyond ±{MAX_LAG} s")
     if not np.all(np.isfinite(K)) or np.any(np.diag(K) <= 0):
         raise InsufficientDataError("the gravity-tied fit diverged: the data do not determine "
                                     "the registration")
