@@ -1,0 +1,145 @@
+"""``streamcal daemon --bus N``: the Raspberry Pi service over I²C (SPEC §4).
+
+MPU-9250 on ``/dev/i2c-N`` (smbus2) → streaming calibrator (fits off the ingest path) →
+``STATE_DIR/calibration.json`` (SPEC §2, atomic, with history) and calibrated samples as JSON
+lines on a UNIX socket and/or stdout (format: :mod:`streamcal.service.output`). Runs under
+systemd with ``Type=notify`` (``tools/streamcal-daemon.service``); SIGTERM/SIGINT stop it
+cleanly (exit 0), SIGHUP re-reads the calibration file. Events go to stderr (the journal).
+``--bus fake:TRACK.csv`` runs the same code against a simulated MPU-9250 replaying a track.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+
+from ..calibration import DEFAULT_MODEL
+
+DEFAULT_STATE_DIR = "~/.local/state/streamcal"
+SOCKET_NAME = "samples.sock"
+
+
+def register(sub) -> None:
+    p = sub.add_parser("daemon", help="the Raspberry Pi calibration service over I2C",
+                       description="Read the MPU-9250 over I2C, calibrate continuously, keep the "
+                                   "calibration in the state directory and serve calibrated "
+                                   "samples (systemd Type=notify service).")
+    p.add_argument("--bus", required=True, metavar="N|fake:TRACK.csv",
+                   help="I2C bus number (1 for /dev/i2c-1) or fake:TRACK.csv (simulated sensor)")
+    p.add_argument("--address", default="0x68", type=_address,
+                   help="MPU-9250 address: 0x68 (AD0 low, default) or 0x69")
+    add_service_options(p)
+    p.add_argument("--rate", type=float, metavar="HZ",
+                   help="poll rate while waiting for a sample (default: twice the 100 Hz mag rate)")
+    p.add_argument("--speed", type=float, metavar="X",
+                   help="with --bus fake:…: replay at X times real time (default: as fast as it "
+                        "can be read, in track time)")
+    p.set_defaults(func=run)
+
+
+def add_service_options(p) -> None:
+    """Options shared with ``streamcal serial``."""
+    p.add_argument("--state-dir", metavar="DIR",
+                   help="calibration.json and its history (default: $STATE_DIRECTORY under "
+                        f"systemd, else {DEFAULT_STATE_DIR})")
+    p.add_argument("--socket", metavar="PATH",
+                   help=f"UNIX stream socket serving calibrated samples as JSON lines (default: "
+                        f"STATE_DIR/{SOCKET_NAME})")
+    p.add_argument("--no-socket", action="store_true", help="do not open the sample socket")
+    p.add_argument("--socket-mode", default="0660", type=lambda s: int(s, 8),
+                   help="permissions of the socket file, octal (default: %(default)s)")
+    p.add_argument("--json-lines", action="store_true",
+                   help="also write calibrated samples as JSON lines on stdout")
+    p.add_argument("--max-seconds", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--model", default=",".join(DEFAULT_MODEL),
+                   help="comma-separated effects fitted (default: %(default)s)")
+    p.add_argument("--sync-fits", action="store_true",
+                   help="fit inline instead of on a worker thread (reproducible replays)")
+    p.add_argument("--grace", type=float, default=10.0, metavar="S",
+                   help="on stop, wait this long for the fit in flight (default: %(default)s)")
+
+
+def _address(text: str) -> int:
+    from ..errors import InputError
+
+    try:
+        value = int(text, 0)
+    except ValueError:
+        raise InputError(f"--address: expected 0x68 or 0x69, got {text!r}") from None
+    if value not in (0x68, 0x69):
+        raise InputError(f"--address: the MPU-9250 answers at 0x68 (AD0 low) or 0x69 (AD0 high), "
+                         f"got 0x{value:02X}")
+    return value
+
+
+def _covariates(model) -> tuple:
+    """Columns the coverage buffer keeps beside the field for ``model``'s effects."""
+    from ..errors import UnknownEffectError
+    from ..model import EFFECT_NAMES
+
+    unknown = [m for m in model if m not in EFFECT_NAMES]
+    if unknown or not model:
+        raise UnknownEffectError(f"--model: unknown effect(s) {unknown or model}; known: "
+                                 f"{', '.join(EFFECT_NAMES)}")
+    if "aux_interference" in model:
+        raise UnknownEffectError("--model: aux_interference needs an auxiliary channel, which "
+                                 "the sensor does not provide")
+    cols = []
+    if any(m.startswith("temperature_") for m in model):
+        cols.append("temp")
+    if "mag_accel_misalignment" in model:
+        cols += ["ax", "ay", "az"]
+    if "time_lag" in model:
+        cols += ["gx", "gy", "gz"]
+    return tuple(cols)
+
+
+def state_dir(args) -> str:
+    if args.state_dir:
+        return args.state_dir
+    from_systemd = os.environ.get("STATE_DIRECTORY", "").split(":")[0]
+    return from_systemd or os.path.expanduser(DEFAULT_STATE_DIR)
+
+
+def build(args, source, name: str, on_event=None):
+    """The :class:`~streamcal.service.Service` for parsed ``args`` and an opened ``source``."""
+    from ..errors import InputError
+    from ..service import Outputs, Service, SocketOutput, StreamOutput
+    from ..stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
+
+    if args.max_seconds is not None and not args.max_seconds > 0:
+        raise InputError(f"--max-seconds must be positive, got {args.max_seconds}")
+    model = tuple(m.strip() for m in args.model.split(",") if m.strip())
+    covariates = _covariates(model)
+    store = CalibrationStore(state_dir(args))
+
+    def make_calibrator(buffer=None):
+        return StreamingCalibrator(store=store, model=model, unit="uT",
+                                   buffer=buffer if buffer is not None
+                                   else CoverageBuffer(covariates=covariates),
+                                   synchronous=args.sync_fits)
+
+    sinks = []
+    if args.json_lines:
+        sinks.append(StreamOutput(sys.stdout))
+    if not args.no_socket:
+        sinks.append(SocketOutput(args.socket or os.path.join(store.dir, SOCKET_NAME),
+                                  mode=args.socket_mode))
+    return Service(make_calibrator, source, outputs=Outputs(sinks), on_event=on_event,
+                   max_seconds=args.max_seconds, grace_s=args.grace, name=name)
+
+
+def run(args) -> int:
+    from ..service import I2CBlocks
+
+    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=args.speed)
+    try:
+        service = build(args, source, "daemon")
+    except BaseException:
+        source.close()
+        raise
+    service.install_signal_handlers()
+    code = service.run()
+    print(json.dumps(service.summary()), file=sys.stderr if args.json_lines else sys.stdout,
+          flush=True)
+    return code
