@@ -71,6 +71,8 @@ def run(args) -> int:
             for event in calibrator.ingest(block):
                 counts[event.kind] = counts.get(event.kind, 0) + 1
                 emit(event, bar)
+                if event.kind == "coverage" and not args.json:
+                    _show_coverage(calibrator, bar)
             bar.update(len(block))
         for event in calibrator.close():
             counts[event.kind] = counts.get(event.kind, 0) + 1
@@ -100,6 +102,17 @@ def _printer(as_json: bool):
         else:
             bar.write(line, file=sys.stdout)
     return emit
+
+
+def _show_coverage(calibrator, bar) -> None:
+    """The terminal map of the sphere (which parts are still empty) at a coverage milestone."""
+    from ..report.terminal import coverage_view
+
+    view = coverage_view(calibrator.buffer)
+    if bar.disable:
+        print(view, flush=True)
+    else:
+        bar.write(view, file=sys.stdout)
 
 
 def _summary(calibrator, counts, track, args) -> dict:

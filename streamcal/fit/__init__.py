@@ -126,8 +126,14 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         raise InputError(f"method {method!r} fits only {', '.join(CORE_EFFECTS)}; "
                          f"use method 'autocal' for {', '.join(extra)}")
     if any(n in REGISTRATION_EFFECTS for n in extra):
-        raise InputError("registration effects (mag_accel_misalignment, time_lag) cannot be fitted "
-                         "yet: their gravity-tied solver is not built")
+        if track is None:
+            raise InputError("registration effects (mag_accel_misalignment, time_lag) need a track "
+                             "with accelerometer columns, not an array of readings")
+        from ..model.registration import fit_with_registration
+
+        return fit_with_registration(track, names, kernel=kernel,
+                                     tau=None if tau in (None, "paper") else float(tau),
+                                     sensor=sensor, initial=initial)
     if len(m) < MIN_SAMPLES:
         raise InsufficientDataError(f"{len(m)} {sensor} samples are too few: at least {MIN_SAMPLES} are needed")
     structure = "full" if "soft_iron" in names else "diag" if "scale" in names else "sphere"

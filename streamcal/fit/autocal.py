@@ -6,11 +6,11 @@ Where we depart from the paper, on purpose:
 - Kernel width from the data. The paper fixes τ = √3 (optimal for σ = 1 in its units) and loses
   accuracy when the noise is larger (its Fig. 5). By default we estimate the noise σ̂ robustly
   from the residuals and set τ = c·σ̂ with c the kernel's 95 %-Gaussian-efficiency constant
-  (Cauchy 2.385, Huber 1.345, Geman–McClure 2.5); re-estimating σ̂ from the refined residuals
+  (Cauchy 2.385, Huber 1.345, Geman–McClure 3.787); re-estimating σ̂ from the refined residuals
   (trimmed at 3τ) until it settles. ``tau=<number>`` (sensor units) restores a fixed width.
 - Graduated robustness (``kernel="auto"``, the default): Cauchy to convergence — convex near
   the optimum, so it finds the right basin from the L1 start — then a Geman–McClure polish
-  (τ = 2.5σ̂), whose redescending influence ignores the outliers that land near the ellipsoid
+  (τ = 3.787σ̂), whose redescending influence ignores the outliers that land near the ellipsoid
   and act as extra noise on Cauchy. On the paper's protocol this keeps autocal within 5 % of
   the oracle that knows the inliers, up to σ = 2 and 30 % outliers (``RESULTS.md``).
 - Stage 1 on a bounded, well-spread subset (``stage1_max`` samples): the L1 program costs
@@ -33,7 +33,7 @@ from .observability import assess
 from .robust_start import KEEP, lqs_score, radial_error, robust_start
 
 #: τ / σ for 95 % asymptotic efficiency under Gaussian noise.
-EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 2.5}
+EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 3.787}
 #: Median of |N(0,1)|: converts the median radial residual into σ.
 HALF_NORMAL_MEDIAN = 0.6744897501960817
 #: A sample is an outlier when its residual exceeds this many kernel widths.
