@@ -131,7 +131,7 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
                              "with accelerometer columns, not an array of readings")
         from ..model.registration import fit_with_registration
 
-        return fit_with_registration(track, names, kernel=kernel,
+        return fit_with_registration(track, names, kernel="cauchy" if kernel == "auto" else kernel,
                                      tau=None if tau in (None, "paper") else float(tau),
                                      sensor=sensor, initial=initial)
     if len(m) < MIN_SAMPLES:
