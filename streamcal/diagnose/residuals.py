@@ -78,7 +78,8 @@ def magnitude_error(cal, m, cov) -> np.ndarray:
 
 def dip_error(x: np.ndarray, accel: np.ndarray) -> np.ndarray:
     """Degrees; ``accel`` (N,3) specific force (points up when still)."""
-    up = accel / np.linalg.norm(accel, axis=1, keepdims=True)
+    norm = np.linalg.norm(accel, axis=1, keepdims=True)
+    up = accel / np.where(norm > 0, norm, np.nan)  # a zero reading (no accel sample) has no "up"
     ang = np.degrees(np.arccos(np.clip(np.einsum("ni,ni->n", x, up), -1, 1)))
     return ang - np.nanmedian(ang)
 
