@@ -2,7 +2,8 @@
 
 Each kernel is a small immutable object whose ``evaluate(s)`` returns ρ, ρ′, ρ″ at once
 (vectorized over samples), as in scipy's ``_lsq/least_squares.py`` loss functions and Ceres'
-``LossFunction``. Robustness is applied by rescaling residuals and Jacobians (Triggs
+``LossFunction``; ``rho(s)`` returns ρ alone (the same numbers as ``evaluate(s)[0]``, for the
+LM's trial-step cost). Robustness is applied by rescaling residuals and Jacobians (Triggs
 correction, :func:`triggs_correction`), so the LM never knows which kernel it runs.
 
 The width τ is in the unit of the residual (the LM passes the normalized width).
@@ -27,6 +28,9 @@ class L2:
         s = np.asarray(s, dtype=float)
         return s.copy(), np.ones_like(s), np.zeros_like(s)
 
+    def rho(self, s):
+        return np.asarray(s, dtype=float).copy()
+
 
 @dataclass(frozen=True)
 class L1:
@@ -38,6 +42,9 @@ class L1:
         s = np.maximum(np.asarray(s, dtype=float), _S_FLOOR)
         root = np.sqrt(s)
         return root, 0.5 / root, -0.25 / (s * root)
+
+    def rho(self, s):
+        return np.sqrt(np.maximum(np.asarray(s, dtype=float), _S_FLOOR))
 
 
 @dataclass(frozen=True)
@@ -58,6 +65,11 @@ class Huber:
         d2 = np.where(inner, 0.0, -0.5 * self.tau / (s * root))
         return rho, d1, d2
 
+    def rho(self, s):
+        s = np.maximum(np.asarray(s, dtype=float), _S_FLOOR)
+        t2 = self.tau * self.tau
+        return np.where(s <= t2, s, 2 * self.tau * np.sqrt(s) - t2)
+
 
 @dataclass(frozen=True)
 class Cauchy:
@@ -71,6 +83,10 @@ class Cauchy:
         t2 = self.tau * self.tau
         q = 1.0 + s / t2
         return t2 * np.log1p(s / t2), 1.0 / q, -1.0 / (t2 * q * q)
+
+    def rho(self, s):
+        t2 = self.tau * self.tau
+        return t2 * np.log1p(np.asarray(s, dtype=float) / t2)
 
 
 @dataclass(frozen=True)
@@ -87,6 +103,11 @@ class GemanMcClure:
         t2 = self.tau * self.tau
         q = t2 + s
         return s * t2 / q, t2 * t2 / (q * q), -2.0 * t2 * t2 / (q * q * q)
+
+    def rho(self, s):
+        s = np.asarray(s, dtype=float)
+        t2 = self.tau * self.tau
+        return s * t2 / (t2 + s)
 
 
 KERNELS = {"l2": L2, "l1": L1, "huber": Huber, "cauchy": Cauchy, "gm": GemanMcClure}
@@ -131,3 +152,22 @@ def triggs_correction(s, d1, d2):
     j_alpha = np.where(positive, alpha / np.where(positive, s, 1.0), 0.0)
     r_scale = sqrt_d1 / (1.0 - alpha)
     return r_scale, j_alpha, sqrt_d1
+
+
+def triggs_weights(s, d1, d2):
+    """The Triggs correction (eq. 22–26) folded into per-sample weights, (N,) each.
+
+    With ``r_scale, j_alpha, sqrt_d1 = triggs_correction(s, d1, d2)``, r̃ = r_scale·r and
+    J̃ = sqrt_d1·(I − j_alpha·r rᵀ)J, returns ``(w, e, gw)`` such that
+
+        J̃ᵀJ̃ = Jᵀ W J,  W = w I + e r rᵀ,      J̃ᵀr̃ = gw Jᵀr,
+
+    i.e. w = sqrt_d1², e = −w·j_alpha·(2 − j_alpha·s), gw = sqrt_d1·r_scale·(1 − j_alpha·s)
+    (= ρ′ wherever s exceeds the floor). The LM then never forms J̃ itself.
+    """
+    r_scale, j_alpha, sqrt_d1 = triggs_correction(s, d1, d2)
+    w = sqrt_d1 * sqrt_d1
+    ja_s = j_alpha * s
+    e = -w * j_alpha * (2.0 - ja_s)
+    gw = sqrt_d1 * r_scale * (1.0 - ja_s)
+    return w, e, gw

@@ -24,6 +24,23 @@ Each iteration (all vectorized over samples; no per-sample Python loop):
 
 Stops after ``max_iter`` iterations or when the relative cost change falls below ``rtol``
 (§III-A: 300 and 1e-6).
+
+How the blocks are computed (same numbers, fewer operations). The Triggs correction is folded
+into a per-sample weight matrix (:func:`~streamcal.fit.kernels.triggs_weights`):
+J̃ᵀJ̃ = Jᵀ W J and J̃ᵀr̃ = γ Jᵀr with W = w I + e r rᵀ. With A_j = J_xj (I − x_j x_jᵀ) the projected
+direction Jacobian and B_j = A_jᵀ W_j (3×3):
+
+    H_xj = 2 B_j A_j + x_j x_jᵀ,   g_xj = 2γ_j A_jᵀ r_j,   H_pxjᵀ = 2 B_j J_pj,
+    S = Σ J_pjᵀ Q_j J_pj + λI,  Q_j = 2W_j − 4 B_jᵀ H̃_xj⁻¹ B_j,   rhs = Σ J_pjᵀ (−2γ_j r_j + 2 C_jᵀ g_xj),
+    Δx_j = −H̃_xj⁻¹ g_xj − 2 C_j (J_pj Δp),   C_j = H̃_xj⁻¹ B_j,
+
+so only 3×3 per-sample matrices are formed, stored structure-of-arrays ((3,3,N), (6,N) for the
+unique entries of symmetric ones, contiguous along the samples) so every numpy call is one long
+vectorized loop. For the core model (no effect, or effects with no ∂f/∂u) J_x = K; with no
+effect J_pj = (x̄_jᵀ ⊗ I) E (x̄ = [x; 1], E selects the entries of [K b] that the structure frees),
+so Σ J_pjᵀ Q_j J_pj = Eᵀ(Σ x̄_j x̄_jᵀ ⊗ Q_j)E is one (10,N)·(N,6) product and J_pj Δp = ΔK x_j + Δb:
+the (N,3,P) Jacobian is never formed. ``tests/test_lm_equivalence.py`` checks the result against
+a literal transcription of the steps above.
 """
 from __future__ import annotations
 
@@ -32,7 +49,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, triggs_correction
+from .kernels import L2, triggs_weights
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
 #: Entries of K (row, column) for each structure of the sensor matrix.
@@ -41,6 +58,24 @@ K_ENTRIES = {
     "diag": ((0, 0), (1, 1), (2, 2)),
     "sphere": ((0, 0),),
 }
+
+# Symmetric 3×3 per-sample matrices are kept as their 6 unique entries, rows in this order.
+_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_SYM_I = np.array([i for i, _ in _SYM])
+_SYM_J = np.array([j for _, j in _SYM])
+_SYM_OF_FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])        # row of _SYM for flat (a, b)
+_FULL_OF_SYM = np.array([3 * i + j for i, j in _SYM])          # flat (a, b) of each _SYM row
+_SYM_EYE = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])[:, None]
+# cofactors of a symmetric [[a b c] [b d f'] [c f' g]] in _SYM order: co = H[P1]H[P2] − H[P3]H[P4]
+_CO = np.array([[3, 5, 4, 4], [2, 4, 1, 5], [1, 4, 2, 3], [0, 5, 2, 2], [1, 2, 0, 4], [0, 3, 1, 1]]).T
+# pairs (c, c') of x̄ = [x0 x1 x2 1] for Σ x̄ x̄ᵀ ⊗ Q, and the (12,12) index maps into them
+_XBAR = tuple((c, d) for c in range(4) for d in range(c, 4))
+_XBAR_I = np.array([c for c, _ in _XBAR])
+_XBAR_J = np.array([d for _, d in _XBAR])
+_PAIR4 = {**{p: n for n, p in enumerate(_XBAR)}, **{(d, c): n for n, (c, d) in enumerate(_XBAR)}}
+_PAIR3 = {**{p: n for n, p in enumerate(_SYM)}, **{(j, i): n for n, (i, j) in enumerate(_SYM)}}
+_GRAM_C = np.array([[_PAIR4[f // 3, g // 3] for g in range(12)] for f in range(12)])
+_GRAM_I = np.array([[_PAIR3[f % 3, g % 3] for g in range(12)] for f in range(12)])
 
 
 @dataclass
@@ -157,6 +192,82 @@ class _Model:
         return Jp, Jx
 
 
+def _inv_sym(H6: np.ndarray) -> np.ndarray:
+    """Inverses (6,N) of symmetric 3×3 matrices given by their unique entries H6 (6,N)."""
+    co = H6[_CO[0]] * H6[_CO[1]]
+    co -= H6[_CO[2]] * H6[_CO[3]]
+    det = np.einsum("ik,ik->k", H6[:3], co[:3])
+    co /= det
+    return co
+
+
+def _full(M6: np.ndarray) -> np.ndarray:
+    """(3,3,N) symmetric matrices from their unique entries (6,N)."""
+    return M6[_SYM_OF_FULL].reshape(3, 3, -1)
+
+
+def _sym(M9: np.ndarray) -> np.ndarray:
+    """Unique entries (6,N) of (3,3,N) matrices known to be symmetric."""
+    return M9.reshape(9, -1)[_FULL_OF_SYM]
+
+
+class _CoreJacobian:
+    """J_pj = (x̄_jᵀ ⊗ I) E of the core model (no effect), x̄ = [x; 1], never formed.
+
+    Column f = 3c + i of the full map is ∂r/∂K[i, c] (c < 3) or ∂r/∂b[i] (c = 3); E (12,P) picks
+    (or, for K = kI, sums) the columns the structure frees."""
+
+    def __init__(self, structure: str, fit_b: bool):
+        cols = []
+        if structure == "sphere":
+            col = np.zeros(12)
+            col[[0, 4, 8]] = 1.0
+            cols.append(col)
+        else:
+            for i, j in K_ENTRIES[structure]:
+                cols.append(np.eye(12)[3 * j + i])
+        if fit_b:
+            cols.extend(np.eye(12)[9:12])
+        self.E = np.column_stack(cols)
+
+    def start(self, x: np.ndarray) -> None:
+        """Per-iteration products of the directions x (3,N)."""
+        self.x = x
+        self.xbar = np.vstack([x, np.ones((1, x.shape[1]))])
+        self.xx = self.xbar[_XBAR_I] * self.xbar[_XBAR_J]
+
+    def gram(self, Q6: np.ndarray) -> np.ndarray:
+        """Σ J_pjᵀ Q_j J_pj (P,P) for symmetric Q (6,N)."""
+        M = self.xx @ Q6.T
+        return self.E.T @ M[_GRAM_C, _GRAM_I] @ self.E
+
+    def project(self, y: np.ndarray) -> np.ndarray:
+        """Σ J_pjᵀ y_j (P,) for y (3,N)."""
+        return self.E.T @ (self.xbar @ y.T).reshape(12)
+
+    def apply(self, dp: np.ndarray) -> np.ndarray:
+        """J_pj Δp = ΔK x_j + Δb, (3,N)."""
+        full = self.E @ dp
+        return full[:9].reshape(3, 3).T @ self.x + full[9:, None]
+
+
+class _StackedJacobian:
+    """J_p given as a stack (3,P,N) (models with effects)."""
+
+    def __init__(self, Jp: np.ndarray):
+        self.Jp = np.ascontiguousarray(Jp.transpose(1, 2, 0))
+
+    def gram(self, Q6: np.ndarray) -> np.ndarray:
+        QJ = np.einsum("abk,bpk->apk", _full(Q6), self.Jp)
+        return np.einsum("apk,aqk->pq", self.Jp, QJ)
+
+    def project(self, y: np.ndarray) -> np.ndarray:
+        return np.einsum("apk,ak->p", self.Jp, y)
+
+    def apply(self, dp: np.ndarray) -> np.ndarray:
+        return np.einsum("apk,p->ak", self.Jp, dp)
+
+
 def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel=None,
            structure: str = "full", fit_b: bool = True, effects: Sequence = (),
            covariates: Mapping[str, np.ndarray] | None = None, thetas: Sequence | None = None,
@@ -175,21 +286,28 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             samples) and starting parameters (default ``effect.initial()``).
     """
     kernel = kernel or L2()
+    rho = getattr(kernel, "rho", None) or (lambda s_: kernel.evaluate(s_)[0])
     m = np.asarray(m, dtype=float)
     cov = covariates or {}
     model = _Model(m, structure, fit_b, effects, cov)
     K = _k_matrix(_k_vector(np.asarray(K, dtype=float), structure), structure)
     b = np.asarray(b, dtype=float).copy()
-    x = np.asarray(x, dtype=float).copy()
     thetas = [np.asarray(t, dtype=float).copy() for t in (thetas or [e.initial() for e in model.effects])]
-    n = m.shape[0]
-    eye3 = np.eye(3)
+    # structure of arrays: samples along the last axis
+    m_t = np.ascontiguousarray(m.T)
+    x = np.array(np.asarray(x, dtype=float).T, order="C")
     P = model.n_params
+    eye_p = np.eye(P)
+    core = _CoreJacobian(structure, fit_b) if not model.effects else None
 
     def cost_of(K_, b_, th_, x_):
-        r_, u_ = model.residual(K_, b_, th_, x_)
-        s_ = np.einsum("ij,ij->i", r_, r_)
-        return float(np.sum(kernel.evaluate(s_)[0])), r_, u_, s_
+        u_ = K_ @ x_
+        r_ = u_ - m_t
+        r_ += b_[:, None]
+        for effect, theta in zip(model.effects, th_):
+            r_ += effect.term(theta, u_.T, cov).T
+        s_ = np.einsum("ak,ak->k", r_, r_)
+        return float(np.sum(rho(s_))), r_, u_, s_
 
     f, r, u, s = cost_of(K, b, thetas, x)
     lam = lam0
@@ -198,40 +316,47 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     iterations = 0
     for iterations in range(1, max_iter + 1):
         _, d1, d2 = kernel.evaluate(s)
-        r_scale, j_alpha, sqrt_d1 = triggs_correction(s, d1, d2)
-        Jp, Jx = model.jacobians(K, thetas, x, u)
-        # J̃ = √ρ′ (I − α r rᵀ/‖r‖²) J (eq. 23), written as J − (α/‖r‖²) r (rᵀJ) to stay elementwise
-        rw = (j_alpha[:, None] * r)
-        Jp_t = sqrt_d1[:, None, None] * (Jp - rw[:, :, None] * (r[:, None, :] @ Jp))
-        Jx_t = sqrt_d1[:, None, None] * (Jx - rw[:, :, None] * (r[:, None, :] @ Jx))
-        Jx_t = Jx_t - (Jx_t @ x[:, :, None]) * x[:, None, :]   # eq. 27
-        rt = r_scale[:, None] * r
-        Hxx = 2.0 * _gram(Jx_t, Jx_t) + beta * (x[:, :, None] * x[:, None, :])
-        Hxp = 2.0 * _gram(Jx_t, Jp_t)                                    # (N,3,P) = H_pxᵀ
-        Jp_flat = Jp_t.reshape(3 * n, P)
-        Hpp = 2.0 * (Jp_flat.T @ Jp_flat)
-        gp = 2.0 * (Jp_flat.T @ rt.reshape(-1))
-        gx = 2.0 * (rt[:, None, :] @ Jx_t)[:, 0, :]
-        Hxp_flat = Hxp.reshape(3 * n, P)
+        w, e, gw = triggs_weights(s, d1, d2)
+        if core is not None:
+            jac, Jx = core, None
+            core.start(x)
+        else:
+            Jp, Jx = model.jacobians(K, thetas, x.T, u.T)
+            jac = _StackedJacobian(Jp)
+            Jx = None if Jx.strides[0] == 0 else np.ascontiguousarray(Jx.transpose(1, 2, 0))
+        if Jx is None:                                       # J_x = K, so J_x x = u
+            A = K[:, :, None] - u[:, None, :] * x[None, :, :]
+        else:
+            A = Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]
+        h = np.einsum("abk,ak->bk", A, r)                    # Aᵀ r
+        B = w * A.transpose(1, 0, 2) + (e * h)[:, None, :] * r[None, :, :]   # Aᵀ W
+        H6 = _sym(np.einsum("ack,cbk->abk", B, A))
+        H6 *= 2.0
+        H6 += beta * (x[_SYM_I] * x[_SYM_J])
+        W2 = 2.0 * w * _SYM_EYE + (2.0 * e) * (r[_SYM_I] * r[_SYM_J])
+        gx = (2.0 * gw) * h
+        y_r = (-2.0 * gw) * r
         improved = False
         for _ in range(max_trials):
-            Hxx_inv = _inv3(Hxx + lam * eye3)
-            W_flat = (Hxx_inv @ Hxp).reshape(3 * n, P)                    # H̃_xx⁻¹ H_xp
-            S = Hpp + lam * np.eye(P) - W_flat.T @ Hxp_flat
-            rhs = -gp + W_flat.T @ gx.reshape(-1)
+            Hinv = _full(_inv_sym(H6 + lam * _SYM_EYE))
+            C = np.einsum("ack,cbk->abk", Hinv, B)          # H̃_x⁻¹ B
+            Q6 = _sym(np.einsum("cak,cbk->abk", B, C))
+            Q6 *= -4.0
+            Q6 += W2
+            S = jac.gram(Q6) + lam * eye_p
+            rhs = jac.project(y_r + 2.0 * np.einsum("abk,ak->bk", C, gx))
             try:
                 dp = np.linalg.solve(S, rhs)
             except np.linalg.LinAlgError:
                 lam = min(10 * lam, LAMBDA_MAX)
                 continue
-            v = gx + (Hxp_flat @ dp).reshape(n, 3)
-            dx = -(Hxx_inv @ v[:, :, None])[:, :, 0]
+            x_new = x - np.einsum("abk,bk->ak", Hinv, gx)
+            x_new -= 2.0 * np.einsum("abk,bk->ak", C, jac.apply(dp))
             dk, db, dth = model.split(dp)
             K_new = K + _k_matrix(dk, structure)
             b_new = b + db if fit_b else b
             th_new = [t + d for t, d in zip(thetas, dth)]
-            x_new = x + dx
-            x_new /= np.linalg.norm(x_new, axis=1, keepdims=True)
+            x_new /= np.sqrt(np.einsum("ak,ak->k", x_new, x_new))
             f_new, r_new, u_new, s_new = cost_of(K_new, b_new, th_new, x_new)
             if np.isfinite(f_new) and f_new < f:
                 improved = True
@@ -247,7 +372,8 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             converged = True
             break
     weights = kernel.evaluate(s)[1]
-    return LMResult(K=K, b=b, x=x, thetas=thetas, residuals=r, weights=weights, cost=f,
+    return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
+                    residuals=np.ascontiguousarray(r.T), weights=weights, cost=f,
                     iterations=iterations, converged=converged, history=history)
 
 
