@@ -1,0 +1,139 @@
+"""Crash safety: a writer killed with SIGKILL at random instants never leaves a broken calibration.
+
+A forked child writes calibrations in a tight loop (``Calibration.save`` or
+``CalibrationStore.save``, each resuming from what the last one left on disk); the parent kills
+it after a random 1–30 ms, many times over. After every kill: the file on disk is a valid
+calibration, the old one or a newer one (never older than what was seen before), temp debris is
+at most one file per interrupted write and is swept by the store once stale, and a restart
+(``CalibrationStore.load``) resumes from the current file.
+"""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import time
+
+import numpy as np
+import pytest
+
+from streamcal.calibration import Calibration
+from streamcal.stream.store import CalibrationStore, _TEMP_NAME
+
+KILLS = 120
+pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
+
+
+def _cal(n: int) -> Calibration:
+    return Calibration(K=np.diag([50.0 + n % 7, 48.0, 52.0]), b=[float(n), -2.0, 3.0], rms=0.4,
+                       n=n, coverage=0.9)
+
+
+def _run_and_kill(child, delay_s: float) -> None:
+    """Fork; the child runs ``child()`` forever; SIGKILL it after ``delay_s``."""
+    pid = os.fork()
+    if pid == 0:  # pragma: no cover - child
+        try:
+            child()
+        finally:
+            os._exit(0)
+    time.sleep(delay_s)
+    os.kill(pid, signal.SIGKILL)
+    _, status = os.waitpid(pid, 0)
+    assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, \
+        "the writer ended before it was killed (did it crash?)"
+
+
+def _temps(directory) -> list[str]:
+    return [e.name for e in os.scandir(directory) if _TEMP_NAME.match(e.name)]
+
+
+def test_calibration_save_killed_at_random_instants(tmp_path):
+    path = tmp_path / "cal.json"
+    _cal(1).save(path)
+    rng = random.Random(20240607)
+    last_n, newer, debris_seen = 1, 0, 0
+
+    def writer():
+        k = Calibration.load(path).n        # resume from what is on disk
+        while True:
+            k += 1
+            _cal(k).save(path)
+
+    for _ in range(KILLS):
+        _run_and_kill(writer, rng.uniform(0.001, 0.030))
+        cal = Calibration.load(path)        # raises if torn, foreign or invalid
+        assert cal.n >= last_n, "an older calibration replaced a newer one"
+        np.testing.assert_array_equal(cal.b, [cal.n, -2.0, 3.0])
+        newer += cal.n > last_n
+        last_n = cal.n
+        temps = _temps(tmp_path)
+        debris_seen = max(debris_seen, len(temps))
+        assert len(temps) <= KILLS           # at most one per interrupted write, never more
+    assert newer >= KILLS // 2, f"the writer made progress in only {newer} of {KILLS} runs"
+    print(f"\nCalibration.save: {KILLS} SIGKILLs, final n={last_n}, temp files left "
+          f"{len(_temps(tmp_path))} (none are cleaned by Calibration.save itself)")
+    assert set(os.listdir(tmp_path)) - set(_temps(tmp_path)) == {"cal.json"}
+
+
+def test_calibration_store_killed_at_random_instants_then_restarts(tmp_path):
+    state = tmp_path / "state"
+    keep = 5
+    CalibrationStore(state, keep=keep).save(_cal(1))
+    rng = random.Random(7)
+    last_n, interrupted, longest, before = 1, 0, 0, 0
+
+    def writer():
+        store = CalibrationStore(state, keep=keep)
+        k = store.load().calibration.n      # a restart resumes from the current file
+        while True:
+            k += 1
+            store.save(_cal(k))
+
+    for _ in range(KILLS):
+        _run_and_kill(writer, rng.uniform(0.001, 0.030))
+        store = CalibrationStore(state, keep=keep)
+        result = store.load()
+        assert result.path == store.current_path and not result.problems, result.problems
+        cal = result.calibration
+        assert cal.n >= last_n
+        last_n = cal.n
+        history = store.history()
+        longest = max(longest, len(history))
+        assert len(history) >= 1
+        numbers = [Calibration.load(p).n for p in history]   # every history file is valid
+        assert cal.n <= max(numbers)   # an interrupted save may have recorded a newer one
+        temps = _temps(state) + _temps(store.history_dir)
+        interrupted += len(temps) > before
+        before = len(temps)
+        assert len(temps) <= 2 * KILLS
+    # Stale debris is swept by the next start; fresh debris (a write in progress) is left alone.
+    old = time.time() - 3600
+    for d in (state, state / "history"):
+        for name in _temps(d):
+            os.utime(d / name, (old, old))
+    store = CalibrationStore(state, keep=keep)
+    assert _temps(state) == [] and _temps(store.history_dir) == []
+    assert store.load().calibration.n == last_n
+    # Kills between a history write and its pruning leave extra history files; the next
+    # completed save prunes them all.
+    store.save(_cal(last_n + 1))
+    assert len(store.history()) == keep
+    print(f"\nCalibrationStore: {KILLS} SIGKILLs, final n={last_n}, {interrupted} kills left "
+          f"new temp files (then swept); longest history seen {longest} files (keep={keep})")
+
+
+@pytest.mark.xfail(strict=True, reason="CalibrationStore prunes history only after a completed "
+                   "save, so kills before the prune pile up history files until one completes; "
+                   "fix: prune in __init__ too (results/reliability.md)")
+def test_restart_prunes_history_left_by_interrupted_saves(tmp_path):
+    keep = 3
+    store = CalibrationStore(tmp_path / "state", keep=keep)
+    for n in range(1, 4):
+        store.save(_cal(n))
+    # what several writers killed between history write and pruning leave behind
+    for n in range(4, 9):
+        (store.history_dir / f"{n:04d}.json").write_text(_cal(n).to_json())
+    restarted = CalibrationStore(tmp_path / "state", keep=keep)
+    assert len(restarted.history()) <= keep
+    assert restarted.load().calibration.n == 3        # the current file is what is in use
