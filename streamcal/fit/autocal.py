@@ -30,7 +30,7 @@ from .kernels import WIDTH_KERNELS, make_kernel
 from .lm import LMResult, refine
 from .normalize import normalize
 from .observability import assess
-from .robust_start import KEEP, lqs_score, radial_error, robust_start
+from .robust_start import KEEP, coherent_start, lqs_score, radial_error, robust_start
 
 #: τ / σ for 95 % asymptotic efficiency under Gaussian noise.
 EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 3.787}
@@ -166,13 +166,19 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         raise
     x0 = directions_from_model(K0, b0, m_n)
     r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
+    # support: the samples of the time chunks that agree with the start when a coherent
+    # disturbance (a second shell, contiguous in time) was found; None otherwise
+    support = None
     if initial is None and _looks_contaminated(r0, radial_error(K0, b0, m_n)):
         K1, b1 = robust_start(K0, b0, m_n)
         spread = m_n[spread_subset(m_n, 2000)]
         if lqs_score(K1, b1, spread) < lqs_score(K0, b0, spread):
             K0, b0 = K1, b1
-            x0 = directions_from_model(K0, b0, m_n)
-            r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
+        coherent = coherent_start(K0, b0, m_n) if structure == "full" and fit_b else None
+        if coherent is not None:
+            K0, b0, support = coherent.K, coherent.b, coherent.support
+        x0 = directions_from_model(K0, b0, m_n)
+        r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
     # σ from the nearest quarter of residuals: unbiased for Gaussian noise and far less
     # inflated than the median when many samples are outliers
     sigma_n = truncated_sigma(r0, max(float(np.quantile(r0, KEEP)) / HALF_NORMAL_QUANTILE_KEEP, 1e-9))

@@ -1,0 +1,209 @@
+"""Stage-1 starts under contamination: the concentration start (uniform gross outliers, up to
+η = 70 %) and the coherent-disturbance start (a magnet riding on the board for a while: a second
+shell, contiguous in time, seen from more directions than the undisturbed cap).
+
+The simulated disturbance mirrors BROAD trial 32 (RESULTS.md): field 45 µT, noise 0.7 µT,
+a hard-iron shift of 55 µT (more than a field radius, so the two shells are far apart over most
+of the sphere but do intersect), the undisturbed motion a 60° cap around −z plus rest periods at
+the start and the end, the disturbed motion covering three quarters of the sphere.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from streamcal.fit import fit
+from streamcal.fit.autocal import _looks_contaminated, stage1
+from streamcal.fit.ellipsoid import directions_from_model, spread_subset
+from streamcal.fit.normalize import normalize
+from streamcal.fit.robust_start import (coherent_start, fit_sphere, lqs_score, radial_error,
+                                        robust_start)
+from streamcal.sim import paper_protocol
+
+FIELD, NOISE = 45.0, 0.7                       # µT
+K_TRUE = FIELD * np.array([[1.0, 0.01, 0.03], [0.0, 0.98, 0.01], [0.0, 0.0, 1.01]])
+B_TRUE = np.array([1.5, 0.5, 1.2])             # µT
+# µT, the magnet's field in the body frame: across the cap's axis (along it, one elongated
+# ellipsoid threads both shells within the noise and nothing looks contaminated)
+SHIFT = np.array([55.0, -2.0, -1.0])
+
+
+def model_error(K, b, K_ref, b_ref) -> float:
+    """Paper eq. 40."""
+    A, R = np.column_stack([K, b]), np.column_stack([K_ref, b_ref])
+    return float(np.linalg.norm(A - R) / np.linalg.norm(R))
+
+
+def cap(rng, n, half_angle_deg, axis):
+    """n unit vectors uniform on the cap of the given half-angle around ``axis`` (3,)."""
+    z = rng.uniform(np.cos(np.radians(half_angle_deg)), 1.0, n)
+    phi = rng.uniform(0, 2 * np.pi, n)
+    v = np.column_stack([np.sqrt(1 - z * z) * np.cos(phi), np.sqrt(1 - z * z) * np.sin(phi), z])
+    a = np.asarray(axis, float) / np.linalg.norm(axis)
+    if np.allclose(a, [0, 0, 1]):
+        return v
+    if np.allclose(a, [0, 0, -1]):
+        return v * np.array([1, -1, -1])
+    raise ValueError("axis must be ±z")
+
+
+def coherent_track(seed: int = 0, n: int = 6000):
+    """(m (n,3) in time order, disturbed (n,) bool): rest, cap, disturbance, cap, rest
+    (18 %, 15 %, 35 %, 14 %, 18 %: 65 % undisturbed, of which over half at rest)."""
+    rng = np.random.default_rng(seed)
+    sizes = np.round(np.array([0.18, 0.15, 0.35, 0.14, 0.18]) * n).astype(int)
+    sizes[-1] = n - sizes[:-1].sum()
+    rest_dir = np.array([[0.1, 0.3, -0.95]]) / np.linalg.norm([0.1, 0.3, -0.95])
+    parts = [np.repeat(rest_dir, sizes[0], axis=0), cap(rng, sizes[1], 60, [0, 0, -1]),
+             cap(rng, sizes[2], 120, [0, 0, 1]), cap(rng, sizes[3], 60, [0, 0, -1]),
+             np.repeat(rest_dir, sizes[4], axis=0)]
+    x = np.vstack(parts)
+    disturbed = np.zeros(n, bool)
+    disturbed[sizes[:2].sum(): sizes[:3].sum()] = True
+    m = x @ K_TRUE.T + B_TRUE + NOISE * rng.standard_normal((n, 3))
+    m[disturbed] += SHIFT
+    return m, disturbed
+
+
+def plain_start(m_n):
+    """The start autocal had before the coherent search: L1 ellipsoid, then the concentration
+    start when the L1 residuals look contaminated."""
+    K0, b0 = stage1(m_n)
+    x0 = directions_from_model(K0, b0, m_n)
+    r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
+    contaminated = _looks_contaminated(r0, radial_error(K0, b0, m_n))
+    if contaminated:
+        K1, b1 = robust_start(K0, b0, m_n)
+        spread = m_n[spread_subset(m_n, 2000)]
+        if lqs_score(K1, b1, spread) < lqs_score(K0, b0, spread):
+            K0, b0 = K1, b1
+    return K0, b0, contaminated
+
+
+# --- sphere fits -----------------------------------------------------------------------------
+
+def test_sphere_fit_is_exact_on_a_noise_free_cap():
+    rng = np.random.default_rng(1)
+    c, r = np.array([3.0, -2.0, 7.0]), 4.5
+    m = c + r * cap(rng, 200, 40, [0, 0, 1])
+    K, b = fit_sphere(m)
+    assert np.allclose(b, c, atol=1e-8) and np.allclose(K, r * np.eye(3), atol=1e-8)
+
+
+# --- the coherent disturbance -----------------------------------------------------------------
+
+@pytest.mark.xfail(strict=True, reason="known gap: on this synthetic track the chunk search "
+                   "prefers the disturbed shell (the undisturbed candidates, a cap plus one rest "
+                   "point, lose their rest chunks at the common band); see the robust-start report")
+def test_coherent_disturbance_start_lands_on_the_undisturbed_shell():
+    m, disturbed = coherent_track()
+    m_n, center, scale = normalize(m)
+    K0, b0, contaminated = plain_start(m_n)
+    assert contaminated
+    before = model_error(scale * K0, scale * b0 + center, K_TRUE, B_TRUE)
+    choice = coherent_start(K0, b0, m_n)
+    assert choice is not None
+    K, b = scale * choice.K * np.sign(np.diag(choice.K))[None, :], scale * choice.b + center
+    after = model_error(K, b, K_TRUE, B_TRUE)
+    # The shifted shell is ‖SHIFT‖/‖[K b]‖ ≈ 70 % away; a start within 10 % is in the basin of
+    # the undisturbed fit (on BROAD 32 the same search starts 3.4 % from it).
+    assert after < 0.10, (before, after)
+    assert after < before / 3
+    # the support is the undisturbed time: every chunk wholly inside the disturbance is out,
+    # and at most one chunk (≈ 1/24 of the track) on each edge of it is mixed
+    chunk = len(m) / 24
+    assert choice.support[disturbed].mean() < 2 * chunk / disturbed.sum()
+    assert choice.support[~disturbed].mean() > 1 - 2 * chunk / (~disturbed).sum()
+    assert choice.score == pytest.approx(choice.support.mean(), abs=0.02)
+
+
+@pytest.mark.xfail(strict=True, reason="autocal still refines on every sample: the disturbed "
+                   "samples near the undisturbed shell drag the cap-limited fit (needs the "
+                   "solve-on-support change in autocal's refinement, see the robust-start report)")
+def test_coherent_disturbance_whole_fit_matches_its_undisturbed_part():
+    m, disturbed = coherent_track()
+    whole = fit(m, check_coverage=False)
+    part = fit(m[~disturbed], check_coverage=False)
+    # the issue's criterion for BROAD 32: within 2 % (eq. 40) of the undisturbed part's fit
+    assert model_error(whole.K, whole.b, part.K, part.b) < 0.02
+    assert (~whole.inliers[disturbed]).mean() > 0.5
+
+
+# --- BROAD trial 32: a magnet riding on the board for t in [38, 95] s --------------------------
+
+def _broad32(real_tracks_dir):
+    from streamcal.track import Track
+
+    track = Track.read(real_tracks_dir / "broad_32_attached_magnet_1cm.csv.gz")
+    t = track.t_mag
+    return np.asarray(track.mag, float), t, (t < 34.0) | (t > 100.0), (t >= 38.0) & (t <= 95.0)
+
+
+def test_broad32_start_lands_on_the_undisturbed_shell(real_tracks_dir):
+    m, t, calm, magnet = _broad32(real_tracks_dir)
+    part = fit(m[calm], check_coverage=False)
+    m_n, center, scale = normalize(m)
+    K0, b0, contaminated = plain_start(m_n)
+    assert contaminated
+    before = model_error(scale * K0, scale * b0 + center, part.K, part.b)
+    choice = coherent_start(K0, b0, m_n)
+    assert choice is not None
+    K = scale * choice.K * np.sign(np.diag(choice.K))[None, :]
+    after = model_error(K, scale * choice.b + center, part.K, part.b)
+    # the magnet shell is ≈ 90 % away (eq. 40); within 10 % the LM on the support converges to
+    # the undisturbed fit (measured: start 3.4 %, refined 1.6 %)
+    assert after < 0.10 < before
+    assert choice.support[magnet].mean() < 0.05      # one mixed chunk at most
+    assert choice.support[calm].mean() > 0.90
+
+
+@pytest.mark.xfail(strict=True, reason="autocal still refines on every sample (needs the "
+                   "solve-on-support change in autocal's refinement, see the robust-start report)")
+def test_broad32_whole_fit_matches_its_undisturbed_part(real_tracks_dir):
+    m, t, calm, magnet = _broad32(real_tracks_dir)
+    whole, part = fit(m, check_coverage=False), fit(m[calm], check_coverage=False)
+    assert model_error(whole.K, whole.b, part.K, part.b) < 0.02     # the issue's target
+
+
+# --- uniform outliers and clean data: the coherent search stays out of the way ----------------
+
+@pytest.mark.parametrize("sigma,eta", [(1.0, 0.0), (0.5, 0.0)])
+def test_clean_data_do_not_trigger_the_extra_path(sigma, eta):
+    for seed in range(3):
+        m, K, b, _ = paper_protocol(1000, sigma, eta, seed)
+        _, _, contaminated = plain_start(normalize(m)[0])
+        assert not contaminated
+
+
+def test_clean_track_with_rest_periods_does_not_trigger_the_extra_path():
+    rng = np.random.default_rng(3)
+    n = 3000
+    rest = np.tile(np.array([[0.2, -0.1, 0.97]]) / np.linalg.norm([0.2, -0.1, 0.97]), (n // 3, 1))
+    x = rng.standard_normal((n - 2 * len(rest), 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    m = np.vstack([rest, x, rest]) @ K_TRUE.T + B_TRUE + NOISE * rng.standard_normal((n, 3))
+    m_n = normalize(m)[0]
+    K0, b0, contaminated = plain_start(m_n)
+    assert not contaminated
+    assert coherent_start(K0, b0, m_n) is None   # even if asked, the chunks all agree
+
+
+@pytest.mark.parametrize("sigma,eta", [(2.0, 0.30), (1.0, 0.70)])
+def test_uniform_outliers_do_not_look_coherent(sigma, eta):
+    for seed in range(3):
+        m, K, b, _ = paper_protocol(1000, sigma, eta, seed)
+        m_n = normalize(m)[0]
+        K0, b0, _ = plain_start(m_n)
+        assert coherent_start(K0, b0, m_n) is None
+
+
+def test_paper_protocol_at_70_percent_outliers_still_recovers_the_model():
+    ours, oracle = [], []
+    for seed in range(5):
+        m, K, b, inliers = paper_protocol(1000, 1.0, 0.70, seed)
+        cal = fit(m, check_coverage=False)
+        ours.append(model_error(cal.K, cal.b, K, b))
+        ref = fit(m[inliers], kernel="l2", check_coverage=False)
+        oracle.append(model_error(ref.K, ref.b, K, b))
+    # the paper-protocol target at η = 70 % (tools/bench_paper_protocol.py)
+    assert np.mean(ours) <= 1.5 * np.mean(oracle), (ours, oracle)
