@@ -1,0 +1,105 @@
+"""``streamcal serial --port DEV``: host side of the Arduino sketch (SPEC §4).
+
+Frames from the ``streamcal_bridge`` sketch (or the ``Raw:`` lines of MotionCal-style sketches,
+detected automatically) → streaming calibrator → ``STATE_DIR/calibration.json``. Each accepted
+calibration (and the one loaded at start) is sent back to the board, which keeps it in EEPROM and
+streams calibrated directions; the board's answer is reported. Calibrated samples as in
+``streamcal daemon`` (socket and/or ``--json-lines``). At the end the frames are accounted for:
+received + lost (from the board's sequence numbers) = sent. ``--port fake:TRACK.csv`` runs
+against a simulated board on a pseudo-terminal.
+"""
+from __future__ import annotations
+
+import json
+import sys
+
+from .daemon import add_service_options, build
+
+
+def register(sub) -> None:
+    p = sub.add_parser("serial", help="host side of the Arduino sketch (pyserial)",
+                       description="Read the streamcal_bridge sketch (or MotionCal-style Raw: "
+                                   "lines) over a serial port, calibrate continuously and send "
+                                   "each accepted calibration back to the board.")
+    p.add_argument("--port", required=True, metavar="DEV|fake:TRACK.csv",
+                   help="serial device (/dev/ttyACM0), pyserial URL, or fake:TRACK.csv")
+    p.add_argument("--baud", type=int, default=115200, help="baud rate (default: %(default)s)")
+    add_service_options(p)
+    p.set_defaults(func=run)
+
+
+class BoardSync:
+    """``on_event`` hook: send the calibration in use to the board and report its answer."""
+
+    def __init__(self, source):
+        self.source = source
+        self.sent: list[int] = []
+        self.failures = 0
+
+    def __call__(self, event, service) -> str | None:
+        if event.kind not in ("loaded", "accepted"):
+            return None
+        link = self.source.link
+        cal = service.calibrator.calibration
+        if link is None or cal is None:
+            return None
+        if link.mode == "raw":
+            return "board prints Raw: lines: it cannot take a calibration (kept on the host)"
+        from firmware_bridge.serial_link import LinkError
+
+        from ..errors import InputError
+
+        try:
+            cal_id = link.send_calibration(cal)
+        except InputError as exc:
+            self.failures += 1
+            return f"calibration not sent to the board: {exc}"
+        except (LinkError, OSError) as exc:
+            self.failures += 1
+            return f"board did not take the calibration: {exc}"
+        self.sent.append(cal_id)
+        return f"board acknowledged calibration id 0x{cal_id:04X} (stored in its EEPROM)"
+
+
+def close_count(source) -> dict:
+    """Ask the board what it holds (its answer is the last frame, closing the loss count) and
+    return the frame accounting."""
+    link = source.link
+    out = {}
+    if link is None:
+        return out
+    if link.mode == "frames":
+        try:
+            report = link.query_calibration(timeout=0.5, retries=5)
+            out["board_calibration"] = {"valid": bool(report.valid), "cal_id": report.cal_id}
+        except Exception as exc:    # the board may be gone: report, do not fail the run
+            out["board_calibration"] = {"error": str(exc)}
+    stats = link.stats
+    out.update({"frames_received": link.sequence.received, "frames_lost": stats.lost,
+                **{k: v for k, v in stats.as_dict().items() if v and k not in ("frames", "lost")}})
+    board = getattr(link, "board", None)
+    if board is not None:
+        out["frames_sent"] = board.frames_sent
+    return out
+
+
+def run(args) -> int:
+    from ..service import SerialBlocks
+
+    source = SerialBlocks(args.port, args.baud)
+    try:
+        sync = BoardSync(source)
+        service = build(args, source, "serial", on_event=sync)
+    except BaseException:
+        source.close()
+        raise
+    service.install_signal_handlers()
+    source_close, source.close = source.close, lambda: None   # keep the port for the count
+    try:
+        code = service.run()
+        frames = close_count(source)
+    finally:
+        source_close()
+    summary = {**service.summary(), "link": frames, "sent_to_board": len(sync.sent)}
+    print(json.dumps(summary), file=sys.stderr if args.json_lines else sys.stdout, flush=True)
+    return code
