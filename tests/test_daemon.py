@@ -408,3 +408,29 @@ def test_notifier_speaks_the_protocol():
                               "WATCHDOG_PID": str(os.getpid() + 1)})
     assert other.watchdog_interval is None and not other.tick()
     assert not Notifier(environ={}).ready()
+
+
+# -- the systemd unit ---------------------------------------------------------------------------
+
+def test_systemd_unit_is_notify_with_watchdog_and_a_valid_command_line():
+    import shlex
+
+    from streamcal.cli import build_parser
+
+    text = (REPO / "tools" / "streamcal-daemon.service").read_text().replace("\\\n", " ")
+    keys: dict[str, list[str]] = {}
+    for line in text.splitlines():
+        if "=" in line and not line.lstrip().startswith(("#", "[")):
+            k, v = line.split("=", 1)
+            keys.setdefault(k.strip(), []).append(v.strip())
+    assert keys["Type"] == ["notify"] and float(keys["WatchdogSec"][0]) > 0
+    assert keys["ExecReload"] == ["/bin/kill -HUP $MAINPID"]
+    assert keys["Restart"] == ["on-failure"] and keys["NoNewPrivileges"] == ["yes"]
+    assert keys["ProtectSystem"] == ["strict"] and keys["StateDirectory"] == ["streamcal"]
+    assert "i2c" in keys["SupplementaryGroups"][0]
+    argv = shlex.split(keys["ExecStart"][0])
+    bus = argv[argv.index("--bus") + 1]
+    assert keys["DeviceAllow"] == [f"/dev/i2c-{bus} rw"] and keys["DevicePolicy"] == ["closed"]
+    args = build_parser().parse_args(argv[1:])
+    assert args.command == "daemon" and args.func.__module__ == "streamcal.cli.daemon"
+    assert args.grace < float(keys["TimeoutStopSec"][0])
