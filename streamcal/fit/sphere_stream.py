@@ -80,13 +80,15 @@ class SphereStats:
             return 0
         if self.origin is None:
             self.origin = x.mean(axis=0)
-        x = x - self.origin
-        q = x * x
+        xq = np.empty((len(x), 6))
+        np.subtract(x, self.origin, out=xq[:, :3])
+        np.multiply(xq[:, :3], xq[:, :3], out=xq[:, 3:])
+        G = xq.T @ xq                          # one product: [x q]ᵀ[x q], q = x²
         self.n += len(x)
-        self.s1 += x.sum(axis=0)
-        self.s2 += x.T @ x
-        self.s21 += q.T @ x
-        self.s22 += q.T @ q
+        self.s1 += xq[:, :3].sum(axis=0)
+        self.s2 += G[:3, :3]
+        self.s21 += G[3:, :3]
+        self.s22 += G[3:, 3:]
         return len(x)
 
     def merge(self, other: "SphereStats") -> "SphereStats":
@@ -114,11 +116,14 @@ class SphereStats:
         return out
 
     # -- fitting ------------------------------------------------------------------------------
-    def fit(self) -> tuple[np.ndarray, float]:
+    def fit(self, tol: float = _STEP_TOL, max_iter: int = _MAX_ITER) -> tuple[np.ndarray, float]:
         """Centre (3,) and radius (sensor unit) of the least-squares sphere for the residual
         ``1 − ‖x − c‖²/R²``. Raises :class:`InsufficientDataError` when the samples cannot
-        determine a sphere (fewer than 4, or all on a plane/cap too small)."""
-        center, s = self._gauss_newton(_P_SPHERE)
+        determine a sphere (fewer than 4, or all on a plane/cap too small).
+
+        ``tol``: stop when the step is below this fraction of the radius; ``max_iter``: at most
+        this many iterations (a running estimate that only frames directions may stop early)."""
+        center, s = self._gauss_newton(_P_SPHERE, tol, max_iter)
         return center, float(s[0])
 
     def fit_axes(self) -> tuple[np.ndarray, np.ndarray]:
@@ -158,12 +163,13 @@ class SphereStats:
             raise InsufficientDataError("sphere fit: samples do not determine a radius")
         return c, float(np.sqrt(r2))
 
-    def _gauss_newton(self, P: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _gauss_newton(self, P: np.ndarray, tol: float = _STEP_TOL,
+                      max_iter: int = _MAX_ITER) -> tuple[np.ndarray, np.ndarray]:
         self._need(P.shape[1])
         c, R = self._kasa()                                  # relative to the origin
         beta = np.concatenate([c, [R, R, R]]) if P.shape[1] == 6 else np.concatenate([c, [R]])
         cost = self._cost_at(P @ beta)
-        for _ in range(_MAX_ITER):
+        for _ in range(max_iter):
             JtJ, Jtr = self._normal(P @ beta)
             A, g = P.T @ JtJ @ P, P.T @ Jtr
             if not np.all(np.isfinite(A)) or np.linalg.cond(A) > _MAX_COND:
@@ -172,7 +178,7 @@ class SphereStats:
             step = -np.linalg.solve(A, g)
             scale = float(np.abs(beta[3:]).max())
             # Step halving keeps the cost decreasing when far from the minimum.
-            while np.linalg.norm(step) > _STEP_TOL * scale:
+            while np.linalg.norm(step) > tol * scale:
                 trial = beta + step
                 full = P @ trial
                 trial_cost = self._cost_at(full) if np.all(full[3:] > 0) else np.inf
@@ -180,7 +186,7 @@ class SphereStats:
                     beta, cost = trial, trial_cost
                     break
                 step = step / 2.0
-            if np.linalg.norm(step) <= _STEP_TOL * scale:
+            if np.linalg.norm(step) <= tol * scale:
                 break
         full = P @ beta
         return full[:3] + self.origin, full[3:].copy()

@@ -1,21 +1,35 @@
 """The streaming calibrator: buffer, running sphere estimate, policy, worker fit, guard, store.
 
-Per block of samples (DESIGN §1)::
+Per stage of samples (DESIGN §1)::
 
-    block ─▶ SphereStats.update          (instant coarse estimate, O(1) memory)
-          ─▶ CoverageBuffer.insert       (bounded, newest per direction cell)
-          ─▶ drift check                 (recent window vs the calibration in use)
-          ─▶ pick up a finished fit ─▶ AcceptanceGuard ─▶ CalibrationStore
-          ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
+    ingest(block) ─▶ Stage (preallocated; a few µs per call, nothing else when not full)
+    stage full    ─▶ SphereStats.update          (instant coarse estimate, O(1) memory)
+                  ─▶ CoverageBuffer.insert       (bounded, newest per direction cell)
+                  ─▶ drift check                 (recent window vs the calibration in use, on
+                                                  the directions that calibration was fitted on)
+                  ─▶ while stale: recall check   (does a remembered calibration fit again?)
+                  ─▶ pick up a finished fit ─▶ AcceptanceGuard ─▶ CalibrationStore
+                  ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
 
 Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at most one at a
-time, and its result is picked up by a later ``ingest`` or ``poll``. Small blocks are staged in a
-preallocated array and processed ``stage`` samples at a time, so the per-sample cost of feeding
-one sample per call stays small; ``poll()`` processes what is staged.
+time, and its result is picked up by a later ``ingest`` or ``poll``. Rows are staged ``stage`` at
+a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
+up and drift is judged at most one stage late; a block larger than the free room is processed at once, with what
+was staged. ``poll()`` processes what is staged (call it when the source is idle).
+
+Environment changes. When the field stops fitting the calibration in use (drift), the buffer
+forgets the samples taken since the change began, the calibration in use is marked stale (it is
+kept and applied: a stale calibration is better than none) and the next fit is a first one. The
+last ``remember`` accepted calibrations are remembered (with the cells they were fitted on): while
+stale, a full window of new samples that fits one of them again (the magnet was removed, the
+board is back in its old place) brings it back at once (``recalled``), without waiting for the
+coverage a refit needs. A candidate always has to beat the calibration in use on held-out
+samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
 
 import threading
+from collections import deque
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,13 +37,15 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, Calibration
 from ..fit.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
-from .guard import AcceptanceGuard, Decision, holdout_error, radius_of
+from .guard import AcceptanceGuard, Decision, radius_of
 from .policy import RecalPolicy
+from .staging import Stage, block_covariates
 
-_IMU = {"ax": ("accel", 0), "ay": ("accel", 1), "az": ("accel", 2),
-        "gx": ("gyro", 0), "gy": ("gyro", 1), "gz": ("gyro", 2)}
 #: Coverage milestones reported as events (fractions of the sphere).
 MILESTONES = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
+#: The running sphere estimate (framing before the first calibration) stops at this relative
+#: step and after this many Gauss–Newton iterations: it only frames directions.
+_COARSE_TOL, _COARSE_ITER = 1e-6, 8
 
 
 @dataclass(frozen=True)
@@ -37,8 +53,9 @@ class Event:
     """Something the calibrator did or noticed.
 
     ``kind``: ``loaded``, ``load_problem``, ``coverage``, ``fit_started``, ``fit_failed``,
-    ``accepted``, ``rejected``, ``discarded``, ``drift``, ``forgot``, ``stored``, ``store_error``.
-    ``t`` is the sample time (s) at which it happened, ``data`` its figures (JSON-ready).
+    ``accepted``, ``rejected``, ``discarded``, ``drift``, ``forgot``, ``recalled``, ``stored``,
+    ``store_error``. ``t`` is the sample time (s) at which it happened, ``data`` its figures
+    (JSON-ready).
     """
 
     kind: str
@@ -65,8 +82,10 @@ def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
 
 
 class _Job:
-    def __init__(self, fit_set: Snapshot, holdout: Snapshot, coverage: float, t: float):
+    def __init__(self, fit_set: Snapshot, holdout: Snapshot, coverage: float, t: float,
+                 support: np.ndarray):
         self.fit_set, self.holdout, self.coverage, self.t = fit_set, holdout, coverage, t
+        self.support = support
         self.done = threading.Event()
         self.result: Calibration | None = None
         self.error: BaseException | None = None
@@ -90,9 +109,12 @@ class StreamingCalibrator:
             at start, records accepted ones) or None.
         buffer, policy, guard: the parts; defaults are built from their defaults.
         unit: sensor unit of the samples (``"uT"`` …), written into accepted calibrations.
-        stage: samples staged before processing (per-call overhead amortised over them).
+        stage: rows staged before processing (per-call overhead amortised over them; fits and
+            drift checks are at most this many rows late).
         holdout_every: one stored sample in this many is held out of each fit for the guard.
-        coarse_every: samples between refreshes of the running sphere estimate.
+        coarse_every: samples between refreshes of the running sphere estimate (before the
+            first calibration and while stale).
+        remember: accepted calibrations remembered for recall after an environment change.
         synchronous: run fits inline (deterministic offline replays); default is a worker thread.
 
     Usage::
@@ -106,8 +128,9 @@ class StreamingCalibrator:
 
     def __init__(self, *, fitter=None, store=None, buffer: CoverageBuffer | None = None,
                  policy: RecalPolicy | None = None, guard: AcceptanceGuard | None = None,
-                 model=DEFAULT_MODEL, unit: str = "uT", stage: int = 64, holdout_every: int = 5,
-                 coarse_every: int = 200, coarse_min: int = 100, synchronous: bool = False):
+                 model=DEFAULT_MODEL, unit: str = "uT", stage: int = 256, holdout_every: int = 5,
+                 coarse_every: int = 200, coarse_min: int = 100, remember: int = 4,
+                 synchronous: bool = False):
         self.fitter = fitter if fitter is not None else default_fitter(model)
         self.store = store
         self.buffer = buffer if buffer is not None else CoverageBuffer()
@@ -121,19 +144,22 @@ class StreamingCalibrator:
         self.stats = SphereStats()
         self.coarse: tuple[np.ndarray, float] | None = None
         self.stale = False
-        self.n_ingested = 0
         self.n_fits = 0
+        self._n_done = 0
         self._cal: Calibration | None = None
+        self._support: np.ndarray | None = None      # (C,) cells the calibration was fitted on
+        self._remembered: deque = deque(maxlen=max(1, int(remember)))
         self._job: _Job | None = None
         self._since_coarse = 0
         self._milestone = 0.0
         self._t_last = float("nan")
-        names = self.buffer.covariate_names
-        self._stage_m = np.empty((max(1, stage), 3))
-        self._stage_t = np.empty(max(1, stage))
-        self._stage_cov = np.empty((max(1, stage), len(names)))
-        self._held = np.full(len(names), np.nan)
-        self._n_staged = 0
+        self._frame_is_cal = False
+        self._stage = Stage(stage, self.buffer.covariate_names)
+        W = self.policy.window
+        self._recent_m = np.empty((W, 3))
+        self._recent_t = np.empty(W)
+        self._recent_n = 0
+        self._recall_at = 0
         self._pending: list[Event] = []
         if store is not None:
             self._load()
@@ -152,38 +178,32 @@ class StreamingCalibrator:
     def fit_in_flight(self) -> bool:
         return self._job is not None
 
+    @property
+    def n_ingested(self) -> int:
+        """Magnetometer samples taken so far (processed and staged)."""
+        return self._n_done + self._stage.n_valid()
+
     def ingest(self, block) -> list:
         """Take a :class:`SampleBlock`; returns the events it caused (may be empty)."""
-        ok = block.mag_valid
-        m = np.asarray(block.mag)[ok]
-        n = len(m)
-        self.n_ingested += n
-        if n == 0:
-            return self._drain_pending()
-        t = np.asarray(block.t, dtype=float)[ok]
-        cov = self._covariate_matrix(block, ok, n)
-        k, cap = self._n_staged, len(self._stage_t)
-        if k + n < cap:
-            self._stage_m[k:k + n] = m
-            self._stage_t[k:k + n] = t
-            self._stage_cov[k:k + n] = cov
-            self._n_staged = k + n
-            return self._drain_pending()
-        if k:
-            m = np.concatenate([self._stage_m[:k], m])
-            t = np.concatenate([self._stage_t[:k], t])
-            cov = np.concatenate([self._stage_cov[:k], cov])
-            self._n_staged = 0
+        n = len(block.t)
+        stage = self._stage
+        if n <= stage.capacity - stage.n:
+            if stage.push(block, n):
+                return self._drain_pending() + self._process(*stage.take())
+            return self._drain_pending() if self._pending else []
+        # Larger than the free room: what is staged and the whole block in one pass.
+        m, t, cov = stage.rows_of(block)
+        if stage.n:
+            m0, t0, cov0 = stage.take()
+            m, t, cov = np.concatenate([m0, m]), np.concatenate([t0, t]), \
+                np.concatenate([cov0, cov])
         return self._drain_pending() + self._process(m, t, cov)
 
     def poll(self) -> list:
         """Process staged samples and pick up a finished fit; returns the events."""
         events = self._drain_pending()
-        k = self._n_staged
-        if k:
-            self._n_staged = 0
-            events += self._process(self._stage_m[:k].copy(), self._stage_t[:k].copy(),
-                                    self._stage_cov[:k].copy())
+        if self._stage.n:
+            events += self._process(*self._stage.take())
         else:
             events += self._collect()
         return events
@@ -205,7 +225,7 @@ class StreamingCalibrator:
         ok = block.mag_valid
         cal = self._cal
         if cal is not None:
-            cov = _block_covariates(block) if cal.effects else None
+            cov = block_covariates(block) if cal.effects else None
             x = cal.apply(m[ok], {k: v[ok] for k, v in cov.items()} if cov else None)
             out[ok] = x if unit_vectors else x * (cal.field or radius_of(cal))
         elif self.coarse is not None:
@@ -217,22 +237,40 @@ class StreamingCalibrator:
         """Process what is staged and wait for a fit in flight; returns the last events."""
         return self.drain(timeout)
 
-    # -- the per-block path -------------------------------------------------------------------
+    # -- the per-stage path -------------------------------------------------------------------
     def _process(self, m, t, cov) -> list:
+        n = len(m)
+        if n == 0:
+            return self._collect()
         events: list[Event] = []
+        self._n_done += n
         self._t_last = t_now = float(t[-1])
         self.stats.update(m)
-        self._since_coarse += len(m)
-        # The coarse estimate frames directions until a calibration is in use; after that it
-        # is only the guard's reference radius and is refreshed ten times less often.
         calibrated = self._cal is not None and not self.stale
-        if self._since_coarse >= self.coarse_every * (10 if calibrated else 1):
-            self._update_coarse()
-        cov_dict = {name: cov[:, k] for k, name in enumerate(self.buffer.covariate_names)}
-        stored, new_cells = self.buffer.insert(m, t, cov_dict)
+        if not calibrated:
+            # The coarse estimate frames directions until a calibration is in use.
+            self._since_coarse += n
+            if self._since_coarse >= self.coarse_every:
+                self._update_coarse()
+        if calibrated and not self._cal.effects:
+            # The buffer's frame is the calibration's: one projection serves both.
+            x = (m - self._cal.b) @ self._cal_AT
+            r = np.sqrt(np.einsum("nk,nk->n", x, x))
+            d = x / np.maximum(r, 1e-300)[:, None]
+            cell = self.buffer.cells.cell_of(d)
+            stored, new_cells = self.buffer.insert(m, t, cov, d=d, cell=cell)
+        else:
+            stored, new_cells = self.buffer.insert(m, t, cov)
         self.policy.note(stored, new_cells)
-        if self._cal is not None and not self.stale:
-            self._check_drift(m, t, cov_dict, events)
+        if calibrated:
+            if self._cal.effects:
+                names = self.buffer.covariate_names
+                x = self._cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+                r = np.sqrt(np.einsum("nk,nk->n", x, x))
+                cell = self.buffer.cells.cell_of(x / np.maximum(r, 1e-300)[:, None])
+            self._check_drift(r, cell, t, events)
+        elif self._remembered:
+            self._check_recall(m, t, events)
         self._milestones(events)
         events += self._collect()
         if self._job is None:
@@ -245,24 +283,29 @@ class StreamingCalibrator:
                 events += self._submit(request, t_now)
         return events
 
+    def _fit_coarse(self):
+        """Running sphere estimate ``(centre (3,), radius)`` or None when undetermined."""
+        if self.stats.n < self.coarse_min:
+            return None
+        try:
+            c, R = self.stats.fit(tol=_COARSE_TOL, max_iter=_COARSE_ITER)
+        except Exception:           # too few directions yet
+            return None
+        if not (np.all(np.isfinite(c)) and np.isfinite(R) and R > 0):
+            return None
+        return c, R
+
     def _update_coarse(self) -> None:
         self._since_coarse = 0
-        if self.stats.n < self.coarse_min:
+        found = self._fit_coarse()
+        if found is None:
             return
-        try:
-            c, R = self.stats.fit()
-        except Exception:           # too few directions yet: keep the previous estimate
-            return
-        if not (np.all(np.isfinite(c)) and np.isfinite(R) and R > 0):
-            return
+        c, R = found
         previous, self.coarse = self.coarse, (c, R)
-        if self._cal is None or self.stale:
-            moved = previous is None or (np.linalg.norm(c - previous[0]) > 0.05 * R
-                                         or abs(R - previous[1]) > 0.05 * R)
-            if moved or self.stale and self._frame_is_cal:
-                self._set_frame(c, np.eye(3) / R, from_cal=False)
-
-    _frame_is_cal = False
+        moved = previous is None or (np.linalg.norm(c - previous[0]) > 0.05 * R
+                                     or abs(R - previous[1]) > 0.05 * R)
+        if moved or self.stale and self._frame_is_cal:
+            self._set_frame(c, np.eye(3) / R, from_cal=False)
 
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
@@ -272,13 +315,17 @@ class StreamingCalibrator:
         self._frame_is_cal = from_cal
         self._milestone = _floor_milestone(self.buffer.fraction)
 
-    def _check_drift(self, m, t, cov, events) -> None:
+    def _check_drift(self, r, cell, t, events) -> None:
+        """``r`` (n,): ``‖K⁻¹(m − b − effects)‖`` of the new samples, ``cell`` (n,) their cells."""
         cal = self._cal
-        if cal.effects:
-            x = cal.apply(m, {"t": t, **cov})
-        else:
-            x = (m - cal.b) @ self._cal_AT
-        self.policy.observe(np.abs(np.sqrt(np.einsum("nk,nk->n", x, x)) - 1.0), t)
+        if self._support is not None:
+            # Only directions the calibration was fitted on: elsewhere it extrapolates, and a
+            # large error there asks for a refit on more coverage (new cells), not for forgetting.
+            inside = self._support[cell]
+            r, t = r[inside], t[inside]
+            if not len(r):
+                return
+        self.policy.observe(np.abs(r - 1.0), t)
         found = self.policy.drift(cal.rms, self._cal_R)
         if found is None:
             return
@@ -286,7 +333,15 @@ class StreamingCalibrator:
         events.append(Event("drift", f"field no longer fits the calibration: median relative "
                             f"error {stat:.3f} > {limit:.3f} since t={onset:.2f} s "
                             f"(new hard iron or a magnet nearby?)",
-                            {"value": stat, "limit": limit, "onset": onset}, t[-1]))
+                            {"value": stat, "limit": limit, "onset": onset}, float(t[-1])))
+        self._forget(onset, events, "calibration in use is stale until a new one is accepted "
+                     "or a remembered one fits again")
+        self.stale = True
+        self._recent_n = self._recall_at = 0
+        if self._job is not None:
+            self._job.obsolete = True
+
+    def _forget(self, onset: float, events, why: str) -> None:
         dropped = self.buffer.forget_before(onset)
         kept = self.buffer.snapshot()
         self.stats.reset()
@@ -294,14 +349,49 @@ class StreamingCalibrator:
         self.coarse = None
         self._since_coarse = 0
         self.policy.restart()
-        self.stale = True
         self._milestone = _floor_milestone(self.buffer.fraction)
+        events.append(Event("forgot", f"forgot {dropped} stored samples older than "
+                            f"t={onset:.2f} s; kept {len(kept)}; {why}",
+                            {"dropped": dropped, "kept": len(kept), "onset": onset},
+                            self._t_last))
+
+    def _check_recall(self, m, t, events) -> None:
+        """While stale: a full window of new samples that a remembered calibration (K, b only)
+        fits within its drift limit brings that calibration back."""
+        W = len(self._recent_t)
+        m, t = m[-W:], t[-W:]
+        k = len(m)
+        pos = (self._recent_n + np.arange(k)) % W
+        self._recent_m[pos] = m
+        self._recent_t[pos] = t
+        self._recent_n += k
+        if self._recent_n < W or self._recent_n - self._recall_at < W // 4:
+            return
+        self._recall_at = self._recent_n
+        for cal, support in reversed(self._remembered):
+            if cal.effects:
+                continue
+            x = np.linalg.solve(cal.K, (self._recent_m - cal.b).T).T
+            stat = float(np.median(np.abs(np.linalg.norm(x, axis=1) - 1.0)))
+            limit = self.policy.drift_limit(cal.rms, radius_of(cal))
+            if stat <= limit:
+                break
+        else:
+            return
+        start = float(self._recent_t.min())
+        self._cal, self._support, self.stale = cal, support, False
         if self._job is not None:
             self._job.obsolete = True
-        events.append(Event("forgot", f"forgot {dropped} stored samples older than "
-                            f"t={onset:.2f} s; kept {len(kept)}; calibration in use is stale "
-                            f"until a new one is accepted",
-                            {"dropped": dropped, "kept": len(kept), "onset": onset}, t[-1]))
+        events.append(Event("recalled", f"the field fits a remembered calibration again "
+                            f"(median relative error {stat:.3f} ≤ {limit:.3f} since t={start:.2f} "
+                            f"s): back in use, b = {np.round(cal.b, 2).tolist()}",
+                            {"value": stat, "limit": limit, "onset": start,
+                             "K": cal.K.round(6).tolist(), "b": cal.b.round(6).tolist()},
+                            self._t_last))
+        self._forget(start, events, "samples of the other environment")
+        self.policy.last_request_t = self._t_last   # coverage decides the next fit, as a refit
+        self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
+        self._save(cal, events)
 
     def _milestones(self, events) -> None:
         frac = self.buffer.fraction
@@ -317,7 +407,8 @@ class StreamingCalibrator:
     def _submit(self, request, t_now) -> list:
         snap = self.buffer.snapshot()
         held = (np.arange(len(snap)) + self.n_fits) % self.holdout_every == 0
-        job = _Job(snap.subset(~held), snap.subset(held), self.buffer.fraction, t_now)
+        job = _Job(snap.subset(~held), snap.subset(held), self.buffer.fraction, t_now,
+                   self.buffer.occupied)
         self.n_fits += 1
         self._job = job
         event = Event("fit_started", f"fit #{self.n_fits} started ({request.reason}): "
@@ -345,6 +436,10 @@ class StreamingCalibrator:
             return [Event("fit_failed", f"fit failed: {job.error}",
                           {"error": type(job.error).__name__}, t)]
         cand = job.result.replace(unit=self.unit, coverage=round(float(job.coverage), 4))
+        if self.coarse is None or self._frame_is_cal:
+            found = self._fit_coarse()          # the guard's reference radius, on demand
+            if found is not None:
+                self.coarse = found
         current = self._cal if self._cal is not None else self._coarse_calibration()
         ref_R = self.coarse[1] if self.coarse is not None else None
         decision = self.guard.check(cand, job.holdout.m, _cov_with_t(job.holdout), current, ref_R)
@@ -353,21 +448,27 @@ class StreamingCalibrator:
         if not decision.accepted:
             return [Event("rejected", f"candidate rejected: {_reason_text(decision)}", data, t)]
         self._cal = cand
+        self._support = job.support
+        self._remembered.append((cand, job.support))
         self.stale = False
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
         events = [Event("accepted", f"calibration accepted ({_reason_text(decision)}): rms "
                         f"{cand.rms:.3g} {self.unit}, b = {np.round(cand.b, 2).tolist()}",
                         data, t)]
-        if self.store is not None:
-            try:
-                path = self.store.save(cand)
-                events.append(Event("stored", f"saved {self.store.current_path} ({path.name})",
-                                    {"path": str(self.store.current_path)}, t))
-            except Exception as exc:    # keep calibrating; the old file stays valid
-                events.append(Event("store_error", f"could not save the calibration: {exc}",
-                                    {}, t))
+        self._save(cand, events)
         return events
+
+    def _save(self, cal, events) -> None:
+        if self.store is None:
+            return
+        t = self._t_last
+        try:
+            path = self.store.save(cal)
+            events.append(Event("stored", f"saved {self.store.current_path} ({path.name})",
+                                {"path": str(self.store.current_path)}, t))
+        except Exception as exc:    # keep calibrating; the old file stays valid
+            events.append(Event("store_error", f"could not save the calibration: {exc}", {}, t))
 
     def _coarse_calibration(self) -> Calibration | None:
         if self.coarse is None:
@@ -383,6 +484,7 @@ class StreamingCalibrator:
                 self._pending.append(Event("load_problem", problem, {}))
         if result.calibration is not None:
             self._cal = result.calibration
+            self._remembered.append((self._cal, None))     # fitted on directions unknown: all
             self._set_frame(self._cal.b, np.linalg.inv(self._cal.K), from_cal=True)
             how = " (fallback: the current file was missing or damaged)" if result.fell_back else ""
             self._pending.append(Event("loaded", f"calibration in use loaded from {result.path}{how}",
@@ -392,30 +494,6 @@ class StreamingCalibrator:
         out, self._pending = self._pending, []
         return out
 
-    def _covariate_matrix(self, block, ok, n) -> np.ndarray:
-        """Covariates at the magnetometer rows (n, P). Sensors run at different rates, so a
-        covariate missing on a mag row takes its last value seen (sample and hold)."""
-        names = self.buffer.covariate_names
-        cov = np.full((n, len(names)), np.nan)
-        for k, name in enumerate(names):
-            if name == "temp":
-                src = block.temp
-            elif name in _IMU:
-                arr = getattr(block, _IMU[name][0])
-                src = None if arr is None else np.asarray(arr)[:, _IMU[name][1]]
-            else:
-                src = block.aux.get(name)
-            if src is None:
-                continue
-            src = np.asarray(src, dtype=float)
-            seen = np.isfinite(src)
-            idx = np.maximum.accumulate(np.where(seen, np.arange(len(src)), -1))
-            held = np.where(idx >= 0, src[np.maximum(idx, 0)], self._held[k])
-            if seen.any():
-                self._held[k] = src[seen][-1]
-            cov[:, k] = held[ok]
-        return cov
-
 
 def _floor_milestone(frac: float) -> float:
     passed = [m for m in MILESTONES if frac >= m]
@@ -424,18 +502,6 @@ def _floor_milestone(frac: float) -> float:
 
 def _cov_with_t(snap: Snapshot) -> dict:
     return {"t": snap.t, **snap.covariates}
-
-
-def _block_covariates(block) -> dict:
-    cov = {"t": np.asarray(block.t, dtype=float)}
-    if block.temp is not None:
-        cov["temp"] = np.asarray(block.temp, dtype=float)
-    for name, (group, axis) in _IMU.items():
-        arr = getattr(block, group)
-        if arr is not None:
-            cov[name] = np.asarray(arr, dtype=float)[:, axis]
-    cov.update({k: np.asarray(v, dtype=float) for k, v in block.aux.items()})
-    return cov
 
 
 def _finite(v):

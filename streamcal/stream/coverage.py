@@ -212,8 +212,12 @@ class CoverageBuffer:
         self._n_occupied = int(self.occupied.sum())
         return int(old.sum())
 
-    def insert(self, m, t, covariates=None) -> tuple[int, int]:
-        """Offer samples ``m`` (n,3), times ``t`` (n,) s, ``covariates`` {name: (n,)}.
+    def insert(self, m, t, covariates=None, d=None, cell=None) -> tuple[int, int]:
+        """Offer samples ``m`` (n,3), times ``t`` (n,) s, ``covariates`` {name: (n,)} or a
+        covariate matrix (n,P) in the order of ``covariate_names``.
+
+        ``d`` (n,3), ``cell`` (n,): the samples' unit directions in the current frame and their
+        cells, when the caller has computed them already (then every row must be finite).
 
         Returns ``(stored, new_cells)``: samples that took a new slot (or the oldest slot of a
         full cell; refreshes of a nearby stored sample do not count) and cells that were empty
@@ -221,22 +225,29 @@ class CoverageBuffer:
         """
         m = np.asarray(m, dtype=float).reshape(-1, 3)
         t = np.asarray(t, dtype=float).reshape(-1)
-        ok = np.isfinite(m).all(axis=1)
-        cov = np.full((len(m), len(self.covariate_names)), np.nan)
-        for k, name in enumerate(self.covariate_names):
-            if covariates is not None and covariates.get(name) is not None:
-                cov[:, k] = covariates[name]
-        if not ok.all():
-            m, t, cov = m[ok], t[ok], cov[ok]
+        if isinstance(covariates, np.ndarray):
+            cov = covariates.reshape(len(m), len(self.covariate_names))
+        else:
+            cov = np.full((len(m), len(self.covariate_names)), np.nan)
+            for k, name in enumerate(self.covariate_names):
+                if covariates is not None and covariates.get(name) is not None:
+                    cov[:, k] = covariates[name]
+        if d is None:
+            ok = np.isfinite(m).all(axis=1)
+            if not ok.all():
+                m, t, cov = m[ok], t[ok], cov[ok]
+            d = self.directions(m)
+            cell = None
         if not len(m):
             return 0, 0
-        d = self.directions(m)
         if len(m) > 2 * self._fine.n_cells:
             # Large batch: keep the newest sample per fine cell (cells narrower than the spacing),
             # so the rounds below cost O(fine cells), not O(batch).
             keep = _newest_per_key(np.arange(len(m)), self._fine.cell_of(d), self._fine.n_cells)
             m, t, cov, d = m[keep], t[keep], cov[keep], d[keep]
-        cell = self.cells.cell_of(d)
+            cell = None if cell is None else cell[keep]
+        if cell is None:
+            cell = self.cells.cell_of(d)
         C = self.cells.n_cells
         stored = new_cells = 0
         # Samples far from every stored sample of their cell; each round stores the newest of

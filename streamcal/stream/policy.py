@@ -56,6 +56,11 @@ class RecalPolicy:
         self.reset_window()
         self.last_request_t = -np.inf
 
+    @property
+    def window(self) -> int:
+        """Samples in the drift window."""
+        return len(self._err)
+
     # -- new information ----------------------------------------------------------------------
     def reset_counts(self) -> None:
         self.cells_since = 0
@@ -73,16 +78,18 @@ class RecalPolicy:
             return None
         if coverage < self.min_coverage or n_samples < self.min_samples:
             return None
-        data = {"coverage": round(coverage, 4), "n_samples": n_samples,
-                "new_cells": self.cells_since, "new_samples": self.stored_since}
         if not calibrated and self.last_request_t == -np.inf:
-            return FitRequest("coverage_reached", data)
-        if self.cells_since >= max(1, self.new_cells * n_cells):
-            return FitRequest("new_cells", data)
-        if (self.stored_since >= max(1, self.new_samples * capacity)
+            reason = "coverage_reached"
+        elif self.cells_since >= max(1, self.new_cells * n_cells):
+            reason = "new_cells"
+        elif (self.stored_since >= max(1, self.new_samples * capacity)
                 and t_now - self.last_request_t >= self.refit_interval_s):
-            return FitRequest("new_samples", data)
-        return None
+            reason = "new_samples"
+        else:
+            return None
+        return FitRequest(reason, {"coverage": round(coverage, 4), "n_samples": n_samples,
+                                   "new_cells": self.cells_since,
+                                   "new_samples": self.stored_since})
 
     def requested(self, t_now: float) -> None:
         self.last_request_t = t_now
@@ -104,9 +111,12 @@ class RecalPolicy:
         W = len(self._err)
         rel_err, t = rel_err[-W:], t[-W:]
         k = len(rel_err)
-        pos = (self._n + np.arange(k)) % W
-        self._err[pos] = rel_err
-        self._t[pos] = t
+        start = self._n % W
+        first = min(k, W - start)                # up to the end of the ring, then from 0
+        self._err[start:start + first] = rel_err[:first]
+        self._t[start:start + first] = t[:first]
+        self._err[:k - first] = rel_err[first:]
+        self._t[:k - first] = t[first:]
         self._n += k
 
     def drift_limit(self, rms: float, radius: float) -> float:
@@ -122,8 +132,15 @@ class RecalPolicy:
         if self._n < W or self._n - self._checked_at < W // 4:
             return None
         self._checked_at = self._n
-        stat = float(np.median(self._err))
+        stat = _median(self._err)
         limit = self.drift_limit(rms, radius)
         if stat > limit:
             return stat, limit, float(self._t[self._err > limit].min())
         return None
+
+
+def _median(x: np.ndarray) -> float:
+    """Median of ``x`` (n,) by partial sorting (np.median's overhead dominates for n ~ 200)."""
+    n = len(x)
+    part = np.partition(x, [(n - 1) // 2, n // 2])
+    return float(0.5 * (part[(n - 1) // 2] + part[n // 2]))
