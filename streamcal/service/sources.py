@@ -72,7 +72,7 @@ class I2CBlocks:
 
     @property
     def finished(self) -> bool:
-        return bool(getattr(self.bus, "finished", False))
+        return self.bus is None or bool(getattr(self.bus, "finished", False))
 
     def read(self):
         from firmware_bridge.mpu9250 import DeviceError
@@ -101,11 +101,17 @@ class I2CBlocks:
                 "reinits": s["reinits"], "outages": self.outages}
 
     def close(self) -> None:
+        """Power the AK8963 down (best effort) and close the bus; safe to call twice."""
+        if self.bus is None:
+            return
+        bus, self.bus = self.bus, None
         try:
             if self.up:
                 self.driver.close()
+        except Exception:        # closing must not turn a clean stop into a crash
+            pass
         finally:
-            close = getattr(self.bus, "close", None)
+            close = getattr(bus, "close", None)
             if close is not None:
                 close()
 
