@@ -115,6 +115,8 @@ class StreamingCalibrator:
         coarse_every: samples between refreshes of the running sphere estimate (before the
             first calibration and while stale).
         remember: accepted calibrations remembered for recall after an environment change.
+        recall_checks: consecutive drift-window checks (one per quarter window) a remembered
+            calibration must pass to be recalled.
         synchronous: run fits inline (deterministic offline replays); default is a worker thread.
 
     Usage::
@@ -130,7 +132,7 @@ class StreamingCalibrator:
                  policy: RecalPolicy | None = None, guard: AcceptanceGuard | None = None,
                  model=DEFAULT_MODEL, unit: str = "uT", stage: int = 256, holdout_every: int = 5,
                  coarse_every: int = 200, coarse_min: int = 100, remember: int = 4,
-                 synchronous: bool = False):
+                 recall_checks: int = 5, synchronous: bool = False):
         self.fitter = fitter if fitter is not None else default_fitter(model)
         self.store = store
         self.buffer = buffer if buffer is not None else CoverageBuffer()
@@ -140,6 +142,7 @@ class StreamingCalibrator:
         self.holdout_every = int(holdout_every)
         self.coarse_every = int(coarse_every)
         self.coarse_min = int(coarse_min)
+        self.recall_checks = max(1, int(recall_checks))
         self.synchronous = synchronous
         self.stats = SphereStats()
         self.coarse: tuple[np.ndarray, float] | None = None
@@ -160,6 +163,7 @@ class StreamingCalibrator:
         self._recent_t = np.empty(W)
         self._recent_n = 0
         self._recall_at = 0
+        self._recall_streak: tuple = (None, 0)
         self._pending: list[Event] = []
         if store is not None:
             self._load()
@@ -338,6 +342,7 @@ class StreamingCalibrator:
                      "or a remembered one fits again")
         self.stale = True
         self._recent_n = self._recall_at = 0
+        self._recall_streak = (None, 0)
         if self._job is not None:
             self._job.obsolete = True
 
@@ -377,7 +382,16 @@ class StreamingCalibrator:
             if stat <= limit:
                 break
         else:
+            self._recall_streak = (None, 0)
             return
+        # The same calibration must fit over consecutive checks (a window and then
+        # ``recall_checks − 1`` quarter windows): a new environment's field can cross the old
+        # sphere for a moment.
+        streak = self._recall_streak[1] + 1 if self._recall_streak[0] is cal else 1
+        self._recall_streak = (cal, streak)
+        if streak < self.recall_checks:
+            return
+        self._recall_streak = (None, 0)
         start = float(self._recent_t.min())
         self._cal, self._support, self.stale = cal, support, False
         if self._job is not None:
