@@ -117,9 +117,8 @@ def test_coherent_disturbance_start_lands_on_the_undisturbed_shell():
     assert choice.score == pytest.approx(choice.support.mean(), abs=0.02)
 
 
-@pytest.mark.xfail(strict=True, reason="autocal still refines on every sample: the disturbed "
-                   "samples near the undisturbed shell drag the cap-limited fit (needs the "
-                   "solve-on-support change in autocal's refinement, see the robust-start report)")
+@pytest.mark.xfail(strict=True, reason="known gap: the chunk search picks the disturbed shell as "
+                   "the start on this synthetic track (see test above), so the whole fit follows it")
 def test_coherent_disturbance_whole_fit_matches_its_undisturbed_part():
     m, disturbed = coherent_track()
     whole = fit(m, check_coverage=False)
@@ -157,8 +156,6 @@ def test_broad32_start_lands_on_the_undisturbed_shell(real_tracks_dir):
     assert choice.support[calm].mean() > 0.90
 
 
-@pytest.mark.xfail(strict=True, reason="autocal still refines on every sample (needs the "
-                   "solve-on-support change in autocal's refinement, see the robust-start report)")
 def test_broad32_whole_fit_matches_its_undisturbed_part(real_tracks_dir):
     m, t, calm, magnet = _broad32(real_tracks_dir)
     whole, part = fit(m, check_coverage=False), fit(m[calm], check_coverage=False)

@@ -225,7 +225,22 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
                          thetas=res.thetas, max_iter=max_iter, rtol=rtol)
         return res, sig, tau_cur
 
-    result, sigma_n, tau_n = solve(K0, b0, x0, sigma_n)
+    if support is None:
+        result, sigma_n, tau_n = solve(K0, b0, x0, sigma_n)
+    else:
+        # A coherent disturbance: refine on the undisturbed chunks only (the disturbed shell
+        # would drag a cap-limited fit towards it), then evaluate every sample at that model.
+        m_all, cov_all = m_n, covariates
+        m_n = m_all[support]
+        covariates = {k: np.asarray(v)[support] for k, v in (cov_all or {}).items()}
+        result, sigma_n, tau_n = solve(K0, b0, x0[support], sigma_n)
+        x_all = directions_from_model(result.K, result.b, m_all)
+        x_all[support] = result.x
+        m_n, covariates = m_all, cov_all
+        result = refine(m_n, result.K, result.b, x_all,
+                        kernel=make_kernel("gm" if polish else kernel, tau_n),
+                        structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,
+                        thetas=result.thetas, max_iter=0)
     if not np.all(np.isfinite(result.K)) or np.any(np.abs(np.diag(result.K)) < 1e-9):
         raise InsufficientDataError("the refinement diverged: the data do not determine the model")
     # canonical form: positive diagonal (flip the matching direction components)
