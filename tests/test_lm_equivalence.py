@@ -218,6 +218,22 @@ def test_two_effects_and_damping_retries_match_reference():
     assert_same(got, ref)
 
 
+@pytest.mark.parametrize("effect", (None, "temperature_scale"))
+def test_blocks_of_samples_match_reference(monkeypatch, effect):
+    """Samples processed in several blocks (a short last one too) give the same result."""
+    from streamcal.fit import lm
+    from streamcal.model import build_effects
+
+    monkeypatch.setattr(lm, "BLOCK", 70)
+    m, K0, b0, x0, cov = problem("full", seed=5)
+    assert len(m) % lm.BLOCK and len(m) > 2 * lm.BLOCK
+    effects = build_effects([effect], cov) if effect else ()
+    kernel = make("cauchy")
+    got = refine(m, K0, b0, x0, kernel=kernel, effects=effects, covariates=cov)
+    ref = reference_refine(m, K0, b0, x0, kernel=kernel, effects=effects, cov=cov)
+    assert_same(got, ref)
+
+
 def test_inputs_are_not_modified_and_outputs_are_row_major():
     m, K0, b0, x0, _ = problem("full")
     copies = [a.copy() for a in (m, K0, b0, x0)]
