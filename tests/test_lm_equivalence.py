@@ -244,3 +244,33 @@ def test_inputs_are_not_modified_and_outputs_are_row_major():
     assert res.x.flags.c_contiguous and res.residuals.flags.c_contiguous
     np.testing.assert_allclose(np.linalg.norm(res.x, axis=1), 1.0, rtol=1e-12)
     np.testing.assert_allclose(res.residuals, res.x @ res.K.T + res.b - m, atol=1e-12)
+
+
+# -- stage 1: the L1 program handed to Clarabel as its dual vs cvxpy's primal ---------------------
+@pytest.mark.parametrize("case", ("outliers_30", "one_sided"))
+def test_l1_dual_reaches_the_cvxpy_optimum(case):
+    from streamcal.fit import ellipsoid
+    from streamcal.fit.normalize import normalize
+
+    rng = np.random.default_rng(17)
+    x = rng.standard_normal((250, 3))
+    if case == "one_sided":
+        x[:, 2] = np.abs(x[:, 2]) + 0.3
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    K = np.eye(3) + 0.1 * np.triu(rng.standard_normal((3, 3)))
+    m = x @ K.T + 0.3 + 0.01 * rng.standard_normal((250, 3))
+    if case == "outliers_30":
+        m[:75] += rng.uniform(-1.0, 1.0, (75, 3))
+    m_n = normalize(m)[0]
+    phi = ellipsoid.design_matrix(m_n)
+
+    def vec(C, d, e):
+        return np.r_[C[0, 0], C[1, 1], C[2, 2], C[0, 1], C[0, 2], C[1, 2], d, e]
+
+    v_dual = vec(*ellipsoid.fit_l1_ellipsoid(m_n))
+    v_cvx = vec(*ellipsoid.L1EllipsoidProblem(len(m_n)).solve(m_n))
+    assert abs(v_dual[:3].sum() - 1) < 1e-8                       # feasible: trace C = 1
+    assert np.linalg.eigvalsh(ellipsoid.unpack(v_dual)[0])[0] > -1e-8   # and C ⪰ 0
+    f_dual, f_cvx = np.abs(phi @ v_dual).sum(), np.abs(phi @ v_cvx).sum()
+    assert f_dual <= f_cvx * (1 + 1e-6)
+    np.testing.assert_allclose(v_dual, v_cvx, atol=1e-4)
