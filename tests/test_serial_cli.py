@@ -43,7 +43,7 @@ def run_host(board: FakeBoard, state_dir) -> tuple[Service, BoardSync, dict, lis
     sync = BoardSync(source)
     log: list[str] = []
     service = Service(lambda buffer=None: StreamingCalibrator(store=store), source,
-                      notifier=Notifier(environ={}), on_event=sync, log=log.append, name="serial")
+                      notifier=Notifier(environ={}), on_calibration=sync, log=log.append, name="serial")
     source_close, source.close = source.close, lambda: None
     try:
         assert service.run() == 0, log
@@ -61,8 +61,8 @@ def test_every_frame_accounted_for_and_calibration_sent_despite_line_faults(trac
             == board.frames_sent
         assert frames["frames_lost"] > 0 and frames.get("crc_errors", 0) + frames.get("cobs_errors", 0) \
             + frames.get("truncated", 0) > 0
-        # every accepted calibration was offered to the board; a lost ACK is retried by the link
-        assert service.stats.events["accepted"] == len(sync.sent) + sync.failures >= 1
+        # every calibration put in use was offered to the board; a lost ACK is retried by the link
+        assert service.cal_version == sync.offered == len(sync.sent) + sync.failures >= 1
         assert len(sync.sent) >= 1 and frames["board_calibration"]["valid"]
         assert frames["board_calibration"]["cal_id"] == sync.sent[-1]
 
@@ -132,7 +132,7 @@ def test_raw_lines_sketch_is_calibrated_without_sending_back(tmp_path):
     sync = BoardSync(source)
     log: list[str] = []
     service = Service(lambda buffer=None: StreamingCalibrator(store=store, synchronous=True), source,
-                      notifier=Notifier(environ={}), on_event=sync, log=log.append, max_seconds=8)
+                      notifier=Notifier(environ={}), on_calibration=sync, log=log.append, max_seconds=8)
     read = source.read
 
     def read_until_all_seen():

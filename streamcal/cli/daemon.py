@@ -101,7 +101,7 @@ def state_dir(args) -> str:
     return from_systemd or os.path.expanduser(DEFAULT_STATE_DIR)
 
 
-def build(args, source, name: str, on_event=None):
+def build(args, source, name: str, on_calibration=None):
     """The :class:`~streamcal.service.Service` for parsed ``args`` and an opened ``source``."""
     from ..errors import InputError
     from ..service import Outputs, Service, SocketOutput, StreamOutput
@@ -125,7 +125,7 @@ def build(args, source, name: str, on_event=None):
     if not args.no_socket:
         sinks.append(SocketOutput(args.socket or os.path.join(store.dir, SOCKET_NAME),
                                   mode=args.socket_mode))
-    return Service(make_calibrator, source, outputs=Outputs(sinks), on_event=on_event,
+    return Service(make_calibrator, source, outputs=Outputs(sinks), on_calibration=on_calibration,
                    max_seconds=args.max_seconds, grace_s=args.grace, name=name)
 
 

@@ -29,20 +29,19 @@ def register(sub) -> None:
 
 
 class BoardSync:
-    """``on_event`` hook: send the calibration in use to the board and report its answer."""
+    """``on_calibration`` hook: send the calibration in use to the board, report its answer."""
 
     def __init__(self, source):
         self.source = source
         self.sent: list[int] = []
         self.failures = 0
+        self.offered = 0
 
-    def __call__(self, event, service) -> str | None:
-        if event.kind not in ("loaded", "accepted"):
-            return None
+    def __call__(self, cal, service) -> str | None:
         link = self.source.link
-        cal = service.calibrator.calibration
-        if link is None or cal is None:
+        if link is None:
             return None
+        self.offered += 1
         if link.mode == "raw":
             return "board prints Raw: lines: it cannot take a calibration (kept on the host)"
         from firmware_bridge.serial_link import LinkError
@@ -89,7 +88,7 @@ def run(args) -> int:
     source = SerialBlocks(args.port, args.baud)
     try:
         sync = BoardSync(source)
-        service = build(args, source, "serial", on_event=sync)
+        service = build(args, source, "serial", on_calibration=sync)
     except BaseException:
         source.close()
         raise

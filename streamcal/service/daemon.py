@@ -61,8 +61,9 @@ class Service:
         outputs: :class:`~streamcal.service.output.Outputs` for calibrated samples.
         notifier: :class:`~streamcal.service.notify.Notifier` (default from the environment).
         max_seconds: stop after this many wall-clock seconds (None: run until a signal).
-        on_event: ``on_event(event, service)`` after each calibrator event is logged; returns
-            an optional extra message to log (the serial host sends calibrations back here).
+        on_calibration: ``on_calibration(cal, service)`` each time the calibration in use
+            changes (loaded, accepted, recalled, re-read); returns an optional message to log
+            (the serial host sends the calibration to the board here).
         log: ``log(line)``; default prints to stderr.
         grace_s: how long a stop waits for the fit in flight.
         name: command name in log lines.
@@ -70,16 +71,18 @@ class Service:
 
     def __init__(self, make_calibrator: Callable, source, *, outputs: Outputs | None = None,
                  notifier: Notifier | None = None, max_seconds: float | None = None,
-                 on_event: Callable | None = None, log: Callable[[str], None] | None = None,
+                 on_calibration: Callable | None = None, log: Callable[[str], None] | None = None,
                  grace_s: float = 10.0, name: str = "daemon"):
         self.make_calibrator, self.source = make_calibrator, source
         self.outputs = outputs if outputs is not None else Outputs()
         self.notifier = notifier if notifier is not None else Notifier()
-        self.max_seconds, self.on_event, self.grace_s, self.name = max_seconds, on_event, grace_s, name
+        self.max_seconds, self.grace_s, self.name = max_seconds, grace_s, name
+        self.on_calibration = on_calibration
         self.log = log or (lambda line: print(line, file=sys.stderr, flush=True))
         self.stats = RunStats()
         self.cal_version = 0
         self.calibrator = None
+        self._cal_seen = None
         self.device_state = "starting"
         self._stop: str | None = None
         self._reload = False
@@ -210,12 +213,14 @@ class Service:
         for event in events:
             kind = event.kind
             self.stats.events[kind] = self.stats.events.get(kind, 0) + 1
-            if kind in ("loaded", "accepted"):
-                self.cal_version += 1
             when = f"{event.t:.2f} s " if event.t is not None and math.isfinite(event.t) else ""
             self.log(f"streamcal {self.name}: {when}{kind}: {event.message}")
-            if self.on_event is not None:
-                extra = self.on_event(event, self)
+        cal = self.calibrator.calibration
+        if cal is not None and cal is not self._cal_seen:
+            self._cal_seen = cal
+            self.cal_version += 1
+            if self.on_calibration is not None:
+                extra = self.on_calibration(cal, self)
                 if extra:
                     self.log(f"streamcal {self.name}: {extra}")
 

@@ -11,7 +11,7 @@ One line per magnetometer sample, UTF-8, ``\\n``-terminated::
 - ``direction``: the same vector normalised to unit length.
 - ``cal_version``: which estimate produced the line: 0 = the running sphere estimate before any
   calibration; 1, 2, … increase each time the calibration in use changes (loaded at start,
-  accepted, re-read on SIGHUP).
+  accepted, recalled after an environment change, re-read on SIGHUP).
 
 Samples before any estimate exists are not written. The socket is ``SOCK_STREAM``: connect
 (``socat - UNIX-CONNECT:/run/streamcal/samples.sock``) and read lines; each client gets lines from
