@@ -27,13 +27,16 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import frames as fr
+from . import registers as R
 
 # Scales the sketch announces (streamcal_bridge.ino; PS-MPU-9250A-01 p8/p9/p12), as float32.
 ACCEL_SCALE = float(np.float32(9.80665) / np.float32(8192.0))      # m/s² per count (±4 g)
 GYRO_SCALE = float(np.float32(3.14159265) / np.float32(180.0) / np.float32(16.4))  # rad/s per count
 TEMP_SCALE = float(np.float32(1.0) / np.float32(333.87))          # °C per count
 TEMP_OFFSET = 21.0
-AK_UT_PER_LSB = 0.15   # 16-bit output (AK8963 datasheet; HARDWARE.md §4)
+# 16-bit output, 4912 µT / 32760 counts (HARDWARE.md §4, [RM p50]) in float32, as the sketch's
+# AK_UT_PER_LSB (4912.0f / 32760.0f); equals registers.mag_scale(16) to float32 precision.
+AK_UT_PER_LSB = float(np.float32(R.MAG_FULL_SCALE_UT) / np.float32(R.MAG_FULL_SCALE_COUNTS[16]))
 AK_RANGE = 32760       # |H| beyond this sets ST2.HOFL
 SUMS_MAX_N = 1 << 19
 SUMS_MAX_D = 2047

@@ -142,7 +142,7 @@ class Message:
 class Hello(Message):
     """Board identity and the scales that turn counts into SI units.
 
-    ``mag_scale`` is µT per count per body axis (AK8963 0.15 µT/LSB × fuse-ROM ASA factor, after
+    ``mag_scale`` is µT per count per body axis (AK8963 4912/32760 µT/LSB × fuse-ROM ASA factor, after
     the axis remap); ``accel_scale`` m/s² per count; ``gyro_scale`` rad/s per count; temperature
     °C = count × ``temp_scale`` + ``temp_offset``; ``period_us`` the sample period.
     """

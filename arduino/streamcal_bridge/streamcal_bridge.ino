@@ -42,8 +42,10 @@
 #define AK_ST2_HOFL 0x08
 #define AK_MODE_POWER_DOWN 0x00
 #define AK_MODE_FUSE_ROM 0x0F
-#define AK_MODE_CONT2_16BIT 0x16   // continuous mode 2 (100 Hz), BIT = 1 (16-bit, 0.15 uT/LSB)
-#define AK_UT_PER_LSB 0.15f
+#define AK_MODE_CONT2_16BIT 0x16   // continuous mode 2 (100 Hz), BIT = 1 (16-bit output)
+// 16-bit scale: 4912 uT full scale over 32760 counts = 0.149939 uT/LSB (RM-MPU-9250A-00 p50;
+// the "0.15" of the datasheet table is this value rounded). Same as registers.mag_scale(16).
+#define AK_UT_PER_LSB (4912.0f / 32760.0f)
 
 // Scales announced in HELLO (PS-MPU-9250A-01 p8/p9/p12).
 #define ACCEL_SCALE (9.80665f / 8192.0f)                 // m/s^2 per count

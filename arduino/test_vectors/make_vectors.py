@@ -18,7 +18,7 @@ HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent.parent))
 
 from firmware_bridge import frames as fr  # noqa: E402
-from firmware_bridge.fake_board import apply_calibration_f32, sphere_sums_add  # noqa: E402
+from firmware_bridge.fake_board import apply_calibration_f32, mag_scale_from_asa, sphere_sums_add  # noqa: E402
 
 
 def _bits(value: float) -> int:
@@ -42,7 +42,7 @@ def messages() -> list[tuple[str, int, fr.Message]]:
         ("hello", 0, fr.Hello(fw_major=1, fw_minor=0, whoami=0x71, ak_wia=0x48, flags=7, period_us=10000,
                               accel_scale=_f32(9.80665 / 8192), gyro_scale=_f32(math.pi / 180 / 16.4),
                               temp_scale=_f32(1 / 333.87), temp_offset=21.0,
-                              mag_scale=(_f32(0.15 * 176 / 256), _f32(0.15 * 177 / 256), _f32(0.15 * 165 / 256)))),
+                              mag_scale=mag_scale_from_asa((49, 48, 37)))),   # body x y z: (ASA+128) 176 177 165
         ("sample", 1, fr.Sample(t_us=123456789, mag=(-32768, 0, 32767), accel=(1, -1, 8192),
                                 gyro=(0, 256, -256), temp=-1234, status=0x3D)),
         ("sample_zeros", 0xFFFF, fr.Sample()),
