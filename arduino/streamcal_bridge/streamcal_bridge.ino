@@ -13,6 +13,12 @@
 #define FW_MAJOR 1
 #define FW_MINOR 0
 #define BAUD 115200UL
+// Sample period: 5 ms = 200 Hz, the accel/gyro output rate set below and twice the AK8963's
+// 100 Hz, so a poll that comes late by up to 5 ms still reads every magnetometer sample (at
+// 10 ms, the magnetometer's own period, timing jitter made ~1 % of them overrun). Serial budget
+// at 115200 8N1 (11520 B/s): SAMPLE 33 B x 200/s + CAL_SAMPLE 25 B x 100/s + SPHERE_SUMS
+// 215 B x 1/s = 9.3 kB/s (81 %).
+#define PERIOD_US 5000UL
 
 // MPU-9250 (RM-MPU-9250A-00): address with AD0 = 0, registers.
 #define MPU_ADDR 0x68
@@ -69,8 +75,10 @@ static float g_mag_scale[3];     // uT per count along body x, y, z (ASA applied
 static uint16_t g_seq;
 static uint8_t g_whoami, g_ak_wia, g_outputs;
 static bool g_streaming, g_mag_present;
-static uint32_t g_period_us = 10000, g_next_due;
+static uint32_t g_period_us = PERIOD_US, g_next_due;
 static uint16_t g_sums_every = 100, g_sums_since;
+static ScSample g_held;          // read while the line was busy, sent next (poll_while_busy)
+static bool g_have_held;
 
 // ---- I2C ----
 static bool write_reg(uint8_t addr, uint8_t reg, uint8_t value) {
@@ -130,8 +138,20 @@ static void sensor_setup() {
 }
 
 // ---- frames out ----
+static void poll_while_busy();
+
+// Write a frame; while Serial's 64-byte transmit buffer is full, keep polling the sensors (a
+// 215-byte SPHERE_SUMS frame holds the line for ~19 ms, long enough for the AK8963 to overwrite
+// an unread sample).
 static void send(ScWriter w) {
-  Serial.write(g_tx, sc_finish(g_tx, w));
+  uint8_t n = (uint8_t)sc_finish(g_tx, w);
+  for (uint8_t i = 0; i < n;) {
+    int room = Serial.availableForWrite();
+    if (room <= 0) { poll_while_busy(); continue; }
+    uint8_t k = (uint8_t)min(room, n - i);
+    Serial.write(g_tx + i, k);
+    i += k;
+  }
   ++g_seq;
 }
 
@@ -217,6 +237,7 @@ static void handle_frame(int16_t n) {
     case SC_STOP:
       if (body_len != 0) break;
       g_streaming = false;
+      g_have_held = false;
       send_ack(type, seq, 0);
       return;
     case SC_CLEAR_CAL:
@@ -256,8 +277,7 @@ static void handle_frame(int16_t n) {
 }
 
 // ---- sampling ----
-static void sample_once() {
-  ScSample s;
+static void read_sample(ScSample &s) {
   memset(&s, 0, sizeof s);
   s.t_us = micros();
   uint8_t raw[14];
@@ -287,7 +307,29 @@ static void sample_once() {
     }
   }
   if (g_cal_valid) s.status |= SC_ST_CAL_ACTIVE;
+}
 
+// Next poll time; a schedule more than one period late restarts from now (missed polls would
+// only repeat the current reading, in a burst the line cannot carry).
+static void advance_schedule() {
+  g_next_due += g_period_us;
+  uint32_t now = micros();
+  if ((int32_t)(now - g_next_due) > (int32_t)g_period_us) g_next_due = now;
+}
+
+// A poll that comes due while send() waits for the line is read into g_held and sent by loop()
+// afterwards. One sample is held: a held sample without new magnetometer data gives way to a
+// newer one (that accel/gyro reading is not sent); one with magnetometer data is kept, and the
+// AK8963 holds the next, so two magnetometer samples (20 ms) wait without loss.
+static void poll_while_busy() {
+  if (!g_streaming || (int32_t)(micros() - g_next_due) < 0) return;
+  if (g_have_held && (g_held.status & SC_ST_MAG_VALID)) return;
+  advance_schedule();
+  read_sample(g_held);
+  g_have_held = true;
+}
+
+static void emit_sample(const ScSample &s) {
   if (g_outputs & SC_OUT_SAMPLES) {
     ScWriter w = sc_begin(g_tx, SC_SAMPLE, g_seq);
     sc_put_sample(w, s);
@@ -331,8 +373,16 @@ void loop() {
     int16_t n = sc_decoder_feed(g_rx, (uint8_t)Serial.read());
     if (n > 0) handle_frame(n);
   }
-  if (g_streaming && (int32_t)(micros() - g_next_due) >= 0) {
-    g_next_due += g_period_us;
-    sample_once();
+  if (!g_streaming) return;
+  ScSample s;
+  if (g_have_held) {
+    s = g_held;
+    g_have_held = false;
+  } else if ((int32_t)(micros() - g_next_due) >= 0) {
+    advance_schedule();
+    read_sample(s);
+  } else {
+    return;
   }
+  emit_sample(s);
 }
