@@ -79,6 +79,32 @@ def _to_int16(x: np.ndarray, limit: int = 32767) -> np.ndarray:
     return np.clip(np.rint(x), low, limit).astype(np.int16)
 
 
+@dataclass(frozen=True)
+class EncodedRows:
+    """What the chips hold for every track row: the raw counts the fake serves, per channel.
+
+    Times are track seconds (rows where the channel is sampled). Counts are int16 as the
+    registers hold them (before the driver's byte order): ``accel`` (Na,3) under ACCEL_FS_SEL
+    ``accel_fs``, ``gyro`` (Ng,3) under GYRO_FS_SEL ``gyro_fs``, ``temp`` (Nt,) and ``mag``
+    (Nm,3) in AK8963 axes with the fuse-ROM adjustment inverted, at ``mag_bits`` (14 or 16)
+    output; ``mag_overflow`` (Nm,) bool, the rows served with ST2.HOFL (beyond full scale, or
+    an injected overflow).
+    """
+
+    accel_t: np.ndarray
+    accel: np.ndarray
+    gyro_t: np.ndarray
+    gyro: np.ndarray
+    temp_t: np.ndarray
+    temp: np.ndarray
+    mag_t: np.ndarray
+    mag: np.ndarray
+    mag_overflow: np.ndarray
+    accel_fs: int
+    gyro_fs: int
+    mag_bits: int
+
+
 @dataclass
 class _Counters:
     transactions: int = 0
@@ -296,6 +322,30 @@ class FakeMPU9250Bus:
     def __exit__(self, *exc) -> None:
         self.close()
 
+    # --- encodings ---------------------------------------------------------------------------------
+    def encoded_rows(self, *, accel_fs: int | None = None, gyro_fs: int | None = None,
+                     mag_bits: int | None = None) -> EncodedRows:
+        """Every row's raw counts as this fake serves them (see :class:`EncodedRows`).
+
+        Settings default to the ones now in ACCEL_CONFIG, GYRO_CONFIG and AK8963 CNTL1.BIT;
+        pass them to get another range (e.g. to replay the track on another chip model).
+        """
+        if accel_fs is None:
+            accel_fs = R.ACCEL_FS_SEL.get(self._mpu[R.MpuReg.ACCEL_CONFIG])
+        if gyro_fs is None:
+            gyro_fs = R.GYRO_FS_SEL.get(self._mpu[R.MpuReg.GYRO_CONFIG])
+        if mag_bits is None:
+            mag_bits = 16 if R.AK_BIT_16.get(self._ak[R.AkReg.CNTL1]) else 14
+        if accel_fs not in range(4) or gyro_fs not in range(4) or mag_bits not in R.MAG_FULL_SCALE_COUNTS:
+            raise ValueError(f"accel_fs and gyro_fs must be 0..3 and mag_bits 14 or 16, got "
+                             f"{accel_fs}, {gyro_fs}, {mag_bits}")
+        mag, over = self._mag_counts(mag_bits)
+        return EncodedRows(accel_t=self._acc_t, accel=self._imu_counts("acc", accel_fs),
+                           gyro_t=self._gyr_t, gyro=self._imu_counts("gyr", gyro_fs),
+                           temp_t=self._tmp_t, temp=self._imu_counts("tmp", 0)[:, 0],
+                           mag_t=self._mag_t, mag=mag.astype(np.int16), mag_overflow=over,
+                           accel_fs=int(accel_fs), gyro_fs=int(gyro_fs), mag_bits=int(mag_bits))
+
     # --- MPU-9250 die ----------------------------------------------------------------------------
     def _mpu_power_on(self) -> None:
         self._mpu = bytearray(128)
@@ -440,16 +490,20 @@ class FakeMPU9250Bus:
         st2 = R.ST2_BITM if bits == 16 else 0
         if self._ak_k < 0:
             return bytes(6), st2
+        counts, over = self._mag_counts(bits)
+        if over[self._ak_k]:
+            st2 |= R.ST2_HOFL
+        return counts[self._ak_k].tobytes(), st2
+
+    def _mag_counts(self, bits: int) -> tuple[np.ndarray, np.ndarray]:
+        """(Nm,3) little-endian int16 AK8963 counts and (Nm,) HOFL flags for ``bits`` output."""
         key = ("mag", bits)
         if key not in self._cache:
             limit = R.MAG_FULL_SCALE_COUNTS[bits]
             raw = np.rint(self._mag_ak_uT / (R.mag_scale(bits) * R.asa_factor(self.asa)))
             over = np.any(np.abs(raw) > limit, axis=1) | self._hofl_fault
             self._cache[key] = (_to_int16(raw, limit).astype(R.MAG_DTYPE), over)
-        counts, over = self._cache[key]
-        if over[self._ak_k]:
-            st2 |= R.ST2_HOFL
-        return counts[self._ak_k].tobytes(), st2
+        return self._cache[key]
 
     def _ak_read(self, reg: int, length: int) -> list[int]:
         regs = [self._ak_wrap(reg, i) for i in range(length)]

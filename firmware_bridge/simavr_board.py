@@ -119,22 +119,6 @@ def build_harness(cache_dir=None) -> Path:
     return _cached_build("simavr_harness", sources, build, cache_dir)
 
 
-def _mag_counts(bus: FakeMPU9250Bus, bits: int) -> tuple[np.ndarray, np.ndarray]:
-    """(M,3) int16 AK8963-axis counts and (M,) HOFL flags of every mag row for a CNTL1.BIT
-    setting, from the fake chip's own encoder (its per-setting cache, filled by serving row 0)."""
-    if bus._mag_t.size == 0:
-        return np.zeros((0, 3), np.int16), np.zeros(0, bool)
-    saved = (bus._ak[R.AkReg.CNTL1], bus._ak_k)
-    bus._ak[R.AkReg.CNTL1] = R.AK_BIT_16.set(0, 1 if bits == 16 else 0)
-    bus._ak_k = 0
-    try:
-        bus._ak_sample_bytes()
-        counts, over = bus._cache["mag", bits]
-    finally:
-        bus._ak[R.AkReg.CNTL1], bus._ak_k = saved
-    return np.asarray(counts, dtype=np.int16).reshape(-1, 3), np.asarray(over, dtype=bool)
-
-
 def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=(0xB0, 0xB2, 0xA5), who_am_i: int = 0x71,
                  ak_wia: int = R.AK8963_WIA, magnetometer: bool | None = None, hofl_rate: float = 0.0,
                  seed: int = 0) -> bytes:
@@ -152,23 +136,21 @@ def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=(0xB0, 0xB2, 0xA5
                                     magnetometer=magnetometer, faults=Faults(hofl_rate=hofl_rate), seed=seed)
     t0 = float(bus.t[0])
     cyc = lambda t: np.rint((np.asarray(t, float) - t0 + lead_s) * F_CPU_HZ).astype("<i8")  # noqa: E731
-    acc = np.stack([bus._imu_counts("acc", fs) for fs in range(4)], axis=1) if bus._acc_t.size \
-        else np.zeros((0, 4, 3), np.int16)
-    gyr = np.stack([bus._imu_counts("gyr", fs) for fs in range(4)], axis=1) if bus._gyr_t.size \
-        else np.zeros((0, 4, 3), np.int16)
-    tmp = bus._imu_counts("tmp", 0)[:, 0] if bus._tmp_t.size else np.zeros(0, np.int16)
-    (m14, o14), (m16, o16) = _mag_counts(bus, 14), _mag_counts(bus, 16)
-    mag = np.stack([m14, m16], axis=1)
-    hofl = np.stack([o14, o16], axis=1).astype("u1")
+    per_fs = [bus.encoded_rows(accel_fs=fs, gyro_fs=fs, mag_bits=16) for fs in range(4)]
+    rows14, rows = bus.encoded_rows(mag_bits=14), per_fs[0]
+    acc = np.stack([r.accel for r in per_fs], axis=1).reshape(-1, 4, 3)     # (Na, fs, xyz)
+    gyr = np.stack([r.gyro for r in per_fs], axis=1).reshape(-1, 4, 3)
+    mag = np.stack([rows14.mag, rows.mag], axis=1).reshape(-1, 2, 3)       # (Nm, [14, 16], xyz)
+    hofl = np.stack([rows14.mag_overflow, rows.mag_overflow], axis=1).astype("u1")
     asa_b = bytes(np.asarray(asa, dtype=np.uint8))
-    header = REPLAY_MAGIC + struct.pack("<4I", len(bus._acc_t), len(bus._gyr_t), len(bus._tmp_t),
-                                        len(bus._mag_t)) \
+    header = REPLAY_MAGIC + struct.pack("<4I", len(rows.accel_t), len(rows.gyro_t), len(rows.temp_t),
+                                        len(rows.mag_t)) \
         + bytes([who_am_i & 0xFF, ak_wia & 0xFF, int(bus.has_mag)]) + asa_b + b"\0\0"
     parts = [header,
-             cyc(bus._acc_t).tobytes(), acc.astype("<i2").tobytes(),
-             cyc(bus._gyr_t).tobytes(), gyr.astype("<i2").tobytes(),
-             cyc(bus._tmp_t).tobytes(), tmp.astype("<i2").tobytes(),
-             cyc(bus._mag_t).tobytes(), mag.astype("<i2").tobytes(), hofl.tobytes()]
+             cyc(rows.accel_t).tobytes(), acc.astype("<i2").tobytes(),
+             cyc(rows.gyro_t).tobytes(), gyr.astype("<i2").tobytes(),
+             cyc(rows.temp_t).tobytes(), rows.temp.astype("<i2").tobytes(),
+             cyc(rows.mag_t).tobytes(), mag.astype("<i2").tobytes(), hofl.tobytes()]
     return b"".join(parts)
 
 

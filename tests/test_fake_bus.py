@@ -215,3 +215,34 @@ def test_raw_data_ready_flag_follows_new_imu_rows():
     bus.write_byte_data(MPU, R.MpuReg.INT_ENABLE, 0x01)
     now[0] += 0.0051                                       # one 200 Hz row later
     assert status() == 1 and status() == 0                 # cleared by reading
+
+
+def test_encoded_rows_are_the_counts_the_chips_serve():
+    tr = make_track()
+    tr["mag"][4] = [6000.0, 0.0, 0.0]                      # beyond the AK8963's 4912 µT
+    bus = FakeMPU9250Bus(**tr)
+    start_mag(bus)                                          # 16-bit output
+    bus.write_byte_data(MPU, R.MpuReg.ACCEL_CONFIG, R.ACCEL_FS_SEL.set(0, 2))
+    bus.write_byte_data(MPU, R.MpuReg.GYRO_CONFIG, R.GYRO_FS_SEL.set(0, 1))
+    rows = bus.encoded_rows()                               # settings from the registers
+    assert (rows.accel_fs, rows.gyro_fs, rows.mag_bits) == (2, 1, 16)
+    np.testing.assert_array_equal(rows.accel_t, tr["t"])
+    np.testing.assert_array_equal(rows.mag_t, tr["t"][::2])
+    assert rows.accel.shape == rows.gyro.shape == (100, 3) and rows.temp.shape == (100,)
+    np.testing.assert_allclose(rows.accel * R.accel_scale(2), tr["accel"], atol=0.5 * R.accel_scale(2))
+    np.testing.assert_allclose(rows.gyro * R.gyro_scale(1), tr["gyro"], atol=0.5 * R.gyro_scale(1))
+    assert rows.mag_overflow.tolist() == [k == 2 for k in range(50)]
+    for k in range(4):    # step mode: each ST1 read serves the next magnetometer row
+        st1, *data, st2 = bus.read_i2c_block_data(AK, R.AkReg.ST1, R.MAG_BURST_LEN)
+        assert np.frombuffer(bytes(data), "<i2").tolist() == rows.mag[k].tolist()
+        assert bool(st2 & R.ST2_HOFL) == rows.mag_overflow[k]
+        imu = np.frombuffer(bytes(bus.read_i2c_block_data(MPU, R.MpuReg.ACCEL_XOUT_H, 14)), ">i2")
+        j = np.searchsorted(rows.accel_t, bus.now(), side="right") - 1
+        assert imu[:3].tolist() == rows.accel[j].tolist() and imu[4:].tolist() == rows.gyro[j].tolist()
+        assert imu[3] == rows.temp[j]
+    other = bus.encoded_rows(accel_fs=0, mag_bits=14)      # another setting, registers untouched
+    assert (other.accel_fs, other.gyro_fs, other.mag_bits) == (0, 1, 14)
+    np.testing.assert_allclose(other.mag, np.rint(rows.mag * R.mag_scale(16) / R.mag_scale(14)), atol=1)
+    assert bus.encoded_rows().accel_fs == 2
+    with pytest.raises(ValueError):
+        bus.encoded_rows(mag_bits=12)

@@ -100,7 +100,7 @@ def test_replay_file_holds_the_fake_chips_counts():
         np.testing.assert_allclose(body, m, atol=0.5 * scale.max() + 1e-9)
     # and it is the very encoding the fake serves to the Python driver
     bus = FakeMPU9250Bus.from_track(track, asa=ASA)
-    np.testing.assert_array_equal(acc[:, ACCEL_FS], bus._imu_counts("acc", ACCEL_FS))
+    np.testing.assert_array_equal(acc[:, ACCEL_FS], bus.encoded_rows(accel_fs=ACCEL_FS).accel)
 
 
 @pytest.mark.toolchain
