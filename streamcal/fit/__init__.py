@@ -34,6 +34,8 @@ REFERENCE_METHODS = {
 METHODS = ("autocal", "l1_ellipsoid", "l2_ellipsoid") + tuple(REFERENCE_METHODS)
 REGISTRATION_EFFECTS = ("mag_accel_misalignment", "time_lag")
 MIN_SAMPLES = 12
+#: Readings whose spread is below this fraction of their size carry no calibration information.
+MIN_RELATIVE_SPREAD = 1e-9
 
 
 def parse_model(model: str | Iterable[str] = DEFAULT_MODEL, add: str | Iterable[str] = ()) -> tuple[str, ...]:
@@ -136,6 +138,12 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
                                      sensor=sensor, initial=initial)
     if len(m) < MIN_SAMPLES:
         raise InsufficientDataError(f"{len(m)} {sensor} samples are too few: at least {MIN_SAMPLES} are needed")
+    spread = float(np.max(np.std(m, axis=0)))
+    if not np.isfinite(spread) or spread <= MIN_RELATIVE_SPREAD * max(1.0, float(np.max(np.abs(m)))) \
+            or spread < np.finfo(float).tiny * 1e6:
+        raise InsufficientDataError(
+            f"the {sensor} readings hardly change (largest per-axis spread {spread:.3g} {unit}): "
+            "the sensor was not rotated while recording")
     structure = "full" if "soft_iron" in names else "diag" if "scale" in names else "sphere"
     fit_b = "hard_iron" in names
     effects = []
@@ -146,6 +154,18 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
             model_pkg.check_needs(extra, track)
         effects = model_pkg.build_effects(extra, cov)
 
+    try:
+        return _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, sensor=sensor,
+                            kernel=kernel, method=method, tau=tau, check_coverage=check_coverage,
+                            stage1_max=stage1_max, max_iter=max_iter, rtol=rtol, initial=initial)
+    except (np.linalg.LinAlgError, FloatingPointError) as exc:
+        raise InsufficientDataError(f"the {sensor} readings are numerically degenerate for this "
+                                    f"model ({exc}); record while rotating the sensor through many "
+                                    "orientations") from None
+
+
+def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, sensor, kernel, method,
+                 tau, check_coverage, stage1_max, max_iter, rtol, initial) -> Calibration:
     if method == "autocal":
         from .autocal import autocal
 

@@ -62,8 +62,10 @@ def coverage_fraction(x: np.ndarray, n_cells: int = 100) -> float:
     if len(x) == 0:
         return 0.0
     centres = fibonacci_sphere(n_cells)
-    cell = np.argmax(x @ centres.T, axis=1)
-    return float(np.unique(cell).size / n_cells)
+    hit = np.zeros(n_cells, dtype=bool)
+    for start in range(0, len(x), 8192):  # bounded (8192, n_cells) temporaries
+        hit[np.argmax(x[start:start + 8192] @ centres.T, axis=1)] = True
+    return float(hit.sum() / n_cells)
 
 
 def _axis_name(v: np.ndarray) -> str:
