@@ -20,22 +20,23 @@ from ._common import column, number, only_keys, same_constant, vector3
 _EYE = np.eye(3)
 
 
-class TemperatureOffset:
-    """``f_j = c (T_j − T0)``: offset drifting linearly with temperature."""
+class _TemperatureTerm:
+    """What both temperature terms share: ``T0``, ``ΔT`` and one 3-vector parameter ``PARAM``."""
 
-    name = "temperature_offset"
+    name = ""
+    PARAM = ""
 
     def __init__(self, T0: float):
         self.T0 = float(T0)
 
     @classmethod
-    def build(cls, cov: Mapping[str, np.ndarray]) -> "TemperatureOffset":
+    def build(cls, cov: Mapping[str, np.ndarray]):
         return cls(float(np.nanmedian(column(cov, "temp", cls.name))))
 
     @classmethod
-    def from_params(cls, params: Mapping) -> "TemperatureOffset":
-        only_keys(params, ("T0", "c"), cls.name)
-        vector3(params, "c", cls.name)
+    def from_params(cls, params: Mapping):
+        only_keys(params, ("T0", cls.PARAM), cls.name)
+        vector3(params, cls.PARAM, cls.name)
         return cls(number(params, "T0", cls.name))
 
     def n_params(self) -> int:
@@ -46,6 +47,17 @@ class TemperatureOffset:
 
     def _dT(self, cov):
         return column(cov, "temp", self.name) - self.T0
+
+    def _physical_vector(self, params: Mapping) -> np.ndarray:
+        same_constant(self.T0, number(params, "T0", self.name), "T0", self.name)
+        return vector3(params, self.PARAM, self.name)
+
+
+class TemperatureOffset(_TemperatureTerm):
+    """``f_j = c (T_j − T0)``: offset drifting linearly with temperature."""
+
+    name = "temperature_offset"
+    PARAM = "c"
 
     def term(self, theta, u, cov):
         return self._dT(cov)[:, None] * np.asarray(theta)[None, :]
@@ -60,36 +72,14 @@ class TemperatureOffset:
         return {"T0": self.T0, "c": [float(v) for v in np.asarray(theta) * scale]}
 
     def from_physical(self, params: Mapping, scale: float) -> np.ndarray:
-        same_constant(self.T0, number(params, "T0", self.name), "T0", self.name)
-        return vector3(params, "c", self.name) / scale
+        return self._physical_vector(params) / scale
 
 
-class TemperatureScale:
+class TemperatureScale(_TemperatureTerm):
     """``f_j = diag(s) (T_j − T0) u_j``: per-axis gain changing linearly with temperature."""
 
     name = "temperature_scale"
-
-    def __init__(self, T0: float):
-        self.T0 = float(T0)
-
-    @classmethod
-    def build(cls, cov: Mapping[str, np.ndarray]) -> "TemperatureScale":
-        return cls(float(np.nanmedian(column(cov, "temp", cls.name))))
-
-    @classmethod
-    def from_params(cls, params: Mapping) -> "TemperatureScale":
-        only_keys(params, ("T0", "s"), cls.name)
-        vector3(params, "s", cls.name)
-        return cls(number(params, "T0", cls.name))
-
-    def n_params(self) -> int:
-        return 3
-
-    def initial(self) -> np.ndarray:
-        return np.zeros(3)
-
-    def _dT(self, cov):
-        return column(cov, "temp", self.name) - self.T0
+    PARAM = "s"
 
     def term(self, theta, u, cov):
         return self._dT(cov)[:, None] * np.asarray(theta)[None, :] * u
@@ -104,5 +94,4 @@ class TemperatureScale:
         return {"T0": self.T0, "s": [float(v) for v in np.asarray(theta)]}
 
     def from_physical(self, params: Mapping, scale: float) -> np.ndarray:
-        same_constant(self.T0, number(params, "T0", self.name), "T0", self.name)
-        return vector3(params, "s", self.name)
+        return self._physical_vector(params)
