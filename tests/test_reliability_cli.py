@@ -251,23 +251,13 @@ HOSTILE = {
     "constant_12_rows": (lambda m: np.full((12, 3), 12.5), (1, 2)),
     "subnormal_62_rows": (lambda m: m[:62] * 1e-310, (1, 2)),
 }
-#: Cases that currently escape as numpy.linalg.LinAlgError (a traceback); fix reported in
-#: results/reliability.md ("fit: numerical breakdown"). strict: the mark must go with the fix.
-_LINALG = pytest.mark.xfail(strict=True, raises=AssertionError,
-                            reason="fit lets numpy LinAlgError escape on degenerate/absurd "
-                                   "readings (fix in results/reliability.md)")
-BROKEN = {("huge_values", ""), ("huge_values", "--method=l2_ellipsoid"),
-          ("huge_values", "--kernel=l2"), ("max_float", ""), ("max_float", "--method=l2_ellipsoid"),
-          ("max_float", "--kernel=l2"), ("subnormal_62_rows", ""),
-          ("subnormal_62_rows", "--kernel=l2"), ("constant_12_rows", ""),
-          ("constant_12_rows", "--kernel=l2")}
+#: These cases used to escape as numpy.linalg.LinAlgError (a traceback) until 62caee4.
 
 
 def _hostile_params():
     for name in HOSTILE:
         for option in ("", "--method=l2_ellipsoid", "--method=sphere_stream", "--kernel=l2"):
-            marks = [_LINALG] if (name, option) in BROKEN else []
-            yield pytest.param(name, option, marks=marks, id=f"{name}{option}")
+            yield pytest.param(name, option, id=f"{name}{option}")
 
 
 @pytest.mark.parametrize("case,option", list(_hostile_params()))
