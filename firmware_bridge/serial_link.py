@@ -5,6 +5,9 @@ runs on a real board, on pyserial's ``loop://``, or on :class:`~firmware_bridge.
 over a pty. :meth:`SerialLink.open` picks the transport from a string:
 
 - ``fake:TRACK.csv`` — start a simulated board replaying the track and open its pty;
+- ``simavr:TRACK.csv`` — the compiled sketch itself in simavr, its simulated MPU-9250/AK8963
+  replaying the track (:class:`~firmware_bridge.simavr_board.SimavrBoard`; needs the AVR
+  toolchain and simavr, HARDWARE.md §7), its UART on a pty;
 - any pyserial URL (``loop://``, ``socket://host:port``, ``rfc2217://…``) or device path.
 
 The link also reads the ``Raw:`` text lines of MotionCal-style sketches on the same port
@@ -105,9 +108,11 @@ class SerialLink:
     @classmethod
     def open(cls, spec: str, baud: int = DEFAULT_BAUD, *, timeout: float = 0.05, mode: str = "auto",
              speed: float | None = None, faults=None, **board_options) -> "SerialLink":
-        """Open ``spec`` (``fake:TRACK.csv``, a pyserial URL or a device path) and wake the board.
+        """Open ``spec`` (``fake:TRACK.csv``, ``simavr:TRACK.csv``, a pyserial URL or a device
+        path) and wake the board.
 
-        ``speed``/``faults``/``board_options`` configure the fake board (``fake:`` only).
+        ``speed``/``faults``/``board_options`` configure the fake board (``fake:``);
+        ``board_options`` go to :class:`~firmware_bridge.simavr_board.SimavrBoard` (``simavr:``).
         """
         import serial
 
@@ -117,6 +122,17 @@ class SerialLink:
 
             board = FakeBoard.from_track(spec[len("fake:"):], speed=speed, faults=faults,
                                          **board_options).start()
+            target, open_port = board.port_name, lambda: serial.Serial(board.port_name, baud, timeout=timeout)
+        elif spec.startswith("simavr:"):
+            from .simavr_board import SimavrBoard
+
+            if speed is not None or faults is not None:
+                raise InputError(f"{spec}: speed and faults apply to fake: boards only (simavr runs "
+                                 "as fast as the host reads)")
+            path = spec[len("simavr:"):]
+            if not path:
+                raise InputError("simavr: needs a track file, e.g. simavr:track.csv")
+            board = SimavrBoard(path, **board_options).start()
             target, open_port = board.port_name, lambda: serial.Serial(board.port_name, baud, timeout=timeout)
         else:
             target, open_port = spec, lambda: serial.serial_for_url(spec, baudrate=baud, timeout=timeout)

@@ -10,6 +10,10 @@ harness and exposes the pseudo-terminal that carries the simulated UART0::
         link = board.open_link()            # a SerialLink on the board's pty
         for block in link.blocks(idle_timeout=2.0): ...
 
+or, through the host's usual entry point (``streamcal serial --port simavr:track.csv``)::
+
+    link = SerialLink.open("simavr:track.csv")   # closing the link stops the board
+
 Time: the AVR starts at cycle 0 when the host sends its first byte; track row ``t`` becomes the
 chips' current value at simulated time ``t - t[0] + lead_s`` (16 MHz cycles), so the sketch's
 ``micros()`` reads about ``(t - t[0] + lead_s)·1e6`` when it samples row ``t``
@@ -32,6 +36,7 @@ import signal
 import struct
 import subprocess
 import tempfile
+import threading
 from pathlib import Path
 from typing import Sequence
 
@@ -165,6 +170,10 @@ class SimavrBoard:
     ``violations``, ``uart_tx_bytes``…).
     """
 
+    #: The sketch keeps sampling after the replay (a sensor whose values stopped changing), so a
+    #: host reading until the line is quiet never stops: it stops at :attr:`finished` instead.
+    streams_after_replay = True
+
     def __init__(self, track, *, lead_s: float = DEFAULT_LEAD_S, eeprom=None, tail_s: float = 1.0,
                  cache_dir=None, start_timeout: float = 120.0, **replay_options):
         from streamcal.track import Track
@@ -181,6 +190,7 @@ class SimavrBoard:
         self.stats: dict | None = None
         self.proc: subprocess.Popen | None = None
         self._tmp: tempfile.TemporaryDirectory | None = None
+        self._finished = threading.Event()
 
     @classmethod
     def from_track(cls, track, **options) -> "SimavrBoard":
@@ -221,6 +231,21 @@ class SimavrBoard:
         self.port_name = line
         return self
 
+    @property
+    def finished(self) -> threading.Event:
+        """Set once the simulation has passed the track's last row plus ``tail_s`` (the harness
+        says so on its stdout) or the harness has ended: the interface of
+        :attr:`FakeBoard.finished <firmware_bridge.fake_board.FakeBoard.finished>`."""
+        proc = self.proc
+        if not self._finished.is_set() and proc is not None:
+            if proc.poll() is not None:
+                self._finished.set()
+            elif select.select([proc.stdout], [], [], 0)[0]:
+                line = proc.stdout.readline()
+                if not line or line.strip() == b"replay-end":
+                    self._finished.set()
+        return self._finished
+
     def open_link(self, baud: int = 115200, timeout: float = 0.05, **link_options):
         """A :class:`~firmware_bridge.serial_link.SerialLink` on this board's pty, woken up;
         closing the link closes the board."""
@@ -259,6 +284,7 @@ class SimavrBoard:
                 self.stats = None
             self.returncode = self.proc.returncode
             self.proc = None
+            self._finished.set()
         if self._tmp is not None:
             self._tmp.cleanup()
             self._tmp = None

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -145,3 +146,42 @@ def test_raw_lines_sketch_is_calibrated_without_sending_back(tmp_path):
     assert link.mode == "raw" and service.stats.samples == len(m)
     assert sync.sent == [] and service.calibrator.calibration is not None
     assert any("Raw: lines" in line for line in log)
+
+
+@pytest.mark.toolchain
+@pytest.mark.slow          # ~15 s: 60 s of track through the compiled sketch in simavr (+5 s cold build)
+def test_cli_runs_the_real_firmware_in_simavr(tmp_path):
+    """``streamcal serial --port simavr:TRACK.csv``: the compiled sketch in simavr is the board;
+    the host calibrates from its frames and the board ends up holding the stored calibration."""
+    import zlib
+
+    from firmware_bridge.simavr_board import missing_toolchain
+
+    missing = missing_toolchain()
+    if missing:
+        message = "simavr toolchain missing: " + ", ".join(missing) + " (HARDWARE.md §7)"
+        if os.environ.get("CI"):
+            pytest.fail(message)
+        pytest.skip(message)
+    run = simulate(duration_s=60.0, seed=11, motor=False)
+    path = tmp_path / "track.csv"
+    run.track.write(path)
+    state = tmp_path / "state"
+    proc = subprocess.run([sys.executable, "-m", "streamcal", "serial", "--port", f"simavr:{path}",
+                           "--state-dir", str(state), "--no-socket", "--sync-fits", "--max-seconds", "120"],
+                          capture_output=True, text=True, timeout=300, cwd=REPO)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    summary = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert summary["stop_reason"] == "end of replay"
+    link = summary["link"]
+    assert link["frames_lost"] == 0 and summary["source"]["crc_errors"] == summary["source"]["cobs_errors"] == 0
+    # the sketch samples every 5 ms: the whole 60 s track arrived
+    assert summary["samples"] >= 0.97 * 60.0 * 200
+    # the calibration the host stored is the track's truth, and it is the one the board holds
+    cal = Calibration.load(state / "calibration.json")
+    np.testing.assert_allclose(cal.b, run.truth.b, atol=0.5)
+    np.testing.assert_allclose(np.diag(cal.K), np.diag(run.truth.K), rtol=0.01)
+    assert summary["sent_to_board"] == summary["cal_version"] >= 1
+    cal_id = zlib.crc32(np.concatenate([cal.K.ravel(), cal.b]).astype("<f8").tobytes()) & 0xFFFF
+    assert link["board_calibration"] == {"valid": True, "cal_id": cal_id}
+    assert f"board acknowledged calibration id 0x{cal_id:04X}" in proc.stderr

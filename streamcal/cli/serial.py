@@ -6,7 +6,8 @@ calibration (and the one loaded at start) is sent back to the board, which keeps
 streams calibrated directions; the board's answer is reported. Calibrated samples as in
 ``streamcal daemon`` (socket and/or ``--json-lines``). At the end the frames are accounted for:
 received + lost (from the board's sequence numbers) = sent. ``--port fake:TRACK.csv`` runs
-against a simulated board on a pseudo-terminal.
+against a simulated board on a pseudo-terminal; ``--port simavr:TRACK.csv`` runs the compiled
+sketch itself in simavr (firmware in the loop; needs the AVR toolchain and simavr).
 """
 from __future__ import annotations
 
@@ -21,8 +22,9 @@ def register(sub) -> None:
                        description="Read the streamcal_bridge sketch (or MotionCal-style Raw: "
                                    "lines) over a serial port, calibrate continuously and send "
                                    "each accepted calibration back to the board.")
-    p.add_argument("--port", required=True, metavar="DEV|fake:TRACK.csv",
-                   help="serial device (/dev/ttyACM0), pyserial URL, or fake:TRACK.csv")
+    p.add_argument("--port", required=True, metavar="DEV|fake:TRACK.csv|simavr:TRACK.csv",
+                   help="serial device (/dev/ttyACM0), pyserial URL, fake:TRACK.csv (simulated "
+                        "board) or simavr:TRACK.csv (the compiled sketch in simavr)")
     p.add_argument("--baud", type=int, default=115200, help="baud rate (default: %(default)s)")
     add_service_options(p)
     p.set_defaults(func=run)
@@ -76,9 +78,9 @@ def close_count(source) -> dict:
     stats = link.stats
     out.update({"frames_received": link.sequence.received, "frames_lost": stats.lost,
                 **{k: v for k, v in stats.as_dict().items() if v and k not in ("frames", "lost")}})
-    board = getattr(link, "board", None)
-    if board is not None:
-        out["frames_sent"] = board.frames_sent
+    sent = getattr(getattr(link, "board", None), "frames_sent", None)   # fake: boards count
+    if sent is not None:
+        out["frames_sent"] = sent
     return out
 
 

@@ -146,7 +146,15 @@ class SerialBlocks:
     @property
     def finished(self) -> bool:
         board = getattr(self.link, "board", None)
-        return board is not None and board.finished.is_set() and not self.link._pending
+        if board is None or not board.finished.is_set():
+            return False
+        return self._after_replay(board) or not self.link._pending
+
+    @staticmethod
+    def _after_replay(board) -> bool:
+        """A simavr board keeps sampling its (now frozen) sensor after the replay: once it is
+        finished, what follows is not part of the track."""
+        return bool(getattr(board, "streams_after_replay", False)) and board.finished.is_set()
 
     def read(self):
         import serial
@@ -156,6 +164,9 @@ class SerialBlocks:
                 self._open()
             except InputError as exc:
                 raise SourceUnavailable(str(exc)) from exc
+        board = getattr(self.link, "board", None)
+        if board is not None and self._after_replay(board):
+            return None
         try:
             return self.link.read_block(self.block_size, timeout=self.timeout)
         except (serial.SerialException, OSError) as exc:
@@ -165,7 +176,7 @@ class SerialBlocks:
                 link.close()
             except Exception:
                 pass
-            if self.spec is None or self.spec.startswith(FAKE_PREFIX):
+            if self.spec is None or self.spec.startswith((FAKE_PREFIX, "simavr:")):
                 raise SourceUnavailable(f"serial port failed: {exc}") from exc
             raise SourceUnavailable(f"serial port {self.spec} failed ({exc}); reopening") from exc
 

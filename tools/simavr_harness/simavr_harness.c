@@ -12,7 +12,8 @@
  *
  *   simavr_harness FIRMWARE.elf REPLAY.bin [--eeprom FILE] [--stats FILE] [--tail SECONDS]
  *
- * Prints the slave pty path on stdout (one line), then waits for the host's first byte before
+ * Prints the slave pty path on stdout (one line; a second line "replay-end" when the replay and
+ * its tail are over and real time begins), then waits for the host's first byte before
  * releasing the AVR from reset (an Uno resets when its port is opened, so the host sees the boot
  * HELLO). The AVR runs as fast as the host can take its output: the UART is modelled at its
  * baud rate in simulated time, and the simulation stalls while more than OUT_HIGH_WATER bytes
@@ -594,7 +595,12 @@ int main(int argc, char **argv) {
             continue;
         }
         if ((int64_t)avr->cycle >= realtime_from) {   /* after the replay: real time */
-            if (rt_cycle0 < 0) { rt_cycle0 = (int64_t)avr->cycle; rt_wall0 = wall_now(); }
+            if (rt_cycle0 < 0) {
+                rt_cycle0 = (int64_t)avr->cycle;
+                rt_wall0 = wall_now();
+                printf("replay-end\n");   /* the host may stop reading once it has caught up */
+                fflush(stdout);
+            }
             double ahead = ((int64_t)avr->cycle - rt_cycle0) / (double)F_CPU_HZ - (wall_now() - rt_wall0);
             if (ahead > 0) {
                 struct pollfd p = {.fd = U.master, .events = POLLIN};
