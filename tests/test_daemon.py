@@ -434,3 +434,36 @@ def test_systemd_unit_is_notify_with_watchdog_and_a_valid_command_line():
     args = build_parser().parse_args(argv[1:])
     assert args.command == "daemon" and args.func.__module__ == "streamcal.cli.daemon"
     assert args.grace < float(keys["TimeoutStopSec"][0])
+
+
+def run_cli_in_process(argv, capsys) -> tuple[int, str, str]:
+    """``streamcal.cli.main(argv)``, restoring the signal handlers the service installs."""
+    from streamcal.cli import main
+
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+    try:
+        code = main(argv)
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+@pytest.mark.parametrize("json_lines", [False, True])
+def test_cli_draws_the_coverage_map_on_stderr_at_milestones(tmp_path, capsys, json_lines):
+    from streamcal.sim import simulate
+
+    path = tmp_path / "track.csv"
+    simulate(duration_s=30.0, seed=3, motor=False).track.write(path)
+    code, out, err = run_cli_in_process(
+        ["daemon", "--bus", f"fake:{path}", "--state-dir", str(tmp_path / "state"), "--no-socket",
+         "--sync-fits"] + (["--json-lines"] if json_lines else []), capsys)
+    assert code in (0, 1), err
+    milestones = err.count(" coverage: coverage ")            # the event lines
+    assert milestones >= 2
+    maps = err.count("% of the sphere (")                       # coverage_view's heading
+    assert maps == err.count("█ seen  · not yet") == (0 if json_lines else milestones)
+    assert "█ seen" not in out                                  # stdout: samples or the summary
+    summary = json.loads((err if json_lines else out).strip().splitlines()[-1])
+    assert summary["events"]["coverage"] == milestones

@@ -185,3 +185,30 @@ def test_cli_runs_the_real_firmware_in_simavr(tmp_path):
     cal_id = zlib.crc32(np.concatenate([cal.K.ravel(), cal.b]).astype("<f8").tobytes()) & 0xFFFF
     assert link["board_calibration"] == {"valid": True, "cal_id": cal_id}
     assert f"board acknowledged calibration id 0x{cal_id:04X}" in proc.stderr
+
+
+def test_cli_draws_the_coverage_map_on_stderr_unless_json_lines(tmp_path, capsys):
+    import signal
+
+    from streamcal.cli import main
+
+    path = tmp_path / "track.csv"
+    simulate(duration_s=30.0, seed=3, motor=False).track.write(path)
+    saved = {sig: signal.getsignal(sig) for sig in (signal.SIGTERM, signal.SIGINT, signal.SIGHUP)}
+    results = []
+    try:
+        for extra in ([], ["--json-lines"]):
+            code = main(["serial", "--port", f"fake:{path}", "--state-dir", str(tmp_path / f"s{len(extra)}"),
+                         "--no-socket", "--sync-fits", *extra])
+            results.append((code, *capsys.readouterr()))
+    finally:
+        for sig, handler in saved.items():
+            signal.signal(sig, handler)
+    for (code, out, err), json_lines in zip(results, (False, True)):
+        assert code in (0, 1), err
+        milestones = err.count(" coverage: coverage ")
+        assert milestones >= 2
+        assert err.count("% of the sphere (") == err.count("█ seen  · not yet") == (0 if json_lines else milestones)
+        assert "█ seen" not in out
+        summary = json.loads((err if json_lines else out).strip().splitlines()[-1])
+        assert summary["events"]["coverage"] == milestones

@@ -4,7 +4,8 @@ MPU-9250 on ``/dev/i2c-N`` (smbus2) → streaming calibrator (fits off the inges
 ``STATE_DIR/calibration.json`` (SPEC §2, atomic, with history) and calibrated samples as JSON
 lines on a UNIX socket and/or stdout (format: :mod:`streamcal.service.output`). Runs under
 systemd with ``Type=notify`` (``tools/streamcal-daemon.service``); SIGTERM/SIGINT stop it
-cleanly (exit 0), SIGHUP re-reads the calibration file. Events go to stderr (the journal).
+cleanly (exit 0), SIGHUP re-reads the calibration file. Events go to stderr (the journal),
+with the terminal coverage map at each coverage milestone unless ``--json-lines``.
 ``--bus fake:TRACK.csv`` runs the same code against a simulated MPU-9250 replaying a track.
 """
 from __future__ import annotations
@@ -126,7 +127,16 @@ def build(args, source, name: str, on_calibration=None):
         sinks.append(SocketOutput(args.socket or os.path.join(store.dir, SOCKET_NAME),
                                   mode=args.socket_mode))
     return Service(make_calibrator, source, outputs=Outputs(sinks), on_calibration=on_calibration,
+                   on_coverage=None if args.json_lines else show_coverage,
                    max_seconds=args.max_seconds, grace_s=args.grace, name=name)
+
+
+def show_coverage(calibrator) -> None:
+    """The terminal map of the sphere at a coverage milestone, on stderr after the event line
+    (stdout may carry samples or the summary), as ``streamcal replay`` draws it."""
+    from ..report.terminal import coverage_view
+
+    print(coverage_view(calibrator.buffer), file=sys.stderr, flush=True)
 
 
 def run(args) -> int:

@@ -4,7 +4,8 @@ Frames from the ``streamcal_bridge`` sketch (or the ``Raw:`` lines of MotionCal-
 detected automatically) → streaming calibrator → ``STATE_DIR/calibration.json``. Each accepted
 calibration (and the one loaded at start) is sent back to the board, which keeps it in EEPROM and
 streams calibrated directions; the board's answer is reported. Calibrated samples as in
-``streamcal daemon`` (socket and/or ``--json-lines``). At the end the frames are accounted for:
+``streamcal daemon`` (socket and/or ``--json-lines``); events and, unless ``--json-lines``, the
+terminal coverage map at each coverage milestone on stderr. At the end the frames are accounted for:
 received + lost (from the board's sequence numbers) = sent. ``--port fake:TRACK.csv`` runs
 against a simulated board on a pseudo-terminal; ``--port simavr:TRACK.csv`` runs the compiled
 sketch itself in simavr (firmware in the loop; needs the AVR toolchain and simavr).

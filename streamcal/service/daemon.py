@@ -65,6 +65,8 @@ class Service:
             changes (loaded, accepted, recalled, re-read); returns an optional message to log
             (the serial host sends the calibration to the board here).
         log: ``log(line)``; default prints to stderr.
+        on_coverage: ``on_coverage(calibrator)`` after each coverage milestone event (the CLIs
+            draw :func:`streamcal.report.terminal.coverage_view` here).
         grace_s: how long a stop waits for the fit in flight.
         name: command name in log lines.
     """
@@ -72,12 +74,13 @@ class Service:
     def __init__(self, make_calibrator: Callable, source, *, outputs: Outputs | None = None,
                  notifier: Notifier | None = None, max_seconds: float | None = None,
                  on_calibration: Callable | None = None, log: Callable[[str], None] | None = None,
-                 grace_s: float = 10.0, name: str = "daemon"):
+                 on_coverage: Callable | None = None, grace_s: float = 10.0, name: str = "daemon"):
         self.make_calibrator, self.source = make_calibrator, source
         self.outputs = outputs if outputs is not None else Outputs()
         self.notifier = notifier if notifier is not None else Notifier()
         self.max_seconds, self.grace_s, self.name = max_seconds, grace_s, name
         self.on_calibration = on_calibration
+        self.on_coverage = on_coverage
         self.log = log or (lambda line: print(line, file=sys.stderr, flush=True))
         self.stats = RunStats()
         self.cal_version = 0
@@ -215,6 +218,8 @@ class Service:
             self.stats.events[kind] = self.stats.events.get(kind, 0) + 1
             when = f"{event.t:.2f} s " if event.t is not None and math.isfinite(event.t) else ""
             self.log(f"streamcal {self.name}: {when}{kind}: {event.message}")
+            if kind == "coverage" and self.on_coverage is not None:
+                self.on_coverage(self.calibrator)
         cal = self.calibrator.calibration
         if cal is not None and cal is not self._cal_seen:
             self._cal_seen = cal
