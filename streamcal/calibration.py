@@ -173,7 +173,7 @@ class Calibration:
     def from_json(cls, text: str, source: str = "<calibration>") -> "Calibration":
         try:
             data = json.loads(text, parse_constant=_reject_constant)
-        except (json.JSONDecodeError, ValueError) as exc:
+        except (json.JSONDecodeError, ValueError, RecursionError) as exc:
             raise CalibrationFileError(f"{source}: not valid JSON ({exc})") from None
         return _parse(data, source)
 
@@ -279,6 +279,9 @@ def _parse(data, source: str) -> Calibration:
     if field_value is not None and (isinstance(field_value, bool) or not isinstance(field_value, (int, float))
                                     or not math.isfinite(field_value) or field_value <= 0):
         fail("field_uT", f"expected a positive number, found {field_value!r}")
+    for key in ("unit", "method", "kernel"):
+        if data.get(key) is not None and not isinstance(data[key], str):
+            fail(key, f"expected a string, found {type(data[key]).__name__}")
     created = data.get("created", "")
     if not isinstance(created, str):
         fail("created", "expected an ISO-8601 string")
@@ -293,7 +296,16 @@ def _parse(data, source: str) -> Calibration:
                        created=created, extra=extra)
 
 
+def _numbers(value, depth: int) -> bool:
+    """True if ``value`` is a list nested ``depth`` deep of JSON numbers (no strings, no bools)."""
+    if depth == 0:
+        return isinstance(value, (int, float)) and not isinstance(value, bool)
+    return isinstance(value, list) and all(_numbers(v, depth - 1) for v in value)
+
+
 def _matrix(value, shape, key, fail) -> np.ndarray:
+    if not _numbers(value, len(shape)):
+        fail(key, f"expected numbers of shape {shape}")
     try:
         arr = np.array(value, dtype=float)
     except (TypeError, ValueError):

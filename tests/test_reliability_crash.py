@@ -123,9 +123,6 @@ def test_calibration_store_killed_at_random_instants_then_restarts(tmp_path):
           f"new temp files (then swept); longest history seen {longest} files (keep={keep})")
 
 
-@pytest.mark.xfail(strict=True, reason="CalibrationStore prunes history only after a completed "
-                   "save, so kills before the prune pile up history files until one completes; "
-                   "fix: prune in __init__ too (results/reliability.md)")
 def test_restart_prunes_history_left_by_interrupted_saves(tmp_path):
     keep = 3
     store = CalibrationStore(tmp_path / "state", keep=keep)

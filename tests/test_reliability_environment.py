@@ -69,11 +69,6 @@ def _truth(b):
     return Calibration(K=K_TRUE, b=b, n=1)
 
 
-@pytest.mark.xfail(strict=True, reason="right after the hard-iron change (t=240 s) and before the "
-                   "drift detector fires, the guard accepts fits of mixed old/new samples (rms "
-                   "1.5-2.2 uT vs 0.42, 38-46 % model error against both truths): held-out "
-                   "samples are mixed too. Fix (rms growth rule in AcceptanceGuard.check) in "
-                   "results/reliability.md")
 def test_no_acceptance_makes_the_calibration_worse(run):
     assert len(run["accepted"]) >= 3
     for t, index, before, cand in run["accepted"]:

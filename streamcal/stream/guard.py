@@ -101,8 +101,9 @@ class AcceptanceGuard:
     def __init__(self, *, max_cond: float = 5.0, max_rms_ratio: float = 0.25,
                  field_ratio: tuple[float, float] = (0.5, 2.0), offset_ratio: float = 20.0,
                  tolerance: float = 0.02, field_limits: dict | None = None,
-                 offset_limits: dict | None = None):
+                 offset_limits: dict | None = None, max_rms_growth: float = 2.0):
         self.max_cond = max_cond
+        self.max_rms_growth = max_rms_growth
         self.max_rms_ratio = max_rms_ratio
         self.field_ratio = field_ratio
         self.offset_ratio = offset_ratio
@@ -157,6 +158,11 @@ class AcceptanceGuard:
         if np.isfinite(c).sum() < MIN_HOLDOUT:
             return Decision(True, "current_broken_on_holdout", holdout_error(
                 cand, holdout_m, holdout_cov), None, {"n_holdout": n})
+        cur_rms = float(getattr(current, "rms", float("nan")))
+        if math.isfinite(cur_rms) and cur_rms > 0 and cand.rms > self.max_rms_growth * cur_rms:
+            # A fit that no longer reaches the noise floor of the one in use was bent by a
+            # disturbance or by samples of two environments; held-out samples may be mixed too.
+            return Decision(False, "rms_grew", cand.rms, self.max_rms_growth * cur_rms)
         err, ref, se, used = _paired(a, c)
         limit = ref + max(self.tolerance * ref, 2.0 * se)
         details = {"n_holdout": used, "current_error": ref}

@@ -64,10 +64,15 @@ class CalibrationStore:
         for d in (self.dir, self.history_dir):
             _private_dir(d)
         self._clean_temp_files()
+        self._prune()  # saves killed before their pruning leave extra history files
 
     @property
     def current_path(self) -> Path:
         return self.dir / CURRENT
+
+    def _prune(self) -> None:
+        for old in self.history()[:-self.keep]:
+            old.unlink(missing_ok=True)
 
     def history(self) -> list[Path]:
         """History files, oldest first."""
@@ -87,8 +92,7 @@ class CalibrationStore:
         entry = self.history_dir / f"{number:04d}.json"
         _write(entry, text)
         _write(self.current_path, text)
-        for old in self.history()[:-self.keep]:
-            old.unlink(missing_ok=True)
+        self._prune()
         return entry
 
     def load(self) -> LoadResult:
