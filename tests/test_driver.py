@@ -1,5 +1,6 @@
 """MPU-9250 driver against the register-level fake: decoding, identity, faults, recovery."""
 import errno
+import os
 
 import numpy as np
 import pytest
@@ -396,3 +397,43 @@ def test_real_track_replayed_through_the_driver(real_tracks_dir):
     got = np.concatenate([b.temp for b in blocks])
     assert np.all(np.abs(got[k >= 0] - track.columns["temp"][temp_rows][k[k >= 0]]) <= bt)
     assert src.driver.bus.violations == [] and d.stats["retries"] == 0
+
+
+# -- the same checks on a real bus (opt-in: STREAMCAL_I2C_BUS=N; never in CI) ------------------
+
+@pytest.fixture(params=["fake", "real"])
+def any_driver(request):
+    """A brought-up driver on the fake bus, or on ``/dev/i2c-$STREAMCAL_I2C_BUS`` when set
+    (address ``$STREAMCAL_I2C_ADDRESS``, default 0x68)."""
+    if request.param == "fake":
+        bus = FakeMPU9250Bus(**make_track(), asa=ASA)
+        d = driver(bus)
+    else:
+        spec = os.environ.get("STREAMCAL_I2C_BUS")
+        if not spec:
+            pytest.skip("real-hardware check: set STREAMCAL_I2C_BUS=1 (and STREAMCAL_I2C_ADDRESS if "
+                        "AD0 is high) to run it against an MPU-9250 on /dev/i2c-1")
+        bus = open_bus(spec)
+        d = MPU9250(bus, int(os.environ.get("STREAMCAL_I2C_ADDRESS", "0x68"), 0))
+    yield d
+    d.close()
+    bus.close()
+
+
+def test_any_bus_identifies_the_chip_and_reads_plausible_samples(any_driver):
+    d = any_driver
+    assert d.chip is R.WHO_AM_I_TABLE[d.read_registers(d.address, R.MpuReg.WHO_AM_I, 1)[0]]
+    assert d.chip.supported and d.has_magnetometer
+    assert d.read_registers(R.AK8963_ADDRESS, R.AkReg.WIA, 1)[0] == R.AK8963_WIA
+    assert np.all((R.asa_factor(d.asa) >= 0.5) & (R.asa_factor(d.asa) < 1.5))
+    block = d.read_block(100, timeout=5.0)
+    assert len(block) == 100 and np.all(np.diff(block.t) > 0)
+    assert np.all(np.isfinite(block.mag)) and np.all(np.isfinite(block.accel))
+    assert np.all(np.abs(block.mag) <= R.MAG_FULL_SCALE_UT * 1.5)          # within full scale × ASA
+    assert np.all(np.abs(block.accel) <= R.ACCEL_RANGE_G[d.accel_fs] * R.STANDARD_GRAVITY)
+    assert np.all(np.abs(block.gyro) <= np.radians(R.GYRO_RANGE_DPS[d.gyro_fs]))
+    assert np.all((block.temp > -40.0) & (block.temp < 85.0))               # operating range [PS]
+    assert d.check() is False and d.stats["failures"] == d.stats["reinits"] == 0   # config intact
+    d.close()                                                               # AK8963 powered down
+    mode = d.read_registers(R.AK8963_ADDRESS, R.AkReg.CNTL1, 1)[0]
+    assert R.AK_MODE.get(mode) == R.AkMode.POWER_DOWN

@@ -1,6 +1,8 @@
 """Host link: loop:// and in-memory feeds, Raw: lines, and host ↔ fake board over a real pty."""
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 import serial
@@ -246,3 +248,53 @@ def test_open_fake_track_file(tmp_path):
         np.testing.assert_allclose(np.concatenate([blk.temp for blk in blocks]), temp, atol=0.002)
     finally:
         link.close()
+
+
+# -- the same checks on a real board (opt-in: STREAMCAL_SERIAL_PORT=DEV; never in CI) ----------
+
+@pytest.fixture(params=["fake", "real"])
+def any_link(request):
+    """A link to the fake board over a pty, or to ``$STREAMCAL_SERIAL_PORT`` (a board running
+    arduino/streamcal_bridge; baud ``$STREAMCAL_SERIAL_BAUD``, default 115200) when set."""
+    if request.param == "fake":
+        board = FakeBoard(*synthetic(4000)).start()
+        link = pty_link(board)
+    else:
+        spec = os.environ.get("STREAMCAL_SERIAL_PORT")
+        if not spec:
+            pytest.skip("real-hardware check: set STREAMCAL_SERIAL_PORT=/dev/ttyACM0 to run it against a "
+                        "board running arduino/streamcal_bridge")
+        link = SerialLink.open(spec, int(os.environ.get("STREAMCAL_SERIAL_BAUD", "115200")))
+    yield link
+    link.close()
+
+
+def test_any_board_identifies_itself_and_streams_plausible_samples(any_link):
+    from firmware_bridge import registers as R
+
+    hello = any_link.request_info()
+    assert R.WHO_AM_I_TABLE[hello.whoami].has_magnetometer and hello.ak_wia == R.AK8963_WIA
+    assert hello.flags & fr.HelloFlags.MAG_PRESENT and hello.period_us >= 2000
+    assert all(0 < s < 1.5 * R.mag_scale(16) for s in hello.mag_scale)          # × ASA factor
+    blocks, n = [], 0
+    for block in any_link.blocks(idle_timeout=3.0):
+        blocks.append(block)
+        n += len(block)
+        if n >= 400:
+            break
+    assert n >= 400
+    t = np.concatenate([b.t for b in blocks])
+    mag, accel, gyro, temp = (np.concatenate([getattr(b, k) for b in blocks]) for k in ("mag", "accel", "gyro", "temp"))
+    assert np.all(np.diff(t) > 0)
+    has_mag = np.all(np.isfinite(mag), axis=1)
+    assert has_mag.sum() >= n // 4 and np.all(np.abs(mag[has_mag]) <= 1.5 * R.MAG_FULL_SCALE_UT)
+    has_imu = np.all(np.isfinite(accel), axis=1) & np.all(np.isfinite(gyro), axis=1)
+    assert has_imu.sum() >= n // 2
+    assert np.all(np.abs(accel[has_imu]) <= 4 * R.STANDARD_GRAVITY + 1e-3)    # the sketch's ±4 g
+    assert np.all(np.abs(gyro[has_imu]) <= np.radians(2000.0) + 1e-3)         # and ±2000 °/s
+    assert np.all((temp[has_imu] > -40.0) & (temp[has_imu] < 85.0))
+    report = any_link.query_calibration()                  # read only: the board's EEPROM is untouched
+    assert report.valid in (0, 1) and (not report.valid or report.crc == fr.cal_block_crc(
+        report.cal_id, report.k, report.b))
+    stats = any_link.stats
+    assert stats.lost == stats.crc_errors == stats.malformed == 0 and stats.naks == 0
