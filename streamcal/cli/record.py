@@ -4,7 +4,7 @@ Rows are written as sampled (``t,ax,ay,az,gx,gy,gz,mx,my,mz,temp``, empty cells 
 had no new value), ``t`` in seconds from the first sample, with metadata naming the sensor and
 the source. Write strategy: rows stream into a temp file beside ``TRACK.csv`` (``.TRACK.csv.*.tmp``,
 flushed after every block, fsynced every few seconds) that is renamed onto ``TRACK.csv`` at the
-end (``--seconds`` reached, end of a ``fake:`` replay, SIGINT or SIGTERM). So memory stays small
+end (``--seconds`` reached, end of a ``fake:``/``simavr:`` replay, SIGINT or SIGTERM). So memory stays small
 however long the recording, ``TRACK.csv`` is never seen half-written, and after a crash the rows
 so far are in the temp file. A name ending in ``.gz`` is gzip-compressed.
 """
@@ -31,8 +31,9 @@ def register(sub) -> None:
                                    "a track file (SPEC §1).")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--bus", metavar="N|fake:TRACK.csv", help="I2C bus number or fake:TRACK.csv")
-    src.add_argument("--port", metavar="DEV|fake:TRACK.csv",
-                     help="serial device, pyserial URL or fake:TRACK.csv")
+    src.add_argument("--port", metavar="DEV|fake:TRACK.csv|simavr:TRACK.csv",
+                     help="serial device, pyserial URL, fake:TRACK.csv or simavr:TRACK.csv (the "
+                          "compiled sketch in simavr)")
     p.add_argument("--address", default="0x68", help="MPU-9250 I2C address (default: %(default)s)")
     p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default: %(default)s)")
     p.add_argument("-o", "--output", required=True, metavar="TRACK.csv",
