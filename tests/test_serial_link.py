@@ -298,3 +298,10 @@ def test_any_board_identifies_itself_and_streams_plausible_samples(any_link):
         report.cal_id, report.k, report.b))
     stats = any_link.stats
     assert stats.lost == stats.crc_errors == stats.malformed == 0 and stats.naks == 0
+
+
+def test_simavr_spec_is_checked_before_anything_starts():
+    with pytest.raises(InputError, match="needs a track file"):
+        SerialLink.open("simavr:")
+    with pytest.raises(InputError, match="fake: boards only"):
+        SerialLink.open("simavr:track.csv", speed=2.0)
