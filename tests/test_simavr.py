@@ -104,7 +104,7 @@ def test_replay_file_holds_the_fake_chips_counts():
 
 
 @pytest.mark.toolchain
-@pytest.mark.slow          # ~13 s with cached builds (20 s of track at ~1.7x real time), +5 s cold
+@pytest.mark.slow          # ~7-9 s with cached builds (20 s of track at ~3-4x real time), +5 s cold
 def test_firmware_streams_track_accounts_for_every_frame_and_applies_calibration():
     _need_toolchain()
     track = _excerpt(20.0)
