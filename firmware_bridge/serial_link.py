@@ -357,8 +357,10 @@ class SerialLink:
                              "only; refit with --model hard_iron,soft_iron")
         K = np.asarray(cal.K, dtype=float)
         if np.any(np.tril(K, -1) != 0) or np.any(np.diag(K) <= 0) or not np.all(np.isfinite(K)) \
-                or not np.all(np.isfinite(cal.b)):
-            raise InputError("calibration K must be upper triangular with a positive diagonal, K and b finite")
+                or not np.all(np.isfinite(cal.b)) \
+                or np.max(np.abs(np.concatenate([K.ravel(), np.ravel(cal.b)]))) > np.finfo(np.float32).max:
+            raise InputError("calibration K must be upper triangular with a positive diagonal, K and b "
+                             "finite and within the board's float32 range")
         if cal_id is None:
             cal_id = zlib.crc32(np.concatenate([K.ravel(), cal.b]).astype("<f8").tobytes()) & 0xFFFF
         self._command(fr.SetCalibration.from_kb(K, cal.b, cal_id=cal_id), fr.Ack,
@@ -375,7 +377,12 @@ class SerialLink:
     def start(self, outputs: int = int(fr.Output.SAMPLES | fr.Output.CALIBRATED | fr.Output.SPHERE_SUMS),
               period_us: int = 0, sums_every: int = 100, **kw) -> None:
         """(Re)start streaming; ``outputs`` are :class:`~firmware_bridge.frames.Output` bits."""
-        self._command(fr.Start(outputs=int(outputs), period_us=period_us, sums_every=sums_every), fr.Ack, **kw)
+        for name, value, top in (("outputs", outputs, 0xFF), ("period_us", period_us, 0xFFFFFFFF),
+                                 ("sums_every", sums_every, 0xFFFF)):
+            if not 0 <= int(value) <= top:
+                raise InputError(f"START {name} must be an integer in 0..{top}, got {value}")
+        self._command(fr.Start(outputs=int(outputs), period_us=int(period_us),
+                               sums_every=int(sums_every)), fr.Ack, **kw)
 
     def stop(self, **kw) -> None:
         self._command(fr.Stop(), fr.Ack, **kw)
