@@ -21,6 +21,17 @@ same way, and "add the effect and refit" returns exactly the promised ``rms_afte
 scale includes the error of the gravity reference, so it is compared with the tied base (given
 in the evidence text), not with the diagnosis' free-direction ``rms``. Candidates are ranked by
 ``rms_after`` / the rms each was compared with.
+
+On a track with a gyro but no accelerometer, ``time_lag`` is judged the same way on the
+gyro-tied residual of :mod:`streamcal.model.gyro_lag` (the reading predicted from the sample
+0.5 s earlier carried over by the integrated gyro, sensor unit): base and candidate are the
+gyro-tied fits without and with τ (same pairs, same 12 gyro-map parameters), so rms and
+rms_after are again the same statistic, and ``streamcal fit --add time_lag`` on that track
+returns the promised rms. Its evidence says what was measured ("gyro-tied rms 1.56 → 0.82 µT;
+direction changes lag the gyro by 30.0 ms"). Overlapping pairs make neighbouring residuals
+correlated, so the F test is optimistic there; the materiality rule is what guards a clean
+track. With an accelerometer the gravity-tied candidate is kept (it is what ``fit`` refits) and
+its evidence adds what the gyro alone says.
 """
 from __future__ import annotations
 
@@ -95,14 +106,19 @@ def evidence(effect: str, term, s: np.ndarray, normal: np.ndarray, u: np.ndarray
     return f"residual follows {subject} (r={r:.2f})"
 
 
-def registration_evidence(effect: str, rms_before: float, rms_after: float, cal, unit: str) -> str:
-    """Sentence for a registration candidate: the gravity-tied rms it is compared with (the
-    fit without the effect) and what the refit found."""
-    text = f"gravity-tied rms {rms_before:.3g} → {rms_after:.3g} {unit}"
+def registration_evidence(effect: str, rms_before: float, rms_after: float, cal, unit: str,
+                          kind: str = "gravity") -> str:
+    """Sentence for a registration candidate: the tied rms (``kind`` "gravity" or "gyro") it is
+    compared with (the fit without the effect) and what the refit found."""
+    text = f"{kind}-tied rms {rms_before:.3g} → {rms_after:.3g} {unit}"
     params = cal.effects.get(effect, {}) if cal is not None else {}
     if effect == "mag_accel_misalignment" and "rotation" in params:
         angle = np.degrees(np.linalg.norm(params["rotation"]))
         text += f"; mag frame rotated {angle:.2f}° from the accel frame"
+    elif effect == "time_lag" and "tau" in params and kind == "gyro":
+        tau_ms = 1e3 * params["tau"]
+        text += (f"; direction changes {'lag' if tau_ms >= 0 else 'lead'} the gyro by "
+                 f"{abs(tau_ms):.1f} ms")
     elif effect == "time_lag" and "tau" in params:
         text += f"; mag lags the IMU by {1e3 * params['tau']:.1f} ms"
     return text

@@ -69,11 +69,9 @@ def _candidate_names(model: Sequence[str], track) -> list[str]:
     if "hard_iron" not in model:
         names.insert(0, "hard_iron")
     missing = missing_columns(names, track)
-    # The gravity-tied solver needs the accelerometer, also for time_lag (a gyro alone is not
-    # used yet).
-    no_accel = not track.has("accel")
-    return [n for n in names if n not in missing
-            and not (n in REGISTRATION_EFFECTS and no_accel)]
+    # mag_accel_misalignment needs the accelerometer; time_lag the accelerometer (gravity-tied)
+    # or the gyro (gyro-tied, streamcal.model.gyro_lag).
+    return [n for n in names if n not in missing]
 
 
 def _tied(model) -> bool:
@@ -81,11 +79,16 @@ def _tied(model) -> bool:
 
 
 class _Evaluated:
-    """One fitted model with its residuals (eq. 41, or the gravity-tied residual of
-    :mod:`streamcal.model.registration` when ``reg`` is given) and inlier set."""
+    """One fitted model with its residuals (eq. 41, or the gravity- or gyro-tied residual of
+    :mod:`streamcal.model.registration` / :mod:`streamcal.model.gyro_lag` when ``reg`` is
+    given) and inlier set."""
 
     def __init__(self, cal, m, cov, floor, reg=None):
         self.cal, self.tied = cal, reg is not None
+        #: which residual: None (eq. 41), "gravity" or "gyro" (the tied residuals).
+        self.kind = None if reg is None else (
+            "gyro" if "gyro_tied" in (reg.calibration.extra or {}) else "gravity")
+        self.reg = reg
         if reg is not None:
             self.r, self.x = reg.residuals, reg.directions
             self.s = self.normal = None
@@ -117,6 +120,7 @@ class _Context:
         self.cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
         self.cov.setdefault("t", np.asarray(track.t_mag, dtype=float))
         self._gref = None
+        self._gyro = {}
         self._warm = "initial" in inspect.signature(fitter).parameters
         self.subset = None    # (mag sample indices, sub-track) for the ranking refits
         if subset_max and len(self.m) > subset_max:
@@ -126,6 +130,30 @@ class _Context:
             keep = ~np.asarray(track.mag_rows, bool)
             keep[np.flatnonzero(track.mag_rows)[idx]] = True
             self.subset = (idx, track.select(keep))
+
+    def gyro_fit(self, model, initial=None, *, fit_lag=False, lag=0.0):
+        """Gyro-tied fit (:func:`streamcal.model.gyro_lag.gyro_lag_fit`) of the non-registration
+        part of ``model`` (plus ``time_lag`` when ``fit_lag``; else τ = ``lag``) on the spread
+        subset's pairs, cached; None when the track has no gyro or the data cannot support it."""
+        names = tuple(n for n in model if n not in REGISTRATION_EFFECTS)
+        key = (names, fit_lag, float(lag))
+        if key not in self._gyro:
+            res = None
+            if self.track.has("gyro"):
+                from ..model.gyro_lag import gyro_lag_fit
+
+                try:
+                    res = gyro_lag_fit(self.track, (*names, "time_lag") if fit_lag else names,
+                                       kernel=self.kernel, initial=initial, lag=lag,
+                                       rows=self.subset[0] if self.subset is not None else None)
+                except StreamcalError:
+                    res = None
+            self._gyro[key] = res
+        return self._gyro[key]
+
+    def gyro_lag(self, model, initial=None):
+        """The lag (s) fitted on the gyro-tied residual alone, or None."""
+        return self.gyro_fit(model, initial, fit_lag=True)
 
     @property
     def gref(self):
@@ -139,8 +167,9 @@ class _Context:
         registration base); ``quick`` fits on the spread subset only (see :func:`diagnose`)."""
         if tied or _tied(model):
             rows = self.subset[0] if quick and self.subset is not None else None
+            gref = self.gref if self.track.has("accel") else None   # else gyro-tied
             reg = registration_fit(self.track, model, kernel=self.kernel, initial=initial,
-                                   gref=self.gref, rows=rows)
+                                   gref=gref, rows=rows)
             return _Evaluated(reg.calibration, self.m, self.cov, self.floor, reg)
         track = self.subset[1] if quick and self.subset is not None else self.track
         if self._warm and initial is not None:
@@ -171,13 +200,18 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         p_value = cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
                               max(ev.p - ref.p, 1), int(common.sum()), ev.p)
         if name in REGISTRATION_EFFECTS:
-            text = cand.registration_evidence(name, ref.rms, ev.rms, ev.cal, ctx.track.mag_unit)
+            text = cand.registration_evidence(name, ref.rms, ev.rms, ev.cal, ctx.track.mag_unit,
+                                              ev.kind)
+            if name == "time_lag" and ev.kind == "gravity":
+                gyro = ctx.gyro_lag(model, base.cal)
+                if gyro is not None:   # the gyro's own view of the same lag
+                    text += f"; the gyro alone says {1e3 * gyro.lag:.1f} ms"
         elif base.s is not None:
             term = build_effects([name], ctx.cov)[0] if name in TERMS else None
             text = cand.evidence(name, term, base.s, base.normal, base.x @ base.cal.K.T, ctx.cov,
                                  base.inliers)
         else:
-            text = f"gravity-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
+            text = f"{ev.kind}-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
         c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
                            cand.is_significant(ref.rms, ev.rms, p_value, ctx.floor), ev.cal)
         c.rms_before = ref.rms
@@ -194,6 +228,21 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             return out
         top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
     return out
+
+
+def _families(ctx: _Context, base: _Evaluated, model) -> dict:
+    """Residual families of the base model (eq. 41 of its calibration when it is tied) and the
+    gyro-consistency family at the model's lag, with the lag the gyro alone would fit."""
+    if base.tied:
+        r, x, inliers = None, None, np.asarray(base.cal.inliers, bool)
+    else:
+        r, x, inliers = base.r, base.x, base.inliers
+    lag = float((base.cal.effects.get("time_lag") or {}).get("tau", 0.0))
+    gyro = base.reg if base.kind == "gyro" else ctx.gyro_fit(model, base.cal, lag=lag)
+    if gyro is not None:
+        estimate = ctx.gyro_lag(model, base.cal)
+        gyro.lag_estimate = None if estimate is None else estimate.lag
+    return families(base.cal, ctx.m, ctx.cov, inliers, r, x, gyro=gyro)
 
 
 def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
@@ -216,8 +265,10 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     every sample, so the top candidate's ``rms_after`` is exactly "add it and refit". None
     refits every candidate on every sample.
 
-    Registration candidates are judged on the gravity-tied residual (see
-    :mod:`streamcal.diagnose.candidates`). Outlier spans come from the last
+    Registration candidates are judged on the gravity-tied residual, or for ``time_lag`` on a
+    track with a gyro and no accelerometer on the gyro-tied one (see
+    :mod:`streamcal.diagnose.candidates`). ``residual_families["gyro"]`` is the gyro-tied
+    residual at the model's lag, with the lag the gyro alone fits (``lag_estimate_s``). Outlier spans come from the last
     magnetometer-only model of the ladder, not the base model.
     """
     model = check_known(calibration.model if calibration is not None else model)
@@ -243,7 +294,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         top = cur_ranked[0]
         cur_model, current = (*cur_model, top.effect), top._evaluated
         steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
-                      "p_value": top.p_value, "gravity_tied": current.tied})
+                      "p_value": top.p_value, "gravity_tied": current.kind == "gravity",
+                      "gyro_tied": current.kind == "gyro"})
         if not current.tied:
             spans_from = current
         # Effects that explained nothing significant alone are not retried (saves refits).
@@ -256,8 +308,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         model=tuple(model), n=len(m), n_outliers=int((~base.inliers).sum()), rms=base.rms,
         noise_floor=nf.floor, verdict=verdict, candidates=ranked,
         outlier_spans=outlier_spans(t, ~spans_from.inliers), ladder=steps,
-        residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x)
-        if not base.tied else {},
+        residual_families=_families(ctx, base, model),
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used},
         calibration=base.cal)

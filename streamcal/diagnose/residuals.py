@@ -8,9 +8,15 @@
   the field scale (``field`` or the geometric mean of diag K), sensor unit.
 - ``dip`` (needs accel): angle between the calibrated field and the accelerometer's "up"
   direction, minus its median, degrees.
-- ``gyro`` (needs gyro): ‖x̂_{j+1} − x̂_j + ω × x̂ Δt‖ / Δt, the rate at which the observed direction
-  departs from the one the gyro predicts (a fixed world vector seen from a body rotating at ω
-  moves as ẋ = −ω × x), degrees per second.
+- ``gyro`` (needs gyro): the gyro-consistency residual of :mod:`streamcal.model.gyro_lag`,
+  ``r_ab = K (x̂_b − x_b)`` with ``x̂_b`` sample a's direction carried over the horizon H to
+  sample b by the integrated gyro (a fixed world vector seen from a body rotating at ω moves as
+  ẋ = −ω × x), the gyro's frame, gains and bias fitted, read at ``t − τ`` with the model's lag τ
+  (0 without ``time_lag``); sensor unit, stored at sample b. Its entry also gives ``horizon_s``,
+  ``lag_s`` and ``lag_estimate_s`` (τ fitted on this residual alone). It includes the noise of
+  two samples (≈ 2σ), so it is compared with itself, not with the noise floor.
+  (The consecutive-sample form ‖x̂_{j+1} − x̂_j + ω × x̂ Δt‖ / Δt, :func:`gyro_error`, is all noise
+  at 100 Hz and is no longer reported.)
 """
 from __future__ import annotations
 
@@ -126,25 +132,35 @@ def binned_sphere(values: np.ndarray, x: np.ndarray, n_az: int = 8, n_el: int = 
             "n": n.reshape(n_el, n_az).tolist()}
 
 
-def families(cal, m, cov, inliers, r=None, x=None) -> dict:
+def families(cal, m, cov, inliers, r=None, x=None, gyro=None) -> dict:
     """Every residual family available for the data: rms (over inliers) and its distribution
-    over time, temperature, aux channels and the sphere of directions."""
+    over time, temperature, aux channels and the sphere of directions. ``gyro``: a gyro-tied
+    fit (:class:`streamcal.model.registration.RegistrationFit` from
+    :func:`streamcal.model.gyro_lag.gyro_lag_fit`) for the ``gyro`` family, with optional
+    attribute ``lag_estimate`` (s); None leaves the family out."""
     if r is None:
         r, x, _, _ = sensor_residual(cal, m, cov)
     per = {"sensor": (np.linalg.norm(r, axis=1), x),
            "magnitude": (magnitude_error(cal, m, cov), x)}
     if all(k in cov for k in ("ax", "ay", "az")):
         per["dip"] = (dip_error(x, np.stack([cov["ax"], cov["ay"], cov["az"]], axis=1)), x)
-    if all(k in cov for k in ("gx", "gy", "gz")) and "t" in cov and len(x) > 1:
-        g = gyro_error(x, np.stack([cov["gx"], cov["gy"], cov["gz"]], axis=1), cov["t"])
-        per["gyro"] = (np.append(g, np.nan), x)
+    masks = {}
+    if gyro is not None:
+        per["gyro"] = (np.linalg.norm(gyro.residuals, axis=1), x)
+        masks["gyro"] = np.asarray(gyro.inliers, bool)
     from ..model._common import aux_names
 
     out = {}
     for name, (v, dirs) in per.items():
-        sel = inliers & np.isfinite(v)
+        sel = masks.get(name, inliers) & np.isfinite(v)
         entry = {"rms": float(np.sqrt(np.mean(v[sel] ** 2))) if sel.any() else None,
-                 "unit": {"dip": "deg", "gyro": "deg/s"}.get(name, "sensor"), "by": {}}
+                 "unit": {"dip": "deg"}.get(name, "sensor"), "by": {}}
+        if name == "gyro":
+            extra = gyro.calibration.extra.get("gyro_tied", {})
+            estimate = getattr(gyro, "lag_estimate", None)
+            entry.update(horizon_s=extra.get("horizon_s"), lag_s=float(gyro.lag),
+                         lag_estimate_s=None if estimate is None else float(estimate),
+                         n=int(sel.sum()))
         for key in ["t", "temp", *aux_names(cov)]:
             if key in cov:
                 entry["by"][key] = binned(v[sel], np.asarray(cov[key], float)[sel])

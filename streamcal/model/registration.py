@@ -64,6 +64,10 @@ so τ is not biased. (An accelerometer ellipsoid fit first was tried and dropped
 data its linear acceleration tilts K by degrees.) The remaining error of ĝ is a floor of the
 gravity-tied residual, the same with and without a registration effect.
 
+Without the accelerometer, ``time_lag`` alone is estimated from the gyro: consecutive
+directions are linked by the rotation rate (:mod:`streamcal.model.gyro_lag`, the gyro-tied
+residual); :func:`registration_fit` hands such tracks over to it.
+
 The rms reported (``Calibration.rms``) is sqrt(mean ‖r_j‖²) over inliers (‖r_j‖ ≤ 2 kernel
 widths), the same statistic as the ellipsoid fit's, but of the gravity-tied residual (1): it is
 compared with the gravity-tied fit *without* the registration effect, never with a free-direction
@@ -354,12 +358,19 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     indices of the magnetometer samples to fit on (default all); the residuals, inliers and rms
     returned are still over every sample (headings re-solved there, step (a)). ``gref``: a precomputed
     :func:`gravity_reference`.
+
+    A track with a gyro but no accelerometer (and no ``mag_accel_misalignment`` in ``model``) is
+    fitted on the gyro-tied residual instead (:func:`streamcal.model.gyro_lag.gyro_lag_fit`).
     """
     from ..calibration import Calibration
     from .build import build_effects, check_known, check_needs, terms_from_params, TERMS
 
     names = check_known(model)
     check_needs(names, track)
+    if not track.has("accel") and track.has("gyro") and "mag_accel_misalignment" not in names:
+        from .gyro_lag import gyro_lag_fit  # time_lag from the gyro alone
+
+        return gyro_lag_fit(track, names, kernel=kernel, tau=tau, initial=initial, rows=rows)
     base_names = tuple(n for n in names if n not in NAMES)
     fit_rot, fit_lag = "mag_accel_misalignment" in names, "time_lag" in names
     gref = gref if gref is not None else gravity_reference(track)
@@ -482,12 +493,14 @@ def fit_with_registration(track, model: Sequence[str] = ("hard_iron", "soft_iron
     """Calibrate ``track``'s magnetometer with the registration effects in ``model`` (and any
     other catalog effects) by the gravity-tied fit of the module docstring → :class:`Calibration`
     whose ``effects`` hold ``{"mag_accel_misalignment": {"rotation": [rx, ry, rz] rad, "dip":
-    rad}}`` and/or ``{"time_lag": {"tau": s}}``; ``rms`` is the gravity-tied residual (µT)."""
+    rad}}`` and/or ``{"time_lag": {"tau": s}}``; ``rms`` is the gravity-tied residual (µT).
+    Without accelerometer columns, ``time_lag`` comes from the gyro and ``rms`` is the gyro-tied
+    residual (:mod:`streamcal.model.gyro_lag`)."""
     from ..track import Track
 
     if sensor != "mag":
         raise InputError(f"registration effects apply to the magnetometer, not --sensor {sensor}")
     if not isinstance(track, Track):
-        raise InputError("registration effects need a track with accelerometer columns, "
-                         "not an array of readings")
+        raise InputError("registration effects need a track with accelerometer (or, for "
+                         "time_lag, gyroscope) columns, not an array of readings")
     return registration_fit(track, model, kernel=kernel, tau=tau, initial=initial).calibration
