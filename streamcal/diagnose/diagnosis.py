@@ -131,24 +131,32 @@ class _Context:
             keep[np.flatnonzero(track.mag_rows)[idx]] = True
             self.subset = (idx, track.select(keep))
 
-    def gyro_fit(self, model, initial=None, *, fit_lag=False, lag=0.0):
+    def gyro_fit(self, model, initial=None, *, fit_lag=False, lag=0.0, quick=True):
         """Gyro-tied fit (:func:`streamcal.model.gyro_lag.gyro_lag_fit`) of the non-registration
-        part of ``model`` (plus ``time_lag`` when ``fit_lag``; else τ = ``lag``) on the spread
-        subset's pairs, cached; None when the track has no gyro or the data cannot support it."""
-        names = tuple(n for n in model if n not in REGISTRATION_EFFECTS)
-        key = (names, fit_lag, float(lag))
-        if key not in self._gyro:
-            res = None
-            if self.track.has("gyro"):
-                from ..model.gyro_lag import gyro_lag_fit
+        part of ``model`` (plus ``time_lag`` when ``fit_lag``; else τ = ``lag``), fitted on the
+        pairs starting in the spread subset when ``quick``; cached. None when the track has no
+        gyro or the data cannot support the fit."""
+        try:
+            return self._gyro_fit(model, initial, fit_lag, lag, quick)
+        except StreamcalError:
+            return None
 
-                try:
-                    res = gyro_lag_fit(self.track, (*names, "time_lag") if fit_lag else names,
-                                       kernel=self.kernel, initial=initial, lag=lag,
-                                       rows=self.subset[0] if self.subset is not None else None)
-                except StreamcalError:
-                    res = None
-            self._gyro[key] = res
+    def _gyro_fit(self, model, initial, fit_lag, lag, quick):
+        """:meth:`gyro_fit`, raising the fit's error (cached too)."""
+        names = tuple(n for n in model if n not in REGISTRATION_EFFECTS)
+        quick = quick and self.subset is not None
+        key = (names, fit_lag, float(lag), quick)
+        if key not in self._gyro:
+            from ..model.gyro_lag import gyro_lag_fit
+
+            try:
+                self._gyro[key] = gyro_lag_fit(
+                    self.track, (*names, "time_lag") if fit_lag else names, kernel=self.kernel,
+                    initial=initial, lag=lag, rows=self.subset[0] if quick else None)
+            except StreamcalError as exc:
+                self._gyro[key] = exc
+        if isinstance(self._gyro[key], StreamcalError):
+            raise self._gyro[key]
         return self._gyro[key]
 
     def gyro_lag(self, model, initial=None):
@@ -165,6 +173,11 @@ class _Context:
         """Fit ``model`` (warm-started from ``initial``) and evaluate it on every sample;
         ``tied`` forces the gravity-tied fit even without a registration effect (the
         registration base); ``quick`` fits on the spread subset only (see :func:`diagnose`)."""
+        gyro_tied = not self.track.has("accel") and self.track.has("gyro") and \
+            "mag_accel_misalignment" not in model
+        if (tied or _tied(model)) and gyro_tied:   # shares the cache of the gyro family
+            reg = self._gyro_fit(model, initial, "time_lag" in model, 0.0, quick)
+            return _Evaluated(reg.calibration, self.m, self.cov, self.floor, reg)
         if tied or _tied(model):
             rows = self.subset[0] if quick and self.subset is not None else None
             gref = self.gref if self.track.has("accel") else None   # else gyro-tied
@@ -240,7 +253,8 @@ def _families(ctx: _Context, base: _Evaluated, model) -> dict:
     lag = float((base.cal.effects.get("time_lag") or {}).get("tau", 0.0))
     gyro = base.reg if base.kind == "gyro" else ctx.gyro_fit(model, base.cal, lag=lag)
     if gyro is not None:
-        estimate = ctx.gyro_lag(model, base.cal)
+        estimate = gyro if gyro is base.reg and "time_lag" in model else \
+            ctx.gyro_lag(model, base.cal)
         gyro.lag_estimate = None if estimate is None else estimate.lag
     return families(base.cal, ctx.m, ctx.cov, inliers, r, x, gyro=gyro)
 
