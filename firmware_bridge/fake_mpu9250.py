@@ -16,6 +16,19 @@ Without it, each read of ST1 advances to the next magnetometer sample (each burs
 accelerometer when the chip has no magnetometer), and every refused transaction while the device
 is absent advances by one magnetometer period, so tests are deterministic and never sleep.
 
+Replaying raw AK8963 logs: a track in ``mag_unit: counts`` whose metadata says it comes from an
+MPU-9250/AK8963 (``# sensor: mpu9250 …`` or ``ak8963``, plus ``# mag_axes: AK8963 chip axes`` or
+``… body axes``) holds what the data registers held. :meth:`FakeMPU9250Bus.from_track` serves
+those counts into HXL..HZH unchanged (chip axes; a body-axis log is turned back with the fixed
+remap, a 14-bit log is scaled ×4 to the driver's 16-bit output, exactly), with fuse-ROM ASA bytes
+128 (adjustment 1.0) unless ``# asa: 176,178,165`` states them, so the driver applies its own
+remap, ASA and 4912/32760 µT/LSB scale and yields µT in body axes. A counts track without that
+metadata, or in counts of another sensor, is an :class:`~streamcal.errors.InputError` saying why.
+
+A log without accelerometer, gyro or temperature columns is served as the board at rest: accel
+(0, 0, +9.80665) m/s², gyro 0 rad/s, temperature 25 °C at every row time; ``from_track`` logs a
+warning and lists the substitution in :attr:`FakeMPU9250Bus.notes`. Timing always comes from ``t``.
+
 Faults (seeded, :class:`Faults`): NACK rate, HOFL overflow samples, DOR overruns (skipped
 samples), wrong WHO_AM_I (``who_am_i=``), the device vanishing for a time window and returning
 at power-on defaults, and spontaneous resets.
@@ -24,17 +37,24 @@ Example::
 
     bus = FakeMPU9250Bus(t, mag=m_uT, accel=a, gyro=w, temp=T, faults=Faults(nack_rate=0.05))
     drv = MPU9250(bus, clock=bus.now)
+    bus = FakeMPU9250Bus.from_file("tiva_mpu9250_mag_02.csv")   # raw AK8963 counts, no IMU
 """
 from __future__ import annotations
 
 import ctypes
 import errno as errno_mod
+import logging
+import re
 from dataclasses import dataclass
 from typing import Callable, Sequence
 
 import numpy as np
 
+from streamcal.errors import InputError
+
 from . import registers as R
+
+log = logging.getLogger(__name__)
 
 _MPU_DATA = range(R.MpuReg.ACCEL_XOUT_H, R.MpuReg.ACCEL_XOUT_H + R.IMU_BURST_LEN)
 _AK_SIZE = 0x13
@@ -105,6 +125,81 @@ class EncodedRows:
     mag_bits: int
 
 
+#: What a log without IMU columns is served as: the board at rest, flat, at room temperature.
+AT_REST = {"accel": (0.0, 0.0, R.STANDARD_GRAVITY), "gyro": (0.0, 0.0, 0.0), "temp": 25.0}
+
+_AK8963_NAMES = re.compile(r"mpu[-_ ]?92(50|55)|ak8963", re.IGNORECASE)
+_BITS = re.compile(r"\b(14|16)[- ]?bit", re.IGNORECASE)
+
+
+@dataclass(frozen=True)
+class AkLayout:
+    """How a raw-counts track holds AK8963 data: output ``bits`` (14/16), ``body_axes`` (the
+    fixed remap already applied) or chip axes, fuse-ROM ``asa`` bytes, ``bits_stated``."""
+
+    bits: int
+    body_axes: bool
+    asa: tuple[int, int, int]
+    bits_stated: bool
+
+    def describe(self) -> str:
+        width = f"{self.bits}-bit" + ("" if self.bits_stated else ", width not stated")
+        changes = (["axis remap undone"] if self.body_axes else []) \
+            + (["×4 to the driver's 16-bit output"] if self.bits == 14 else [])
+        served = "unchanged" if not changes else f"as the chip holds them ({', '.join(changes)})"
+        asa = "/".join(str(a) for a in self.asa)
+        return (f"raw AK8963 counts ({width}, {'body' if self.body_axes else 'chip'} axes) "
+                f"served into HXL..HZH {served}, fuse-ROM ASA {asa}")
+
+
+def _ak8963_layout(metadata: dict, where: str) -> AkLayout:
+    """Read the AK8963 layout of a ``mag_unit: counts`` track from its metadata.
+
+    Keys: ``sensor`` (or ``mag_axes``) must name an MPU-9250/9255 or AK8963; ``mag_axes`` must
+    say ``chip`` or ``body`` axes; the width is ``NN-bit`` in ``sensor``/``mag_unit`` or
+    ``mag_bits`` (default 16, the driver's); ``asa`` (three bytes, e.g. ``176,178,165``)
+    defaults to 128 each (adjustment 1.0). Raises InputError naming ``where`` otherwise.
+    """
+    sensor = str(metadata.get("sensor", ""))
+    axes = str(metadata.get("mag_axes", ""))
+    if not _AK8963_NAMES.search(f"{sensor} {axes}"):
+        said = f"# sensor: {sensor}" if sensor else "no # sensor: line"
+        raise InputError(f"{where}: mag_unit is counts but the metadata does not say they are "
+                         f"MPU-9250/AK8963 counts ({said}); the fake bus replays µT tracks, or raw "
+                         "AK8963 counts with '# sensor: mpu9250' and '# mag_axes: AK8963 chip axes'")
+    low = axes.lower()
+    if "chip" in low:
+        body = False
+    elif "body" in low:
+        body = True
+    else:
+        raise InputError(f"{where}: AK8963 counts but no usable '# mag_axes:' line "
+                         f"({axes or 'missing'!r}): say 'AK8963 chip axes' or 'body axes'")
+    stated = str(metadata.get("mag_bits", "")).strip()
+    if stated:
+        if stated not in ("14", "16"):
+            raise InputError(f"{where}: # mag_bits: must be 14 or 16, got {stated!r}")
+        bits = int(stated)
+    else:
+        found = {int(m.group(1)) for key in ("sensor", "mag_unit")
+                 for m in _BITS.finditer(str(metadata.get(key, "")))}
+        if len(found) > 1:
+            raise InputError(f"{where}: the metadata states both 14-bit and 16-bit output")
+        stated = "yes" if found else ""
+        bits = found.pop() if found else 16
+    asa = (128, 128, 128)
+    if "asa" in metadata:
+        try:
+            values = tuple(int(v, 0) for v in re.split(r"[,\s]+", str(metadata["asa"]).strip()) if v)
+        except ValueError:
+            values = ()
+        if len(values) != 3 or not all(0 <= v <= 255 for v in values):
+            raise InputError(f"{where}: # asa: must be three fuse-ROM bytes 0..255 "
+                             f"(e.g. 176,178,165), got {metadata['asa']!r}")
+        asa = values
+    return AkLayout(bits=bits, body_axes=body, asa=asa, bits_stated=bool(stated))
+
+
 @dataclass
 class _Counters:
     transactions: int = 0
@@ -123,6 +218,10 @@ class FakeMPU9250Bus:
     Args:
         t: (N,) seconds, non-decreasing.
         mag: (N,3) µT in body (accelerometer) axes, NaN rows where not sampled.
+        mag_counts: instead of ``mag``: (N,3) raw AK8963 counts in chip axes as the data
+            registers held them (ASA not applied), NaN rows where not sampled; served unchanged
+            at ``mag_counts_bits`` output and rescaled exactly for the other output width.
+        mag_counts_bits: output width (16 or 14) the ``mag_counts`` were recorded at.
         accel: (N,3) m/s²; gyro: (N,3) rad/s; temp: (N,) °C (NaN where not sampled).
         address: 0x68 (AD0 low) or 0x69 (AD0 high).
         who_am_i: value of WHO_AM_I (0x71 MPU-9250, 0x73 MPU-9255, 0x70 MPU-6500…).
@@ -139,7 +238,8 @@ class FakeMPU9250Bus:
                  magnetometer: bool | None = None, ak_wia: int = R.AK8963_WIA,
                  asa: Sequence[int] = (0xB0, 0xB2, 0xA5), clock: Callable[[], float] | None = None,
                  faults: Faults = Faults(), seed: int = 0,
-                 power_on_pwr_mgmt_1: int = R.MPU_RESET_VALUES[R.MpuReg.PWR_MGMT_1]):
+                 power_on_pwr_mgmt_1: int = R.MPU_RESET_VALUES[R.MpuReg.PWR_MGMT_1],
+                 mag_counts=None, mag_counts_bits: int = 16):
         if address not in R.MPU_ADDRESSES:
             raise ValueError(f"address must be 0x68 or 0x69, got 0x{address:02X}")
         self.t = np.asarray(t, dtype=float).reshape(-1)
@@ -152,7 +252,17 @@ class FakeMPU9250Bus:
             else bool(magnetometer)
         self.asa = np.asarray(asa, dtype=np.uint8)
         self.faults, self.rng = faults, np.random.default_rng(seed)
+        if mag is not None and mag_counts is not None:
+            raise ValueError("give mag (µT, body axes) or mag_counts (AK8963 counts), not both")
+        if mag_counts_bits not in R.MAG_FULL_SCALE_COUNTS:
+            raise ValueError(f"mag_counts_bits must be 14 or 16, got {mag_counts_bits}")
         self._mag_t, mag_body = _rows(self.t, mag, 3)
+        self._mag_raw, self._mag_raw_bits = None, int(mag_counts_bits)
+        if mag_counts is not None:
+            self._mag_t, self._mag_raw = _rows(self.t, mag_counts, 3)
+            if np.any(self._mag_raw != np.rint(self._mag_raw)):
+                raise ValueError("mag_counts must be whole numbers (raw register counts)")
+            mag_body = np.empty((0, 3))
         self._acc_t, self._acc = _rows(self.t, accel, 3)
         self._gyr_t, self._gyr = _rows(self.t, gyro, 3)
         self._tmp_t, tmp = _rows(self.t, temp, 1)
@@ -174,6 +284,7 @@ class FakeMPU9250Bus:
         self.counters = _Counters()
         self.hofl_indices: list[int] = []   # magnetometer-row indices served with HOFL
         self.violations: list[str] = []
+        self.notes: list[str] = []           # how the track was interpreted (from_track)
         self.closed = False
         self._mpu_power_on()
         self._ak_power_on()
@@ -181,20 +292,77 @@ class FakeMPU9250Bus:
     # --- construction from a Track (imported lazily: streamcal.track may not exist yet) -----
     @classmethod
     def from_track(cls, track, **kwargs) -> "FakeMPU9250Bus":
-        """Replay a ``streamcal.track.Track`` (anything with ``t`` and ``columns``)."""
+        """Replay a ``streamcal.track.Track`` (anything with ``t``, ``columns`` and ``metadata``).
+
+        A µT track is encoded back to counts; a raw AK8963 counts log is served unchanged (see
+        the module docstring); missing accel/gyro/temp are served as the board at rest.
+
+        Raises:
+            InputError: naming the file (or "track") and what the fake cannot replay: a unit
+                other than µT, counts without MPU-9250/AK8963 metadata, an accelerometer unit
+                other than m/s², an empty track.
+        """
+        path = getattr(track, "path", None)
+        where = str(path) if path is not None else "track"
         cols = track.columns
+        metadata = dict(getattr(track, "metadata", None) or {})
 
         def stack(names):
             return np.column_stack([cols[n] for n in names]) if all(n in cols for n in names) \
                 else None
-        if getattr(track, "mag_unit", "uT") not in ("uT", "µT"):
-            raise ValueError(f"the fake bus replays µT tracks; this one is in {track.mag_unit}")
-        return cls(track.t, mag=stack(("mx", "my", "mz")), accel=stack(("ax", "ay", "az")),
-                   gyro=stack(("gx", "gy", "gz")), temp=cols.get("temp"), **kwargs)
+        mag = stack(("mx", "my", "mz"))
+        if mag is None:
+            raise InputError(f"{where}: no mx,my,mz columns: the fake bus replays a magnetometer")
+        unit = getattr(track, "mag_unit", "uT")
+        notes: list[str] = []
+        if unit in ("uT", "µT"):
+            mag_kwargs = {"mag": mag}
+        elif unit == "counts":
+            layout = _ak8963_layout(metadata, where)
+            counts = mag @ R.AK_TO_BODY.T if layout.body_axes else mag   # remap is self-inverse
+            mag_kwargs = {"mag_counts": counts, "mag_counts_bits": layout.bits}
+            kwargs.setdefault("asa", layout.asa)
+            notes.append(layout.describe())
+        else:
+            raise InputError(
+                f"{where}: mag_unit {metadata.get('mag_unit', unit)!r}: the fake bus replays µT "
+                "tracks, or raw AK8963 counts of an MPU-9250 log (# mag_unit: counts with "
+                "# sensor: mpu9250 … and # mag_axes: AK8963 chip axes)")
+        accel = stack(("ax", "ay", "az"))
+        accel_unit = getattr(track, "accel_unit", "m/s^2")
+        if accel is not None and accel_unit not in ("m/s^2", "m/s2", "m/s²"):
+            raise InputError(f"{where}: accel_unit {accel_unit!r}: the fake bus serves the "
+                             "accelerometer in m/s²")
+        imu = {"accel": accel, "gyro": stack(("gx", "gy", "gz")), "temp": cols.get("temp")}
+        n = len(np.asarray(track.t))
+        missing = [name for name, value in imu.items() if value is None]
+        for name in missing:
+            imu[name] = np.tile(np.atleast_1d(np.asarray(AT_REST[name], dtype=float)), (n, 1))
+        imu["temp"] = np.asarray(imu["temp"]).reshape(-1)
+        at_rest = None
+        if missing:
+            served = {"accel": f"accel (0, 0, {R.STANDARD_GRAVITY:g}) m/s²",
+                      "gyro": "gyro 0 rad/s", "temp": f"temperature {AT_REST['temp']:g} °C"}
+            at_rest = (f"no {'/'.join(missing)} in the log: serving the board at rest, "
+                       f"{', '.join(served[name] for name in missing)}")
+            notes.append(at_rest)
+        try:
+            bus = cls(track.t, **mag_kwargs, **imu, **kwargs)
+        except ValueError as e:
+            raise InputError(f"{where}: cannot replay on the fake bus: {e}") from e
+        bus.notes = notes
+        for note in notes:
+            (log.warning if note is at_rest else log.info)("fake bus replaying %s: %s", where, note)
+        return bus
 
     @classmethod
     def from_file(cls, path, **kwargs) -> "FakeMPU9250Bus":
-        """Replay a track file (SPEC §1) read with ``streamcal.track.Track.read``."""
+        """Replay a track file (SPEC §1) read with ``streamcal.track.Track.read``.
+
+        Raises:
+            InputError: the file is unreadable, violates SPEC §1, or cannot be replayed
+                (see :meth:`from_track`).
+        """
         from streamcal.track import Track
         return cls.from_track(Track.read(path), **kwargs)
 
@@ -500,7 +668,10 @@ class FakeMPU9250Bus:
         key = ("mag", bits)
         if key not in self._cache:
             limit = R.MAG_FULL_SCALE_COUNTS[bits]
-            raw = np.rint(self._mag_ak_uT / (R.mag_scale(bits) * R.asa_factor(self.asa)))
+            if self._mag_raw is not None:   # recorded counts: unchanged at their own width
+                raw = np.rint(self._mag_raw * (R.mag_scale(self._mag_raw_bits) / R.mag_scale(bits)))
+            else:
+                raw = np.rint(self._mag_ak_uT / (R.mag_scale(bits) * R.asa_factor(self.asa)))
             over = np.any(np.abs(raw) > limit, axis=1) | self._hofl_fault
             self._cache[key] = (_to_int16(raw, limit).astype(R.MAG_DTYPE), over)
         return self._cache[key]

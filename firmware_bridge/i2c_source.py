@@ -31,8 +31,13 @@ def open_bus(spec, **fake_kwargs):
 
     Args:
         spec: an int or digit string (``1`` → ``/dev/i2c-1`` via ``smbus2.SMBus``), or
-            ``"fake:PATH.csv"`` for a register-level fake MPU-9250 replaying that track.
+            ``"fake:PATH.csv"`` for a register-level fake MPU-9250 replaying that track (a µT
+            track, or a raw-count MPU-9250/AK8963 log: see :meth:`FakeMPU9250Bus.from_track`).
         fake_kwargs: passed to :meth:`FakeMPU9250Bus.from_file` (faults, clock, who_am_i…).
+
+    Raises:
+        InputError: a bad spec, a missing or inaccessible ``/dev/i2c-N``, or a fake track that
+            cannot be read or replayed (the message names the file and what is wrong).
     """
     if isinstance(spec, str) and spec.startswith(FAKE_PREFIX):
         from .fake_mpu9250 import FakeMPU9250Bus

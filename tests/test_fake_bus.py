@@ -246,3 +246,124 @@ def test_encoded_rows_are_the_counts_the_chips_serve():
     assert bus.encoded_rows().accel_fs == 2
     with pytest.raises(ValueError):
         bus.encoded_rows(mag_bits=12)
+
+
+# -- raw AK8963 count logs (MPU-9250 recordings in counts) -----------------------------------
+
+AK_COUNTS_META = {"sensor": "mpu9250 (AK8963 16-bit, 100 Hz)",
+                  "mag_unit": "counts (nominal 0.15 uT/LSB; ASA not applied)",
+                  "mag_axes": "AK8963 chip axes (no accelerometer in this log)"}
+
+
+def counts_track(meta=AK_COUNTS_META, n=40, seed=3, **channels):
+    from streamcal.track import Track
+
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(-300, 300, (n, 3)).astype(float)
+    return Track.from_arrays(np.arange(n) * 0.0097, mag=counts, metadata=meta, **channels), counts
+
+
+def read_mag_bursts(bus, n):
+    start_mag(bus)
+    return np.array([np.frombuffer(bytes(bus.read_i2c_block_data(AK, R.AkReg.ST1, 8)[1:7]), "<i2")
+                     for _ in range(n)])
+
+
+def test_counts_log_is_served_unchanged_with_neutral_asa():
+    track, counts = counts_track()
+    bus = FakeMPU9250Bus.from_track(track)
+    np.testing.assert_array_equal(read_mag_bursts(bus, len(counts)), counts)
+    bus.write_byte_data(AK, R.AkReg.CNTL1, R.AkMode.POWER_DOWN)
+    bus.write_byte_data(AK, R.AkReg.CNTL1, R.AkMode.FUSE_ROM)
+    assert bus.read_i2c_block_data(AK, R.AkReg.ASAX, 3) == [128, 128, 128]   # adjustment 1.0
+    assert R.asa_factor(128) == 1.0
+    rows = bus.encoded_rows(mag_bits=14)                    # the other width: rescaled exactly
+    np.testing.assert_array_equal(rows.mag, np.rint(counts / 4))
+
+
+def test_counts_log_through_the_driver_is_uT_in_body_axes():
+    from firmware_bridge.mpu9250 import MPU9250
+
+    track, counts = counts_track()
+    bus = FakeMPU9250Bus.from_track(track)
+    block = MPU9250(bus, clock=bus.now, sleep=lambda s: None).read_block(len(counts))
+    assert len(block) == len(counts)
+    # body = P · counts · 4912/32760 with P the fixed AK8963 remap (HARDWARE.md §4)
+    expect = counts[:, [1, 0, 2]] * np.array([1, 1, -1]) * (4912 / 32760)
+    np.testing.assert_allclose(block.mag, expect, rtol=1e-12, atol=1e-12)
+    np.testing.assert_array_equal(block.t, track.t)          # timing from t
+
+
+def test_counts_log_states_asa_and_body_axes_14_bit():
+    meta = {"sensor": "mpu9250 (AK8963 14-bit single-shot)", "mag_unit": "counts",
+            "mag_axes": "accelerometer body axes (datasheet AK8963 remap applied)",
+            "asa": "0xB0, 178 165"}
+    track, counts = counts_track(meta)
+    bus = FakeMPU9250Bus.from_track(track)
+    assert bus.asa.tolist() == [0xB0, 178, 165]
+    chip16 = counts[:, [1, 0, 2]] * np.array([1, 1, -1]) * 4      # remap undone, 14 → 16 bit
+    np.testing.assert_array_equal(read_mag_bursts(bus, len(counts)), chip16)
+    assert any("14-bit" in note and "remap undone" in note for note in bus.notes)
+
+
+def test_log_without_imu_is_served_at_rest_and_says_so(caplog):
+    from firmware_bridge.mpu9250 import MPU9250
+
+    track, counts = counts_track()
+    with caplog.at_level("WARNING", logger="firmware_bridge.fake_mpu9250"):
+        bus = FakeMPU9250Bus.from_track(track)
+    assert any("at rest" in r.getMessage() for r in caplog.records)
+    assert any("no accel/gyro/temp" in note for note in bus.notes)
+    block = MPU9250(bus, clock=bus.now, sleep=lambda s: None).read_block(10)
+    lsb = R.accel_scale(1)                                  # the driver's default ±4 g range
+    np.testing.assert_allclose(block.accel, np.tile([0, 0, 9.80665], (10, 1)), atol=0.5 * lsb)
+    np.testing.assert_allclose(block.gyro, 0.0, atol=0)
+    np.testing.assert_allclose(block.temp, 25.0, atol=0.5 / R.TEMP_SENSITIVITY_LSB_PER_C)
+    # only the missing channels are substituted
+    acc = np.tile([1.0, -2.0, 9.0], (len(counts), 1))
+    bus = FakeMPU9250Bus.from_track(counts_track(accel=acc)[0])
+    block = MPU9250(bus, clock=bus.now, sleep=lambda s: None).read_block(5)
+    np.testing.assert_allclose(block.accel, acc[:5], atol=0.5 * lsb)
+    assert any(note.startswith("no gyro/temp") for note in bus.notes)
+
+
+@pytest.mark.parametrize("meta, why", [
+    ({"sensor": "not stated", "mag_unit": "counts (sensor not stated)"}, "MPU-9250/AK8963"),
+    ({"sensor": "ICM-20948 (AK09916)", "mag_unit": "counts", "mag_axes": "as read from the chip"},
+     "MPU-9250/AK8963"),
+    ({"sensor": "mpu9250", "mag_unit": "counts"}, "mag_axes"),
+    ({"sensor": "mpu9250", "mag_unit": "counts", "mag_axes": "AK8963 chip axes", "asa": "1,2"},
+     "asa"),
+    ({"sensor": "mpu9250", "mag_unit": "counts", "mag_axes": "AK8963 chip axes", "mag_bits": "12"},
+     "mag_bits"),
+    ({"mag_unit": "gauss"}, "gauss"),
+])
+def test_unreplayable_track_is_an_input_error_naming_the_file(tmp_path, meta, why):
+    from streamcal.errors import InputError
+
+    track, _ = counts_track(meta)
+    path = tmp_path / "log.csv"
+    track.write(path)
+    with pytest.raises(InputError) as e:
+        FakeMPU9250Bus.from_file(path)
+    assert str(path) in str(e.value) and why in str(e.value)
+    with pytest.raises(InputError) as e:                   # a Track without a file: "track"
+        FakeMPU9250Bus.from_track(track)
+    assert str(e.value).startswith("track: ")
+
+
+def test_wrong_accel_unit_and_empty_track_are_input_errors(tmp_path):
+    from streamcal.errors import InputError
+    from streamcal.track import Track
+
+    n = 5
+    track = Track.from_arrays(np.arange(n) * 0.01, mag=np.ones((n, 3)), accel=np.ones((n, 3)),
+                              metadata={"accel_unit": "g"})
+    with pytest.raises(InputError, match="accel_unit 'g'"):
+        FakeMPU9250Bus.from_track(track)
+    path = tmp_path / "empty.csv"
+    path.write_text("# streamcal-track: 1\nt,mx,my,mz\n")
+    with pytest.raises(InputError, match="empty.csv:2: no data rows"):   # from Track.read
+        FakeMPU9250Bus.from_file(path)
+    with pytest.raises(InputError, match="track: cannot replay.*empty"):
+        FakeMPU9250Bus.from_track(Track.from_arrays(np.zeros(0), mag=np.zeros((0, 3))))

@@ -34,6 +34,10 @@ class I2CBlocks:
         speed: fake bus only: replay at this multiple of real time (None: as fast as read, with
             track time stepped by the reads — deterministic).
         fake_kwargs: passed to :class:`~firmware_bridge.fake_mpu9250.FakeMPU9250Bus` (faults…).
+
+    A fake track is a µT track or a raw-count MPU-9250/AK8963 log (see
+    :meth:`~firmware_bridge.fake_mpu9250.FakeMPU9250Bus.from_track`); anything else, and an
+    unreadable file, is an :class:`~streamcal.errors.InputError` naming the file, at construction.
     """
 
     def __init__(self, spec: str, address: int = 0x68, *, block_size: int = 50,
@@ -63,6 +67,11 @@ class I2CBlocks:
         self.label = spec if self.fake else f"i2c:{int(spec)}:0x{address:02X}"
         self.description = (f"fake i2c replaying {spec[len(FAKE_PREFIX):]}" if self.fake
                             else f"i2c bus {int(spec)} addr 0x{address:02X}")
+        # how the fake read the track (raw AK8963 counts, IMU served at rest…): part of the
+        # provenance, so it goes into the description (logged at start, recorded as ``source``)
+        self.notes = list(getattr(self.bus, "notes", []) if self.fake else [])
+        if self.notes:
+            self.description += " (" + "; ".join(self.notes) + ")"
         self.block_size, self.block_timeout = int(block_size), float(block_timeout)
         self.poll_s = None if rate_hz is None else 1.0 / rate_hz
         self.up = False
