@@ -96,3 +96,13 @@ def test_needs_a_gyro_or_an_accelerometer():
         fit(mag_only, model=(*BASE, "time_lag"))
     with pytest.raises(MissingColumnsError):
         gyro_lag_fit(without_accel(tr), (*BASE, "mag_accel_misalignment"))
+
+
+def test_refuses_a_gyro_that_does_not_follow_the_directions(lagged):
+    from streamcal.errors import InsufficientDataError
+
+    cols = dict(lagged.columns)
+    for k in ("gx", "gy", "gz"):   # degrees per second read as rad/s: 57× too fast
+        cols[k] = np.degrees(lagged.columns[k])
+    with pytest.raises(InsufficientDataError, match="gyro gains"):
+        gyro_lag_fit(Track(cols, lagged.metadata), (*BASE, "time_lag"))

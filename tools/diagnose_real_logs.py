@@ -4,7 +4,10 @@
 
 Per track: samples, columns, verdict, noise floor (and LSB when quantized), rms, the top
 candidates with their evidence, the ladder and the outlier spans; or why ``fit`` refused it
-(coverage, too few samples…). The tracks are read in place, never copied.
+(coverage, too few samples…). For tracks with a gyro: the gyro-consistency residual family
+(gyro-tied rms, the lag the gyro alone fits) and, when the track also has an accelerometer, the
+``time_lag`` candidate of the same track with its accelerometer columns dropped (judged on the
+gyro-tied residual alone). The tracks are read in place, never copied.
 """
 from __future__ import annotations
 
@@ -105,8 +108,51 @@ def diagnose_one(path: Path) -> list[str]:
     if len(d.ladder) > 1:
         lines += ["", "ladder: " + " → ".join(
             f"{s.get('added', '+'.join(s['model']))} {_fmt(s['rms'])}"
-            + (" (gravity-tied)" if s.get("gravity_tied") else "") for s in d.ladder)]
+            + (" (gravity-tied)" if s.get("gravity_tied") else "")
+            + (" (gyro-tied)" if s.get("gyro_tied") else "") for s in d.ladder)]
+    if track.has("gyro"):
+        lines += [""] + _gyro_lines(track, d)
     return lines + [""]
+
+
+def _gyro_lines(track, d) -> list[str]:
+    """The gyro-consistency family, and the gyro-only time_lag candidate of an accel track."""
+    from streamcal.diagnose import diagnose
+    from streamcal.errors import StreamcalError
+
+    fam = d.residual_families.get("gyro")
+    if fam is None:
+        out = ["- gyro-consistency residual: not available (the gyro-tied fit was refused)"]
+        try:
+            from streamcal.model.gyro_lag import gyro_lag_fit
+
+            gyro_lag_fit(track if not track.has("accel") else _drop_accel(track),
+                         ("hard_iron", "soft_iron"))
+        except StreamcalError as exc:
+            out[0] += f": {exc}"
+        return out
+    est = fam.get("lag_estimate_s")
+    out = [f"- gyro-consistency residual (horizon {fam['horizon_s']:.2f} s, model's lag "
+           f"{1e3 * fam['lag_s']:.1f} ms): rms {_fmt(fam['rms'])} {track.mag_unit} over "
+           f"{fam['n']} pairs; the gyro alone fits a lag of "
+           + ("–" if est is None else f"{1e3 * est:.1f} ms")]
+    if track.has("accel"):
+        try:
+            g = diagnose(_drop_accel(track), candidates=["time_lag"], ladder=False)
+        except StreamcalError as exc:
+            return out + [f"- gyro only (accel dropped): refused: {exc}"]
+        for c in g.candidates:
+            out.append(f"- gyro only (accel dropped): time_lag rms after {_fmt(c.rms_after)}, "
+                       f"p {c.p_value:.2g}, significant {'yes' if c.significant else 'no'}: "
+                       f"{c.evidence}")
+    return out
+
+
+def _drop_accel(track):
+    from streamcal.track import Track
+
+    return Track({k: v for k, v in track.columns.items() if k not in ("ax", "ay", "az")},
+                 track.metadata)
 
 
 def main() -> int:

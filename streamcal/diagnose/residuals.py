@@ -12,7 +12,7 @@
   ``r_ab = K (x̂_b − x_b)`` with ``x̂_b`` sample a's direction carried over the horizon H to
   sample b by the integrated gyro (a fixed world vector seen from a body rotating at ω moves as
   ẋ = −ω × x), the gyro's frame, gains and bias fitted, read at ``t − τ`` with the model's lag τ
-  (0 without ``time_lag``); sensor unit, stored at sample b. Its entry also gives ``horizon_s``,
+  (0 without ``time_lag``); sensor unit, stored at sample a. Its entry also gives ``horizon_s``,
   ``lag_s`` and ``lag_estimate_s`` (τ fitted on this residual alone). It includes the noise of
   two samples (≈ 2σ), so it is compared with itself, not with the noise floor.
   (The consecutive-sample form ‖x̂_{j+1} − x̂_j + ω × x̂ Δt‖ / Δt, :func:`gyro_error`, is all noise

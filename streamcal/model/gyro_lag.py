@@ -17,14 +17,16 @@ the gyro is read at t_j − τ (Q interpolated between the IMU rows by slerp).
 
 The gyro-tied residual
 ----------------------
-For every pair of magnetometer samples (a, b = a + k) a horizon H = :data:`HORIZON_S` apart
-(k samples, at least 1; 0.5 s, about the correlation time of a hand's rotation rate),
+For every magnetometer sample a and the first sample b at least H = :data:`HORIZON_S` after it
+(the next one when the rate is lower; 0.5 s, about the correlation time of a hand's rotation
+rate; pairs spanning a gap are dropped),
 
     r_ab = K (x̂_b − x_b)                                            sensor unit, (3,)  (2)
 
 the reading's error when sample b is predicted from sample a by the gyro, mapped to the sensor
 by the fitted K (so it is in µT, or counts, like every other rms of the diagnosis). It is stored
-at the later sample b (the first k samples have none and count as outliers).
+at the earlier sample a (each a has one pair; jittered stamps can give two a's the same b), so
+the last H seconds have none and count as outliers.
 
 Why a horizon and not consecutive samples: a lag τ shifts the predicted rotation by about
 τ·(ω(t_b) − ω(t_a)). Between consecutive samples (10 ms at 100 Hz) that is τ·α·Δt ≈ 1.5·10⁻³ rad
@@ -39,8 +41,8 @@ The gyro's calibration
 ----------------------
 The gyro reading is mapped to the magnetometer frame by a general 3×3 matrix and an offset,
 ω' = M ω + c (frame rotation between the chips, gyro gains and non-orthogonality, bias: 12
-nuisance parameters, the same in the fits with and without the lag). M, c start from a linear
-least-squares fit on consecutive pairs (Δx = [x̄]× θ with θ = M ∫ω + c Δt, the Cayley midpoint
+nuisance parameters, the same in the fits with and without the lag). M, c start from the
+orthogonal (frame) factor of a linear least-squares fit on consecutive pairs (Δx = [x̄]× θ with θ = M ∫ω + c Δt, the Cayley midpoint
 form, unbiased to first order because the noise of x̄ and of Δx are uncorrelated), then
 Gauss–Newton (Levenberg–Marquardt) on (2) over (M, c[, τ]): the Jacobian in (M, c) is
 analytic — a perturbation δω of the rate turns the following frame by φ(t) = ∫ Q(s) δω(s) ds, so
@@ -54,8 +56,10 @@ the Gauss–Newton steps. A minimum on the grid's edge means the data do not det
 
 Robust weights and the rms
 --------------------------
-Pairs are weighted by the fit's kernel (width from the median residual, as in
-:mod:`streamcal.model.registration`); a pair is an inlier when both samples are inliers of the
+Pairs are weighted by the fit's kernel (width from the median residual after the grid, as in
+:mod:`streamcal.model.registration`, then held fixed so the robust cost stays one function);
+pairs across a saturated gyro reading (:func:`saturated`) are dropped, and so are
+sample-and-hold repeats of the magnetometer (:func:`fresh`); a pair is an inlier when both samples are inliers of the
 free-direction fit and ‖r_ab‖ ≤ 2 kernel widths. ``rms`` is sqrt(mean ‖r_ab‖²) over inlier pairs,
 in the sensor unit — computed the same way with and without the lag (same pairs, same 12
 nuisance parameters), so the two are comparable; not with the free-direction rms (eq. 41),
@@ -91,6 +95,14 @@ RIDGE = 1e-6
 #: Gaps longer than this many typical periods break a pair.
 GAP_FACTOR = 1.5
 OUTLIER_WIDTHS = 2.0
+#: The gyro must predict the direction H later this much better (median residual) than
+#: assuming no rotation, else it does not explain the direction changes (refused).
+EXPLAINED = 0.5
+#: A gyro full-scale value reached on this many rows marks saturation (pairs across it dropped).
+SATURATED_ROWS = 3
+#: Singular values of the fitted gyro map M outside this range mean the gyro does not explain
+#: the direction changes (saturated, or not on the magnetometer's board): the fit is refused.
+GAIN_RANGE = (0.7, 1.4)
 EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 2.5}
 N_GYRO_PARAMS = 12
 
@@ -107,6 +119,24 @@ def gyro_rates(track) -> tuple[np.ndarray, np.ndarray]:
         raise InsufficientDataError(f"{int(keep.sum())} gyro samples are too few for the "
                                     "gyro-tied lag")
     return t[keep], w[keep]
+
+
+def fresh(m: np.ndarray) -> np.ndarray:
+    """(N,) False for a magnetometer reading (N,3) identical on all three axes to the one
+    before: a sample-and-hold repeat logged faster than the sensor updates. Its stamp is later
+    than its sampling instant, which would read as lag, so the pairs leave repeats out."""
+    out = np.ones(len(m), bool)
+    out[1:] = ~np.all(m[1:] == m[:-1], axis=1)
+    return out
+
+
+def saturated(w: np.ndarray) -> np.ndarray:
+    """(G,) True where a gyro reading (G,3) rad/s sits at the full-scale value: an axis exactly
+    at the largest |ω| of the track, that value read on at least :data:`SATURATED_ROWS` rows
+    (a clipped rate says nothing of the rotation; a smooth peak is not repeated exactly)."""
+    top = float(np.max(np.abs(w))) if len(w) else 0.0
+    at = np.abs(w) == top
+    return at.any(axis=1) if top > 0 and at.sum() >= SATURATED_ROWS else np.zeros(len(w), bool)
 
 
 def _interp_rows(t_query: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -137,15 +167,22 @@ class GyroPairs:
         self.t_g, self.w = t_g, w
         n = len(self.t)
         period = float(np.median(np.diff(self.t))) if n > 1 else 1.0
-        self.k = max(1, int(round(horizon / period))) if period > 0 else 1
-        a = np.arange(max(n - self.k, 0))
-        b = a + self.k
+        # b: the first sample at least H after a (irregular sampling allowed)
+        a = np.arange(n)
+        b = np.maximum(np.searchsorted(self.t, self.t + horizon), a + 1)
+        a, b = a[b < n], b[b < n]
         span = self.t[b] - self.t[a]
         inside = (self.t[a] - MAX_LAG - 2 * LAG_STEP >= t_g[0]) & \
                  (self.t[b] + MAX_LAG + 2 * LAG_STEP <= t_g[-1])
-        ok = (span > 0) & (span <= GAP_FACTOR * self.k * period) & inside
+        ok = (span > 0) & (span <= GAP_FACTOR * max(horizon, period)) & inside
+        sat = np.concatenate([[0], np.cumsum(saturated(w))])      # saturated rows before
+        lo = np.searchsorted(t_g, self.t[a] - MAX_LAG - 2 * LAG_STEP)
+        hi = np.searchsorted(t_g, self.t[b] + MAX_LAG + 2 * LAG_STEP, side="right")
+        ok &= sat[np.minimum(hi, len(t_g))] == sat[np.minimum(lo, len(t_g))]
         self.a, self.b = a[ok], b[ok]
         self.period = period
+        #: median time between the samples of a pair (s)
+        self.horizon = float(np.median(span[ok])) if ok.any() else float("nan")
 
     def __len__(self) -> int:
         return len(self.a)
@@ -180,7 +217,10 @@ class GyroPairs:
             rn = np.linalg.norm(np.einsum("pik,k->pi", design, p) - dx, axis=1)
             s = max(float(np.median(rn)) / 0.6745 * 2.3849, 1e-12)
             w = 1.0 / (1.0 + (rn / s) ** 2)
-        return p
+        # Keep the frame, not the gains: readings held or bunched in time (irregular logging)
+        # bias the gains of this short-step fit; the Gauss–Newton fit over H sets them.
+        U, sv, Vt = np.linalg.svd(p[:9].reshape(3, 3))
+        return np.concatenate([(U @ Vt).ravel(), p[9:] / max(float(np.mean(sv)), 1e-9)])
 
     def orientation(self, p: np.ndarray) -> "Orientation":
         """Q (body = magnetometer frame → gyro-following frame) from the mapped rates
@@ -297,9 +337,10 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
         tau, _ = _grid(pairs, Q, use[::step])
     lam = 1e-3
     r = pairs.residual(Q, tau, use)
+    width = _width(np.linalg.norm(r, axis=1), kernel)   # fixed: one robust cost throughout
     for _ in range(GN_ROUNDS):
         rn = np.linalg.norm(r, axis=1)
-        w = _weights(kernel, rn, _width(rn, kernel))
+        w = _weights(kernel, rn, width)
         cost = float(np.sum(w * rn ** 2))
         J = pairs.map_jacobian(Q, tau, use)
         if fit_lag:
@@ -328,6 +369,15 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
         p, tau, Q, r = p1, tau1, Q1, r1
         if cost - cost1 <= RTOL * cost:
             break
+    gains = np.linalg.svd(p[:9].reshape(3, 3), compute_uv=False)
+    still = np.median(np.linalg.norm((pairs.x[pairs.a[use]] - pairs.x[pairs.b[use]]) @ pairs.K.T,
+                                     axis=1))     # predicting "no rotation" instead
+    if np.median(np.linalg.norm(r, axis=1)) > EXPLAINED * still or \
+            gains.min() < GAIN_RANGE[0] or gains.max() > GAIN_RANGE[1]:
+        raise InsufficientDataError(
+            f"the gyro does not follow the magnetometer's direction changes: the fitted gyro "
+            f"gains are {', '.join(f'{g:.2f}' for g in gains)} (expected ≈ 1; a saturated gyro "
+            "or one that is not on the magnetometer's board)")
     if fit_lag and abs(tau) >= MAX_LAG - 0.5 * (LAG_GRID[1] - LAG_GRID[0]):
         raise InsufficientDataError(f"the time lag is not determined by the gyro: the fit went "
                                     f"to {tau:.3f} s, the edge of ±{MAX_LAG} s")
@@ -338,7 +388,8 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
                  initial=None, rows: np.ndarray | None = None, lag: float = 0.0):
     """Gyro-tied fit of ``model`` on ``track`` (module docstring) →
     :class:`streamcal.model.registration.RegistrationFit` with the residual (2) per sample
-    (stored at the later sample of each pair), its inliers and rms; ``rotation`` is the polar
+    (stored at the earlier sample of each pair; none, and not inliers, in the last H seconds and
+    at repeated readings), its inliers and rms; ``rotation`` is the polar
     factor of the fitted gyro map M, ``dip`` is NaN (not used), ``lag`` τ (0 without
     ``time_lag`` in ``model``).
 
@@ -370,28 +421,30 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
     x = base.apply(m, cov)
     x /= np.linalg.norm(x, axis=1, keepdims=True)
     t = np.asarray(track.t_mag, dtype=float)
-    pairs = GyroPairs(x, t, base.K, t_g, w)
+    f = np.flatnonzero(fresh(m))               # pairs use fresh samples only (indices into m)
+    pairs = GyroPairs(x[f], t[f], base.K, t_g, w)
     inl = np.asarray(base.inliers, bool) if getattr(base, "inliers", None) is not None and \
         np.shape(base.inliers) == (len(m),) else np.ones(len(m), bool)
     sel = None
     if rows is not None:
         start = np.zeros(len(m), bool)
         start[np.asarray(rows)] = True
-        sel = np.flatnonzero(start[pairs.a])
-    p, lag = fit_gyro_tied(pairs, fit_lag=fit_lag, kernel=kernel, inlier_samples=inl, sel=sel,
-                           tau0=lag)
+        sel = np.flatnonzero(start[f][pairs.a])
+    p, lag = fit_gyro_tied(pairs, fit_lag=fit_lag, kernel=kernel, inlier_samples=inl[f],
+                           sel=sel, tau0=lag)
     r_pairs = pairs.residual(pairs.orientation(p), lag)
     rn_pairs = np.linalg.norm(r_pairs, axis=1)
-    good = inl[pairs.a] & inl[pairs.b]
+    good = inl[f][pairs.a] & inl[f][pairs.b]
     width = _width(rn_pairs[good], kernel) if good.any() else _width(rn_pairs, kernel)
+    at = f[pairs.a]
     r = np.zeros((len(m), 3))
-    r[pairs.b] = r_pairs
+    r[at] = r_pairs
     inliers = np.zeros(len(m), bool)
-    inliers[pairs.b] = good & ((rn_pairs <= OUTLIER_WIDTHS * width) | (kernel == "l2"))
+    inliers[at] = good & ((rn_pairs <= OUTLIER_WIDTHS * width) | (kernel == "l2"))
     rn = np.linalg.norm(r, axis=1)
     rms = float(np.sqrt(np.mean(rn[inliers] ** 2))) if inliers.any() else float("nan")
     weights = np.zeros(len(m))
-    weights[pairs.b] = _weights(kernel, rn_pairs, width)
+    weights[at] = _weights(kernel, rn_pairs, width)
     M = p[:9].reshape(3, 3)
     U, _, Vt = np.linalg.svd(M)
     rot = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt
@@ -402,7 +455,7 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
                        n_outliers=int((~inliers).sum()), inliers=inliers, weights=weights,
                        directions=x,
                        extra={**dict(base.extra or {}), "tau": width,
-                              "gyro_tied": {"horizon_s": float(pairs.k * pairs.period),
+                              "gyro_tied": {"horizon_s": pairs.horizon,
                                             "gyro_map": [[float(v) for v in row] for row in M],
                                             "gyro_offset_rad_s": [float(v) for v in p[9:]]}})
     n_params = _n_base_params(base) + N_GYRO_PARAMS + int(fit_lag)
