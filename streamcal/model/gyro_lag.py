@@ -95,7 +95,7 @@ RIDGE = 1e-6
 #: Gaps longer than this many typical periods break a pair.
 GAP_FACTOR = 1.5
 OUTLIER_WIDTHS = 2.0
-#: The gyro must predict the direction H later this much better (median residual) than
+#: The gyro must predict the direction H later this much better (rms over the pairs) than
 #: assuming no rotation, else it does not explain the direction changes (refused).
 EXPLAINED = 0.5
 #: A gyro full-scale value reached on this many rows marks saturation (pairs across it dropped).
@@ -370,9 +370,9 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
         if cost - cost1 <= RTOL * cost:
             break
     gains = np.linalg.svd(p[:9].reshape(3, 3), compute_uv=False)
-    still = np.median(np.linalg.norm((pairs.x[pairs.a[use]] - pairs.x[pairs.b[use]]) @ pairs.K.T,
-                                     axis=1))     # predicting "no rotation" instead
-    if np.median(np.linalg.norm(r, axis=1)) > EXPLAINED * still or \
+    still = np.sqrt(np.mean(np.sum(((pairs.x[pairs.a[use]] - pairs.x[pairs.b[use]])
+                                    @ pairs.K.T) ** 2, axis=1)))   # predicting "no rotation"
+    if np.sqrt(np.mean(np.sum(r * r, axis=1))) > EXPLAINED * still or \
             gains.min() < GAIN_RANGE[0] or gains.max() > GAIN_RANGE[1]:
         raise InsufficientDataError(
             f"the gyro does not follow the magnetometer's direction changes: the fitted gyro "
