@@ -61,6 +61,8 @@ def _text(d) -> str:
             name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
             if step.get("gravity_tied"):
                 name += " (gravity-tied)"  # rms of the gravity-tied residual, another scale
+            elif step.get("gyro_tied"):
+                name += " (gyro-tied)"     # rms of the gyro-tied residual, another scale
             ratio = step["rms"] / d.noise_floor if d.noise_floor else float("nan")
             lines.append(f"{name:<34}{step['rms']:>10.4g}{ratio:>9.2f}")
         lines.append(f"{'noise floor':<34}{d.noise_floor:>10.4g}{1.0:>9.2f}")

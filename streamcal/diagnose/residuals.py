@@ -107,6 +107,9 @@ def binned(values: np.ndarray, by: np.ndarray, bins: int = 12) -> dict:
     if v.size < bins:
         return {"edges": [], "rms": [], "n": []}
     edges = np.unique(np.quantile(b, np.linspace(0, 1, bins + 1)))
+    if edges.size < 2:  # a constant covariate (e.g. a log without temperature): one bin
+        return {"edges": [float(edges[0])] * 2, "rms": [float(np.sqrt(np.mean(v * v)))],
+                "n": [int(v.size)]}
     idx = np.clip(np.searchsorted(edges, b, side="right") - 1, 0, len(edges) - 2)
     n = np.bincount(idx, minlength=len(edges) - 1)
     ss = np.bincount(idx, weights=v * v, minlength=len(edges) - 1)

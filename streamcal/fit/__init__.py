@@ -130,7 +130,8 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
     if any(n in REGISTRATION_EFFECTS for n in extra):
         if track is None:
             raise InputError("registration effects (mag_accel_misalignment, time_lag) need a track "
-                             "with accelerometer columns, not an array of readings")
+                             "with accelerometer (or, for time_lag, gyroscope) columns, not an "
+                             "array of readings")
         from ..model.registration import fit_with_registration
 
         return fit_with_registration(track, names, kernel="cauchy" if kernel == "auto" else kernel,
