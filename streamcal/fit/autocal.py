@@ -26,16 +26,12 @@ import numpy as np
 from ..errors import InsufficientDataError
 from .ellipsoid import (directions_from_model, ellipsoid_to_model, fit_l1_ellipsoid,
                         fit_l2_ellipsoid, spread_subset)
-from .kernels import WIDTH_KERNELS, make_kernel
+from .kernels import EFFICIENCY_TAU, HALF_NORMAL_MEDIAN, WIDTH_KERNELS, make_kernel
 from .lm import LMResult, refine
 from .normalize import normalize
 from .observability import assess
 from .robust_start import KEEP, coherent_start, lqs_score, radial_error, robust_start
 
-#: τ / σ for 95 % asymptotic efficiency under Gaussian noise.
-EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 3.787}
-#: Median of |N(0,1)|: converts the median radial residual into σ.
-HALF_NORMAL_MEDIAN = 0.6744897501960817
 #: A sample is an outlier when its residual exceeds this many kernel widths.
 OUTLIER_WIDTHS = 2.0
 #: Median over lower-quartile ratio of the stage-1 residuals above which the L1 start is

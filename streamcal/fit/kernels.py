@@ -110,6 +110,11 @@ class GemanMcClure:
         return s * t2 / (t2 + s)
 
 
+#: τ / σ giving each width kernel 95 % asymptotic efficiency under Gaussian noise.
+EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 3.787}
+#: Median of |N(0,1)|: converts a median residual norm into σ.
+HALF_NORMAL_MEDIAN = 0.6744897501960817
+
 KERNELS = {"l2": L2, "l1": L1, "huber": Huber, "cauchy": Cauchy, "gm": GemanMcClure}
 #: Kernels whose width τ matters.
 WIDTH_KERNELS = ("huber", "cauchy", "gm")

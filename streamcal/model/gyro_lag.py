@@ -77,6 +77,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..fit.kernels import EFFICIENCY_TAU, HALF_NORMAL_MEDIAN
 from ..errors import InsufficientDataError, MissingColumnsError
 
 #: Time between the two samples of a pair (s).
@@ -103,7 +104,6 @@ SATURATED_ROWS = 3
 #: Singular values of the fitted gyro map M outside this range mean the gyro does not explain
 #: the direction changes (saturated, or not on the magnetometer's board): the fit is refused.
 GAIN_RANGE = (0.7, 1.4)
-EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 2.5}
 N_GYRO_PARAMS = 12
 
 
@@ -296,7 +296,7 @@ def _n_base_params(cal) -> int:
 
 
 def _width(rn: np.ndarray, kernel: str) -> float:
-    return EFFICIENCY_TAU.get(kernel, 2.3849) * max(float(np.median(rn)) / 0.6744897501960817,
+    return EFFICIENCY_TAU.get(kernel, 2.3849) * max(float(np.median(rn)) / HALF_NORMAL_MEDIAN,
                                                     1e-12)
 
 

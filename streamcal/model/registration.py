@@ -82,6 +82,7 @@ import numpy as np
 import scipy.signal
 from scipy.spatial.transform import Rotation
 
+from ..fit.kernels import EFFICIENCY_TAU, HALF_NORMAL_MEDIAN
 from ..errors import InputError, InsufficientDataError, MissingColumnsError
 from ._common import number, only_keys, vector3
 
@@ -101,7 +102,6 @@ MAX_LAG = 0.3
 LAG_STEP = 1e-3
 MAX_ROUNDS = 40
 RTOL = 1e-7
-EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 2.5}
 OUTLIER_WIDTHS = 2.0
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -411,7 +411,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     for _ in range(max_rounds):
         rn = np.linalg.norm(r, axis=1)
         width = width_given or EFFICIENCY_TAU.get(kernel, 2.3849) * max(
-            float(np.median(rn) / 0.6744897501960817), 1e-12)
+            float(np.median(rn) / HALF_NORMAL_MEDIAN), 1e-12)
         _, trust = prob.down(lag)
         w = trust * _kernel_weights(kernel, rn, width)
         cost = float(np.sum(w * rn ** 2))
@@ -446,7 +446,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
         r = prob.residual(K, b, thetas, R, dip, lag, h)
         m = m_all
     rn = np.linalg.norm(r, axis=1)
-    width = width_given or EFFICIENCY_TAU.get(kernel, 2.3849) * float(np.median(rn) / 0.6744897501960817)
+    width = width_given or EFFICIENCY_TAU.get(kernel, 2.3849) * float(np.median(rn) / HALF_NORMAL_MEDIAN)
     inliers = rn <= OUTLIER_WIDTHS * width if kernel != "l2" else np.ones(len(rn), bool)
     rms = float(np.sqrt(np.mean(rn[inliers] ** 2))) if inliers.any() else float("nan")
     g, _ = prob.down(lag)
@@ -464,7 +464,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
                       unit=track.mag_unit, field=float(np.cbrt(np.linalg.det(K)))
                       if track.mag_unit == "uT" else None, method="autocal", kernel=kernel,
                       inliers=inliers, weights=weights, directions=x,
-                      extra={"noise_sigma": float(np.median(rn) / 0.6744897501960817 / np.sqrt(2)),
+                      extra={"noise_sigma": float(np.median(rn) / HALF_NORMAL_MEDIAN / np.sqrt(2)),
                              "tau": width, "dip": float(dip), "gravity": gref.method})
     return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms)
 
