@@ -19,6 +19,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests._corruption import corrupt
 from streamcal.cli import main
 from streamcal.errors import TrackError
 from streamcal.track import Track
@@ -180,42 +181,7 @@ def test_chaos_through_fit_never_tracebacks(workdir, track, ops, data):
         c = data.draw(st.integers(0, len(names) - 1))
         rows[r][c] = data.draw(st.sampled_from(["1e308", "-1.7976931348623157e308", "1e300",
                                                 "4.9e-324", "1e200"]))
-    text = render(meta, names, rows)
-    blob = text.encode("utf-8")
-    for op in ops:
-        if op == "truncate":
-            blob = blob[:data.draw(st.integers(0, len(blob)))]
-        elif op == "insert_bytes":
-            at = data.draw(st.integers(0, len(blob)))
-            blob = blob[:at] + data.draw(st.binary(min_size=1, max_size=8)) + blob[at:]
-        elif op == "flip" and blob:
-            at = data.draw(st.integers(0, len(blob) - 1))
-            blob = blob[:at] + bytes([blob[at] ^ data.draw(st.integers(1, 255))]) + blob[at + 1:]
-        elif op == "utf16":
-            blob = text.encode("utf-16")
-        elif op == "latin1":
-            blob = ("# unit: µT\n" + text).encode("latin-1")
-        elif op == "gzip_cut":
-            zipped = gzip.compress(blob)
-            blob = zipped[:data.draw(st.integers(0, len(zipped)))]
-        elif op == "gzip_garbage":
-            blob = b"\x1f\x8b" + data.draw(st.binary(max_size=64))
-        elif op == "empty":
-            blob = b""
-        elif op == "only_header":
-            blob = b"t,mx,my,mz\n"
-        elif op == "only_meta":
-            blob = b"# streamcal-track: 1\n"
-        elif op == "binary":
-            blob = data.draw(st.binary(min_size=1, max_size=200))
-        elif op == "drop_header":
-            blob = b"\n".join(line for line in blob.split(b"\n")
-                              if not line.startswith(b"t,") and b",t," not in line
-                              and not line.endswith(b",t"))
-        elif op == "long_line":
-            blob = blob + b"1" * 200_000 + b",2\n"
-        elif op == "gzip":
-            blob = gzip.compress(blob)
+    blob = corrupt(render(meta, names, rows), ops, data)
     path = workdir / "chaos.csv"
     path.write_bytes(blob)
     try:

@@ -16,6 +16,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
+from tests._corruption import corrupt
 from streamcal import trackio
 from streamcal.errors import TrackError
 from streamcal.track import Track
@@ -224,37 +225,7 @@ def test_chaos_loads_or_raises_track_error(workdir, track, ops, data, skip):
                                          max_size=2, unique=True)))
         lines[i], lines[j] = lines[j], lines[i]
         text = "\n".join(lines)
-    blob = text.encode("utf-8")
-    for op in ops:
-        if op == "truncate":
-            blob = blob[:data.draw(st.integers(0, len(blob)))]
-        elif op == "insert_bytes":
-            at = data.draw(st.integers(0, len(blob)))
-            blob = blob[:at] + data.draw(st.binary(min_size=1, max_size=8)) + blob[at:]
-        elif op == "flip" and blob:
-            at = data.draw(st.integers(0, len(blob) - 1))
-            blob = blob[:at] + bytes([blob[at] ^ data.draw(st.integers(1, 255))]) + blob[at + 1:]
-        elif op == "utf16":
-            blob = text.encode("utf-16")
-        elif op == "latin1":
-            blob = ("# unit: µT\n" + text).encode("latin-1")
-        elif op == "gzip_cut":
-            zipped = gzip.compress(blob)
-            blob = zipped[:data.draw(st.integers(0, len(zipped)))]
-        elif op == "gzip_garbage":
-            blob = b"\x1f\x8b" + data.draw(st.binary(max_size=64))
-        elif op == "empty":
-            blob = b""
-        elif op == "only_meta":
-            blob = b"# streamcal-track: 1\n# sensor: x\n"
-        elif op == "crlf":
-            blob = blob.replace(b"\n", b"\r\n")
-        elif op == "blank_lines":
-            blob = blob.replace(b"\n", b"\n\n# comment\n \n", data.draw(st.integers(0, 3)))
-        elif op == "gzip":
-            blob = gzip.compress(blob)
-        elif op == "nul":
-            blob = blob.replace(b",", b",\x00", 1)
+    blob = corrupt(text, ops, data)
     path = store(workdir, blob)
     try:
         track_ = Track.read(path, skip_bad_rows=skip)
