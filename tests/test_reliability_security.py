@@ -13,6 +13,7 @@ import pytest
 
 from firmware_bridge import frames as fr
 from firmware_bridge.serial_link import SerialLink
+from tests._ports import NullPort
 from streamcal.calibration import MAX_FILE_BYTES, Calibration
 from streamcal.errors import CalibrationFileError, InputError, StreamcalError
 from streamcal.stream.store import CalibrationStore
@@ -210,20 +211,6 @@ def test_symlinked_current_file_is_not_read(tmp_path):
 
 # ------------------------------------------------------------------------ serial commands
 
-class _Port:
-    in_waiting = 0
-
-    def __init__(self):
-        self.written = bytearray()
-
-    def write(self, data):
-        self.written += data
-        return len(data)
-
-    def read(self, n=1):
-        return b""
-
-
 def _cal(K, b=(0.0, 0.0, 0.0)):
     return Calibration(K=np.asarray(K, dtype=float), b=b, n=1)
 
@@ -236,7 +223,7 @@ def _cal(K, b=(0.0, 0.0, 0.0)):
     pytest.param(_cal(np.diag([50.0, 48.0, 1e39])), id="beyond_float32"),
 ])
 def test_out_of_range_calibration_is_refused_before_sending(cal):
-    port = _Port()
+    port = NullPort()
     link = SerialLink(port, mode="frames")
     with pytest.raises(InputError):
         link.send_calibration(cal, retries=0, timeout=0.01)
@@ -248,7 +235,7 @@ def test_out_of_range_calibration_is_refused_before_sending(cal):
     {"outputs": 256}, {"outputs": -1},
 ])
 def test_out_of_range_start_is_refused_before_sending(kwargs):
-    port = _Port()
+    port = NullPort()
     link = SerialLink(port, mode="frames")
     try:
         link.start(retries=0, timeout=0.01, **kwargs)

@@ -13,6 +13,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from tests._ports import NullPort
 from firmware_bridge import frames as fr
 from firmware_bridge.rawlines import MAX_LINE, RawLineReader
 from firmware_bridge.serial_link import SerialLink
@@ -151,7 +152,7 @@ def test_losses_counted_exactly_with_garbage_between_frames(seed, n, start, chun
 
 def test_link_counts_losses_and_resyncs_in_frames_mode():
     """The same through :class:`SerialLink.feed` (the host's pure entry point)."""
-    link = SerialLink(_NullPort(), mode="frames")
+    link = SerialLink(NullPort(), mode="frames")
     rng = np.random.default_rng(5)
     link.feed(fr.encode(fr.Hello(mag_scale=(0.15, 0.15, 0.15)), 0))   # scales; seq 0
     sent = 0
@@ -205,29 +206,10 @@ def test_raw_lines_recovered_after_junk_and_bad_lines_counted(seed, n, chunk):
 @settings(max_examples=200, deadline=None)
 @given(st.lists(st.binary(max_size=400), max_size=15))
 def test_any_bytes_into_the_link_never_crash(chunks):
-    link = SerialLink(_NullPort(), mode="auto")
+    link = SerialLink(NullPort(), mode="auto")
     for chunk in chunks:
         link.feed(chunk)
         assert link._decoder.buffered <= link._decoder.max_encoded
         assert len(link._raw._buf) <= MAX_LINE
     block = link.read_block(10_000, timeout=0)
     assert block is None or np.all(np.isfinite(block.t))
-
-
-class _NullPort:
-    """A pyserial-like port that swallows writes and has nothing to read."""
-
-    in_waiting = 0
-
-    def __init__(self):
-        self.written = bytearray()
-
-    def write(self, data):
-        self.written += data
-        return len(data)
-
-    def read(self, n=1):
-        return b""
-
-    def close(self):
-        pass

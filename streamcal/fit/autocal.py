@@ -188,8 +188,9 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
             return np.sqrt(3.0) / scale
         return float(tau) / scale
 
-    def solve(K_start, b_start, x_start, sigma_start):
-        """Width rounds, then the polish: returns (LMResult, σ̂, τ) in normalized units."""
+    def solve(m_n, covariates, K_start, b_start, x_start, sigma_start):
+        """Width rounds, then the polish, on samples m_n (with their covariates): returns
+        (LMResult, σ̂, τ) in normalized units."""
         sig = sigma_start
         tau_cur = width(sig)
         adaptive = tau is None and tau_cur is not None
@@ -222,17 +223,14 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         return res, sig, tau_cur
 
     if support is None:
-        result, sigma_n, tau_n = solve(K0, b0, x0, sigma_n)
+        result, sigma_n, tau_n = solve(m_n, covariates, K0, b0, x0, sigma_n)
     else:
         # A coherent disturbance: refine on the undisturbed chunks only (the disturbed shell
         # would drag a cap-limited fit towards it), then evaluate every sample at that model.
-        m_all, cov_all = m_n, covariates
-        m_n = m_all[support]
-        covariates = {k: np.asarray(v)[support] for k, v in (cov_all or {}).items()}
-        result, sigma_n, tau_n = solve(K0, b0, x0[support], sigma_n)
-        x_all = directions_from_model(result.K, result.b, m_all)
+        cov_support = {k: np.asarray(v)[support] for k, v in (covariates or {}).items()}
+        result, sigma_n, tau_n = solve(m_n[support], cov_support, K0, b0, x0[support], sigma_n)
+        x_all = directions_from_model(result.K, result.b, m_n)
         x_all[support] = result.x
-        m_n, covariates = m_all, cov_all
         result = refine(m_n, result.K, result.b, x_all,
                         kernel=make_kernel("gm" if polish else kernel, tau_n),
                         structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,

@@ -417,7 +417,6 @@ def optimal_directions(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int =
     x = np.linalg.solve(K, (m - b).T).T
     x /= np.maximum(np.linalg.norm(x, axis=1, keepdims=True), 1e-300)
     n = m.shape[0]
-    KtK = K.T @ K
     for _ in range(iters):
         r = x @ K.T + b - m
         P = np.eye(3) - x[:, :, None] * x[:, None, :]
@@ -427,7 +426,6 @@ def optimal_directions(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int =
         dx = -np.einsum("nij,nj->ni", _inv3(H), g)
         x = x + dx
         x /= np.linalg.norm(x, axis=1, keepdims=True)
-    del KtK
     return x
 
 
