@@ -4,7 +4,7 @@ A forked child writes calibrations in a tight loop (``Calibration.save`` or
 ``CalibrationStore.save``, each resuming from what the last one left on disk); the parent kills
 it after a random 1–30 ms, many times over. After every kill: the file on disk is a valid
 calibration, the old one or a newer one (never older than what was seen before), temp debris is
-at most one file per interrupted write and is swept by the store once stale, and a restart
+at most one file per interrupted write and is swept by the next write once stale, and a restart
 (``CalibrationStore.load``) resumes from the current file.
 """
 from __future__ import annotations
@@ -71,9 +71,19 @@ def test_calibration_save_killed_at_random_instants(tmp_path):
         debris_seen = max(debris_seen, len(temps))
         assert len(temps) <= KILLS           # at most one per interrupted write, never more
     assert newer >= KILLS // 2, f"the writer made progress in only {newer} of {KILLS} runs"
-    print(f"\nCalibration.save: {KILLS} SIGKILLs, final n={last_n}, temp files left "
-          f"{len(_temps(tmp_path))} (none are cleaned by Calibration.save itself)")
-    assert set(os.listdir(tmp_path)) - set(_temps(tmp_path)) == {"cal.json"}
+    left = _temps(tmp_path)
+    assert set(os.listdir(tmp_path)) - set(left) == {"cal.json"}
+    # the next save sweeps the leftovers once they are stale, and only those
+    old = time.time() - 3600
+    for name in left:
+        os.utime(tmp_path / name, (old, old))
+    (tmp_path / ".cal.json.inflight.tmp").write_bytes(b"{")           # a write in progress elsewhere
+    (tmp_path / ".other.json.x.tmp").write_bytes(b"{")                # another file's leftover
+    os.utime(tmp_path / ".other.json.x.tmp", (old, old))
+    _cal(last_n + 1).save(path)
+    assert sorted(_temps(tmp_path)) == [".cal.json.inflight.tmp", ".other.json.x.tmp"]
+    print(f"\nCalibration.save: {KILLS} SIGKILLs, final n={last_n}, temp files left {len(left)}, "
+          f"swept by the next save once stale")
 
 
 def test_calibration_store_killed_at_random_instants_then_restarts(tmp_path):
