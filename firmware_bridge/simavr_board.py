@@ -124,7 +124,12 @@ def build_harness(cache_dir=None) -> Path:
     return _cached_build("simavr_harness", sources, build, cache_dir)
 
 
-def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=(0xB0, 0xB2, 0xA5), who_am_i: int = 0x71,
+#: The fuse-ROM bytes the simulated AK8963 holds for a µT track: typical, unequal values, so the
+#: sketch's sensitivity adjustment is exercised.
+DEFAULT_ASA = (0xB0, 0xB2, 0xA5)
+
+
+def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=None, who_am_i: int = 0x71,
                  ak_wia: int = R.AK8963_WIA, magnetometer: bool | None = None, hofl_rate: float = 0.0,
                  seed: int = 0) -> bytes:
     """The harness's replay file for ``track`` (a :class:`~streamcal.track.Track`, mag in µT).
@@ -132,13 +137,19 @@ def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=(0xB0, 0xB2, 0xA5
     Raw counts come from :class:`FakeMPU9250Bus` (every ACCEL_FS_SEL/GYRO_FS_SEL setting, 14- and
     16-bit magnetometer output, ASA and axis remap inverted); row times become 16 MHz cycles
     ``round((t - t[0] + lead_s)·F_CPU)``. Layout: ``tools/simavr_harness/simavr_harness.c``.
+    ``asa`` (3 bytes): the fuse ROM; by default a raw AK8963 counts log keeps the ASA its metadata
+    records (its counts are served unchanged, so only that ASA turns them into the right µT) and a
+    µT track gets :data:`DEFAULT_ASA`.
     """
     from .fake_mpu9250 import Faults
 
     if lead_s < 0:
         raise InputError(f"lead_s must be >= 0, got {lead_s}")
-    bus = FakeMPU9250Bus.from_track(track, asa=asa, who_am_i=who_am_i, ak_wia=ak_wia,
-                                    magnetometer=magnetometer, faults=Faults(hofl_rate=hofl_rate), seed=seed)
+    if asa is None and getattr(track, "mag_unit", "uT") != "counts":
+        asa = DEFAULT_ASA
+    asa_option = {} if asa is None else {"asa": asa}
+    bus = FakeMPU9250Bus.from_track(track, who_am_i=who_am_i, ak_wia=ak_wia, magnetometer=magnetometer,
+                                    faults=Faults(hofl_rate=hofl_rate), seed=seed, **asa_option)
     t0 = float(bus.t[0])
     cyc = lambda t: np.rint((np.asarray(t, float) - t0 + lead_s) * F_CPU_HZ).astype("<i8")  # noqa: E731
     per_fs = [bus.encoded_rows(accel_fs=fs, gyro_fs=fs, mag_bits=16) for fs in range(4)]
@@ -147,7 +158,7 @@ def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=(0xB0, 0xB2, 0xA5
     gyr = np.stack([r.gyro for r in per_fs], axis=1).reshape(-1, 4, 3)
     mag = np.stack([rows14.mag, rows.mag], axis=1).reshape(-1, 2, 3)       # (Nm, [14, 16], xyz)
     hofl = np.stack([rows14.mag_overflow, rows.mag_overflow], axis=1).astype("u1")
-    asa_b = bytes(np.asarray(asa, dtype=np.uint8))
+    asa_b = bytes(np.asarray(bus.asa, dtype=np.uint8))
     header = REPLAY_MAGIC + struct.pack("<4I", len(rows.accel_t), len(rows.gyro_t), len(rows.temp_t),
                                         len(rows.mag_t)) \
         + bytes([who_am_i & 0xFF, ak_wia & 0xFF, int(bus.has_mag)]) + asa_b + b"\0\0"

@@ -103,6 +103,30 @@ def test_replay_file_holds_the_fake_chips_counts():
     np.testing.assert_array_equal(acc[:, ACCEL_FS], bus.encoded_rows(accel_fs=ACCEL_FS).accel)
 
 
+def _mag_section(blob):
+    """(header ASA bytes, mag counts (Nm, [14, 16], 3)) of a replay file."""
+    n_acc, n_gyr, n_tmp, n_mag = struct.unpack_from("<4I", blob, 8)
+    off = 32 + (8 + 24) * (n_acc + n_gyr) + (8 + 2) * n_tmp + 8 * n_mag
+    return tuple(blob[27:30]), np.frombuffer(blob, "<i2", n_mag * 6, off).reshape(n_mag, 2, 3)
+
+
+def test_replay_file_of_a_raw_count_log_keeps_its_counts_and_its_asa(real_tracks_dir, tmp_path):
+    """A raw AK8963 log is served unchanged, so the fuse ROM must hold the ASA its metadata
+    records (here the default 128 when it records none; then a stated one), not the µT default."""
+    src = Track.read(real_tracks_dir / "tiva_mpu9250_mag_02.csv")
+    asa_stated, counts = _mag_section(replay_bytes(src))
+    assert asa_stated == (128, 128, 128)
+    t_mag, m = _rows(src, ("mx", "my", "mz"))
+    np.testing.assert_array_equal(counts[:, 1, :], m)          # 16-bit output: the log's own counts
+    lines = (real_tracks_dir / "tiva_mpu9250_mag_02.csv").read_text().splitlines()
+    path = tmp_path / "with_asa.csv"
+    path.write_text("\n".join(lines[:1] + ["# asa: 170,190,160"] + lines[1:400]) + "\n")
+    asa_stated, counts = _mag_section(replay_bytes(Track.read(path)))
+    assert asa_stated == (170, 190, 160)
+    np.testing.assert_array_equal(counts[:, 1, :], m[:len(counts)])
+    assert _mag_section(replay_bytes(_excerpt(1.0)))[0] == ASA  # a µT track: the typical default
+
+
 @pytest.mark.toolchain
 @pytest.mark.slow          # ~7-9 s with cached builds (20 s of track at ~3-4x real time), +5 s cold
 def test_firmware_streams_track_accounts_for_every_frame_and_applies_calibration():
