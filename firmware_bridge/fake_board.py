@@ -255,8 +255,8 @@ class FakeBoard:
                 self._flush()
             if ready:
                 self._emit_sample()
-            elif self._booted and self.index >= len(self.t_us):
-                self.finished.set()
+            elif self._booted and self.index >= len(self.t_us) and not self._out:
+                self.finished.set()  # only once the last frame has left: a host may stop reading then
 
     def _due(self) -> bool:
         if self.speed is None:
