@@ -26,12 +26,29 @@ OUTLIER_WIDTHS = 2.0
 SUBSET_MAX = 6000
 #: Most effects the ladder adds.
 LADDER_STEPS = 3
+#: The residual families an rms can be on (``_Evaluated.kind`` → name in the JSON).
+RESIDUALS = {None: "sensor", "gravity": "gravity_tied", "gyro": "gyro_tied"}
 
 
 @dataclass
 class Diagnosis:
     """Result of :func:`diagnose`; ``to_dict`` gives the JSON of SPEC §4 plus ``ladder``,
-    ``noise`` and ``residual_families``. rms, noise_floor and rms_after in the sensor unit."""
+    ``noise``, ``residual_families``, ``residual``, ``candidate_baselines`` and
+    ``outliers_model``. rms, noise_floor and rms_after in the sensor unit.
+
+    Which residual each rms is on (``residual``: ``"sensor"``, eq. 41 with free directions;
+    ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnose.candidates`): ``rms`` is
+    on ``residual`` (the base model's); each candidate's ``rms_after`` is on the residual named
+    in ``candidate_baselines[effect]``, beside ``rms_before``, the model without the effect on
+    that same residual — compare a candidate with its ``rms_before``, never with another
+    residual's rms. Each ladder step carries its ``residual`` and (after the first) the
+    ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual.
+
+    Outliers: ``n_outliers``, ``outlier_spans`` and the (N,) bool mask ``outliers`` all come
+    from one model, ``outliers_model``: the last magnetometer-only (sensor residual) model of
+    the ladder — the base model when the ladder added nothing. A missing effect makes the base
+    model's residual large wherever the effect is (e.g. far from T0): those are not outliers.
+    """
 
     model: tuple[str, ...]
     n: int
@@ -45,12 +62,32 @@ class Diagnosis:
     residual_families: dict = field(default_factory=dict)
     noise: dict = field(default_factory=dict)
     calibration: object = field(default=None, repr=False)
+    residual: str = "sensor"
+    outliers_model: tuple[str, ...] = ()
+    outliers: np.ndarray | None = field(default=None, repr=False)
+
+    def baseline(self, candidate) -> tuple[str, float]:
+        """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
+        on and the rms of the model without it on that residual (sensor unit)."""
+        return (getattr(candidate, "residual", self.residual),
+                float(getattr(candidate, "rms_before", self.rms)))
+
+    def candidate_baselines(self) -> dict:
+        """``{effect: {"residual": …, "rms_before": …}}`` for every candidate."""
+        out = {}
+        for c in self.candidates:
+            residual, before = self.baseline(c)
+            out[c.effect] = {"residual": residual, "rms_before": before}
+        return out
 
     def to_dict(self) -> dict:
         return {"model": list(self.model), "n": self.n, "n_outliers": self.n_outliers,
                 "rms": self.rms, "noise_floor": self.noise_floor, "verdict": self.verdict,
                 "candidates": [c.to_dict() for c in self.candidates],
-                "outlier_spans": self.outlier_spans, "ladder": self.ladder, "noise": self.noise,
+                "outlier_spans": self.outlier_spans, "residual": self.residual,
+                "candidate_baselines": self.candidate_baselines(),
+                "outliers_model": list(self.outliers_model or self.model),
+                "ladder": self.ladder, "noise": self.noise,
                 "residual_families": self.residual_families}
 
 
@@ -227,7 +264,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             text = f"{ev.kind}-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
         c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
                            cand.is_significant(ref.rms, ev.rms, p_value, ctx.floor), ev.cal)
-        c.rms_before = ref.rms
+        c.rms_before, c.residual = ref.rms, RESIDUALS[ev.kind]
         c._evaluated = ev
         out.append(c)
     # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
@@ -282,8 +319,11 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     Registration candidates are judged on the gravity-tied residual, or for ``time_lag`` on a
     track with a gyro and no accelerometer on the gyro-tied one (see
     :mod:`streamcal.diagnose.candidates`). ``residual_families["gyro"]`` is the gyro-tied
-    residual at the model's lag, with the lag the gyro alone fits (``lag_estimate_s``). Outlier spans come from the last
-    magnetometer-only model of the ladder, not the base model.
+    residual at the model's lag, with the lag the gyro alone fits (``lag_estimate_s``).
+
+    ``n_outliers``, ``outlier_spans`` and ``outliers`` come from the last magnetometer-only
+    model of the ladder (``outliers_model``), not the base model; ``rms`` is the base model's
+    over its own inliers. Every rms says which residual it is on (see :class:`Diagnosis`).
     """
     model = check_known(calibration.model if calibration is not None else model)
     check_needs(model, track)
@@ -301,27 +341,33 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
-    steps = [{"model": list(model), "rms": base.rms}]
+    steps = [{"model": list(model), "rms": base.rms, "residual": RESIDUALS[base.kind]}]
     current, cur_model, cur_ranked = base, tuple(model), ranked
-    spans_from = base
+    spans_from, spans_model = base, tuple(model)
     while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
         top = cur_ranked[0]
         cur_model, current = (*cur_model, top.effect), top._evaluated
+        # rms_before: the previous model on this step's residual (another residual than the
+        # previous step's rms when the step is the first gravity- or gyro-tied one).
         steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
+                      "rms_before": top.rms_before, "residual": RESIDUALS[current.kind],
                       "p_value": top.p_value, "gravity_tied": current.kind == "gravity",
                       "gyro_tied": current.kind == "gyro"})
         if not current.tied:
-            spans_from = current
+            spans_from, spans_model = current, cur_model
         # Effects that explained nothing significant alone are not retried (saves refits).
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
     verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
-    # Outlier spans from the last magnetometer-only model of the ladder: a missing effect makes
-    # the base model's residual large wherever the effect is (e.g. far from T0) — not outliers.
+    # Outliers (count, spans, mask) from the last magnetometer-only model of the ladder: a
+    # missing effect makes the base model's residual large wherever the effect is (e.g. far
+    # from T0) — not outliers.
+    outliers = ~np.asarray(spans_from.inliers, bool)
     return Diagnosis(
-        model=tuple(model), n=len(m), n_outliers=int((~base.inliers).sum()), rms=base.rms,
+        model=tuple(model), n=len(m), n_outliers=int(outliers.sum()), rms=base.rms,
         noise_floor=nf.floor, verdict=verdict, candidates=ranked,
-        outlier_spans=outlier_spans(t, ~spans_from.inliers), ladder=steps,
+        outlier_spans=outlier_spans(t, outliers), ladder=steps,
+        residual=RESIDUALS[base.kind], outliers_model=spans_model, outliers=outliers,
         residual_families=_families(ctx, base, model),
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used},

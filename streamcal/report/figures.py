@@ -21,7 +21,11 @@ The figures (names are the PNG file names without ``.png``):
   time, temperature and each auxiliary channel, with the binned rms of the diagnosis and the
   noise floor; outlier spans shaded on the time axis.
 - ``ladder``: rms after each effect the ladder added, the noise floor as a line, and every
-  candidate's promised ``rms_after``.
+  candidate's promised ``rms_after`` — each against the model without it *on the same
+  residual*: the sensor residual (eq. 41) and the gravity- and gyro-tied residuals of the
+  registration effects are different scales (:data:`RESIDUAL_FAMILIES`), so each gets its own
+  panel, its own "model now" line and its own noise level, and the ladder marks where it
+  switches residual.
 
 When the fit refused the track (:class:`~streamcal.errors.InsufficientDataError`) the figures
 show what does not need a calibration: raw readings, ‖m‖, and coverage seen from the centre of a
@@ -61,7 +65,8 @@ class FigureData:
         t: (N,) s. m: (N,3) readings, sensor unit. cov: covariates at the samples {name: (N,)}.
         unit: sensor unit. diagnosis: the :class:`~streamcal.diagnose.Diagnosis` or None.
         reason: why there is no diagnosis (the fit's refusal), else None.
-        inliers: (N,) bool. directions: (N,3) unit field directions (calibrated, or from the
+        inliers: (N,) bool: not the diagnosis' ``outliers`` (the model ``outliers_model``, the
+        one its ``n_outliers`` and spans come from), else the calibration's. directions: (N,3) unit field directions (calibrated, or from the
         coarse sphere when refused). residual: (N,) signed distance to the fitted surface along
         its outward normal, sensor unit (None when refused). field_after: (N,) ‖calibrated
         field‖, sensor unit (None when refused). scale: field strength used, sensor unit.
@@ -110,7 +115,10 @@ class FigureData:
         from ..diagnose.residuals import sensor_residual
 
         r, x, s, _ = sensor_residual(cal, self.m, self.cov)
-        inl = getattr(cal, "inliers", None)
+        # The diagnosis' outliers (its n_outliers and spans, one model) when it has them.
+        out = getattr(self.diagnosis, "outliers", None)
+        inl = ~np.asarray(out, bool) if out is not None and np.shape(out) == (len(self.m),) \
+            else getattr(cal, "inliers", None)
         if inl is None or np.shape(inl) != (len(self.m),):
             floor = self.diagnosis.noise_floor
             norm = np.linalg.norm(r, axis=1)
@@ -459,47 +467,171 @@ def residuals_figure(data: FigureData) -> Figure:
 
 
 # -- ladder ----------------------------------------------------------------------------------------
-def ladder_figure(data: FigureData) -> Figure:
-    d = data.diagnosis
-    fig = Figure(figsize=(12, 4.2))
-    ax1, ax2 = fig.subplots(1, 2, gridspec_kw={"width_ratios": [1, 1.3]})
-    unit = unit_label(data.unit)
+#: The residual families an rms of the diagnosis can be on (``Diagnosis.residual``,
+#: ``candidate_baselines``, ladder ``residual``): (label, what it is, colour, noise alone as a
+#: multiple of the noise floor). The floor is the noise along one axis, which the sensor
+#: residual keeps (eq. 41: the free direction absorbs the two tangent components); with the
+#: direction tied to gravity only the heading is free, so two components stay (√2 × floor) and
+#: the gravity reference's own error adds to that; the gyro-tied residual compares two samples,
+#: two components each (≈ 2 × floor, :mod:`streamcal.model.gyro_lag`).
+RESIDUAL_FAMILIES = {
+    "sensor": ("sensor residual", "eq. 41, every direction free", _INLIER, 1.0),
+    "gravity_tied": ("gravity-tied residual",
+                     "direction tied to the accelerometer's gravity; includes its error",
+                     "#8c4fbf", float(np.sqrt(2.0))),
+    "gyro_tied": ("gyro-tied residual", "direction carried 0.5 s ahead by the gyro", "#e07b00",
+                  2.0),
+}
+_FLOOR_TEXT = {"sensor": "noise floor", "gravity_tied": "noise alone ≈ √2×floor",
+               "gyro_tied": "noise alone ≈ 2×floor"}
+
+
+def _family(name) -> str:
+    return name if name in RESIDUAL_FAMILIES else "sensor"
+
+
+def ladder_steps(d) -> list[dict]:
+    """The ladder of ``d`` with, for every step, ``residual`` (family of its rms) and, after the
+    first, ``rms_before``: the previous model on the same residual (it differs from the previous
+    step's rms where the ladder switches to a tied residual)."""
     steps = d.ladder or [{"model": list(d.model), "rms": d.rms}]
+    out = []
+    for k, step in enumerate(steps):
+        step = dict(step)
+        if "residual" not in step:
+            step["residual"] = ("gravity_tied" if step.get("gravity_tied") else "gyro_tied"
+                                if step.get("gyro_tied") else
+                                getattr(d, "residual", "sensor") if k == 0 else "sensor")
+        step["residual"] = _family(step["residual"])
+        if k and "rms_before" not in step:
+            step["rms_before"] = out[-1]["rms"]
+        out.append(step)
+    return out
+
+
+def candidate_groups(d) -> list[tuple[str, float, list]]:
+    """Candidates of ``d`` grouped by the residual their ``rms_after`` is on, in order of first
+    appearance in the ranking: ``[(residual, rms_before, [candidate, …]), …]`` — each group's
+    rms_before is the model without the effect on that residual, what its bars compare with."""
+    groups: dict[str, tuple[float, list]] = {}
+    for c in d.candidates:
+        residual, before = d.baseline(c) if hasattr(d, "baseline") else ("sensor", d.rms)
+        residual = _family(residual)
+        groups.setdefault(residual, (before, []))[1].append(c)
+    return [(name, before, cands) for name, (before, cands) in groups.items()]
+
+
+def _change(before: float, after: float) -> str:
+    """Relative change ``after / before − 1`` as text ("−39 %", "±0 %")."""
+    if not before > 0:
+        return ""
+    pct = round(100.0 * (after / before - 1.0))
+    return "±0 %" if pct == 0 else f"{'+' if pct > 0 else '−'}{abs(pct)} %"
+
+
+def _ladder_panel(ax, d, unit: str) -> None:
+    steps = ladder_steps(d)
+    floor = d.noise_floor
+    k_all = np.arange(len(steps))
+    tops = [s["rms"] for s in steps] + [s.get("rms_before", 0.0) for s in steps]
+    for k, step in enumerate(steps):
+        label, _, colour, _ = RESIDUAL_FAMILIES[step["residual"]]
+        ax.plot(k, step["rms"], "o", color=colour, ms=8, zorder=3)
+        ax.annotate(f"{step['rms']:.3g}", (k, step["rms"]), xytext=(8, 4),
+                    textcoords="offset points", fontsize=9, color=colour)
+        if not k:
+            continue
+        prev, before = steps[k - 1], step["rms_before"]
+        if prev["residual"] != step["residual"]:   # same model, another residual: say so
+            ax.plot([k - 1, k - 1], [prev["rms"], before], ":", color="#777777", lw=1.2)
+            ax.plot(k - 1, before, "o", mfc="white", mec=colour, mew=1.8, ms=8, zorder=3)
+            ax.annotate(f"same model on the {label}: {before:.3g}", (k - 1, before),
+                        xytext=(8, 4), textcoords="offset points", fontsize=8, color=colour)
+        ax.plot([k - 1, k], [before, step["rms"]], "-", color=colour, lw=2)
+        ax.annotate(_change(before, step["rms"]), ((k - 0.5), (before + step["rms"]) / 2),
+                    xytext=(0, 6), textcoords="offset points", ha="center", fontsize=9,
+                    color=colour, fontweight="bold")
+    families = list(dict.fromkeys(s["residual"] for s in steps))
+    if np.isfinite(floor):
+        for fam in families:
+            label, _, colour, factor = RESIDUAL_FAMILIES[fam]
+            level = factor * floor
+            ax.axhline(level, color=_AFTER if fam == "sensor" else colour,
+                       ls="--" if fam == "sensor" else ":", lw=1.5,
+                       label=f"{_FLOOR_TEXT[fam]} {level:.3g} {unit}"
+                       + ("" if fam == "sensor" else f" ({label})"))
+            tops.append(level)
+    for fam in families:   # legend entry per residual family
+        label, what, colour, _ = RESIDUAL_FAMILIES[fam]
+        ax.plot([], [], "o-", color=colour, label=f"{label} ({what})")
+    ax.legend(loc="upper right", fontsize=7)
     names = [", ".join(s["model"]) if "added" not in s else "+ " + s["added"] for s in steps]
-    values = [s["rms"] for s in steps]
-    k = np.arange(len(steps))
-    ax1.plot(k, values, "o-", color=_INLIER, lw=2, ms=7)
-    for i, v in zip(k, values):
-        ax1.annotate(f"{v:.3g}", (i, v), xytext=(0, 8), textcoords="offset points", ha="center",
-                     fontsize=9)
+    ax.set_xticks(k_all, names, rotation=12, fontsize=8)
+    ax.set_xlim(-0.5, len(steps) - 0.3)
+    ax.set_ylim(0, 1.45 * max(tops))
+    ax.set_ylabel(f"rms residual ({unit}), on the residual its colour names")
+    ax.set_title("model ladder: rms after each added effect\n(each step against the previous "
+                 "model on the same residual)", fontsize=10)
+    ax.grid(alpha=0.3)
+
+
+def _candidate_panel(ax, d, residual: str, before: float, cands: list, unit: str,
+                     first: bool) -> None:
+    label, what, colour, factor = RESIDUAL_FAMILIES[residual]
+    after = np.array([c.rms_after for c in cands], dtype=float)
+    y = np.arange(len(cands))[::-1]
+    ax.barh(y, after, color=[_AFTER if c.significant else "#bbbbbb" for c in cands],
+            height=0.7)
+    ax.set_yticks(y, [c.effect for c in cands], fontsize=8)
+    now = "model now" if residual == getattr(d, "residual", "sensor") else "same model"
+    ax.axvline(before, color="k", lw=1.2)
+    top = ax.get_xaxis_transform()
+    ax.text(before, 1.01, f"{now} {before:.3g}", transform=top, ha="center", va="bottom",
+            fontsize=8)
+    values = list(after) + [before]
     if np.isfinite(d.noise_floor):
-        ax1.axhline(d.noise_floor, color=_AFTER, ls="--", lw=1.5,
-                    label=f"noise floor {d.noise_floor:.3g} {unit}")
-        ax1.legend(loc="upper right", fontsize=8)
-    ax1.set_xticks(k, names, rotation=12, fontsize=8)
-    ax1.set_xlim(-0.5, len(steps) - 0.5)
-    ax1.set_ylim(0, 1.25 * max(values + [d.noise_floor if np.isfinite(d.noise_floor) else 0]))
-    ax1.set_ylabel(f"rms residual ({unit})")
-    ax1.set_title("model ladder: rms after each added effect", fontsize=10)
-    ax1.grid(alpha=0.3)
-    cands = d.candidates
-    if cands:
-        y = np.arange(len(cands))[::-1]
-        ax2.barh(y, [c.rms_after for c in cands],
-                 color=[_AFTER if c.significant else "#bbbbbb" for c in cands])
-        ax2.set_yticks(y, [c.effect for c in cands], fontsize=8)
-        top = ax2.get_xaxis_transform()
-        ax2.axvline(d.rms, color="k", lw=1)
-        ax2.text(d.rms, 1.01, f"model now {d.rms:.3g}", transform=top, ha="center", fontsize=8)
-        if np.isfinite(d.noise_floor):
-            ax2.axvline(d.noise_floor, color=_AFTER, ls="--", lw=1.5)
-            ax2.text(d.noise_floor, 0.01, "noise floor ", transform=top, ha="right",
-                     va="bottom", fontsize=8, color=_AFTER)
-        ax2.set_xlabel(f"rms after adding it ({unit}); green = significant")
-    else:
-        _note(ax2, "no candidate effect can be tried on this track")
-    ax2.set_title("candidate effects, best first", fontsize=10, pad=16)
-    ax2.grid(alpha=0.3, axis="x")
+        level = factor * d.noise_floor
+        ax.axvline(level, color=_AFTER if residual == "sensor" else colour,
+                   ls="--" if residual == "sensor" else ":", lw=1.5)
+        ax.text(level, 0.02, _FLOOR_TEXT[residual] + " ", transform=top, ha="right",
+                va="bottom", fontsize=7, color=_AFTER if residual == "sensor" else colour)
+        values.append(level)
+    ax.set_xlim(0, 1.32 * max(values))
+    right = ax.get_yaxis_transform()
+    for yi, c, a in zip(y, cands, after):
+        worse = a > before * 1.005
+        ax.text(0.995, yi, f"{a:.3g}  {_change(before, a)}", transform=right, ha="right",
+                va="center", fontsize=8, color=_OUTLIER if worse else
+                (_AFTER if c.significant else "#555555"),
+                fontweight="bold" if c.significant else "normal")
+    ax.set_ylim(-0.6, len(cands) - 0.4)
+    ax.set_xlabel(f"rms after adding it ({unit}), {label}", fontsize=8)
+    ax.tick_params(axis="x", labelsize=8)
+    ax.grid(alpha=0.3, axis="x")
+    title = f"{label}: {what}"
+    if first:
+        title = "candidate effects, best first (green = significant; % = change)\n" + title
+    ax.set_title(title, fontsize=9, color=colour, pad=14)
+
+
+def ladder_figure(data: FigureData) -> Figure:
+    """Left: the model ladder, each step against the previous model on its own residual.
+    Right: one panel per residual family (:data:`RESIDUAL_FAMILIES`), each candidate's
+    ``rms_after`` against the model without it on the same residual ("model now" / "same
+    model") and that residual's noise level, with the relative change."""
+    d = data.diagnosis
+    unit = unit_label(data.unit)
+    groups = candidate_groups(d)
+    rows = [len(c) + 2.2 for _, _, c in groups] or [1.0]
+    fig = Figure(figsize=(12, max(4.4, 0.9 + 0.3 * sum(rows))))
+    gs = fig.add_gridspec(len(rows), 2, width_ratios=[1, 1.3], height_ratios=rows)
+    _ladder_panel(fig.add_subplot(gs[:, 0]), d, unit)
+    if not groups:
+        ax = fig.add_subplot(gs[0, 1])
+        _note(ax, "no candidate effect can be tried on this track")
+        ax.set_title("candidate effects, best first", fontsize=10, pad=16)
+    for i, (residual, before, cands) in enumerate(groups):
+        _candidate_panel(fig.add_subplot(gs[i, 1]), d, residual, before, cands, unit, i == 0)
     fig.tight_layout()
     return fig
 
@@ -525,8 +657,12 @@ FIGURES = (
      "each auxiliary channel, with the binned rms; a trend here is an effect the model lacks. "
      "Shaded: outlier spans.", residuals_figure, False),
     ("ladder", "Model ladder and candidates",
-     "The rms after adding, one by one, the effect that explains most; it should fall to the "
-     "noise floor. Right: what each candidate effect would give on its own.", ladder_figure, True),
+     "Left: the rms after adding, one by one, the effect that explains most; it should fall to "
+     "the noise floor. Right: what each candidate effect would give on its own, one panel per "
+     "residual: misalignment and lag leave no trace where every direction is free, so they are "
+     "measured on a residual whose direction is tied to gravity (or the gyro), which has its "
+     "own, higher level. Compare each bar with the black line of its own panel (the model "
+     "without the effect on that residual); the percentage is that change.", ladder_figure, True),
 )
 
 
