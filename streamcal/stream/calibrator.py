@@ -37,6 +37,7 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, Calibration
 from ..fit.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
+from .disturbance import GROSS, Disturbance, DisturbanceRule, Quarantine
 from .guard import AcceptanceGuard, Decision, radius_of
 from .policy import RecalPolicy
 from .staging import Stage, block_covariates
@@ -53,8 +54,9 @@ class Event:
     """Something the calibrator did or noticed.
 
     ``kind``: ``loaded``, ``load_problem``, ``coverage``, ``fit_started``, ``fit_failed``,
-    ``accepted``, ``rejected``, ``discarded``, ``drift``, ``forgot``, ``recalled``, ``stored``,
-    ``store_error``. ``t`` is the sample time (s) at which it happened, ``data`` its figures
+    ``accepted``, ``rejected``, ``discarded``, ``disturbance`` (a transient disagreement ended;
+    ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back), ``drift``
+    (an environment change), ``forgot``, ``recalled``, ``stored``, ``store_error``. ``t`` is the sample time (s) at which it happened, ``data`` its figures
     (JSON-ready).
     """
 
@@ -132,7 +134,8 @@ class StreamingCalibrator:
                  policy: RecalPolicy | None = None, guard: AcceptanceGuard | None = None,
                  model=DEFAULT_MODEL, unit: str = "uT", stage: int = 256, holdout_every: int = 5,
                  coarse_every: int = 200, coarse_min: int = 100, remember: int = 4,
-                 recall_checks: int = 5, synchronous: bool = False):
+                 recall_checks: int = 5, disturbance: DisturbanceRule | None = None,
+                 hold: int = 2048, synchronous: bool = False):
         self.fitter = fitter if fitter is not None else default_fitter(model)
         self.store = store
         self.buffer = buffer if buffer is not None else CoverageBuffer()
@@ -165,6 +168,9 @@ class StreamingCalibrator:
         self._recall_at = 0
         self._recall_streak: tuple = (None, 0)
         self._pending: list[Event] = []
+        self.disturbance_rule = disturbance if disturbance is not None else DisturbanceRule()
+        self.quarantine = Quarantine(hold, len(self.buffer.covariate_names))
+        self._disturbance: Disturbance | None = None
         if store is not None:
             self._load()
 
@@ -238,8 +244,11 @@ class StreamingCalibrator:
         return out
 
     def close(self, timeout: float | None = None) -> list:
-        """Process what is staged and wait for a fit in flight; returns the last events."""
-        return self.drain(timeout)
+        """Process what is staged and wait for a fit in flight; returns the last events (a
+        disturbance still open is reported as ending at the last sample)."""
+        events = self.drain(timeout)
+        self._end_disturbance(events)
+        return events
 
     # -- the per-stage path -------------------------------------------------------------------
     def _process(self, m, t, cov) -> list:
@@ -249,32 +258,19 @@ class StreamingCalibrator:
         events: list[Event] = []
         self._n_done += n
         self._t_last = t_now = float(t[-1])
-        self.stats.update(m)
         calibrated = self._cal is not None and not self.stale
-        if not calibrated:
+        if calibrated:
+            m, t, cov = self._hold_back(m, t, cov, events)
+        else:
+            self.stats.update(m)
             # The coarse estimate frames directions until a calibration is in use.
             self._since_coarse += n
             if self._since_coarse >= self.coarse_every:
                 self._update_coarse()
-        if calibrated and not self._cal.effects:
-            # The buffer's frame is the calibration's: one projection serves both.
-            x = (m - self._cal.b) @ self._cal_AT
-            r = np.sqrt(np.einsum("nk,nk->n", x, x))
-            d = x / np.maximum(r, 1e-300)[:, None]
-            cell = self.buffer.cells.cell_of(d)
-            stored, new_cells = self.buffer.insert(m, t, cov, d=d, cell=cell)
-        else:
             stored, new_cells = self.buffer.insert(m, t, cov)
-        self.policy.note(stored, new_cells)
-        if calibrated:
-            if self._cal.effects:
-                names = self.buffer.covariate_names
-                x = self._cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
-                r = np.sqrt(np.einsum("nk,nk->n", x, x))
-                cell = self.buffer.cells.cell_of(x / np.maximum(r, 1e-300)[:, None])
-            self._check_drift(r, cell, t, events)
-        elif self._remembered:
-            self._check_recall(m, t, events)
+            self.policy.note(stored, new_cells)
+            if self._remembered:
+                self._check_recall(m, t, events)
         self._milestones(events)
         events += self._collect()
         if self._job is None:
@@ -316,38 +312,124 @@ class StreamingCalibrator:
         if from_cal:
             self._cal_AT = np.asarray(A).T.copy()
             self._cal_R = radius_of(self._cal)
+            self._limit = self.policy.drift_limit(self._cal.rms, self._cal_R)
         self._frame_is_cal = from_cal
         self._milestone = _floor_milestone(self.buffer.fraction)
 
-    def _check_drift(self, r, cell, t, events) -> None:
-        """``r`` (n,): ``‖K⁻¹(m − b − effects)‖`` of the new samples, ``cell`` (n,) their cells."""
+    def _hold_back(self, m, t, cov, events):
+        """With a calibration in force: samples that disagree with it are held back (module
+        :mod:`.disturbance`), the others go to the buffer and the running sums; then the drift
+        window is judged. Returns the samples the buffer was offered."""
         cal = self._cal
+        if not cal.effects:
+            # The buffer's frame is the calibration's: one projection serves both.
+            y = (m - cal.b) @ self._cal_AT
+        else:
+            names = self.buffer.covariate_names
+            y = cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+        r = np.sqrt(np.einsum("nk,nk->n", y, y))
+        d = y / np.maximum(r, 1e-300)[:, None]
+        cell = self.buffer.cells.cell_of(d)
+        err = np.abs(r - 1.0)
+        limit = self._limit
+        # Only directions the calibration was fitted on: elsewhere it extrapolates, and a large
+        # error there asks for a refit on more coverage (new cells), not for holding back.
         if self._support is not None:
-            # Only directions the calibration was fitted on: elsewhere it extrapolates, and a
-            # large error there asks for a refit on more coverage (new cells), not for forgetting.
             inside = self._support[cell]
-            r, t = r[inside], t[inside]
-            if not len(r):
+            held = (err > limit) & inside | (err > GROSS)
+            self.policy.observe(err[inside], t[inside])
+        else:
+            held = err > limit
+            self.policy.observe(err, t)
+        kept = (m, t, cov)
+        if held.any():
+            self.quarantine.push(m[held], y[held], t[held], cov[held])
+            if self._disturbance is not None:
+                self._disturbance.note(err[held], t[held])
+            ok = ~held
+            kept, d, cell = (m[ok], t[ok], cov[ok]), d[ok], cell[ok]
+        self.stats.update(kept[0])
+        if cal.effects:
+            stored, new_cells = self.buffer.insert(*kept)
+        else:
+            stored, new_cells = self.buffer.insert(*kept, d=d, cell=cell)
+        self.policy.note(stored, new_cells)
+        check = self.policy.check(cal.rms, self._cal_R)
+        if check is not None:
+            self._judge(check, err[held], t[held], events)
+        return kept
+
+    def _judge(self, check, held_err, held_t, events) -> None:
+        """Open, close or confirm a disturbance from one drift-window judgement."""
+        dist = self._disturbance
+        if dist is None:
+            if not check.disagrees:
                 return
-        self.policy.observe(np.abs(r - 1.0), t)
-        found = self.policy.drift(cal.rms, self._cal_R)
-        if found is None:
+            dist = self._disturbance = Disturbance(check.onset)
+            # Held before the window turned: count them into this disturbance.
+            early = self.quarantine.since(check.onset)
+            dist.note(np.abs(np.linalg.norm(self.quarantine.y[early], axis=1) - 1.0),
+                      self.quarantine.t[early])
+        elif check.fraction <= self.disturbance_rule.calm_fraction:
+            self._end_disturbance(events)
             return
-        stat, limit, onset = found
+        rule = self.disturbance_rule
+        idx = self.quarantine.since(dist.start)
+        if rule.new_shell(dist, self.quarantine.y[idx], check.limit, self._t_last):
+            why = (f"the disagreeing samples lie on one shell (median residual {dist.shell:.3f} "
+                   f"≤ {rule.shell_k * check.limit:.3f}): a new hard iron?")
+            reason = "new_shell"
+        elif self._t_last - dist.start >= rule.persist_s:
+            why = (f"the disagreement lasted {self._t_last - dist.start:.1f} s ≥ "
+                   f"{rule.persist_s:g} s")
+            reason = "persisted"
+        else:
+            return
+        self._environment_changed(check, dist, reason, why, idx, events)
+
+    def _end_disturbance(self, events) -> None:
+        dist, self._disturbance = self._disturbance, None
+        if dist is None:
+            return
+        R = self._cal_R
+        end = self._t_last
+        events.append(Event(
+            "disturbance", f"transient disturbance from t={dist.start:.2f} to {end:.2f} s: peak "
+            f"error {dist.peak * R:.3g} {self.unit} ({100 * dist.peak:.0f}% of the field) at "
+            f"t={dist.peak_t:.2f} s; {dist.n_held} samples held back, buffer kept",
+            {"start": dist.start, "end": end, "duration": end - dist.start,
+             "peak": dist.peak * R, "peak_relative": dist.peak, "peak_t": dist.peak_t,
+             "held": dist.n_held, "shell_residual": _finite(dist.shell)}, end))
+        self.quarantine.clear()
+
+    def _environment_changed(self, check, dist, reason, why, idx, events) -> None:
+        onset = dist.start
         events.append(Event("drift", f"field no longer fits the calibration: median relative "
-                            f"error {stat:.3f} > {limit:.3f} since t={onset:.2f} s "
-                            f"(new hard iron or a magnet nearby?)",
-                            {"value": stat, "limit": limit, "onset": onset}, float(t[-1])))
+                            f"error {check.stat:.3f} > {check.limit:.3f} since t={onset:.2f} s; "
+                            f"{why}",
+                            {"value": check.stat, "limit": check.limit, "onset": onset,
+                             "reason": reason, "shell_residual": _finite(dist.shell),
+                             "held": dist.n_held}, self._t_last))
+        q = self.quarantine
+        self._disturbance = None
         self._forget(onset, events, "calibration in use is stale until a new one is accepted "
-                     "or a remembered one fits again")
+                     "or a remembered one fits again",
+                     (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()))
+        q.clear()
         self.stale = True
         self._recent_n = self._recall_at = 0
         self._recall_streak = (None, 0)
         if self._job is not None:
             self._job.obsolete = True
 
-    def _forget(self, onset: float, events, why: str) -> None:
+    def _forget(self, onset: float, events, why: str, held=None) -> None:
+        """Drop the buffer's samples older than ``onset``; ``held`` (m, t, cov): samples held back
+        since then, which belong to the new environment and join the buffer."""
         dropped = self.buffer.forget_before(onset)
+        n_held = 0
+        if held is not None and len(held[1]):
+            n_held = len(held[1])
+            self.buffer.insert(*held)
         kept = self.buffer.snapshot()
         self.stats.reset()
         self.stats.update(kept.m)
@@ -356,9 +438,11 @@ class StreamingCalibrator:
         self.policy.restart()
         self._milestone = _floor_milestone(self.buffer.fraction)
         events.append(Event("forgot", f"forgot {dropped} stored samples older than "
-                            f"t={onset:.2f} s; kept {len(kept)}; {why}",
-                            {"dropped": dropped, "kept": len(kept), "onset": onset},
-                            self._t_last))
+                            f"t={onset:.2f} s; kept {len(kept)}"
+                            + (f" (with {n_held} held-back samples of the new field)"
+                               if n_held else "") + f"; {why}",
+                            {"dropped": dropped, "kept": len(kept), "onset": onset,
+                             "held_added": n_held}, self._t_last))
 
     def _check_recall(self, m, t, events) -> None:
         """While stale: a full window of new samples that a remembered calibration (K, b only)

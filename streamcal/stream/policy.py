@@ -123,20 +123,33 @@ class RecalPolicy:
         rel = rms / radius if np.isfinite(rms) and radius > 0 else 0.0
         return max(self.drift_k * rel, self.drift_floor)
 
-    def drift(self, rms: float, radius: float) -> tuple[float, float, float] | None:
-        """``(statistic, limit, onset_t)`` when the full window disagrees with the calibration
-        (statistic > limit), else None; ``onset_t`` is the time of the window's first sample
-        beyond the limit (s)."""
+    def check(self, rms: float, radius: float) -> WindowCheck | None:
+        """Judge a full window, and then once per quarter window of new samples; None when no
+        judgement is due."""
         W = len(self._err)
-        # Judge a full window, and then once per quarter window of new samples.
         if self._n < W or self._n - self._checked_at < W // 4:
             return None
         self._checked_at = self._n
-        stat = _median(self._err)
         limit = self.drift_limit(rms, radius)
-        if stat > limit:
-            return stat, limit, float(self._t[self._err > limit].min())
-        return None
+        beyond = self._err > limit
+        onset = float(self._t[beyond].min()) if beyond.any() else float("nan")
+        return WindowCheck(_median(self._err), limit, float(beyond.mean()), onset)
+
+
+@dataclass(frozen=True)
+class WindowCheck:
+    """One judgement of the drift window: ``stat`` its median relative error, ``limit`` the drift
+    limit, ``fraction`` of its samples beyond the limit, ``onset`` the time (s) of the earliest
+    of them (NaN when none). The window disagrees when ``stat > limit``."""
+
+    stat: float
+    limit: float
+    fraction: float
+    onset: float
+
+    @property
+    def disagrees(self) -> bool:
+        return self.stat > self.limit
 
 
 def _median(x: np.ndarray) -> float:
