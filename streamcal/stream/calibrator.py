@@ -321,12 +321,7 @@ class StreamingCalibrator:
         :mod:`.disturbance`), the others go to the buffer and the running sums; then the drift
         window is judged. Returns the samples the buffer was offered."""
         cal = self._cal
-        if not cal.effects:
-            # The buffer's frame is the calibration's: one projection serves both.
-            y = (m - cal.b) @ self._cal_AT
-        else:
-            names = self.buffer.covariate_names
-            y = cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+        y = self._calibrated(m, t, cov)
         r = np.sqrt(np.einsum("nk,nk->n", y, y))
         d = y / np.maximum(r, 1e-300)[:, None]
         cell = self.buffer.cells.cell_of(d)
@@ -356,24 +351,35 @@ class StreamingCalibrator:
         self.policy.note(stored, new_cells)
         check = self.policy.check(cal.rms, self._cal_R)
         if check is not None:
-            self._judge(check, err[held], t[held], events)
+            self._judge(check, events)
         return kept
 
-    def _judge(self, check, held_err, held_t, events) -> None:
+    def _calibrated(self, m, t, cov) -> np.ndarray:
+        """``K⁻¹(m − b − effect terms)`` (n,3) under the calibration in use."""
+        cal = self._cal
+        if not cal.effects:
+            # The buffer's frame is the calibration's: one projection serves both.
+            return (m - cal.b) @ self._cal_AT
+        names = self.buffer.covariate_names
+        return cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+
+    def _judge(self, check, events) -> None:
         """Open, close or confirm a disturbance from one drift-window judgement."""
         dist = self._disturbance
+        rule = self.disturbance_rule
         if dist is None:
-            if not check.disagrees:
+            if check.fraction <= rule.open_fraction:
                 return
             dist = self._disturbance = Disturbance(check.onset)
             # Held before the window turned: count them into this disturbance.
             early = self.quarantine.since(check.onset)
             dist.note(np.abs(np.linalg.norm(self.quarantine.y[early], axis=1) - 1.0),
                       self.quarantine.t[early])
-        elif check.fraction <= self.disturbance_rule.calm_fraction:
+        elif check.fraction <= rule.calm_fraction:
             self._end_disturbance(events)
             return
-        rule = self.disturbance_rule
+        if not check.disagrees:         # most of the window fits: not an environment change
+            return
         idx = self.quarantine.since(dist.start)
         if rule.new_shell(dist, self.quarantine.y[idx], check.limit, self._t_last):
             why = (f"the disagreeing samples lie on one shell (median residual {dist.shell:.3f} "

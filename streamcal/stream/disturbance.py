@@ -12,13 +12,17 @@ second should make the calibrator forget its buffer. Two observations tell them 
 
 So disagreeing samples (relative error ``|‖y‖ − 1|`` above the drift limit, on directions the
 calibration was fitted on; above :data:`GROSS` anywhere) are *held back* in a bounded
-:class:`Quarantine` instead of entering the coverage buffer or the running sums. While the drift
-window says the field disagrees (a *disturbance* is open) the held samples since its start are
-fitted with a unit sphere of free centre (:func:`shell_fit`, the field strength does not change
-with hard iron). The disturbance is an environment change when they fit it like the calibration
-fits clean samples (median residual within the drift limit) or when it lasts ``persist_s``;
-it is a transient when the window agrees again first. The held samples then either join the
-buffer (they are the new environment's first samples) or are dropped.
+:class:`Quarantine` instead of entering the coverage buffer or the running sums. When a good part
+of the drift window disagrees, a *disturbance* is open from its first disagreeing sample on.
+(A phone's field can also carry a reading across the shell, where that sample looks clean and
+enters the buffer: a handful per pass, which the robust fit tolerates.) The held samples that
+disagree are fitted with a unit sphere of free centre (:func:`shell_fit`; the field strength
+does not change with hard iron). The disturbance is an environment change when most of the
+window disagrees (its median is beyond the limit, as before) and, at least ``min_age_s`` after
+it began, the held samples lie on the new shell as well as clean samples lie on the
+calibration's (median residual within the drift limit), or when it lasts ``persist_s``. It is a
+transient when the window agrees again first. The held samples then either join the buffer
+(they are the new environment's first samples) or are dropped.
 
 The unit-radius fit is Gauss–Newton on ``r_i = ‖y_i − c‖ − 1``, ``∂r_i/∂c = −u_i`` with
 ``u_i = (y_i − c)/‖y_i − c‖``, from ``c = 0`` (the calibration in use), with a small Levenberg
@@ -85,9 +89,8 @@ class Quarantine:
 
     def since(self, t0: float) -> np.ndarray:
         """Ring positions of the held samples at ``t ≥ t0``, oldest first."""
-        Q = self.capacity
-        order = (self._n + np.arange(Q)) % Q if self._n >= Q else np.arange(self._n)
-        return order[self.t[order] >= t0]
+        idx = np.flatnonzero(self.t >= t0)
+        return idx[np.argsort(self.t[idx], kind="stable")]
 
     def clear(self) -> None:
         self.t[:] = -np.inf
@@ -133,19 +136,27 @@ class DisturbanceRule:
         persist_s: a disagreement lasting this long is an environment change whatever its shape
             (a phone left on the table next to the board is one, until it is taken away — then
             the remembered calibration is recalled).
-        calm_fraction: the disturbance ends when at most this fraction of the drift window
-            disagrees (it opens at one half: the window median; hysteresis in between).
+        open_fraction: a disturbance opens when more than this fraction of the drift window
+            disagrees (a correct calibration has hardly any sample beyond the limit; a phone
+            passing in two seconds may disturb fewer than half of a 200-sample window);
+        calm_fraction: …and ends when at most this fraction disagrees (hysteresis).
+
+    An environment change needs, besides the shell or the duration, the drift window's median
+    beyond the limit (most of the field disagrees).
     """
 
     min_age_s: float = 3.0
     min_held: int = 100
     shell_k: float = 1.0
     persist_s: float = 20.0
-    calm_fraction: float = 0.25
+    open_fraction: float = 0.25
+    calm_fraction: float = 0.1
 
     def new_shell(self, dist: Disturbance, y: np.ndarray, limit: float, t_now: float) -> bool:
-        """Fit the held samples ``y`` (n,3) with one unit sphere; True when they lie on it and
-        the disturbance is old enough (``t_now`` s)."""
+        """Fit the held samples ``y`` (n,3) that disagree with the calibration in use (relative
+        error beyond ``limit``) with one unit sphere; True when they lie on it and the
+        disturbance is old enough (``t_now`` s)."""
+        y = y[np.abs(np.sqrt(np.einsum("nk,nk->n", y, y)) - 1.0) > limit]
         if len(y) < self.min_held or t_now - dist.start < self.min_age_s:
             return False
         dist.center, res = shell_fit(y)
