@@ -46,26 +46,53 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+_RESIDUAL = {"sensor": "sensor", "gravity_tied": "gravity-tied", "gyro_tied": "gyro-tied"}
+
+
+def _change(before: float, after: float) -> str:
+    """``after / before − 1`` in percent ("-39%", "±0%")."""
+    if not (before > 0 and after == after):
+        return ""
+    pct = round(100.0 * (after / before - 1.0))
+    return f"{pct:+d}%" if pct else "±0%"
+
+
 def _text(d) -> str:
+    """Every rms beside the rms it is compared with on the same residual (see
+    :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual."""
+    out_by = tuple(d.outliers_model or d.model)
     lines = [f"model      {', '.join(d.model)}",
-             f"samples    {d.n} ({d.n_outliers} outliers)",
-             f"rms        {d.rms:.4g}   noise floor {d.noise_floor:.4g}",
+             f"samples    {d.n} ({d.n_outliers} outliers"
+             + ("" if out_by == tuple(d.model) else f" of {', '.join(out_by)}") + ")",
+             f"rms        {d.rms:.4g}   noise floor {d.noise_floor:.4g}"
+             + ("" if d.residual == "sensor" else f"   ({_RESIDUAL[d.residual]} residual)"),
              f"verdict    {d.verdict}"]
     if d.candidates:
-        lines += ["", f"{'candidate':<24}{'rms after':>10}{'p-value':>11}  evidence"]
-        lines += [f"{c.effect:<24}{c.rms_after:>10.4g}{c.p_value:>11.2e}  {c.evidence}"
-                  for c in d.candidates]
+        lines += ["", f"{'candidate':<24}{'residual':>13}{'before':>9}{'after':>9}{'change':>8}"
+                      f"{'p-value':>11}  evidence"]
+        for c in d.candidates:
+            residual, before = d.baseline(c)
+            lines.append(f"{c.effect:<24}{_RESIDUAL.get(residual, residual):>13}{before:>9.4g}"
+                         f"{c.rms_after:>9.4g}{_change(before, c.rms_after):>8}"
+                         f"{c.p_value:>11.2e}  {c.evidence}")
+        if any(d.baseline(c)[0] != "sensor" for c in d.candidates):
+            lines.append("(each candidate against the model without it on the same residual; "
+                         "the tied residuals include the gravity reference's or the gyro's error "
+                         "and are not comparable with the sensor rms)")
     if d.ladder:
-        lines += ["", "model ladder", f"{'step':<34}{'rms':>10}{'× floor':>9}"]
+        lines += ["", "model ladder", f"{'step':<34}{'residual':>13}{'before':>9}{'rms':>9}"
+                                      f"{'× floor':>9}"]
         for step in d.ladder:
             name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
-            if step.get("gravity_tied"):
-                name += " (gravity-tied)"  # rms of the gravity-tied residual, another scale
-            elif step.get("gyro_tied"):
-                name += " (gyro-tied)"     # rms of the gyro-tied residual, another scale
-            ratio = step["rms"] / d.noise_floor if d.noise_floor else float("nan")
-            lines.append(f"{name:<34}{step['rms']:>10.4g}{ratio:>9.2f}")
-        lines.append(f"{'noise floor':<34}{d.noise_floor:>10.4g}{1.0:>9.2f}")
+            residual = step.get("residual", "sensor")
+            before = f"{step['rms_before']:>9.4g}" if "rms_before" in step else " " * 9
+            # × floor only where the rms is on the residual the floor is for
+            ratio = step["rms"] / d.noise_floor if d.noise_floor and residual == "sensor" \
+                else float("nan")
+            ratio = f"{ratio:>9.2f}" if ratio == ratio else f"{'–':>9}"
+            lines.append(f"{name:<34}{_RESIDUAL.get(residual, residual):>13}{before}"
+                         f"{step['rms']:>9.4g}{ratio}")
+        lines.append(f"{'noise floor':<34}{'sensor':>13}{'':>9}{d.noise_floor:>9.4g}{1.0:>9.2f}")
     if d.outlier_spans:
         lines += ["", "outlier spans (s): " + ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in d.outlier_spans)]
     return "\n".join(lines)

@@ -475,11 +475,11 @@ def residuals_figure(data: FigureData) -> Figure:
 #: the gravity reference's own error adds to that; the gyro-tied residual compares two samples,
 #: two components each (≈ 2 × floor, :mod:`streamcal.model.gyro_lag`).
 RESIDUAL_FAMILIES = {
-    "sensor": ("sensor residual", "eq. 41, every direction free", _INLIER, 1.0),
+    "sensor": ("sensor residual", "every direction free (eq. 41)", _INLIER, 1.0),
     "gravity_tied": ("gravity-tied residual",
-                     "direction tied to the accelerometer's gravity; includes its error",
+                     "directions tied to gravity, includes the accelerometer's error",
                      "#8c4fbf", float(np.sqrt(2.0))),
-    "gyro_tied": ("gyro-tied residual", "direction carried 0.5 s ahead by the gyro", "#e07b00",
+    "gyro_tied": ("gyro-tied residual", "directions carried 0.5 s ahead by the gyro", "#e07b00",
                   2.0),
 }
 _FLOOR_TEXT = {"sensor": "noise floor", "gravity_tied": "noise alone ≈ √2×floor",
@@ -521,9 +521,9 @@ def candidate_groups(d) -> list[tuple[str, float, list]]:
     return [(name, before, cands) for name, (before, cands) in groups.items()]
 
 
-def _change(before: float, after: float) -> str:
+def relative_change(before: float, after: float) -> str:
     """Relative change ``after / before − 1`` as text ("−39 %", "±0 %")."""
-    if not before > 0:
+    if not (before > 0 and np.isfinite(after)):
         return ""
     pct = round(100.0 * (after / before - 1.0))
     return "±0 %" if pct == 0 else f"{'+' if pct > 0 else '−'}{abs(pct)} %"
@@ -548,7 +548,7 @@ def _ladder_panel(ax, d, unit: str) -> None:
             ax.annotate(f"same model on the {label}: {before:.3g}", (k - 1, before),
                         xytext=(8, 4), textcoords="offset points", fontsize=8, color=colour)
         ax.plot([k - 1, k], [before, step["rms"]], "-", color=colour, lw=2)
-        ax.annotate(_change(before, step["rms"]), ((k - 0.5), (before + step["rms"]) / 2),
+        ax.annotate(relative_change(before, step["rms"]), ((k - 0.5), (before + step["rms"]) / 2),
                     xytext=(0, 6), textcoords="offset points", ha="center", fontsize=9,
                     color=colour, fontweight="bold")
     families = list(dict.fromkeys(s["residual"] for s in steps))
@@ -558,20 +558,19 @@ def _ladder_panel(ax, d, unit: str) -> None:
             level = factor * floor
             ax.axhline(level, color=_AFTER if fam == "sensor" else colour,
                        ls="--" if fam == "sensor" else ":", lw=1.5,
-                       label=f"{_FLOOR_TEXT[fam]} {level:.3g} {unit}"
-                       + ("" if fam == "sensor" else f" ({label})"))
+                       label=f"{_FLOOR_TEXT[fam]} {level:.3g} {unit}")
             tops.append(level)
     for fam in families:   # legend entry per residual family
         label, what, colour, _ = RESIDUAL_FAMILIES[fam]
-        ax.plot([], [], "o-", color=colour, label=f"{label} ({what})")
+        ax.plot([], [], "o-", color=colour, label=label)
     ax.legend(loc="upper right", fontsize=7)
     names = [", ".join(s["model"]) if "added" not in s else "+ " + s["added"] for s in steps]
     ax.set_xticks(k_all, names, rotation=12, fontsize=8)
     ax.set_xlim(-0.5, len(steps) - 0.3)
-    ax.set_ylim(0, 1.45 * max(tops))
-    ax.set_ylabel(f"rms residual ({unit}), on the residual its colour names")
-    ax.set_title("model ladder: rms after each added effect\n(each step against the previous "
-                 "model on the same residual)", fontsize=10)
+    ax.set_ylim(0, 1.5 * max(tops))
+    ax.set_ylabel(f"rms residual ({unit})")
+    ax.set_title("model ladder: rms after each added effect\n(colour = residual; each step "
+                 "against the previous model on the same residual)", fontsize=10)
     ax.grid(alpha=0.3)
 
 
@@ -593,14 +592,18 @@ def _candidate_panel(ax, d, residual: str, before: float, cands: list, unit: str
         level = factor * d.noise_floor
         ax.axvline(level, color=_AFTER if residual == "sensor" else colour,
                    ls="--" if residual == "sensor" else ":", lw=1.5)
-        ax.text(level, 0.02, _FLOOR_TEXT[residual] + " ", transform=top, ha="right",
-                va="bottom", fontsize=7, color=_AFTER if residual == "sensor" else colour)
         values.append(level)
-    ax.set_xlim(0, 1.32 * max(values))
+    xmax = 1.32 * max(values)
+    if np.isfinite(d.noise_floor):   # text left of the line, or right of it near the axis
+        left = level > 0.25 * xmax
+        ax.text(level, 0.02, (_FLOOR_TEXT[residual] + " ") if left else
+                (" " + _FLOOR_TEXT[residual]), transform=top, ha="right" if left else "left",
+                va="bottom", fontsize=7, color=_AFTER if residual == "sensor" else colour)
+    ax.set_xlim(0, xmax)
     right = ax.get_yaxis_transform()
     for yi, c, a in zip(y, cands, after):
         worse = a > before * 1.005
-        ax.text(0.995, yi, f"{a:.3g}  {_change(before, a)}", transform=right, ha="right",
+        ax.text(0.995, yi, f"{a:.3g}  {relative_change(before, a)}", transform=right, ha="right",
                 va="center", fontsize=8, color=_OUTLIER if worse else
                 (_AFTER if c.significant else "#555555"),
                 fontweight="bold" if c.significant else "normal")

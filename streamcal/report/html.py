@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_text
-from .figures import FigureData, RenderedFigure, render_figures, unit_label
+from .figures import (RESIDUAL_FAMILIES, FigureData, RenderedFigure, ladder_steps,
+                      relative_change, render_figures, unit_label)
 
 _CSS = """
 body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;max-width:1240px;margin:0 auto;
@@ -90,42 +91,86 @@ def _img(fig: RenderedFigure) -> str:
             f"<figcaption>{_e(fig.caption)}</figcaption></figure>")
 
 
+def _residual_name(residual: str) -> str:
+    label, what, _, _ = RESIDUAL_FAMILIES.get(residual, RESIDUAL_FAMILIES["sensor"])
+    return f"{label} ({what})"
+
+
 def _summary(d, track_name: str, unit: str) -> str:
     if d.verdict == "effect_missing" and d.candidates:
         top = d.candidates[0]
+        residual, before = d.baseline(top)
         cmd = f"streamcal fit {track_name} --add {top.effect}"
+        if residual == "sensor":
+            gives = (f"<b>{_num(top.rms_after)} {unit}</b> "
+                     f"({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)")
+        else:   # another residual: compare with the model on that residual, not with d.rms
+            gives = (f"<b>{_num(top.rms_after)} {unit}</b> on the {_e(_residual_name(residual))}, "
+                     f"where the model without it gives {_num(before)} {unit} "
+                     f"({_e(relative_change(before, top.rms_after))}; that residual cannot go below "
+                     f"about {_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, "
+                     f"noise alone)")
         return (f'<div class="box missing"><b>An effect is missing.</b> The model '
                 f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
                 f"<b>{_num(d.rms)} {unit}</b>, {_num(d.rms / d.noise_floor, '.2f')}× the noise "
                 f"floor ({_num(d.noise_floor)} {unit}). The best candidate is "
-                f"<b>{_e(top.effect)}</b> ({_e(top.evidence)}): adding it gives "
-                f"<b>{_num(top.rms_after)} {unit}</b> "
-                f"({_num(top.rms_after / d.noise_floor, '.2f')}× the floor). Try "
+                f"<b>{_e(top.effect)}</b> ({_e(top.evidence)}): adding it gives {gives}. Try "
                 f"<code>{_e(cmd)}</code>.</div>")
     return (f'<div class="box floor"><b>The model is at the noise floor.</b> rms residual '
             f"{_num(d.rms)} {unit} against a noise floor of {_num(d.noise_floor)} {unit}; no "
             f"candidate effect lowers it materially.</div>")
 
 
+def _floor_ratio(rms: float, residual: str, floor: float) -> str:
+    """× the noise floor, only where the rms is on the residual the floor is for."""
+    return _num(rms / floor, ".2f") if residual == "sensor" else "–"
+
+
+_SCALES_NOTE = ("<p class=\"sub\">Each rms is on the residual named in its row, and is compared "
+                "with the rms before on that same residual. The sensor residual (eq. 41) is the "
+                "reading's distance to the fitted surface with every direction free; "
+                "misalignment and lag leave no trace there, so they are measured on the "
+                "gravity-tied residual (each direction tied to the accelerometer's gravity, "
+                "whose own error adds to it: noise alone gives about √2× the floor) or the "
+                "gyro-tied one (each direction carried 0.5 s ahead by the gyro: about 2× the "
+                "floor). Rows on those residuals have no “× floor”.</p>")
+
+
 def _candidates(d, unit: str) -> str:
     if not d.candidates:
         return "<p>No candidate effect could be tried: the track has no column they need, or " \
                "the model already holds them.</p>"
-    rows = [(_e(c.effect), _num(c.rms_after), _num(c.rms_after / d.noise_floor, ".2f"),
-             _num(c.p_value, ".2e"), "yes" if c.significant else "no", _e(c.evidence))
-            for c in d.candidates]
-    return _table(("effect", f"rms after ({unit})", "× floor", "p-value", "significant",
-                   "evidence"), rows, numeric=(1, 2, 3))
+    rows = []
+    for c in d.candidates:
+        residual, before = d.baseline(c)
+        rows.append((_e(c.effect), _e(RESIDUAL_FAMILIES.get(residual, ("?",))[0]), _num(before),
+                     _num(c.rms_after), _e(relative_change(before, c.rms_after)),
+                     _floor_ratio(c.rms_after, residual, d.noise_floor),
+                     _num(c.p_value, ".2e"), "yes" if c.significant else "no", _e(c.evidence)))
+    table = _table(("effect", "residual", f"rms before ({unit})", f"rms after ({unit})",
+                    "change", "× floor", "p-value", "significant", "evidence"), rows,
+                   numeric=(2, 3, 4, 5, 6))
+    mixed = any(d.baseline(c)[0] != "sensor" for c in d.candidates)
+    return table + (_SCALES_NOTE if mixed else "")
 
 
 def _ladder(d, unit: str) -> str:
     rows = []
-    for step in d.ladder or [{"model": list(d.model), "rms": d.rms}]:
+    steps = ladder_steps(d)
+    for step in steps:
         name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
-        rows.append((_e(name), _num(step["rms"]), _num(step["rms"] / d.noise_floor, ".2f"),
+        before = step.get("rms_before")
+        rows.append((_e(name), _e(RESIDUAL_FAMILIES[step["residual"]][0]),
+                     _num(before) if before is not None else "",
+                     _num(step["rms"]),
+                     _e(relative_change(before, step["rms"])) if before is not None else "",
+                     _floor_ratio(step["rms"], step["residual"], d.noise_floor),
                      _num(step.get("p_value"), ".2e") if "p_value" in step else ""))
-    rows.append(("noise floor", _num(d.noise_floor), "1.00", ""))
-    return _table(("step", f"rms ({unit})", "× floor", "p-value"), rows, numeric=(1, 2, 3))
+    rows.append(("noise floor", "sensor residual", "", _num(d.noise_floor), "", "1.00", ""))
+    table = _table(("step", "residual", f"rms before ({unit})", f"rms ({unit})", "change",
+                    "× floor", "p-value"), rows, numeric=(2, 3, 4, 5, 6))
+    mixed = any(s["residual"] != "sensor" for s in steps)
+    return table + (_SCALES_NOTE if mixed else "")
 
 
 def _parameters(cal, unit: str) -> str:
@@ -147,7 +192,7 @@ def _parameters(cal, unit: str) -> str:
             rows.append((_e(f"{effect}: {key}"), _vec(value) if np.ndim(value) else _num(value),
                          _e(u)))
     rows += [("field strength", _num(cal.field), unit), ("rms (inliers)", _num(cal.rms), unit),
-             ("samples / outliers", f"{cal.n} / {cal.n_outliers}", "")]
+             ("samples / outliers of this fit", f"{cal.n} / {cal.n_outliers}", "")]
     return _table(("parameter", "value", "unit"), rows)
 
 
@@ -203,8 +248,13 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         parts.append(_summary(diagnosis, name, unit))
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
+            by = tuple(getattr(diagnosis, "outliers_model", ()) or diagnosis.model)
+            of = "" if by == tuple(diagnosis.model) else (
+                f" of the model <code>{_e(', '.join(by))}</code> (the last step of the ladder "
+                f"fitted on the magnetometer alone: the model as given also leaves a large "
+                f"residual wherever its missing effect acts, and those samples are not outliers)")
             parts.append(f"<p><b>{diagnosis.n_outliers}</b> of {diagnosis.n} samples are "
-                         f"outliers; they cluster in {_e(spans)}.</p>")
+                         f"outliers{of}; they cluster in {_e(spans)}.</p>")
     parts += [_img(f) for f in figures]
     if diagnosis is not None:
         parts += ["<h2>Candidate effects</h2>", _candidates(diagnosis, unit),
