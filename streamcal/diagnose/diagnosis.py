@@ -277,6 +277,11 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         except StreamcalError:
             return out
         top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
+        if top.effect in REGISTRATION_EFFECTS:   # its evidence quotes the rms: say the new one
+            text = cand.registration_evidence(top.effect, top.rms_before, ev.rms, ev.cal,
+                                              ctx.track.mag_unit, ev.kind)
+            tail = top.evidence.partition("; the gyro alone says ")[2]
+            top.evidence = text + (f"; the gyro alone says {tail}" if tail else "")
     return out
 
 

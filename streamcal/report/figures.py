@@ -549,7 +549,7 @@ def _ladder_panel(ax, d, unit: str) -> None:
                         xytext=(8, 4), textcoords="offset points", fontsize=8, color=colour)
         ax.plot([k - 1, k], [before, step["rms"]], "-", color=colour, lw=2)
         ax.annotate(relative_change(before, step["rms"]), ((k - 0.5), (before + step["rms"]) / 2),
-                    xytext=(0, 6), textcoords="offset points", ha="center", fontsize=9,
+                    xytext=(4, 4), textcoords="offset points", ha="left", va="bottom", fontsize=9,
                     color=colour, fontweight="bold")
     families = list(dict.fromkeys(s["residual"] for s in steps))
     if np.isfinite(floor):
@@ -569,8 +569,8 @@ def _ladder_panel(ax, d, unit: str) -> None:
     ax.set_xlim(-0.5, len(steps) - 0.3)
     ax.set_ylim(0, 1.5 * max(tops))
     ax.set_ylabel(f"rms residual ({unit})")
-    ax.set_title("model ladder: rms after each added effect\n(colour = residual; each step "
-                 "against the previous model on the same residual)", fontsize=10)
+    ax.set_title("model ladder: rms after each added effect\n(colour: the residual; each step "
+                 "from the last model on it)", fontsize=10)
     ax.grid(alpha=0.3)
 
 
