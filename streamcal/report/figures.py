@@ -66,8 +66,9 @@ class FigureData:
         unit: sensor unit. diagnosis: the :class:`~streamcal.diagnose.Diagnosis` or None.
         reason: why there is no diagnosis (the fit's refusal), else None.
         inliers: (N,) bool: not the diagnosis' ``outliers`` (the model ``outliers_model``, the
-        one its ``n_outliers`` and spans come from), else the calibration's. directions: (N,3) unit field directions (calibrated, or from the
-        coarse sphere when refused). residual: (N,) signed distance to the fitted surface along
+        one its ``n_outliers`` and spans come from), else the calibration's.
+        directions: (N,3) unit field directions (calibrated, or from the coarse sphere when
+        refused). residual: (N,) signed distance to the fitted surface along
         its outward normal, sensor unit (None when refused). field_after: (N,) ‖calibrated
         field‖, sensor unit (None when refused). scale: field strength used, sensor unit.
     """

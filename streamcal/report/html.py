@@ -107,8 +107,8 @@ def _summary(d, track_name: str, unit: str) -> str:
         else:   # another residual: compare with the model on that residual, not with d.rms
             gives = (f"<b>{_num(top.rms_after)} {unit}</b> on the {_e(_residual_name(residual))}, "
                      f"where the model without it gives {_num(before)} {unit} "
-                     f"({_e(relative_change(before, top.rms_after))}; that residual cannot go below "
-                     f"about {_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, "
+                     f"({_e(relative_change(before, top.rms_after))}; that residual cannot go "
+                     f"below about {_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, "
                      f"noise alone)")
         return (f'<div class="box missing"><b>An effect is missing.</b> The model '
                 f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
