@@ -178,3 +178,60 @@ def test_a_lasting_disturbance_becomes_a_change_and_the_calibration_is_recalled(
     recalled = of_kind(events, "recalled")
     assert recalled and 140.0 <= recalled[0].t <= 140.0 + (sc.recall_checks + 1) * 2.56
     assert not sc.stale and sc.calibration.model_error(first) < BOUND
+
+
+# -------------------------------------------------------- before the first calibration
+
+def cap_spiral(t, b, cap_deg=60.0, seed=0):
+    """(M,3) µT: a board turned over a cap of directions (not enough for a first fit)."""
+    th = np.radians(cap_deg) * (0.5 - 0.5 * np.cos(2 * np.pi * t / 20.0))
+    ph = 2 * np.pi * t / 3.0
+    d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], axis=1)
+    return 48.0 * d + b + np.random.default_rng(seed).normal(scale=0.3, size=d.shape)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_change_before_the_first_calibration_splits_the_environments(seed):
+    """No calibration yet (every fit refused): the running sphere estimate is the reference,
+    and a new hard iron makes the calibrator forget the old environment's samples instead of
+    mixing both shells."""
+    from streamcal.errors import InsufficientDataError
+
+    def refuse(snap):
+        raise InsufficientDataError("not enough directions")
+
+    t = np.arange(0.0, 80.0, 0.01)
+    b2 = B_TRUE + np.array([20.0, -15.0, 12.0])
+    m = np.where((t < 40.0)[:, None], cap_spiral(t, B_TRUE, seed=seed),
+                 cap_spiral(t, b2, seed=seed + 10))
+    sc = StreamingCalibrator(fitter=refuse, synchronous=True)
+    events = feed(sc, t, m)
+    drift = of_kind(events, "drift")
+    assert len(drift) == 1 and not drift[0].data["calibrated"]
+    assert drift[0].data["reason"] == "new_shell"
+    assert 40.0 <= drift[0].data["onset"] and drift[0].t <= 40.0 + 10.0
+    forgot = of_kind(events, "forgot")[0]
+    assert forgot.data["dropped"] > 0 and not sc.stale
+    assert sc.buffer.snapshot().t.min() >= drift[0].data["onset"]
+    envs = sc.environment_summary()
+    assert len(envs) == 2 and envs[0]["end"] == drift[0].data["onset"]
+    assert all(0.0 < e["coverage"] < 0.35 for e in envs)
+    # The running estimate is now the new environment's sphere.
+    c, R = sc.coarse
+    assert np.linalg.norm(c - b2) < 3.0 and abs(R - 48.0) < 3.0
+
+
+def test_replay_says_why_there_is_no_calibration(tmp_path, capsys):
+    from streamcal.cli import main
+    from streamcal.track import Track
+
+    t = np.arange(0.0, 80.0, 0.01)
+    b2 = B_TRUE + np.array([20.0, -15.0, 12.0])
+    m = np.where((t < 40.0)[:, None], cap_spiral(t, B_TRUE), cap_spiral(t, b2, seed=10))
+    path = tmp_path / "two.csv"
+    Track.from_arrays(t, mag=m).write(path)
+    code = main(["replay", str(path), "--sync-fits"])
+    err = capsys.readouterr().err
+    assert code == 1
+    assert "no calibration" in err and "the field changed 1 time(s)" in err
+    assert "coverage per environment: t=0.0–" in err

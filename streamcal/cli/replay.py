@@ -9,12 +9,18 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import sys
 import time
 
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+
+#: Relative spread about one fitted sphere beyond which the samples are probably not one
+#: environment's: soft iron leaves 1.7–6.4 % on the real one-environment tracks, BROAD 32 (a
+#: magnet on the board for half of it) 9 %.
+_ONE_SPHERE = 0.08
 
 
 def register(sub) -> None:
@@ -59,6 +65,7 @@ def run(args) -> int:
                                      synchronous=args.sync_fits)
     emit = _printer(args.json)
     counts: dict[str, int] = {}
+    refusals: dict[str, int] = {}        # why fits failed or candidates were rejected
     bar = tqdm(total=len(track), unit="row", file=sys.stderr, dynamic_ncols=True,
                disable=args.json or not sys.stderr.isatty(), desc="replay")
     start_wall, start_t = time.monotonic(), float(track.t[0]) if len(track) else 0.0
@@ -70,22 +77,27 @@ def run(args) -> int:
                     time.sleep(delay)
             for event in calibrator.ingest(block):
                 counts[event.kind] = counts.get(event.kind, 0) + 1
+                _note_refusal(event, refusals)
                 emit(event, bar)
                 if event.kind == "coverage" and not args.json:
                     _show_coverage(calibrator, bar)
             bar.update(len(block))
         for event in calibrator.close():
             counts[event.kind] = counts.get(event.kind, 0) + 1
+            _note_refusal(event, refusals)
             emit(event, bar)
     finally:
         bar.close()
     summary = _summary(calibrator, counts, track, args)
+    if calibrator.calibration is None:
+        summary["why"] = _why_none(calibrator, refusals, track.mag)
     if args.json:
         print(json.dumps(summary, default=_jsonable))
     else:
         print(summary["message"])
     if calibrator.calibration is None:
-        print(f"streamcal replay: no calibration: {summary['hint']}", file=sys.stderr)
+        print(f"streamcal replay: no calibration: {summary['why']}; {summary['hint']}",
+              file=sys.stderr)
         return 1
     return 0
 
@@ -121,7 +133,9 @@ def _summary(calibrator, counts, track, args) -> dict:
     out = {"event": "summary", "samples": calibrator.n_ingested,
            "fits": counts.get("fit_started", 0), "accepted": counts.get("accepted", 0),
            "rejected": counts.get("rejected", 0), "failed": counts.get("fit_failed", 0),
-           "drift": counts.get("drift", 0), "coverage": round(report.fraction, 4),
+           "drift": counts.get("drift", 0), "disturbances": counts.get("disturbance", 0),
+           "environments": calibrator.environment_summary(),
+           "coverage": round(report.fraction, 4),
            "hint": report.hint, "state_dir": args.state_dir}
     if cal is not None:
         out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
@@ -132,10 +146,73 @@ def _summary(calibrator, counts, track, args) -> dict:
         result = "no calibration accepted"
     out["message"] = (f"replayed {calibrator.n_ingested} magnetometer samples of {args.track}: "
                       f"{out['fits']} fits, {out['accepted']} accepted, {out['rejected']} rejected, "
-                      f"{out['failed']} failed, {out['drift']} drift; coverage "
+                      f"{out['failed']} failed, {out['drift']} drift, "
+                      f"{out['disturbances']} transient disturbances; coverage "
                       f"{100 * report.fraction:.0f}%; {result}"
                       + (f"; state in {args.state_dir}" if args.state_dir else ""))
     return out
+
+
+def _note_refusal(event, refusals: dict) -> None:
+    """Count why fits failed (the fit's message) and candidates were rejected (the rule)."""
+    if event.kind == "fit_failed":
+        why = event.message.removeprefix("fit failed: ").split(" (")[0].split(":")[0]
+        why = re.sub(r"\d+(\.\d+)?%", "too little", why)
+    elif event.kind == "rejected":
+        why = f"candidate rejected ({event.data.get('reason')})"
+    else:
+        return
+    refusals[why] = refusals.get(why, 0) + 1
+
+
+def _why_none(calibrator, refusals: dict, m) -> str:
+    """Why the replay ended without a calibration, in plain words: what refused the fits, the
+    coverage each environment reached, and whether the samples ``m`` (N,3) lie on one sphere."""
+    parts = []
+    if refusals:
+        top = sorted(refusals.items(), key=lambda kv: -kv[1])[:3]
+        parts.append("fits refused: " + "; ".join(f"{n}× {why}" for why, n in top))
+    else:
+        parts.append("no fit was tried: the stored samples never covered "
+                     f"{100 * calibrator.policy.min_coverage:.0f}% of the sphere")
+    envs = calibrator.environment_summary()
+    cover = ", ".join(
+        f"t={e['start']:.1f}–" + (f"{e['end']:.1f}" if e["end"] is not None else "end")
+        + f" s: {100 * e['coverage']:.0f}%" for e in envs if e["start"] is not None)
+    if len(envs) > 1:
+        parts.append(f"the field changed {len(envs) - 1} time(s); coverage per environment: "
+                     f"{cover}, each short of the {100 * calibrator.policy.min_coverage:.0f}% "
+                     "a first fit needs")
+    else:
+        parts.append(f"the stored samples cover {100 * envs[-1]['coverage']:.0f}% of the "
+                     f"sphere ({100 * calibrator.policy.min_coverage:.0f}% needed)")
+    spread = _sphere_spread(m)
+    if spread is not None and spread > _ONE_SPHERE:
+        parts.append(f"the samples lie on no one sphere (spread {100 * spread:.0f}% of the "
+                     "field): the field probably changed during the recording (a magnet "
+                     "attached or removed, the board moved near iron) while the board turned "
+                     "too little to tell the environments apart, and no one environment has "
+                     "the coverage a calibration needs")
+    return "; ".join(parts)
+
+
+def _sphere_spread(m) -> float | None:
+    """1.4826 × median ``|‖m − c‖/R − 1|`` for the least-squares (Kåsa) sphere through all
+    samples ``m`` (N,3) (relative), or None when no sphere can be fitted."""
+    m = np.asarray(m, dtype=float)
+    m = m[np.isfinite(m).all(axis=1)]
+    if len(m) < 10:
+        return None
+    origin = m.mean(axis=0)
+    u = m - origin
+    # |u|² = 2 c·u + d with d = R² − |c|²: linear in (c, d).
+    A = np.column_stack([2.0 * u, np.ones(len(u))])
+    sol, *_ = np.linalg.lstsq(A, np.einsum("nk,nk->n", u, u), rcond=None)
+    c, R2 = sol[:3], sol[3] + sol[:3] @ sol[:3]
+    if not (np.all(np.isfinite(sol)) and R2 > 0):
+        return None
+    R = float(np.sqrt(R2))
+    return 1.4826 * float(np.median(np.abs(np.linalg.norm(u - c, axis=1) / R - 1.0)))
 
 
 def _jsonable(value):

@@ -47,6 +47,10 @@ MILESTONES = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
 #: The running sphere estimate (framing before the first calibration) stops at this relative
 #: step and after this many Gauss–Newton iterations: it only frames directions.
 _COARSE_TOL, _COARSE_ITER = 1e-6, 8
+#: The running sphere estimate judges new samples only when the stored ones fit it within this
+#: relative spread (1.4826 × median |‖m − c‖/R − 1|): soft iron leaves a few percent; a sphere
+#: through a noise cluster (a board at rest) or through two environments leaves far more.
+_COARSE_MAX_SPREAD = 0.05
 
 
 @dataclass(frozen=True)
@@ -135,7 +139,8 @@ class StreamingCalibrator:
                  model=DEFAULT_MODEL, unit: str = "uT", stage: int = 256, holdout_every: int = 5,
                  coarse_every: int = 200, coarse_min: int = 100, remember: int = 4,
                  recall_checks: int = 5, disturbance: DisturbanceRule | None = None,
-                 hold: int = 2048, synchronous: bool = False):
+                 hold: int = 2048, coarse_judge_coverage: float = 0.1,
+                 synchronous: bool = False):
         self.fitter = fitter if fitter is not None else default_fitter(model)
         self.store = store
         self.buffer = buffer if buffer is not None else CoverageBuffer()
@@ -169,6 +174,13 @@ class StreamingCalibrator:
         self._recall_streak: tuple = (None, 0)
         self._pending: list[Event] = []
         self.disturbance_rule = disturbance if disturbance is not None else DisturbanceRule()
+        self.coarse_judge_coverage = float(coarse_judge_coverage)
+        self._cal_ref: _Reference | None = None
+        self._coarse_ref: _Reference | None = None
+        #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
+        self.environments: deque = deque(maxlen=16)
+        self._env_start = float("nan")
+        self._env_calibrated = False
         self.quarantine = Quarantine(hold, len(self.buffer.covariate_names))
         self._disturbance: Disturbance | None = None
         if store is not None:
@@ -258,19 +270,25 @@ class StreamingCalibrator:
         events: list[Event] = []
         self._n_done += n
         self._t_last = t_now = float(t[-1])
+        if self._env_start != self._env_start:          # NaN: the first samples
+            self._env_start = float(t[0])
         calibrated = self._cal is not None and not self.stale
         if calibrated:
-            m, t, cov = self._hold_back(m, t, cov, events)
+            self._hold_back(m, t, cov, self._cal_ref, events)
         else:
-            self.stats.update(m)
+            if self._remembered:
+                self._check_recall(m, t, events)
+            if self._coarse_ref is not None and self.stale == (self._cal is not None):
+                # No calibration in force: the running sphere estimate is the reference.
+                self._hold_back(m, t, cov, self._coarse_ref, events)
+            else:
+                self.stats.update(m)
+                stored, new_cells = self.buffer.insert(m, t, cov)
+                self.policy.note(stored, new_cells)
             # The coarse estimate frames directions until a calibration is in use.
             self._since_coarse += n
             if self._since_coarse >= self.coarse_every:
                 self._update_coarse()
-            stored, new_cells = self.buffer.insert(m, t, cov)
-            self.policy.note(stored, new_cells)
-            if self._remembered:
-                self._check_recall(m, t, events)
         self._milestones(events)
         events += self._collect()
         if self._job is None:
@@ -306,32 +324,54 @@ class StreamingCalibrator:
                                      or abs(R - previous[1]) > 0.05 * R)
         if moved or self.stale and self._frame_is_cal:
             self._set_frame(c, np.eye(3) / R, from_cal=False)
+        if self._disturbance is None:
+            self._coarse_ref = self._coarse_reference(c, R, renew=moved)
 
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
         if from_cal:
-            self._cal_AT = np.asarray(A).T.copy()
-            self._cal_R = radius_of(self._cal)
-            self._limit = self.policy.drift_limit(self._cal.rms, self._cal_R)
+            cal = self._cal
+            R = radius_of(cal)
+            self._cal_ref = _Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
+                                       self.policy.drift_limit(cal.rms, R), self._support,
+                                       cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
         self._milestone = _floor_milestone(self.buffer.fraction)
 
-    def _hold_back(self, m, t, cov, events):
-        """With a calibration in force: samples that disagree with it are held back (module
-        :mod:`.disturbance`), the others go to the buffer and the running sums; then the drift
-        window is judged. Returns the samples the buffer was offered."""
-        cal = self._cal
-        y = self._calibrated(m, t, cov)
+    def _coarse_reference(self, c, R, renew: bool):
+        """The running sphere estimate as a reference for change detection before the first
+        calibration, once the buffer covers ``coarse_judge_coverage`` of the sphere; None
+        before. Its limit comes from how well the stored samples fit it, and it judges only the
+        cells they occupy (elsewhere a sphere fitted on part of the sphere extrapolates)."""
+        if self.buffer.fraction < self.coarse_judge_coverage or self._frame_is_cal:
+            return None
+        snap = self.buffer.snapshot()
+        spread = 1.4826 * float(np.median(np.abs(np.linalg.norm(snap.m - c, axis=1) / R - 1.0)))
+        if spread > _COARSE_MAX_SPREAD:
+            return None                 # a sphere fitted to a cluster of noise, or to a mixture
+        if renew or self._coarse_ref is None:
+            self.policy.reset_window()
+        return _Reference(c, np.eye(3) / R, R, spread * R,
+                          self.policy.drift_limit(spread * R, R), self.buffer.occupied.copy(),
+                          None, False)
+
+    def _hold_back(self, m, t, cov, ref, events) -> None:
+        """Samples that disagree with the reference ``ref`` (the calibration in force, or the
+        running sphere estimate before one) are held back (module :mod:`.disturbance`), the
+        others go to the buffer and the running sums; then the drift window is judged."""
+        y = ref.project(m, t, cov, self.buffer.covariate_names)
         r = np.sqrt(np.einsum("nk,nk->n", y, y))
         d = y / np.maximum(r, 1e-300)[:, None]
         cell = self.buffer.cells.cell_of(d)
         err = np.abs(r - 1.0)
-        limit = self._limit
-        # Only directions the calibration was fitted on: elsewhere it extrapolates, and a large
+        limit = ref.limit
+        # Only directions the reference was fitted on: elsewhere it extrapolates, and a large
         # error there asks for a refit on more coverage (new cells), not for holding back.
-        if self._support is not None:
-            inside = self._support[cell]
-            held = (err > limit) & inside | (err > GROSS)
+        if ref.support is not None:
+            inside = ref.support[cell]
+            held = (err > limit) & inside
+            if ref.gross:
+                held |= err > GROSS
             self.policy.observe(err[inside], t[inside])
         else:
             held = err > limit
@@ -344,33 +384,24 @@ class StreamingCalibrator:
             ok = ~held
             kept, d, cell = (m[ok], t[ok], cov[ok]), d[ok], cell[ok]
         self.stats.update(kept[0])
-        if cal.effects:
-            stored, new_cells = self.buffer.insert(*kept)
-        else:
-            stored, new_cells = self.buffer.insert(*kept, d=d, cell=cell)
-        self.policy.note(stored, new_cells)
-        check = self.policy.check(cal.rms, self._cal_R)
-        if check is not None:
-            self._judge(check, events)
-        return kept
-
-    def _calibrated(self, m, t, cov) -> np.ndarray:
-        """``K⁻¹(m − b − effect terms)`` (n,3) under the calibration in use."""
-        cal = self._cal
-        if not cal.effects:
+        if ref.cal is None and self._frame_is_cal and ref is self._cal_ref:
             # The buffer's frame is the calibration's: one projection serves both.
-            return (m - cal.b) @ self._cal_AT
-        names = self.buffer.covariate_names
-        return cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+            stored, new_cells = self.buffer.insert(*kept, d=d, cell=cell)
+        else:
+            stored, new_cells = self.buffer.insert(*kept)
+        self.policy.note(stored, new_cells)
+        check = self.policy.check(ref.rms, ref.radius)
+        if check is not None:
+            self._judge(check, ref, events)
 
-    def _judge(self, check, events) -> None:
+    def _judge(self, check, ref, events) -> None:
         """Open, close or confirm a disturbance from one drift-window judgement."""
         dist = self._disturbance
         rule = self.disturbance_rule
         if dist is None:
             if check.fraction <= rule.open_fraction:
                 return
-            dist = self._disturbance = Disturbance(check.onset)
+            dist = self._disturbance = Disturbance(check.onset, radius=ref.radius)
             # Held before the window turned: count them into this disturbance.
             early = self.quarantine.since(check.onset)
             dist.note(np.abs(np.linalg.norm(self.quarantine.y[early], axis=1) - 1.0),
@@ -397,7 +428,7 @@ class StreamingCalibrator:
         dist, self._disturbance = self._disturbance, None
         if dist is None:
             return
-        R = self._cal_R
+        R = dist.radius
         end = self._t_last
         events.append(Event(
             "disturbance", f"transient disturbance from t={dist.start:.2f} to {end:.2f} s: peak "
@@ -410,23 +441,44 @@ class StreamingCalibrator:
 
     def _environment_changed(self, check, dist, reason, why, idx, events) -> None:
         onset = dist.start
-        events.append(Event("drift", f"field no longer fits the calibration: median relative "
-                            f"error {check.stat:.3f} > {check.limit:.3f} since t={onset:.2f} s; "
-                            f"{why}",
+        in_force = self._cal is not None and not self.stale
+        what = ("field no longer fits the calibration" if in_force else
+                "field left the running sphere estimate (no calibration in force)")
+        events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} > "
+                            f"{check.limit:.3f} since t={onset:.2f} s; {why}",
                             {"value": check.stat, "limit": check.limit, "onset": onset,
                              "reason": reason, "shell_residual": _finite(dist.shell),
-                             "held": dist.n_held}, self._t_last))
+                             "held": dist.n_held, "calibrated": in_force}, self._t_last))
+        self._close_environment(onset)
         q = self.quarantine
         self._disturbance = None
         self._forget(onset, events, "calibration in use is stale until a new one is accepted "
-                     "or a remembered one fits again",
+                     "or a remembered one fits again" if self._cal is not None else
+                     "the samples of the old environment would bend the first fit",
                      (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()))
         q.clear()
-        self.stale = True
+        self.stale = self._cal is not None
         self._recent_n = self._recall_at = 0
         self._recall_streak = (None, 0)
         if self._job is not None:
             self._job.obsolete = True
+
+    def _close_environment(self, end: float) -> None:
+        """Record the environment that ends at ``end`` (s) with the coverage it reached."""
+        self.environments.append({"start": _finite(self._env_start), "end": end,
+                                  "coverage": round(self.buffer.fraction, 4),
+                                  "n_samples": self.buffer.n_samples,
+                                  "calibrated": self._env_calibrated})
+        self._env_start, self._env_calibrated = end, False
+
+    def environment_summary(self) -> list:
+        """The environments seen, oldest first, the current one last (``end`` None): start and
+        end (s), the sphere coverage its samples reached, whether it was calibrated."""
+        current = {"start": _finite(self._env_start), "end": None,
+                   "coverage": round(self.buffer.fraction, 4),
+                   "n_samples": self.buffer.n_samples,
+                   "calibrated": self._env_calibrated or (self._cal is not None and not self.stale)}
+        return [*self.environments, current]
 
     def _forget(self, onset: float, events, why: str, held=None) -> None:
         """Drop the buffer's samples older than ``onset``; ``held`` (m, t, cov): samples held back
@@ -440,6 +492,7 @@ class StreamingCalibrator:
         self.stats.reset()
         self.stats.update(kept.m)
         self.coarse = None
+        self._coarse_ref = None
         self._since_coarse = 0
         self.policy.restart()
         self._milestone = _floor_milestone(self.buffer.fraction)
@@ -492,6 +545,10 @@ class StreamingCalibrator:
                             {"value": stat, "limit": limit, "onset": start,
                              "K": cal.K.round(6).tolist(), "b": cal.b.round(6).tolist()},
                             self._t_last))
+        self._close_environment(start)
+        self._env_calibrated = True
+        self._disturbance = None            # what it was judged against is gone
+        self.quarantine.clear()
         self._forget(start, events, "samples of the other environment")
         self.policy.last_request_t = self._t_last   # coverage decides the next fit, as a refit
         self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
@@ -551,13 +608,16 @@ class StreamingCalibrator:
                 "rms": _finite(cand.rms), "coverage_at_fit": cand.coverage}
         if not decision.accepted:
             return [Event("rejected", f"candidate rejected: {_reason_text(decision)}", data, t)]
+        events = []
+        self._end_disturbance(events)       # judged against the reference being replaced
         self._cal = cand
         self._support = job.support
         self._remembered.append((cand, job.support))
         self.stale = False
+        self._env_calibrated = True
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
-        events = [Event("accepted", f"calibration accepted ({_reason_text(decision)}): rms "
+        events += [Event("accepted", f"calibration accepted ({_reason_text(decision)}): rms "
                         f"{cand.rms:.3g} {self.unit}, b = {np.round(cand.b, 2).tolist()}",
                         data, t)]
         self._save(cand, events)
@@ -597,6 +657,28 @@ class StreamingCalibrator:
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []
         return out
+
+
+@dataclass(frozen=True)
+class _Reference:
+    """What new samples are judged against: ``y = AT``-projection of ``m − center`` (or the
+    calibration ``cal`` when it has effect terms), its radius and rms (sensor unit), the drift
+    ``limit`` (relative), the cells it was fitted on (``support``, None: all) and whether gross
+    errors are held back on every direction (``gross``)."""
+
+    center: np.ndarray
+    AT: np.ndarray
+    radius: float
+    rms: float
+    limit: float
+    support: np.ndarray | None
+    cal: Calibration | None
+    gross: bool
+
+    def project(self, m, t, cov, names) -> np.ndarray:
+        if self.cal is None:
+            return (m - self.center) @ self.AT
+        return self.cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
 
 
 def _floor_milestone(frac: float) -> float:

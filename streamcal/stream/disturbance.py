@@ -102,7 +102,7 @@ class Disturbance:
     """An open disagreement with the calibration in use: ``start`` (s, first sample beyond the
     limit), ``peak`` (largest relative error of a held sample) at ``peak_t`` (s), ``n_held``
     samples held back since it began, and the last new-shell residual ``shell`` (relative, median)
-    with its centre ``center`` (calibrated units)."""
+    with its centre ``center`` (calibrated units); ``radius`` of the reference (sensor unit)."""
 
     start: float
     peak: float = 0.0
@@ -110,6 +110,7 @@ class Disturbance:
     n_held: int = 0
     shell: float = float("nan")
     center: np.ndarray | None = None
+    radius: float = 1.0
 
     def note(self, err: np.ndarray, t: np.ndarray) -> None:
         """Count held samples (relative errors ``err`` (n,) at times ``t``)."""
