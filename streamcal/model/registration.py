@@ -43,9 +43,17 @@ global parameters p = (K, b, θ, R, δ, τ) and the headings:
       Schur complement of the 1×1 heading blocks: each sample's Jacobian row is projected off
       a_j = ∂r_j/∂φ_j, i.e. the headings follow p to first order, and (a) then re-solves them
       exactly. 4–8 rounds suffice. R is updated multiplicatively, R ← R exp([ε]×), ∂x/∂ε = [x]×;
-  weights — iteratively reweighted: w_j = trust_j · ρ′(‖r_j‖²) with the robust kernel of the
-      fit (width from the data as in :mod:`streamcal.fit.autocal`) and trust_j the confidence in
-      ĝ_j (below).
+  cost — Σ_j trust_j ρ̃(‖r_j‖²), trust_j the confidence in ĝ_j (below) and ρ̃(s) = ρ(min(s,
+      (2w)²)) the fit's kernel ρ of width w capped at the 2 widths beyond which a sample is
+      reported an outlier: an outlier adds a constant and exerts no pull. (Cauchy uncapped grows
+      like log s: on BROAD 32, where a magnet stuck to the board puts a third of the samples
+      ≈ 10 widths off, it pulled the ellipsoid onto them — K_zz 44 → 137 µT.) The step weights
+      are w_j = trust_j ρ̃′. A trial step is accepted only when the cost itself does not rise.
+  width — held fixed during a Levenberg–Marquardt pass (a width re-estimated every round makes
+      the cost a moving target: it grew with the drift above), re-estimated from the median
+      residual between passes until it moves < 5 % (as in :mod:`streamcal.fit.autocal`).
+      Whatever the passes did, the parameters returned never have a higher cost, at the final
+      width, than the start.
 
 τ is first located on a grid (the cost is not convex in τ beyond a fraction of the motion's
 period) and then refined by (b).
@@ -102,6 +110,12 @@ MAX_LAG = 0.3
 LAG_STEP = 1e-3
 MAX_ROUNDS = 40
 RTOL = 1e-7
+#: LM passes at a fixed kernel width (re-estimated between passes; settled when it moves less
+#: than WIDTH_SETTLED, relative).
+MAX_WIDTH_ROUNDS = 4
+WIDTH_SETTLED = 0.05
+#: Relative cost decrease that ends an LM pass while the width is still being estimated.
+WIDTH_RTOL = 1e-3
 OUTLIER_WIDTHS = 2.0
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 
@@ -399,41 +413,41 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     g0, trust = prob.down(lag)
     y = (m - b) @ (R @ np.linalg.inv(K)).T
     y /= np.linalg.norm(y, axis=1, keepdims=True)
-    dip = float(reg.get("mag_accel_misalignment", {}).get("dip", np.median(
-        np.arccos(np.clip(np.einsum("ni,ni->n", y, g0), -1, 1)))))
+    dip = reg.get("mag_accel_misalignment", {}).get("dip")
+    if dip is None and not fit_rot and "mag_accel_misalignment" not in reg:
+        dip = (start.extra or {}).get("dip")   # a gravity-tied start with R = I knows δ
+    if dip is None:
+        dip = np.median(np.arccos(np.clip(np.einsum("ni,ni->n", y, g0), -1, 1)))
+    dip = float(dip)
     if fit_lag and "time_lag" not in reg:
         lag = _lag_grid(prob, K, b, thetas, R, dip)
 
     width_given = None if tau is None else float(tau)
-    h = prob.headings(K, b, thetas, R, dip, lag)
-    r = prob.residual(K, b, thetas, R, dip, lag, h)
-    lam = 1e-3
-    for _ in range(max_rounds):
-        rn = np.linalg.norm(r, axis=1)
-        width = width_given or EFFICIENCY_TAU.get(kernel, 2.3849) * max(
-            float(np.median(rn) / HALF_NORMAL_MEDIAN), 1e-12)
-        _, trust = prob.down(lag)
-        w = trust * _kernel_weights(kernel, rn, width)
-        cost = float(np.sum(w * rn ** 2))
-        H, grad = prob.reduced_normal(K, b, thetas, R, dip, lag, h, r, w)
-        p0 = prob.pack(K, b, thetas, dip, lag)
-        improved = False
-        for _ in range(10):   # Levenberg–Marquardt damping
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
-            K1, b1, th1, R1, dip1, lag1 = prob.unpack(p0 + step, R, lag)
-            h1 = prob.headings(K1, b1, th1, R1, dip1, lag1, h)          # step (a)
-            r1 = prob.residual(K1, b1, th1, R1, dip1, lag1, h1)
-            cost1 = float(np.sum(w * np.sum(r1 * r1, axis=1)))
-            if cost1 <= cost:
-                improved = True
-                lam = max(lam / 3, 1e-9)
-                break
-            lam *= 4
-        if not improved:
+    first = (K, b, thetas, R, dip, lag)
+    state, budget = first, max_rounds
+    width = width_given or _width(kernel, np.linalg.norm(prob.residual(*first, prob.headings(
+        *first)), axis=1))
+    settled = width_given is not None
+    for _ in range(MAX_WIDTH_ROUNDS):   # LM passes at a fixed width until the width settles
+        # while the width is still moving a loose tolerance suffices (as in autocal)
+        state, rounds = _refine(prob, state, kernel, width, budget,
+                                RTOL if settled else WIDTH_RTOL)
+        budget -= rounds
+        if settled or budget <= 0:
             break
-        K, b, thetas, R, dip, lag, h, r = K1, b1, th1, R1, dip1, lag1, h1, r1
-        if cost - cost1 <= RTOL * cost:
-            break
+        again = _width(kernel, np.linalg.norm(prob.residual(*state, prob.headings(*state)),
+                                              axis=1))
+        settled = abs(again - width) <= WIDTH_SETTLED * width
+        width = again
+    else:   # the width kept moving: polish at its last estimate
+        state, _ = _refine(prob, state, kernel, width, budget, RTOL)
+    # The invariant: never return parameters whose robust cost (at the final width) is worse
+    # than the start's (a width pass that moved away from a better start is undone).
+    if _cost(prob, state, kernel, width)[0] > _cost(prob, first, kernel, width)[0]:
+        state = first
+    K, b, thetas, R, dip, lag = state
+    h = prob.headings(*state)
+    r = prob.residual(*state, h)
     if fit_lag and abs(lag) > MAX_LAG:
         raise InsufficientDataError(f"the time lag is not determined by the data: the fit "
                                     f"wandered to {lag:.3f} s, beyond ±{MAX_LAG} s")
@@ -446,7 +460,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
         r = prob.residual(K, b, thetas, R, dip, lag, h)
         m = m_all
     rn = np.linalg.norm(r, axis=1)
-    width = width_given or EFFICIENCY_TAU.get(kernel, 2.3849) * float(np.median(rn) / HALF_NORMAL_MEDIAN)
+    width = width_given or _width(kernel, rn)
     inliers = rn <= OUTLIER_WIDTHS * width if kernel != "l2" else np.ones(len(rn), bool)
     rms = float(np.sqrt(np.mean(rn[inliers] ** 2))) if inliers.any() else float("nan")
     g, _ = prob.down(lag)
@@ -467,6 +481,78 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
                       extra={"noise_sigma": float(np.median(rn) / HALF_NORMAL_MEDIAN / np.sqrt(2)),
                              "tau": width, "dip": float(dip), "gravity": gref.method})
     return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms)
+
+
+def _width(kernel: str, rn: np.ndarray) -> float:
+    """Kernel width (sensor unit) implied by the median of the residual norms ``rn`` (N,)."""
+    return EFFICIENCY_TAU.get(kernel, 2.3849) * max(float(np.median(rn) / HALF_NORMAL_MEDIAN),
+                                                    1e-12)
+
+
+@dataclass(frozen=True)
+class _Capped:
+    """ρ̃(s) = ρ(min(s, cap)) of the wrapped kernel (module docstring, "cost"); concave in s when
+    ρ is, so a step lowering the weighted sum of squares lowers Σ ρ̃ too."""
+
+    kernel: object
+    cap: float
+
+    def evaluate(self, s):
+        s = np.asarray(s, dtype=float)
+        rho, d1, d2 = self.kernel.evaluate(np.minimum(s, self.cap))
+        inside = s <= self.cap
+        return rho, np.where(inside, d1, 0.0), np.where(inside, d2, 0.0)
+
+
+def _loss(kernel: str, width: float):
+    """The fit's kernel of ``width`` (sensor unit) capped at :data:`OUTLIER_WIDTHS` widths."""
+    from ..fit.kernels import WIDTH_KERNELS, make_kernel
+
+    if kernel not in WIDTH_KERNELS:
+        return make_kernel(kernel)
+    return _Capped(make_kernel(kernel, width), (OUTLIER_WIDTHS * width) ** 2)
+
+
+def _cost(prob: "_Problem", state: tuple, kernel: str, width: float):
+    """(Σ trust ρ̃, weights (N,), headings (N,3), residuals (N,3)) at (K, b, θ, R, δ, τ)."""
+    h = prob.headings(*state)
+    r = prob.residual(*state, h)
+    _, trust = prob.down(state[5])
+    rn = np.linalg.norm(r, axis=1)
+    if not np.all(np.isfinite(rn)):
+        return np.inf, None, h, r
+    rho, d1, _ = _loss(kernel, width).evaluate(rn ** 2)
+    return float(np.sum(trust * rho)), trust * d1, h, r
+
+
+def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_rounds: int,
+            rtol: float = RTOL) -> tuple[tuple, int]:
+    """One LM pass at a fixed ``width``: (state never costlier than ``state``, rounds used)."""
+    cost, w, h, r = _cost(prob, state, kernel, width)
+    if not np.isfinite(cost):
+        return state, 0
+    lam, rounds = 1e-3, 0
+    for rounds in range(1, max_rounds + 1):
+        K, b, thetas, R, dip, lag = state
+        H, grad = prob.reduced_normal(K, b, thetas, R, dip, lag, h, r, w)
+        p0 = prob.pack(K, b, thetas, dip, lag)
+        trial = None
+        for _ in range(10):   # Levenberg–Marquardt damping
+            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
+            cand = prob.unpack(p0 + step, R, lag)
+            cost1, w1, h1, r1 = _cost(prob, cand, kernel, width)
+            if cost1 <= cost:
+                trial = cand
+                lam = max(lam / 3, 1e-9)
+                break
+            lam *= 4
+        if trial is None:
+            break
+        drop = cost - cost1
+        state, cost, w, h, r = trial, cost1, w1, h1, r1
+        if drop <= rtol * cost:
+            break
+    return state, rounds
 
 
 def _lag_grid(prob, K, b, thetas, R, dip) -> float:
