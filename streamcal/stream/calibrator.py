@@ -313,6 +313,18 @@ class StreamingCalibrator:
             return None
         return c, R
 
+    def _buffer_sphere(self):
+        """Sphere ``(centre, radius)`` of the stored samples, or None when undetermined."""
+        stats = SphereStats()
+        stats.update(self.buffer.snapshot().m)
+        if stats.n < self.coarse_min:
+            return None
+        try:
+            c, R = stats.fit(tol=_COARSE_TOL, max_iter=_COARSE_ITER)
+        except Exception:           # too few directions
+            return None
+        return (c, R) if np.all(np.isfinite(c)) and np.isfinite(R) and R > 0 else None
+
     def _update_coarse(self) -> None:
         self._since_coarse = 0
         found = self._fit_coarse()
@@ -383,7 +395,10 @@ class StreamingCalibrator:
                 self._disturbance.note(err[held], t[held])
             ok = ~held
             kept, d, cell = (m[ok], t[ok], cov[ok]), d[ok], cell[ok]
-        self.stats.update(kept[0])
+        if ref is self._coarse_ref:
+            # The running sums serve only while no calibration is in force (a drift rebuilds
+            # them from the buffer; the guard's reference radius then comes from the buffer).
+            self.stats.update(kept[0])
         if ref.cal is None and self._frame_is_cal and ref is self._cal_ref:
             # The buffer's frame is the calibration's: one projection serves both.
             stored, new_cells = self.buffer.insert(*kept, d=d, cell=cell)
@@ -598,7 +613,7 @@ class StreamingCalibrator:
                           {"error": type(job.error).__name__}, t)]
         cand = job.result.replace(unit=self.unit, coverage=round(float(job.coverage), 4))
         if self.coarse is None or self._frame_is_cal:
-            found = self._fit_coarse()          # the guard's reference radius, on demand
+            found = self._buffer_sphere()       # the guard's reference radius, on demand
             if found is not None:
                 self.coarse = found
         current = self._cal if self._cal is not None else self._coarse_calibration()
