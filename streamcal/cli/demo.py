@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from .diagnose import candidate_table, residual_name
 
 DEFAULT_REPORT = "streamcal-demo-report.html"
 #: Coverage fractions at which the map of the sphere is printed (first crossing of each).
@@ -142,7 +143,7 @@ def _event(event, calibrator, accepted, maps_done, say, radius_of, coverage_view
             say(f"{when} " + coverage_view(calibrator.buffer).replace("\n", "\n" + " " * 12))
         else:
             say(f"{when} {event.message.split(':')[0]}")
-    elif event.kind in ("rejected", "fit_failed", "drift", "forgot"):
+    elif event.kind in ("rejected", "fit_failed", "drift", "forgot", "disturbance"):
         say(f"{when} {event.message}")
 
 
@@ -157,19 +158,19 @@ def _verdict(d) -> str:
             f"{d.n_outliers} of {d.n} samples are outliers")
     if d.verdict == "effect_missing" and d.candidates:
         top = d.candidates[0]
+        residual, before = d.baseline(top)
         head += (f"\nmissing effect: {top.effect} ({top.evidence}); adding it gives rms "
                  f"{top.rms_after:.3f} {u}")
+        if residual != "sensor":
+            head += (f" on the {residual_name(residual)} residual (the model without it: "
+                     f"{before:.3f} {u})")
     return head
 
 
 def _candidates(d) -> str:
     if not d.candidates:
         return "\nno candidate effect can be tried on this track"
-    lines = ["", f"{'rank':<5}{'candidate':<24}{'rms after':>10}{'p-value':>11}  evidence"]
-    lines += [f"{k:<5}{c.effect:<24}{c.rms_after:>10.3f}{c.p_value:>11.1e}  {c.evidence}"
-              + ("" if c.significant else "  (not significant)")
-              for k, c in enumerate(d.candidates, 1)]
-    return "\n".join(lines)
+    return "\n".join([""] + candidate_table(d, numbered=True))
 
 
 def _ladder(d) -> str:
@@ -183,7 +184,11 @@ def _ladder(d) -> str:
 
     for step in steps:
         name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
-        lines.append(row(name, step["rms"], f"{step['rms'] / d.noise_floor:.2f}× floor"))
+        residual = step.get("residual", "sensor")
+        # the floor is the sensor residual's: a tied step says which residual it is on instead
+        ratio = f"{step['rms'] / d.noise_floor:.2f}× floor" if residual == "sensor" \
+            else residual_name(residual)
+        lines.append(row(name, step["rms"], ratio))
     lines.append(row("noise floor", d.noise_floor, ""))
     return "\n".join(lines)
 

@@ -56,6 +56,32 @@ def _change(before: float, after: float) -> str:
     return f"{pct:+d}%" if pct else "±0%"
 
 
+def residual_name(residual: str) -> str:
+    """How a residual family is called in text ("gravity-tied")."""
+    return _RESIDUAL.get(residual, residual)
+
+
+def candidate_table(d, numbered: bool = False) -> list[str]:
+    """The ranked candidates of a :class:`~streamcal.diagnose.Diagnosis`, one line each (with a
+    rank column if ``numbered``), every ``rms_after`` beside the rms of the model without it on
+    the same residual."""
+    def rank(k):
+        return f"{k:<5}" if numbered else ""
+    lines = [f"{rank('rank')}{'candidate':<24}{'residual':>13}{'before':>9}{'after':>9}{'change':>8}"
+             f"{'p-value':>11}  evidence"]
+    for k, c in enumerate(d.candidates, 1):
+        residual, before = d.baseline(c)
+        lines.append(f"{rank(k)}{c.effect:<24}{residual_name(residual):>13}{before:>9.4g}"
+                     f"{c.rms_after:>9.4g}{_change(before, c.rms_after):>8}"
+                     f"{c.p_value:>11.2e}  {c.evidence}"
+                     + ("" if c.significant else "  (not significant)"))
+    if any(d.baseline(c)[0] != "sensor" for c in d.candidates):
+        lines.append("(each candidate against the model without it on the same residual; "
+                     "the tied residuals include the gravity reference's or the gyro's error "
+                     "and are not comparable with the sensor rms)")
+    return lines
+
+
 def _text(d) -> str:
     """Every rms beside the rms it is compared with on the same residual (see
     :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual."""
@@ -64,20 +90,10 @@ def _text(d) -> str:
              f"samples    {d.n} ({d.n_outliers} outliers"
              + ("" if out_by == tuple(d.model) else f" of {', '.join(out_by)}") + ")",
              f"rms        {d.rms:.4g}   noise floor {d.noise_floor:.4g}"
-             + ("" if d.residual == "sensor" else f"   ({_RESIDUAL[d.residual]} residual)"),
+             + ("" if d.residual == "sensor" else f"   ({residual_name(d.residual)} residual)"),
              f"verdict    {d.verdict}"]
     if d.candidates:
-        lines += ["", f"{'candidate':<24}{'residual':>13}{'before':>9}{'after':>9}{'change':>8}"
-                      f"{'p-value':>11}  evidence"]
-        for c in d.candidates:
-            residual, before = d.baseline(c)
-            lines.append(f"{c.effect:<24}{_RESIDUAL.get(residual, residual):>13}{before:>9.4g}"
-                         f"{c.rms_after:>9.4g}{_change(before, c.rms_after):>8}"
-                         f"{c.p_value:>11.2e}  {c.evidence}")
-        if any(d.baseline(c)[0] != "sensor" for c in d.candidates):
-            lines.append("(each candidate against the model without it on the same residual; "
-                         "the tied residuals include the gravity reference's or the gyro's error "
-                         "and are not comparable with the sensor rms)")
+        lines += [""] + candidate_table(d)
     if d.ladder:
         lines += ["", "model ladder", f"{'step':<34}{'residual':>13}{'before':>9}{'rms':>9}"
                                       f"{'× floor':>9}"]
@@ -89,7 +105,7 @@ def _text(d) -> str:
             ratio = step["rms"] / d.noise_floor if d.noise_floor and residual == "sensor" \
                 else float("nan")
             ratio = f"{ratio:>9.2f}" if ratio == ratio else f"{'–':>9}"
-            lines.append(f"{name:<34}{_RESIDUAL.get(residual, residual):>13}{before}"
+            lines.append(f"{name:<34}{residual_name(residual):>13}{before}"
                          f"{step['rms']:>9.4g}{ratio}")
         lines.append(f"{'noise floor':<34}{'sensor':>13}{'':>9}{d.noise_floor:>9.4g}{1.0:>9.2f}")
     if d.outlier_spans:
