@@ -2,7 +2,8 @@
 
 A forked child writes calibrations in a tight loop (``Calibration.save`` or
 ``CalibrationStore.save``, each resuming from what the last one left on disk); the parent kills
-it after a random 1–30 ms, many times over. After every kill: the file on disk is a valid
+it a random 1–30 ms after it is ready to write (longer on a machine too loaded for the writer to
+finish a write in that time), many times over. After every kill: the file on disk is a valid
 calibration, the old one or a newer one (never older than what was seen before), temp debris is
 at most one file per interrupted write and is swept by the next write once stale, and a restart
 (``CalibrationStore.load``) resumes from the current file.
@@ -11,6 +12,7 @@ from __future__ import annotations
 
 import os
 import random
+import select
 import signal
 import time
 
@@ -30,18 +32,44 @@ def _cal(n: int) -> Calibration:
 
 
 def _run_and_kill(child, delay_s: float) -> None:
-    """Fork; the child runs ``child()`` forever; SIGKILL it after ``delay_s``."""
+    """Fork; the child runs ``child(ready)`` forever, calling ``ready()`` once it is about to
+    write; SIGKILL it ``delay_s`` after that (the fork and the child's start-up are not counted,
+    so a loaded machine still sees kills during the writes)."""
+    read_end, write_end = os.pipe()
     pid = os.fork()
     if pid == 0:  # pragma: no cover - child
         try:
-            child()
+            os.close(read_end)
+            child(lambda: os.write(write_end, b"r"))
         finally:
             os._exit(0)
-    time.sleep(delay_s)
+    os.close(write_end)
+    try:
+        ready = select.select([read_end], [], [], 60.0)[0] and os.read(read_end, 1) == b"r"
+    finally:
+        os.close(read_end)
+    if ready:
+        time.sleep(delay_s)
     os.kill(pid, signal.SIGKILL)
     _, status = os.waitpid(pid, 0)
+    assert ready, "the writer never got ready to write (did it crash?)"
     assert os.WIFSIGNALED(status) and os.WTERMSIG(status) == signal.SIGKILL, \
         "the writer ended before it was killed (did it crash?)"
+
+
+class _KillWindow:
+    """Random kill delays, 1 ms up to ``hi``; ``hi`` doubles (to at most 1 s) after a run in which
+    the writer finished no write, so that a slow or loaded machine still makes progress."""
+
+    def __init__(self, seed: int, hi: float = 0.030):
+        self.rng, self.hi = random.Random(seed), hi
+
+    def delay(self) -> float:
+        return self.rng.uniform(0.001, self.hi)
+
+    def progressed(self, yes: bool) -> None:
+        if not yes:
+            self.hi = min(2 * self.hi, 1.0)
 
 
 def _temps(directory) -> list[str]:
@@ -51,21 +79,23 @@ def _temps(directory) -> list[str]:
 def test_calibration_save_killed_at_random_instants(tmp_path):
     path = tmp_path / "cal.json"
     _cal(1).save(path)
-    rng = random.Random(20240607)
+    window = _KillWindow(20240607)
     last_n, newer, debris_seen = 1, 0, 0
 
-    def writer():
+    def writer(ready):
         k = Calibration.load(path).n        # resume from what is on disk
+        ready()
         while True:
             k += 1
             _cal(k).save(path)
 
     for _ in range(KILLS):
-        _run_and_kill(writer, rng.uniform(0.001, 0.030))
+        _run_and_kill(writer, window.delay())
         cal = Calibration.load(path)        # raises if torn, foreign or invalid
         assert cal.n >= last_n, "an older calibration replaced a newer one"
         np.testing.assert_array_equal(cal.b, [cal.n, -2.0, 3.0])
         newer += cal.n > last_n
+        window.progressed(cal.n > last_n)
         last_n = cal.n
         temps = _temps(tmp_path)
         debris_seen = max(debris_seen, len(temps))
@@ -90,23 +120,25 @@ def test_calibration_store_killed_at_random_instants_then_restarts(tmp_path):
     state = tmp_path / "state"
     keep = 5
     CalibrationStore(state, keep=keep).save(_cal(1))
-    rng = random.Random(7)
+    window = _KillWindow(7)
     last_n, interrupted, longest, before = 1, 0, 0, 0
 
-    def writer():
+    def writer(ready):
         store = CalibrationStore(state, keep=keep)
         k = store.load().calibration.n      # a restart resumes from the current file
+        ready()
         while True:
             k += 1
             store.save(_cal(k))
 
     for _ in range(KILLS):
-        _run_and_kill(writer, rng.uniform(0.001, 0.030))
+        _run_and_kill(writer, window.delay())
         store = CalibrationStore(state, keep=keep)
         result = store.load()
         assert result.path == store.current_path and not result.problems, result.problems
         cal = result.calibration
         assert cal.n >= last_n
+        window.progressed(cal.n > last_n)
         last_n = cal.n
         history = store.history()
         longest = max(longest, len(history))
