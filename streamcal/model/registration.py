@@ -424,30 +424,28 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
 
     width_given = None if tau is None else float(tau)
     first = (K, b, thetas, R, dip, lag)
-    state, budget = first, max_rounds
-    width = width_given or _width(kernel, np.linalg.norm(prob.residual(*first, prob.headings(
-        *first)), axis=1))
-    settled = width_given is not None
+    h, r, trust = _evaluate(prob, first)
+    rn_first = np.linalg.norm(r, axis=1)
+    width = width_given or _width(kernel, rn_first)
+    state, budget, settled = first, max_rounds, width_given is not None
     for _ in range(MAX_WIDTH_ROUNDS):   # LM passes at a fixed width until the width settles
         # while the width is still moving a loose tolerance suffices (as in autocal)
-        state, rounds = _refine(prob, state, kernel, width, budget,
-                                RTOL if settled else WIDTH_RTOL)
+        state, rounds, cost, h, r = _refine(prob, state, kernel, width, budget,
+                                            RTOL if settled else WIDTH_RTOL)
         budget -= rounds
         if settled or budget <= 0:
             break
-        again = _width(kernel, np.linalg.norm(prob.residual(*state, prob.headings(*state)),
-                                              axis=1))
+        again = _width(kernel, np.linalg.norm(r, axis=1))
         settled = abs(again - width) <= WIDTH_SETTLED * width
         width = again
     else:   # the width kept moving: polish at its last estimate
-        state, _ = _refine(prob, state, kernel, width, budget, RTOL)
+        state, _, cost, h, r = _refine(prob, state, kernel, width, budget, RTOL)
     # The invariant: never return parameters whose robust cost (at the final width) is worse
     # than the start's (a width pass that moved away from a better start is undone).
-    if _cost(prob, state, kernel, width)[0] > _cost(prob, first, kernel, width)[0]:
+    if not cost <= float(np.sum(trust * _loss(kernel, width).evaluate(rn_first ** 2)[0])):
         state = first
+        h, r, _ = _evaluate(prob, first)
     K, b, thetas, R, dip, lag = state
-    h = prob.headings(*state)
-    r = prob.residual(*state, h)
     if fit_lag and abs(lag) > MAX_LAG:
         raise InsufficientDataError(f"the time lag is not determined by the data: the fit "
                                     f"wandered to {lag:.3f} s, beyond ±{MAX_LAG} s")
@@ -513,26 +511,29 @@ def _loss(kernel: str, width: float):
     return _Capped(make_kernel(kernel, width), (OUTLIER_WIDTHS * width) ** 2)
 
 
-def _cost(prob: "_Problem", state: tuple, kernel: str, width: float):
-    """(Σ trust ρ̃, weights (N,), headings (N,3), residuals (N,3)) at (K, b, θ, R, δ, τ)."""
+def _evaluate(prob: "_Problem", state: tuple):
+    """(headings (N,3), residuals (N,3), trust (N,)) at ``state`` = (K, b, θ, R, δ, τ)."""
     h = prob.headings(*state)
-    r = prob.residual(*state, h)
-    _, trust = prob.down(state[5])
-    rn = np.linalg.norm(r, axis=1)
-    if not np.all(np.isfinite(rn)):
-        return np.inf, None, h, r
-    rho, d1, _ = _loss(kernel, width).evaluate(rn ** 2)
-    return float(np.sum(trust * rho)), trust * d1, h, r
+    return h, prob.residual(*state, h), prob.down(state[5])[1]
 
 
 def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_rounds: int,
-            rtol: float = RTOL) -> tuple[tuple, int]:
-    """One LM pass at a fixed ``width``: (state never costlier than ``state``, rounds used)."""
-    cost, w, h, r = _cost(prob, state, kernel, width)
-    if not np.isfinite(cost):
-        return state, 0
+            rtol: float = RTOL) -> tuple:
+    """One LM pass at a fixed ``width`` → (state never costlier than ``state``, rounds used,
+    its cost Σ trust ρ̃, headings (N,3), residuals (N,3))."""
+    loss = _loss(kernel, width)
+
+    def cost_at(st):
+        h, r, trust = _evaluate(prob, st)
+        rho, d1, _ = loss.evaluate(np.sum(r * r, axis=1))
+        cost = float(np.sum(trust * rho))
+        return (cost if np.isfinite(cost) else np.inf), trust * d1, h, r
+
+    cost, w, h, r = cost_at(state)
     lam, rounds = 1e-3, 0
     for rounds in range(1, max_rounds + 1):
+        if not np.isfinite(cost):
+            break
         K, b, thetas, R, dip, lag = state
         H, grad = prob.reduced_normal(K, b, thetas, R, dip, lag, h, r, w)
         p0 = prob.pack(K, b, thetas, dip, lag)
@@ -540,7 +541,7 @@ def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_round
         for _ in range(10):   # Levenberg–Marquardt damping
             step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
             cand = prob.unpack(p0 + step, R, lag)
-            cost1, w1, h1, r1 = _cost(prob, cand, kernel, width)
+            cost1, w1, h1, r1 = cost_at(cand)
             if cost1 <= cost:
                 trial = cand
                 lam = max(lam / 3, 1e-9)
@@ -552,7 +553,7 @@ def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_round
         state, cost, w, h, r = trial, cost1, w1, h1, r1
         if drop <= rtol * cost:
             break
-    return state, rounds
+    return state, rounds, cost, h, r
 
 
 def _lag_grid(prob, K, b, thetas, R, dip) -> float:
