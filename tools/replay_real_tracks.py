@@ -8,8 +8,10 @@ track by the normalized model deviation of the paper (eq. 40, ``Calibration.mode
 ``fit`` refuses the track for lack of coverage, the comparison is with
 ``fit(..., check_coverage=False)`` and the table says so.
 
-Then the two environment-change scenarios (``tests/test_stream_environment.py``): BROAD 32 with a
-magnet on the board for t ∈ [34, 100] s, and sunsided set 1 → set 2 through one calibrator.
+Then the environment-change scenarios (``tests/test_stream_environment.py``): BROAD 32 with a
+magnet on the board for t ∈ [34, 100] s (with BROAD 02's calibration in the state directory, and
+from scratch: the replay's closing words and a batch fit of each environment alone), and sunsided
+set 1 → set 2 through one calibrator.
 
     python tools/replay_real_tracks.py [-o results/replay_real_tracks.md]
 """
@@ -110,6 +112,41 @@ def broad32(tracks_dir) -> list[str]:
     return lines
 
 
+def broad32_from_scratch(tracks_dir) -> list[str]:
+    """``streamcal replay`` of BROAD 32 with no state: its closing words, and what a batch fit
+    makes of each environment alone (magnet on for t ∈ [34, 100] s)."""
+    import contextlib
+    import io
+    import json
+
+    from streamcal.cli import main as cli
+
+    path = tracks_dir / "broad_32_attached_magnet_1cm.csv.gz"
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        code = cli(["replay", str(path), "--sync-fits", "--block", str(BLOCK), "--json"])
+    summary = json.loads(out.getvalue().splitlines()[-1])
+    lines = [f"`streamcal replay {path.name} --sync-fits` (no state) exits {code}; "
+             f"{summary['fits']} fits ({summary['accepted']} accepted, {summary['rejected']} "
+             f"rejected, {summary['failed']} failed), {summary['drift']} drift. Its closing words:",
+             "", f"> no calibration: {summary.get('why', '—')}", "",
+             "Each environment alone, by the batch fit (magnet times from the recording's notes):",
+             ""]
+    track = Track.read(path)
+    t, m = track.t_mag, track.mag
+    for lo, hi, what in ((0.0, 34.0, "before the magnet (board at rest)"),
+                         (34.0, 100.0, "magnet on the board"),
+                         (100.0, float("inf"), "after the magnet")):
+        sel = (t >= lo) & (t < hi)
+        try:
+            cal = fit(m[sel])
+            verdict = f"fit accepted, rms {cal.rms:.3g} µT"
+        except StreamcalError as exc:
+            verdict = f"refused: {str(exc).split('. ')[0][:150]}"
+        lines.append(f"- t ∈ [{lo:g}, {hi:g}) s, {what}, {int(sel.sum())} samples: {verdict}")
+    return lines
+
+
 def sunsided(tracks_dir) -> list[str]:
     s1 = Track.read(tracks_dir / "sunsided_set1_tiltsphere.csv.gz")
     s2 = Track.read(tracks_dir / "sunsided_set2_fullsphere.csv.gz")
@@ -119,7 +156,8 @@ def sunsided(tracks_dir) -> list[str]:
     lines = [f"Set 2 starts at t = {shift:.2f} s. Events (replay {wall:.1f} s wall): "
              f"{_counts(counts)}", ""]
     lines += [f"- t = {e.t:.2f} s, `{e.kind}`: {e.message}" for e in events
-              if e.kind in ("drift", "forgot", "recalled", "rejected", "fit_failed", "discarded")
+              if e.kind in ("drift", "forgot", "recalled", "rejected", "fit_failed", "discarded",
+                            "disturbance")
               or (e.kind == "accepted" and abs(e.t - shift) < 80)]
     lines += ["", f"Final calibration vs fit(set 2): deviation {sc.calibration.model_error(ref2):.4f}; "
               f"vs fit(set 1): {sc.calibration.model_error(ref1):.4f}; fit(set 1) vs fit(set 2): "
@@ -132,9 +170,9 @@ def _counts(counts: dict) -> str:
 
 
 def table(rows) -> list[str]:
-    out = ["| track | mag samples | unit | fits (acc/rej/fail) | drift | coverage | batch reference "
-           "| deviation eq. 40 | radial error stream / batch | replay wall |",
-           "|---|---:|---|---|---:|---:|---|---:|---|---:|"]
+    out = ["| track | mag samples | unit | fits (acc/rej/fail) | drift | disturbances | coverage "
+           "| batch reference | deviation eq. 40 | radial error stream / batch | replay wall |",
+           "|---|---:|---|---|---:|---:|---:|---|---:|---|---:|"]
     for r in rows:
         c = r["counts"]
         fits = f"{c.get('fit_started', 0)} ({c.get('accepted', 0)}/{c.get('rejected', 0)}/" \
@@ -147,7 +185,7 @@ def table(rows) -> list[str]:
             dev = f"{r['dev']:.4f}"
             err = f"{r['err_stream']:.3g} / {r['err_batch']:.3g}"
         out.append(f"| {r['name']} | {r['n']} | {r['unit']} | {fits} | {c.get('drift', 0)} | "
-                   f"{100 * r['coverage']:.0f}% | {r['batch']} | {dev} | {err} | "
+                   f"{c.get('disturbance', 0)} | {100 * r['coverage']:.0f}% | {r['batch']} | {dev} | {err} | "
                    f"{r['wall']:.2f} s |")
     return out
 
@@ -171,6 +209,8 @@ def main() -> int:
              "The state directory starts with the calibration of BROAD 02 (same sensor, "
              "undisturbed), as a daemon's would.", ""]
     text += broad32(tracks_dir)
+    text += ["", "## BROAD 32 from scratch (no state)", ""]
+    text += broad32_from_scratch(tracks_dir)
     text += ["", "## sunsided set 1 → set 2 through one calibrator", ""]
     text += sunsided(tracks_dir)
     Path(args.output).parent.mkdir(parents=True, exist_ok=True)

@@ -274,21 +274,30 @@ class StreamingCalibrator:
             self._env_start = float(t[0])
         calibrated = self._cal is not None and not self.stale
         if calibrated:
-            self._hold_back(m, t, cov, self._cal_ref, events)
+            self._hold_back(m, t, cov, events)
         else:
-            if self._remembered:
-                self._check_recall(m, t, events)
-            if self._coarse_ref is not None and self.stale == (self._cal is not None):
-                # No calibration in force: the running sphere estimate is the reference.
-                self._hold_back(m, t, cov, self._coarse_ref, events)
+            # The running sums serve only while no calibration is in force (a drift rebuilds
+            # them from the buffer; the guard's reference radius then comes from the buffer).
+            ref = self._coarse_ref
+            if ref is not None:
+                # The running sphere estimate only watches for an environment change: every
+                # sample goes to the buffer (a sphere misfits an anisotropic sensor's extremes,
+                # the samples a first fit needs most), but the disagreeing ones stay out of the
+                # sums, so that the estimate does not drift into a mixture of two shells.
+                held = self._disagreeing(m, t, cov, ref)[0]
+                self.stats.update(m[~held])
             else:
                 self.stats.update(m)
-                stored, new_cells = self.buffer.insert(m, t, cov)
-                self.policy.note(stored, new_cells)
             # The coarse estimate frames directions until a calibration is in use.
             self._since_coarse += n
             if self._since_coarse >= self.coarse_every:
                 self._update_coarse()
+            stored, new_cells = self.buffer.insert(m, t, cov)
+            self.policy.note(stored, new_cells)
+            if ref is not None:
+                self._check(ref, events)
+            if self._remembered and self.stale:
+                self._check_recall(m, t, events)
         self._milestones(events)
         events += self._collect()
         if self._job is None:
@@ -337,7 +346,9 @@ class StreamingCalibrator:
         if moved or self.stale and self._frame_is_cal:
             self._set_frame(c, np.eye(3) / R, from_cal=False)
         if self._disturbance is None:
-            self._coarse_ref = self._coarse_reference(c, R, renew=moved)
+            # A sphere that no longer fits the stored samples (they begin to mix two shells)
+            # does not replace the reference that may be about to see the change.
+            self._coarse_ref = self._coarse_reference(c, R, renew=moved) or self._coarse_ref
 
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
@@ -367,44 +378,49 @@ class StreamingCalibrator:
                           self.policy.drift_limit(spread * R, R), self.buffer.occupied.copy(),
                           None, False)
 
-    def _hold_back(self, m, t, cov, ref, events) -> None:
-        """Samples that disagree with the reference ``ref`` (the calibration in force, or the
-        running sphere estimate before one) are held back (module :mod:`.disturbance`), the
-        others go to the buffer and the running sums; then the drift window is judged."""
+    def _hold_back(self, m, t, cov, events) -> None:
+        """With a calibration in force: samples that disagree with it are held back (module
+        :mod:`.disturbance`), the others go to the buffer; then the drift window is judged."""
+        ref = self._cal_ref
+        held, d, cell = self._disagreeing(m, t, cov, ref)
+        if held.any():
+            ok = ~held
+            m, t, cov, d, cell = m[ok], t[ok], cov[ok], d[ok], cell[ok]
+        if ref.cal is None and self._frame_is_cal:
+            # The buffer's frame is the calibration's: one projection serves both.
+            stored, new_cells = self.buffer.insert(m, t, cov, d=d, cell=cell)
+        else:
+            stored, new_cells = self.buffer.insert(m, t, cov)
+        self.policy.note(stored, new_cells)
+        self._check(ref, events)
+
+    def _disagreeing(self, m, t, cov, ref):
+        """Judge samples ``m`` (n,3) against the reference ``ref``: the drift window observes
+        their relative errors, the disagreeing ones are recorded in the quarantine. Returns
+        the mask (n,) of disagreeing samples, their unit directions (n,3) and cells (n,)."""
         y = ref.project(m, t, cov, self.buffer.covariate_names)
         r = np.sqrt(np.einsum("nk,nk->n", y, y))
         d = y / np.maximum(r, 1e-300)[:, None]
         cell = self.buffer.cells.cell_of(d)
         err = np.abs(r - 1.0)
-        limit = ref.limit
         # Only directions the reference was fitted on: elsewhere it extrapolates, and a large
         # error there asks for a refit on more coverage (new cells), not for holding back.
         if ref.support is not None:
             inside = ref.support[cell]
-            held = (err > limit) & inside
-            if ref.gross:
+            held = (err > ref.limit) & inside
+            if ref.hold:
                 held |= err > GROSS
             self.policy.observe(err[inside], t[inside])
         else:
-            held = err > limit
+            held = err > ref.limit
             self.policy.observe(err, t)
-        kept = (m, t, cov)
         if held.any():
             self.quarantine.push(m[held], y[held], t[held], cov[held])
             if self._disturbance is not None:
                 self._disturbance.note(err[held], t[held])
-            ok = ~held
-            kept, d, cell = (m[ok], t[ok], cov[ok]), d[ok], cell[ok]
-        if ref is self._coarse_ref:
-            # The running sums serve only while no calibration is in force (a drift rebuilds
-            # them from the buffer; the guard's reference radius then comes from the buffer).
-            self.stats.update(kept[0])
-        if ref.cal is None and self._frame_is_cal and ref is self._cal_ref:
-            # The buffer's frame is the calibration's: one projection serves both.
-            stored, new_cells = self.buffer.insert(*kept, d=d, cell=cell)
-        else:
-            stored, new_cells = self.buffer.insert(*kept)
-        self.policy.note(stored, new_cells)
+        return held, d, cell
+
+    def _check(self, ref, events) -> None:
         check = self.policy.check(ref.rms, ref.radius)
         if check is not None:
             self._judge(check, ref, events)
@@ -416,7 +432,7 @@ class StreamingCalibrator:
         if dist is None:
             if check.fraction <= rule.open_fraction:
                 return
-            dist = self._disturbance = Disturbance(check.onset, radius=ref.radius)
+            dist = self._disturbance = Disturbance(check.onset, radius=ref.radius, hold=ref.hold)
             # Held before the window turned: count them into this disturbance.
             early = self.quarantine.since(check.onset)
             dist.note(np.abs(np.linalg.norm(self.quarantine.y[early], axis=1) - 1.0),
@@ -448,10 +464,12 @@ class StreamingCalibrator:
         events.append(Event(
             "disturbance", f"transient disturbance from t={dist.start:.2f} to {end:.2f} s: peak "
             f"error {dist.peak * R:.3g} {self.unit} ({100 * dist.peak:.0f}% of the field) at "
-            f"t={dist.peak_t:.2f} s; {dist.n_held} samples held back, buffer kept",
+            f"t={dist.peak_t:.2f} s; {dist.n_held} samples "
+            + ("held back, buffer kept" if dist.hold else "disagreed with the running estimate"),
             {"start": dist.start, "end": end, "duration": end - dist.start,
              "peak": dist.peak * R, "peak_relative": dist.peak, "peak_t": dist.peak_t,
-             "held": dist.n_held, "shell_residual": _finite(dist.shell)}, end))
+             "held": dist.n_held if dist.hold else 0, "disagreeing": dist.n_held,
+             "shell_residual": _finite(dist.shell)}, end))
         self.quarantine.clear()
 
     def _environment_changed(self, check, dist, reason, why, idx, events) -> None:
@@ -470,7 +488,7 @@ class StreamingCalibrator:
         self._forget(onset, events, "calibration in use is stale until a new one is accepted "
                      "or a remembered one fits again" if self._cal is not None else
                      "the samples of the old environment would bend the first fit",
-                     (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()))
+                     (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()) if in_force else None)
         q.clear()
         self.stale = self._cal is not None
         self._recent_n = self._recall_at = 0
@@ -678,8 +696,10 @@ class StreamingCalibrator:
 class _Reference:
     """What new samples are judged against: ``y = AT``-projection of ``m − center`` (or the
     calibration ``cal`` when it has effect terms), its radius and rms (sensor unit), the drift
-    ``limit`` (relative), the cells it was fitted on (``support``, None: all) and whether gross
-    errors are held back on every direction (``gross``)."""
+    ``limit`` (relative), the cells it was fitted on (``support``, None: all) and whether
+    disagreeing samples are held back from the buffer (``hold``: a calibration; the running
+    sphere estimate only watches, since a sphere misfits an anisotropic sensor's extremes,
+    which are the samples the first fit needs most)."""
 
     center: np.ndarray
     AT: np.ndarray
@@ -688,7 +708,7 @@ class _Reference:
     limit: float
     support: np.ndarray | None
     cal: Calibration | None
-    gross: bool
+    hold: bool
 
     def project(self, m, t, cov, names) -> np.ndarray:
         if self.cal is None:

@@ -102,7 +102,8 @@ class Disturbance:
     """An open disagreement with the calibration in use: ``start`` (s, first sample beyond the
     limit), ``peak`` (largest relative error of a held sample) at ``peak_t`` (s), ``n_held``
     samples held back since it began, and the last new-shell residual ``shell`` (relative, median)
-    with its centre ``center`` (calibrated units); ``radius`` of the reference (sensor unit)."""
+    with its centre ``center`` (calibrated units); ``radius`` of the reference (sensor unit);
+    ``hold``: the samples were held back (against a calibration) or only watched."""
 
     start: float
     peak: float = 0.0
@@ -111,6 +112,7 @@ class Disturbance:
     shell: float = float("nan")
     center: np.ndarray | None = None
     radius: float = 1.0
+    hold: bool = True
 
     def note(self, err: np.ndarray, t: np.ndarray) -> None:
         """Count held samples (relative errors ``err`` (n,) at times ``t``)."""
