@@ -491,8 +491,9 @@ class StreamingCalibrator:
                      (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()) if in_force else None)
         q.clear()
         self.stale = self._cal is not None
-        self._recent_n = self._recall_at = 0
-        self._recall_streak = (None, 0)
+        if in_force:        # the recall window watches the new field from here on
+            self._recent_n = self._recall_at = 0
+            self._recall_streak = (None, 0)
         if self._job is not None:
             self._job.obsolete = True
 
