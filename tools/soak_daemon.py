@@ -11,7 +11,9 @@ fake bus (the driver sees a device that comes back at power-on defaults and re-i
 Recorded every ``--rss-every`` magnetometer samples: resident memory (``VmRSS`` from
 ``/proc/self/status``), wall time, samples, calibrator events and errors. At the end: wall time,
 rate (simulated hours per wall hour), the memory curve and whether it is flat (max/min after
-warm-up within ``--flat`` = 10 %), disk use of the state directory. ``--max-wall S`` stops early;
+warm-up within ``--flat`` = 10 %), disk use of the state directory, and the environment events
+(``drift``/``forgot``/``recalled`` for changes, ``disturbance`` for transients such as the
+simulated phones: one per piece is expected). ``--max-wall S`` stops early;
 the report then extrapolates the full duration from the measured rate and says so.
 
     python tools/soak_daemon.py --hours 24                # the full soak (about 25 min here)
@@ -213,7 +215,10 @@ def soak(hours: float = 24.0, *, chunk_s: float = 600.0, distinct: int = 3, seed
         if rate and math.isfinite(rate) else None,
         "complete": sim_h >= 0.999 * hours, "exit_code": code,
         "stop_reason": service.stats.stop_reason,
-        "events": dict(service.stats.events), "ingest_errors": service.stats.ingest_errors,
+        "events": dict(service.stats.events),
+        "environment_events": {k: service.stats.events.get(k, 0)
+                               for k in ("drift", "forgot", "recalled", "disturbance")},
+        "ingest_errors": service.stats.ingest_errors,
         "outages": service.stats.outages, "source": source.counters(),
         "output_lines": service.outputs.lines, "log_lines": n_lines[0], "last_log": lines[-5:],
         "rss_kb_first": curve[0]["rss_kb"] if curve else None,
