@@ -3,10 +3,13 @@
 Per stage of samples (DESIGN §1)::
 
     ingest(block) ─▶ Stage (preallocated; a few µs per call, nothing else when not full)
-    stage full    ─▶ SphereStats.update          (instant coarse estimate, O(1) memory)
+    stage full    ─▶ calibration in force: hold back disagreeing samples (Quarantine)
+                     none in force: SphereStats.update (instant coarse estimate, O(1) memory)
                   ─▶ CoverageBuffer.insert       (bounded, newest per direction cell)
-                  ─▶ drift check                 (recent window vs the calibration in use, on
-                                                  the directions that calibration was fitted on)
+                  ─▶ drift window               (recent samples vs the calibration in use, or
+                                                  the running sphere estimate before one, on the
+                                                  directions it was fitted on): disturbance
+                                                  opened / ended / an environment change
                   ─▶ while stale: recall check   (does a remembered calibration fit again?)
                   ─▶ pick up a finished fit ─▶ AcceptanceGuard ─▶ CalibrationStore
                   ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
@@ -14,13 +17,20 @@ Per stage of samples (DESIGN §1)::
 Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at most one at a
 time, and its result is picked up by a later ``ingest`` or ``poll``. Rows are staged ``stage`` at
 a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
-up and drift is judged at most one stage late; a block larger than the free room is processed at once, with what
-was staged. ``poll()`` processes what is staged (call it when the source is idle).
+up and drift is judged at most one stage late; a block larger than the free room is processed
+at once, with what was staged. ``poll()`` processes what is staged (call it when the source is
+idle).
 
-Environment changes. When the field stops fitting the calibration in use (drift), the buffer
-forgets the samples taken since the change began, the calibration in use is marked stale (it is
-kept and applied: a stale calibration is better than none) and the next fit is a first one. The
-last ``remember`` accepted calibrations are remembered (with the cells they were fitted on): while
+Disturbances and environment changes (module :mod:`.disturbance`). Samples that disagree with
+the calibration in force are held back from the buffer and the fits. A passing phone is a
+transient: when the field agrees again, one ``disturbance`` event reports it and the buffer is
+untouched. When the disagreement persists on one shifted shell (a new hard iron), or lasts
+``DisturbanceRule.persist_s`` whatever its shape (``drift``), the buffer forgets the samples taken
+before the change began, the held ones join it, the calibration in use is marked stale (it is
+kept and applied: a stale calibration is better than none) and the next fit is a first one.
+Before the first calibration the running sphere estimate, once it fits the stored samples,
+watches the same way, so that a first fit is not bent by two environments. The last
+``remember`` accepted calibrations are remembered (with the cells they were fitted on): while
 stale, a full window of new samples that fits one of them again (the magnet was removed, the
 board is back in its old place) brings it back at once (``recalled``), without waiting for the
 coverage a refit needs. A candidate always has to beat the calibration in use on held-out
@@ -60,7 +70,8 @@ class Event:
     ``kind``: ``loaded``, ``load_problem``, ``coverage``, ``fit_started``, ``fit_failed``,
     ``accepted``, ``rejected``, ``discarded``, ``disturbance`` (a transient disagreement ended;
     ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back), ``drift``
-    (an environment change), ``forgot``, ``recalled``, ``stored``, ``store_error``. ``t`` is the sample time (s) at which it happened, ``data`` its figures
+    (an environment change), ``forgot``, ``recalled``, ``stored``, ``store_error``. ``t`` is
+    the sample time (s) at which it happened, ``data`` its figures
     (JSON-ready).
     """
 
