@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from streamcal.calibration import Calibration
-from streamcal.stream.store import CalibrationStore, _TEMP_NAME
+from streamcal.stream.store import CalibrationStore
 
 KILLS = 120
 pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="needs os.fork")
@@ -73,7 +73,7 @@ class _KillWindow:
 
 
 def _temps(directory) -> list[str]:
-    return [e.name for e in os.scandir(directory) if _TEMP_NAME.match(e.name)]
+    return [e.name for e in os.scandir(directory) if e.name.startswith(".") and e.name.endswith(".tmp")]
 
 
 def test_calibration_save_killed_at_random_instants(tmp_path):

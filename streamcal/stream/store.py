@@ -16,19 +16,16 @@ from __future__ import annotations
 import os
 import re
 import stat
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from ..atomic import atomic_write_text, sweep_stale_temps
 from ..calibration import MAX_FILE_BYTES, Calibration
 from ..errors import CalibrationFileError, InputError
 
 CURRENT = "calibration.json"
 HISTORY = "history"
 _HISTORY_NAME = re.compile(r"^(\d{4,})\.json$")
-_TEMP_NAME = re.compile(r"^\..+\.tmp$")
-#: Temp files older than this (s) are leftovers of a crash.
-_STALE_TEMP_S = 60.0
 
 
 @dataclass
@@ -112,15 +109,8 @@ class CalibrationStore:
     def _clean_temp_files(self) -> None:
         # Leftovers of writes interrupted by a crash (the renamed-over files are intact); only
         # old ones, so that a write in progress in another process is left alone.
-        now = time.time()
         for d in (self.dir, self.history_dir):
-            for entry in os.scandir(d):
-                if (_TEMP_NAME.match(entry.name) and entry.is_file(follow_symlinks=False)
-                        and now - entry.stat(follow_symlinks=False).st_mtime > _STALE_TEMP_S):
-                    try:
-                        os.unlink(entry.path)
-                    except FileNotFoundError:
-                        pass
+            sweep_stale_temps(d)
 
 
 def _private_dir(path: Path) -> None:
@@ -139,8 +129,6 @@ def _private_dir(path: Path) -> None:
 
 def _write(path: Path, text: str) -> None:
     try:
-        from ..atomic import atomic_write_text
-
         atomic_write_text(path, text, mode=0o600)
     except OSError as exc:
         raise InputError(f"{path}: cannot write calibration ({exc})") from None
