@@ -157,7 +157,12 @@ class SerialBlocks:
         board = getattr(self.link, "board", None)
         if board is None or not board.finished.is_set():
             return False
-        return self._after_replay(board) or not self.link._pending
+        if self._after_replay(board):
+            return True
+        # the board is finished once its last byte is written to the pty; on a loaded machine
+        # those bytes can still wait in the pty for the host, so a replay ends only when the
+        # port is empty too
+        return not self.link._pending and not (getattr(self.link.port, "in_waiting", 0) or 0)
 
     @staticmethod
     def _after_replay(board) -> bool:
