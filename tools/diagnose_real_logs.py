@@ -30,9 +30,9 @@ SUMMARY = """\
 - **BROAD 32 (magnet attached 1 cm away)**: now fitted on its undisturbed support (autocal's
   coherent-disturbance start, 762d4a3): the attached-magnet period is one outlier span
   (38–95 s, 14 491 samples), the rest is at_noise_floor. BROAD 30 (a stationary magnet nearby)
-  shows three short spans where it passes the magnet. (BROAD 32's gravity-tied time_lag promise,
-  4.87 µT after the full-sample refit against 1.1 on the subset, shows that refit diverging;
-  not significant either way.)
+  shows three short spans where it passes the magnet. BROAD 32's gravity-tied time_lag (13.9 ms,
+  1.16 → 1.05 µT on the full refit) is not material; that refit used to drift onto the magnet's
+  samples (4.87 µT) until the registration LM capped its kernel at 2 widths.
 - **BROAD 02 / 30** (≈ 290 Hz magnetometer with gyro and accel): a **time lag of 11–12 ms** of the
   magnetometer behind the IMU is significant on the gravity-tied residual in both recordings (the
   same board), the frame misalignment only in 30. Their noise floor (≈ 0.014 µT) is an artefact:
@@ -41,8 +41,8 @@ SUMMARY = """\
 - **The gyro alone** (`streamcal.model.gyro_lag`: the reading predicted 0.5 s ahead by the
   integrated gyro, gyro frame/gains/bias fitted, sample-and-hold repeats and clipped gyro rows
   left out) sees the **same lag on the BROAD board: 10.7, 11.3 and 10.9 ms** (02, 30, 32)
-  against 12.1, 11.1 and 14.2 ms gravity-tied — two independent references agree within
-  ~1.5 ms (3 ms on the magnet-disturbed 32). 29 % of the BROAD magnetometer rows repeat the
+  against 11.5, 10.9 and 13.9 ms gravity-tied — two independent references agree within
+  ~0.8 ms (3 ms on the magnet-disturbed 32). 29 % of the BROAD magnetometer rows repeat the
   previous reading exactly (logged faster than the sensor updates); they are left out of the
   gyro pairs, so the lag is not that staleness. On the gyro-tied scale the lag is material only
   in BROAD 30 (rms 2.61 → 1.59 µT, significant on the accel-dropped track); in 02 / 32 it cuts
@@ -60,7 +60,9 @@ SUMMARY = """\
 - **tlefloch (1.8 K swing)**: enough to see a thermal effect — temperature_scale (r = 0.57) and
   temperature_offset (r = 0.55) are significant and cut the rms by ~20 % — but time_drift (r = 0.60)
   explains it slightly better: the temperature rises monotonically during the 2-minute log, so
-  time and temperature cannot be told apart by this recording.
+  time and temperature cannot be told apart by this recording. After time_drift the ladder adds
+  mag_accel_misalignment (the 57° frame; gravity-tied 0.358 → 0.315, −12 %, just past the 10 %
+  rule) and axis_nonlinearity (0.315 → 0.278), both on the gravity-tied scale.
 - **Frames**: for ICM-20948, LSM9DS1 and the sunsided logs the magnetometer axes are not the
   accelerometer's (the fitted rotation is ≈ 180° or ≈ 87°): mag_accel_misalignment is then a
   real and large frame difference, not a small mounting error; its rms_after is on the
