@@ -38,6 +38,7 @@ samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
 
+import math
 import threading
 from collections import deque
 from dataclasses import dataclass, field
@@ -175,6 +176,8 @@ class StreamingCalibrator:
         self._since_coarse = 0
         self._milestone = 0.0
         self._t_last = float("nan")
+        self._t_shift = 0.0         # s added to sample times since the clock went back
+        self._dt = 0.0              # typical sample interval (s) of the last stage
         self._frame_is_cal = False
         self._stage = Stage(stage, self.buffer.covariate_names)
         W = self.policy.window
@@ -259,6 +262,8 @@ class StreamingCalibrator:
         cal = self._cal
         if cal is not None:
             cov = block_covariates(block) if cal.effects else None
+            if cov and self._t_shift:           # the clock the calibration was fitted on
+                cov["t"] = cov["t"] + self._t_shift
             x = cal.apply(m[ok], {k: v[ok] for k, v in cov.items()} if cov else None)
             out[ok] = x if unit_vectors else x * (cal.field or radius_of(cal))
         elif self.coarse is not None:
@@ -279,9 +284,10 @@ class StreamingCalibrator:
         if n == 0:
             return self._collect()
         events: list[Event] = []
+        t = self._monotone(t, events)
         self._n_done += n
         self._t_last = t_now = float(t[-1])
-        if self._env_start != self._env_start:          # NaN: the first samples
+        if math.isnan(self._env_start):                 # the first samples
             self._env_start = float(t[0])
         calibrated = self._cal is not None and not self.stale
         if calibrated:
@@ -320,6 +326,39 @@ class StreamingCalibrator:
                 self.policy.requested(t_now)
                 events += self._submit(request, t_now)
         return events
+
+    def _monotone(self, t: np.ndarray, events) -> np.ndarray:
+        """Sample times ``t`` (n,) s made monotone. A board's clock restarts when it resets (a
+        USB reconnect pulls DTR, a brown-out reboots it): a time earlier than the one before it
+        continues from there instead (one typical interval later), this and every later time
+        shifted by the same offset, and a ``clock_reset`` event says by how much. Everything
+        downstream (forgetting by onset, held samples since a start, the persist test) assumes
+        time never goes back."""
+        t = np.asarray(t, dtype=float) + self._t_shift if self._t_shift else \
+            np.asarray(t, dtype=float)
+        prev = np.empty_like(t)
+        prev[0] = self._t_last                      # NaN before the first stage: no jump
+        prev[1:] = t[:-1]
+        back = t < prev
+        if not back.any():
+            if len(t) > 1:
+                self._dt = float(t[-1] - t[0]) / (len(t) - 1)
+            return t
+        steps = np.diff(t)
+        ahead = steps[steps > 0]
+        dt = float(np.median(ahead)) if len(ahead) else self._dt
+        jump = np.where(back, prev - t + dt, 0.0)    # per row, the offset added from there on
+        before = np.cumsum(jump) - jump                # offset of earlier jumps in this stage
+        for k in np.flatnonzero(back):
+            self._t_shift += float(jump[k])
+            at = float(prev[k] + before[k])
+            events.append(Event(
+                "clock_reset", f"sample clock went back {prev[k] - t[k]:.3f} s after "
+                f"t={at:.3f} s (the board reset or reconnected?): later sample times are "
+                f"shifted by +{self._t_shift:.3f} s to keep time monotone",
+                {"back_by": float(prev[k] - t[k]), "at": at, "shift": self._t_shift}, at + dt))
+        t = t + before + jump
+        return t
 
     def _fit_coarse(self):
         """Running sphere estimate ``(centre (3,), radius)`` or None when undetermined."""
