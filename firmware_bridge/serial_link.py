@@ -248,6 +248,10 @@ class SerialLink:
                 return None
             self.pump()
 
+    def has_pending(self) -> bool:
+        """Whether decoded samples are waiting for :meth:`read_block`."""
+        return bool(self._pending)
+
     def blocks(self, max_samples: int = 256, idle_timeout: float | None = None) -> Iterator[SampleBlock]:
         """Yield blocks as they arrive; stop after ``idle_timeout`` s without samples (None: never)."""
         last = time.monotonic()

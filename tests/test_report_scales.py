@@ -144,18 +144,22 @@ def test_outlier_count_spans_and_mask_come_from_one_model(hidden):
     assert d.ladder[-1]["model"] == list(d.outliers_model)
     top = d.candidates[0].calibration                        # that model, fitted on every sample
     assert np.array_equal(d.outliers, ~np.asarray(top.inliers, bool))
-    assert d.n_outliers == int(d.outliers.sum()) > 0
+    assert d.n_outliers_model == int(d.outliers.sum()) > 0
     assert d.outlier_spans == outlier_spans(track.t_mag, d.outliers)
     assert d.to_dict()["outliers_model"] == list(d.outliers_model)
+    assert d.to_dict()["n_outliers_model"] == d.n_outliers_model
+    # n_outliers stays with model and rms (SPEC §4): the base model's
+    assert d.n_outliers == int((~np.asarray(d.calibration.inliers, bool)).sum())
+    assert d.to_dict()["n_outliers"] == d.n_outliers
     t = np.asarray(track.t_mag)
     inside = np.zeros(len(t), bool)
     for a, b in d.outlier_spans:
         inside |= (t >= a) & (t <= b)
-    assert (d.outliers & inside).sum() >= 0.95 * d.n_outliers
+    assert (d.outliers & inside).sum() >= 0.95 * d.n_outliers_model
     data = FigureData.build(track, d)                        # the figures mark the same ones
     assert np.array_equal(data.inliers, ~d.outliers)
     page = render_html(track, d)
-    assert f"<b>{d.n_outliers}</b> of {d.n} samples are outliers of the model " \
+    assert f"<b>{d.n_outliers_model}</b> of {d.n} samples are outliers of the model " \
            f"<code>{', '.join(d.outliers_model)}</code>" in page
 
 
@@ -164,7 +168,7 @@ def test_without_a_ladder_outliers_are_the_base_models(hidden):
     d = diagnose(track, candidates=["temperature_offset"], ladder=False)
     assert d.outliers_model == ("hard_iron", "soft_iron")
     assert np.array_equal(d.outliers, ~np.asarray(d.calibration.inliers, bool))
-    assert d.n_outliers == int(d.outliers.sum())
+    assert d.n_outliers == d.n_outliers_model == int(d.outliers.sum())
 
 
 def test_ladder_png_is_byte_identical(tied):

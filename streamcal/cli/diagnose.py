@@ -88,7 +88,8 @@ def _text(d) -> str:
     out_by = tuple(d.outliers_model or d.model)
     lines = [f"model      {', '.join(d.model)}",
              f"samples    {d.n} ({d.n_outliers} outliers"
-             + ("" if out_by == tuple(d.model) else f" of {', '.join(out_by)}") + ")",
+             + ("" if out_by == tuple(d.model) else
+                f"; {d.n_outliers_model} of {', '.join(out_by)}, from which the spans come") + ")",
              f"rms        {d.rms:.4g}   noise floor {d.noise_floor:.4g}"
              + ("" if d.residual == "sensor" else f"   ({residual_name(d.residual)} residual)"),
              f"verdict    {d.verdict}"]

@@ -33,8 +33,9 @@ RESIDUALS = {None: "sensor", "gravity": "gravity_tied", "gyro": "gyro_tied"}
 @dataclass
 class Diagnosis:
     """Result of :func:`diagnose`; ``to_dict`` gives the JSON of SPEC §4 plus ``ladder``,
-    ``noise``, ``residual_families``, ``residual``, ``candidate_baselines`` and
-    ``outliers_model``. rms, noise_floor and rms_after in the sensor unit.
+    ``noise``, ``residual_families``, ``residual``, ``candidate_baselines``,
+    ``outliers_model`` and ``n_outliers_model``. rms, noise_floor and rms_after in the sensor
+    unit.
 
     Which residual each rms is on (``residual``: ``"sensor"``, eq. 41 with free directions;
     ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnose.candidates`): ``rms`` is
@@ -44,10 +45,13 @@ class Diagnosis:
     residual's rms. Each ladder step carries its ``residual`` and (after the first) the
     ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual.
 
-    Outliers: ``n_outliers``, ``outlier_spans`` and the (N,) bool mask ``outliers`` all come
-    from one model, ``outliers_model``: the last magnetometer-only (sensor residual) model of
-    the ladder — the base model when the ladder added nothing. A missing effect makes the base
-    model's residual large wherever the effect is (e.g. far from T0): those are not outliers.
+    Outliers: ``n_outliers`` belongs with ``model`` and ``rms`` (SPEC §4): the base model's
+    outliers, the complement of the samples its rms is over. ``outlier_spans``, the (N,) bool
+    mask ``outliers`` and its count ``n_outliers_model`` come from one model,
+    ``outliers_model``: the last magnetometer-only (sensor residual) model of the ladder — the
+    base model when the ladder added nothing. A missing effect makes the base model's residual
+    large wherever the effect is (e.g. far from T0): those are not outliers, so the spans are
+    drawn from the model that has the effect.
     """
 
     model: tuple[str, ...]
@@ -65,6 +69,7 @@ class Diagnosis:
     residual: str = "sensor"
     outliers_model: tuple[str, ...] = ()
     outliers: np.ndarray | None = field(default=None, repr=False)
+    n_outliers_model: int | None = None
 
     def baseline(self, candidate) -> tuple[str, float]:
         """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
@@ -87,6 +92,8 @@ class Diagnosis:
                 "outlier_spans": self.outlier_spans, "residual": self.residual,
                 "candidate_baselines": self.candidate_baselines(),
                 "outliers_model": list(self.outliers_model or self.model),
+                "n_outliers_model": (self.n_outliers if self.n_outliers_model is None
+                                     else self.n_outliers_model),
                 "ladder": self.ladder, "noise": self.noise,
                 "residual_families": self.residual_families}
 
@@ -326,9 +333,10 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     :mod:`streamcal.diagnose.candidates`). ``residual_families["gyro"]`` is the gyro-tied
     residual at the model's lag, with the lag the gyro alone fits (``lag_estimate_s``).
 
-    ``n_outliers``, ``outlier_spans`` and ``outliers`` come from the last magnetometer-only
-    model of the ladder (``outliers_model``), not the base model; ``rms`` is the base model's
-    over its own inliers. Every rms says which residual it is on (see :class:`Diagnosis`).
+    ``n_outliers`` and ``rms`` are the base model's (``rms`` over its own inliers);
+    ``outlier_spans``, ``outliers`` and ``n_outliers_model`` come from the last
+    magnetometer-only model of the ladder (``outliers_model``). Every rms says which residual it
+    is on (see :class:`Diagnosis`).
     """
     model = check_known(calibration.model if calibration is not None else model)
     check_needs(model, track)
@@ -364,12 +372,13 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
     verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
-    # Outliers (count, spans, mask) from the last magnetometer-only model of the ladder: a
-    # missing effect makes the base model's residual large wherever the effect is (e.g. far
-    # from T0) — not outliers.
+    # Spans and mask from the last magnetometer-only model of the ladder: a missing effect
+    # makes the base model's residual large wherever the effect is (e.g. far from T0) — not
+    # outliers.
     outliers = ~np.asarray(spans_from.inliers, bool)
     return Diagnosis(
-        model=tuple(model), n=len(m), n_outliers=int(outliers.sum()), rms=base.rms,
+        model=tuple(model), n=len(m), n_outliers=int((~np.asarray(base.inliers, bool)).sum()),
+        n_outliers_model=int(outliers.sum()), rms=base.rms,
         noise_floor=nf.floor, verdict=verdict, candidates=ranked,
         outlier_spans=outlier_spans(t, outliers), ladder=steps,
         residual=RESIDUALS[base.kind], outliers_model=spans_model, outliers=outliers,

@@ -568,7 +568,8 @@ def _ladder_panel(ax, d, unit: str) -> None:
     names = [", ".join(s["model"]) if "added" not in s else "+ " + s["added"] for s in steps]
     ax.set_xticks(k_all, names, rotation=12, fontsize=8)
     ax.set_xlim(-0.5, len(steps) - 0.3)
-    ax.set_ylim(0, 1.5 * max(tops))
+    top_finite = np.nanmax(np.asarray(tops, float)) if np.isfinite(tops).any() else np.nan
+    ax.set_ylim(0, 1.5 * top_finite if top_finite > 0 else 1.0)   # an rms over no inliers is NaN
     ax.set_ylabel(f"rms residual ({unit})")
     ax.set_title("model ladder: rms after each added effect\n(colour: the residual; each step "
                  "from the last model on it)", fontsize=10)
@@ -594,7 +595,8 @@ def _candidate_panel(ax, d, residual: str, before: float, cands: list, unit: str
         ax.axvline(level, color=_AFTER if residual == "sensor" else colour,
                    ls="--" if residual == "sensor" else ":", lw=1.5)
         values.append(level)
-    xmax = 1.32 * max(values)
+    finite = np.asarray(values, float)[np.isfinite(values)]
+    xmax = 1.32 * finite.max() if finite.size and finite.max() > 0 else 1.0
     if np.isfinite(d.noise_floor):   # text left of the line, or right of it near the axis
         left = level > 0.25 * xmax
         ax.text(level, 0.02, (_FLOOR_TEXT[residual] + " ") if left else

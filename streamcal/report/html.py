@@ -253,7 +253,9 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                 f" of the model <code>{_e(', '.join(by))}</code> (the last step of the ladder "
                 f"fitted on the magnetometer alone: the model as given also leaves a large "
                 f"residual wherever its missing effect acts, and those samples are not outliers)")
-            parts.append(f"<p><b>{diagnosis.n_outliers}</b> of {diagnosis.n} samples are "
+            n_out = diagnosis.n_outliers if diagnosis.n_outliers_model is None \
+                else diagnosis.n_outliers_model
+            parts.append(f"<p><b>{n_out}</b> of {diagnosis.n} samples are "
                          f"outliers{of}; they cluster in {_e(spans)}.</p>")
     parts += [_img(f) for f in figures]
     if diagnosis is not None:

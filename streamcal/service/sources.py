@@ -162,7 +162,11 @@ class SerialBlocks:
         # the board is finished once its last byte is written to the pty; on a loaded machine
         # those bytes can still wait in the pty for the host, so a replay ends only when the
         # port is empty too
-        return not self.link._pending and not (getattr(self.link.port, "in_waiting", 0) or 0)
+        try:
+            waiting = getattr(self.link.port, "in_waiting", 0) or 0
+        except OSError:        # serial.SerialException is one: a failed port has nothing to come
+            waiting = 0
+        return not self.link.has_pending() and not waiting
 
     @staticmethod
     def _after_replay(board) -> bool:
