@@ -45,7 +45,6 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-_RESIDUAL = {"sensor": "sensor", "gravity_tied": "gravity-tied", "gyro_tied": "gyro-tied"}
 
 
 def _change(before: float, after: float) -> str:
@@ -58,7 +57,9 @@ def _change(before: float, after: float) -> str:
 
 def residual_name(residual: str) -> str:
     """How a residual family is called in text ("gravity-tied")."""
-    return _RESIDUAL.get(residual, residual)
+    from ..diagnose.diagnosis import RESIDUAL_LABELS
+
+    return RESIDUAL_LABELS.get(residual, residual)
 
 
 def candidate_table(d, numbered: bool = False) -> list[str]:

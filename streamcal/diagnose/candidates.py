@@ -56,6 +56,11 @@ class Candidate:
     n_params: int = 0
     significant: bool = False
     calibration: object = field(default=None, repr=False)
+    #: The residual family ``rms_after`` is on ("sensor", "gravity_tied", "gyro_tied") and the
+    #: rms of the model without the effect on that same residual (None: the diagnosis' rms).
+    residual: str = "sensor"
+    rms_before: float | None = None
+    _evaluated: object = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "rms_after": self.rms_after, "p_value": self.p_value,

@@ -28,6 +28,8 @@ SUBSET_MAX = 6000
 LADDER_STEPS = 3
 #: The residual families an rms can be on (``_Evaluated.kind`` → name in the JSON).
 RESIDUALS = {None: "sensor", "gravity": "gravity_tied", "gyro": "gyro_tied"}
+#: How each residual family is called in text and pictures.
+RESIDUAL_LABELS = {"sensor": "sensor", "gravity_tied": "gravity-tied", "gyro_tied": "gyro-tied"}
 
 
 @dataclass
@@ -74,8 +76,8 @@ class Diagnosis:
     def baseline(self, candidate) -> tuple[str, float]:
         """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
         on and the rms of the model without it on that residual (sensor unit)."""
-        return (getattr(candidate, "residual", self.residual),
-                float(getattr(candidate, "rms_before", self.rms)))
+        before = candidate.rms_before
+        return candidate.residual, float(self.rms if before is None else before)
 
     def candidate_baselines(self) -> dict:
         """``{effect: {"residual": …, "rms_before": …}}`` for every candidate."""

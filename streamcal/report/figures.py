@@ -41,6 +41,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
+from ..diagnose.diagnosis import RESIDUAL_LABELS
+
 #: Most points drawn per scatter series (a fixed stride thins the rest).
 MAX_POINTS = 5000
 #: Equal-area cells of the coverage map (same partition as the streaming coverage buffer).
@@ -476,12 +478,13 @@ def residuals_figure(data: FigureData) -> Figure:
 #: the gravity reference's own error adds to that; the gyro-tied residual compares two samples,
 #: two components each (≈ 2 × floor, :mod:`streamcal.model.gyro_lag`).
 RESIDUAL_FAMILIES = {
-    "sensor": ("sensor residual", "every direction free (eq. 41)", _INLIER, 1.0),
-    "gravity_tied": ("gravity-tied residual",
+    "sensor": (f"{RESIDUAL_LABELS['sensor']} residual", "every direction free (eq. 41)",
+               _INLIER, 1.0),
+    "gravity_tied": (f"{RESIDUAL_LABELS['gravity_tied']} residual",
                      "directions tied to gravity, includes the accelerometer's error",
                      "#8c4fbf", float(np.sqrt(2.0))),
-    "gyro_tied": ("gyro-tied residual", "directions carried 0.5 s ahead by the gyro", "#e07b00",
-                  2.0),
+    "gyro_tied": (f"{RESIDUAL_LABELS['gyro_tied']} residual",
+                  "directions carried 0.5 s ahead by the gyro", "#e07b00", 2.0),
 }
 _FLOOR_TEXT = {"sensor": "noise floor", "gravity_tied": "noise alone ≈ √2×floor",
                "gyro_tied": "noise alone ≈ 2×floor"}
@@ -499,11 +502,9 @@ def ladder_steps(d) -> list[dict]:
     out = []
     for k, step in enumerate(steps):
         step = dict(step)
-        if "residual" not in step:
-            step["residual"] = ("gravity_tied" if step.get("gravity_tied") else "gyro_tied"
-                                if step.get("gyro_tied") else
-                                getattr(d, "residual", "sensor") if k == 0 else "sensor")
-        step["residual"] = _family(step["residual"])
+        # diagnose names every step's residual; a hand-made ladder without it is on the base
+        # model's residual first, then on the sensor residual
+        step["residual"] = _family(step.get("residual", d.residual if k == 0 else "sensor"))
         if k and "rms_before" not in step:
             step["rms_before"] = out[-1]["rms"]
         out.append(step)
@@ -516,7 +517,7 @@ def candidate_groups(d) -> list[tuple[str, float, list]]:
     rms_before is the model without the effect on that residual, what its bars compare with."""
     groups: dict[str, tuple[float, list]] = {}
     for c in d.candidates:
-        residual, before = d.baseline(c) if hasattr(d, "baseline") else ("sensor", d.rms)
+        residual, before = d.baseline(c)
         residual = _family(residual)
         groups.setdefault(residual, (before, []))[1].append(c)
     return [(name, before, cands) for name, (before, cands) in groups.items()]
@@ -584,7 +585,7 @@ def _candidate_panel(ax, d, residual: str, before: float, cands: list, unit: str
     ax.barh(y, after, color=[_AFTER if c.significant else "#bbbbbb" for c in cands],
             height=0.7)
     ax.set_yticks(y, [c.effect for c in cands], fontsize=8)
-    now = "model now" if residual == getattr(d, "residual", "sensor") else "same model"
+    now = "model now" if residual == d.residual else "same model"
     ax.axvline(before, color="k", lw=1.2)
     top = ax.get_xaxis_transform()
     ax.text(before, 1.01, f"{now} {before:.3g}", transform=top, ha="center", va="bottom",
