@@ -235,3 +235,82 @@ def test_replay_says_why_there_is_no_calibration(tmp_path, capsys):
     assert code == 1
     assert "no calibration" in err and "the field changed 1 time(s)" in err
     assert "coverage per environment: t=0.0–" in err
+
+
+# ------------------------------------------- a small permanent change (one or two limits)
+
+@pytest.mark.parametrize("seed,scale", [(1, 1.5), (2, 1.5), (1, 2.0), (3, 1.2)])
+def test_small_permanent_change_is_no_transient(seed, scale):
+    """A new hard iron of 1–2 drift limits moves the window median little: most directions
+    still agree. It must end as an environment change or be absorbed by the refits — never as
+    a series of "transient" disturbances ended by accepting refits of the old samples."""
+    t, m = clean(seed, 300.0)
+    sc = StreamingCalibrator(synchronous=True)
+    before = t < 120.0
+    feed(sc, t[before], m[before])
+    assert sc.calibration is not None and not sc.stale
+    limit = sc._cal_ref.limit
+    c = np.array([1.0, 0.5, -0.3])
+    delta = K_TRUE @ (scale * limit * c / np.linalg.norm(c))      # µT
+    events = feed(sc, t[~before], m[~before] + delta)
+    assert not [e for e in of_kind(events, "disturbance") if e.data["outcome"] == "transient"]
+    # No acceptance while a disturbance is open: none between a disturbance's start and its
+    # decision (a drift event).
+    for d in of_kind(events, "drift"):
+        assert not [e for e in of_kind(events, "accepted") if d.data["onset"] <= e.t < d.t]
+    assert len(of_kind(events, "drift")) <= 1
+    assert sc.calibration.model_error(truth(B_TRUE + delta)) < BOUND and not sc.stale
+
+
+def test_disturbance_open_at_close_is_reported_undecided():
+    t, m = clean(1)
+    sc = StreamingCalibrator(synchronous=True)
+    before = t < 100.0
+    feed(sc, t[before], m[before])
+    end = (t >= 100.0) & (t < 103.0)            # the stream ends while a magnet is near
+    magnet = np.array([15.0, -10.0, 8.0])
+    events = feed(sc, t[end], m[end] + magnet)
+    (dist,) = of_kind(events, "disturbance")
+    assert dist.data["open"] and dist.data["outcome"] == "open"
+    assert "transient" not in dist.message and "still open" in dist.message
+    assert not of_kind(events, "drift")
+
+
+def test_rows_without_the_covariates_the_calibration_needs_are_not_judged(tmp_path):
+    """A calibration with a temperature term, and blocks without a temperature: its effect
+    terms cannot be evaluated there, so those rows are buffered but neither judged nor held."""
+    from streamcal.stream import CalibrationStore, CoverageBuffer
+
+    cal = Calibration(K=K_TRUE, b=B_TRUE, model=("hard_iron", "soft_iron", "temperature_offset"),
+                      effects={"temperature_offset": {"T0": 25.0, "c": [0.05, 0.0, 0.0]}},
+                      rms=0.4, n=1000)
+    CalibrationStore(tmp_path).save(cal)
+    sc = StreamingCalibrator(store=CalibrationStore(tmp_path), synchronous=True,
+                             buffer=CoverageBuffer(covariates=("temp",)),
+                             fitter=lambda snap: cal)
+    assert sc.calibration is not None
+    t, m = clean(2, 40.0)
+    magnet = np.array([15.0, -10.0, 8.0])
+    events = feed(sc, t, m + magnet)            # no temperature column: nothing can be judged
+    assert sc.quarantine.n_held == 0 and not of_kind(events, "drift")
+    assert sc.buffer.n_samples > 0
+    # With a temperature, the same field disagrees and is held back.
+    sc = StreamingCalibrator(store=CalibrationStore(tmp_path), synchronous=True,
+                             buffer=CoverageBuffer(covariates=("temp",)),
+                             fitter=lambda snap: cal)
+    for i in range(0, len(t), 50):
+        sc.ingest(SampleBlock(t=t[i:i + 50], mag=m[i:i + 50] + magnet,
+                              temp=np.full(len(t[i:i + 50]), 25.0)))
+    assert sc.quarantine.n_held > 0
+
+
+def test_new_shell_needs_at_least_four_samples():
+    from streamcal.stream.disturbance import Disturbance, DisturbanceRule
+
+    rule = DisturbanceRule(min_held=0, min_age_s=0.0)
+    ok, center, shell = rule.new_shell(Disturbance(0.0), np.zeros((0, 3)), 0.03, 10.0)
+    assert not ok and center is None
+    y = np.array([[0.0, 0.0, 1.2], [0.0, 1.2, 0.0], [1.2, 0.0, 0.0], [0.0, 0.0, -0.8],
+                  [0.0, -0.8, 0.0]])
+    ok, center, shell = rule.new_shell(Disturbance(0.0), y, 0.03, 10.0)
+    assert center is not None and np.isfinite(shell)

@@ -49,7 +49,7 @@ from ..calibration import DEFAULT_MODEL, Calibration
 from ..fit.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
 from .disturbance import GROSS, Disturbance, DisturbanceRule, Quarantine
-from .guard import AcceptanceGuard, Decision, radius_of
+from .guard import AcceptanceGuard, Decision, apply_finite, radius_of
 from .policy import RecalPolicy
 from .staging import Stage, block_covariates
 
@@ -184,6 +184,8 @@ class StreamingCalibrator:
         self._recent_m = np.empty((W, 3))
         self._recent_t = np.empty(W)
         self._recent_n = 0
+        self._window_y = np.zeros((W, 3))      # the drift window's samples, projected
+        self._window_n = 0
         self._recall_at = 0
         self._recall_streak: tuple = (None, 0)
         self._pending: list[Event] = []
@@ -272,10 +274,18 @@ class StreamingCalibrator:
         return out
 
     def close(self, timeout: float | None = None) -> list:
-        """Process what is staged and wait for a fit in flight; returns the last events (a
-        disturbance still open is reported as ending at the last sample)."""
+        """Process what is staged and wait for a fit in flight; returns the last events. A
+        disturbance still open is reported as undecided (``open``), and a fit that finished
+        during it, waiting for its decision, is discarded."""
         events = self.drain(timeout)
-        self._end_disturbance(events)
+        if self._disturbance is not None:
+            self._end_disturbance(events, "open")
+            job = self._job
+            if job is not None and job.done.is_set():
+                self._job = None
+                events.append(Event("discarded", "fit result discarded: it finished during a "
+                                    "disturbance still undecided when the stream ended",
+                                    {"reason": "disturbance_open"}, self._t_last))
         return events
 
     # -- the per-stage path -------------------------------------------------------------------
@@ -450,25 +460,50 @@ class StreamingCalibrator:
         the mask (n,) of disagreeing samples, their unit directions (n,3) and cells (n,)."""
         y = ref.project(m, t, cov, self.buffer.covariate_names)
         r = np.sqrt(np.einsum("nk,nk->n", y, y))
+        # Rows the reference cannot project (NaN: a covariate its effect terms need is missing)
+        # are neither judged nor held; they go to the buffer, which projects them itself.
+        fin = np.isfinite(r)
+        if not fin.all():
+            y = np.where(fin[:, None], y, [0.0, 0.0, 1.0])
+            r = np.where(fin, r, 1.0)
         d = y / np.maximum(r, 1e-300)[:, None]
         cell = self.buffer.cells.cell_of(d)
         err = np.abs(r - 1.0)
         # Only directions the reference was fitted on: elsewhere it extrapolates, and a large
         # error there asks for a refit on more coverage (new cells), not for holding back.
-        if ref.support is not None:
-            inside = ref.support[cell]
-            held = (err > ref.limit) & inside
-            if ref.hold:
-                held |= err > GROSS
-            self.policy.observe(err[inside], t[inside])
-        else:
-            held = err > ref.limit
-            self.policy.observe(err, t)
+        inside = (ref.support[cell] if ref.support is not None else True) & fin
+        held = (err > ref.limit) & inside
+        if ref.hold:
+            held |= (err > GROSS) & fin
+        self.policy.observe(err[inside], t[inside])
+        self._observe_y(y[inside])
         if held.any():
             self.quarantine.push(m[held], y[held], t[held], cov[held])
             if self._disturbance is not None:
                 self._disturbance.note(err[held], t[held])
         return held, d, cell
+
+    def _observe_y(self, y) -> None:
+        """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
+        W = len(self._window_y)
+        y = y[-W:]
+        self._window_y[(self._window_n + np.arange(len(y))) % W] = y
+        self._window_n += len(y)
+
+    def _shift_persists(self, dist, limit: float) -> bool:
+        """A calm window is no end when the held samples lie on one shifted shell and the
+        window's samples fit that shell too: a small new hard iron (one or two drift limits)
+        leaves the field within the limit on the directions across the shift."""
+        if not dist.hold:
+            return False
+        q = self.quarantine
+        ok, center, _ = self.disturbance_rule.new_shell(dist, q.y[q.since(dist.start)], limit,
+                                                        self._t_last)
+        if not ok:
+            return False
+        v = self._window_y - center
+        err = np.abs(np.sqrt(np.einsum("nk,nk->n", v, v)) - 1.0)
+        return float(np.mean(err > limit)) <= self.disturbance_rule.calm_fraction
 
     def _check(self, ref, events) -> None:
         check = self.policy.check(ref.rms, ref.radius)
@@ -488,49 +523,78 @@ class StreamingCalibrator:
             dist.note(np.abs(np.linalg.norm(self.quarantine.y[early], axis=1) - 1.0),
                       self.quarantine.t[early])
         elif check.fraction <= rule.calm_fraction:
-            self._end_disturbance(events)
-            return
-        if not check.disagrees:         # most of the window fits: not an environment change
+            if not self._shift_persists(dist, check.limit):
+                self._end_disturbance(events, "transient")
+                return
+        # An environment change needs most of the window to disagree (its median beyond the
+        # limit) and the new shell or the duration; against a calibration, whose acceptances
+        # wait for the decision, the duration alone: a change of one or two drift limits moves
+        # the median little but keeps a disturbance open for good.
+        age = self._t_last - dist.start
+        if not (check.disagrees or dist.hold and age >= rule.persist_s):
             return
         idx = self.quarantine.since(dist.start)
-        if rule.new_shell(dist, self.quarantine.y[idx], check.limit, self._t_last):
-            why = (f"the disagreeing samples lie on one shell (median residual {dist.shell:.3f} "
+        ok, center, shell = rule.new_shell(dist, self.quarantine.y[idx], check.limit,
+                                           self._t_last)
+        dist.shell = shell
+        if ok and check.disagrees:
+            why = (f"the disagreeing samples lie on one shell (median residual {shell:.3f} "
                    f"≤ {rule.shell_k * check.limit:.3f}): a new hard iron?")
             reason = "new_shell"
-        elif self._t_last - dist.start >= rule.persist_s:
-            why = (f"the disagreement lasted {self._t_last - dist.start:.1f} s ≥ "
-                   f"{rule.persist_s:g} s")
+        elif age >= rule.persist_s:
+            why = (f"the disagreement lasted {age:.1f} s ≥ {rule.persist_s:g} s"
+                   + ("" if check.disagrees else f" ({100 * check.fraction:.0f}% of the "
+                      f"window beyond the limit)"))
             reason = "persisted"
         else:
             return
-        self._environment_changed(check, dist, reason, why, idx, events)
+        # The new shell's centre in the sensor unit: how far the hard iron moved (m − b = K y).
+        shift = np.linalg.solve(ref.AT.T, center) if ok else None
+        self._environment_changed(check, dist, reason, why, idx, events, shift)
 
-    def _end_disturbance(self, events) -> None:
+    def _end_disturbance(self, events, outcome: str) -> None:
+        """Report the open disturbance and drop its held samples. ``outcome``: ``transient``
+        (the field agrees again), ``reference_replaced`` (a first calibration replaced the
+        running estimate it was judged against: undecided) or ``open`` (the stream ended)."""
         dist, self._disturbance = self._disturbance, None
         if dist is None:
             return
         R = dist.radius
         end = self._t_last
+        what = {"transient": f"transient disturbance from t={dist.start:.2f} to {end:.2f} s",
+                "reference_replaced": f"disturbance from t={dist.start:.2f} to {end:.2f} s "
+                f"left undecided: the running estimate it was judged against was replaced by "
+                f"the accepted calibration",
+                "open": f"disturbance since t={dist.start:.2f} s still open (undecided) when "
+                f"the stream ended at t={end:.2f} s"}[outcome]
         events.append(Event(
-            "disturbance", f"transient disturbance from t={dist.start:.2f} to {end:.2f} s: peak "
-            f"error {dist.peak * R:.3g} {self.unit} ({100 * dist.peak:.0f}% of the field) at "
-            f"t={dist.peak_t:.2f} s; {dist.n_held} samples "
-            + ("held back, buffer kept" if dist.hold else "disagreed with the running estimate"),
+            "disturbance", f"{what}: peak error {dist.peak * R:.3g} {self.unit} "
+            f"({100 * dist.peak:.0f}% of the field) at t={dist.peak_t:.2f} s; {dist.n_held} "
+            "samples " + ("held back" + (", buffer kept" if outcome == "transient" else "")
+                          if dist.hold else "disagreed with the running estimate"),
             {"start": dist.start, "end": end, "duration": end - dist.start,
              "peak": dist.peak * R, "peak_relative": dist.peak, "peak_t": dist.peak_t,
              "held": dist.n_held if dist.hold else 0, "disagreeing": dist.n_held,
-             "shell_residual": _finite(dist.shell)}, end))
+             "shell_residual": _finite(dist.shell), "outcome": outcome,
+             "open": outcome == "open"}, end))
         self.quarantine.clear()
 
-    def _environment_changed(self, check, dist, reason, why, idx, events) -> None:
+    def _environment_changed(self, check, dist, reason, why, idx, events, shift=None) -> None:
+        """``shift`` (3,): the new shell's centre in the sensor unit (the hard iron's move), or
+        None when the change was not a new shell."""
         onset = dist.start
         in_force = self._cal is not None and not self.stale
         what = ("field no longer fits the calibration" if in_force else
                 "field left the running sphere estimate (no calibration in force)")
-        events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} > "
-                            f"{check.limit:.3f} since t={onset:.2f} s; {why}",
+        moved = ("" if shift is None else
+                 f"; hard iron moved by {np.round(shift, 2).tolist()} {self.unit}")
+        events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} "
+                            f"{'>' if check.disagrees else '≤'} {check.limit:.3f} since "
+                            f"t={onset:.2f} s; {why}{moved}",
                             {"value": check.stat, "limit": check.limit, "onset": onset,
                              "reason": reason, "shell_residual": _finite(dist.shell),
+                             "hard_iron_shift": None if shift is None else
+                             np.round(shift, 6).tolist(),
                              "held": dist.n_held, "calibrated": in_force}, self._t_last))
         self._close_environment(onset)
         q = self.quarantine
@@ -672,6 +736,11 @@ class StreamingCalibrator:
         job = self._job
         if job is None or not job.done.is_set():
             return []
+        dist = self._disturbance
+        if dist is not None and dist.hold and not job.obsolete and job.error is None:
+            # Its held-out samples are all from before the disturbance: it waits for the
+            # decision (transient: judged then; environment change: obsolete).
+            return []
         self._job = None
         t = self._t_last
         if job.obsolete:
@@ -693,7 +762,7 @@ class StreamingCalibrator:
         if not decision.accepted:
             return [Event("rejected", f"candidate rejected: {_reason_text(decision)}", data, t)]
         events = []
-        self._end_disturbance(events)       # judged against the reference being replaced
+        self._end_disturbance(events, "reference_replaced")     # the running estimate's
         self._cal = cand
         self._support = job.support
         self._remembered.append((cand, job.support))
@@ -764,7 +833,7 @@ class _Reference:
     def project(self, m, t, cov, names) -> np.ndarray:
         if self.cal is None:
             return (m - self.center) @ self.AT
-        return self.cal.apply(m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+        return apply_finite(self.cal, m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
 
 
 def _floor_milestone(frac: float) -> float:

@@ -63,7 +63,8 @@ def shell_fit(y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 class Quarantine:
     """Bounded ring of held-back samples: ``m`` (Q,3) sensor unit, ``y`` (Q,3) calibrated,
     ``t`` (Q,) s, covariates (Q,P); the oldest are overwritten. ``n_held`` counts every sample
-    ever held."""
+    ever pushed: held back from the buffer against a calibration, or only watched (kept in the
+    buffer too) against the running sphere estimate before one."""
 
     def __init__(self, capacity: int = 2048, n_covariates: int = 0):
         Q = max(1, int(capacity))
@@ -101,8 +102,8 @@ class Quarantine:
 class Disturbance:
     """An open disagreement with the calibration in use: ``start`` (s, first sample beyond the
     limit), ``peak`` (largest relative error of a held sample) at ``peak_t`` (s), ``n_held``
-    samples held back since it began, and the last new-shell residual ``shell`` (relative, median)
-    with its centre ``center`` (calibrated units); ``radius`` of the reference (sensor unit);
+    samples held back since it began, and the last new-shell residual ``shell`` (relative,
+    median); ``radius`` of the reference (sensor unit);
     ``hold``: the samples were held back (against a calibration) or only watched."""
 
     start: float
@@ -110,7 +111,6 @@ class Disturbance:
     peak_t: float = float("nan")
     n_held: int = 0
     shell: float = float("nan")
-    center: np.ndarray | None = None
     radius: float = 1.0
     hold: bool = True
 
@@ -133,7 +133,8 @@ class DisturbanceRule:
             in simulated passes: median shell residual 0.5× the limit after 1.3 s); a phone
             passing by has turned around within 3 s of the window noticing it, and samples
             of its rise and fall lie on no one shell.
-        min_held: held samples needed before the new-shell test is believed.
+        min_held: held samples needed before the new-shell test is believed (at least 4: a
+            unit sphere of free centre fits any 3 points).
         shell_k: the held samples fit one unit sphere when their median residual is at most
             ``shell_k`` × the drift limit (the same yardstick as the calibration's own fit).
         persist_s: a disagreement lasting this long is an environment change whatever its shape
@@ -155,13 +156,17 @@ class DisturbanceRule:
     open_fraction: float = 0.25
     calm_fraction: float = 0.1
 
-    def new_shell(self, dist: Disturbance, y: np.ndarray, limit: float, t_now: float) -> bool:
+    def new_shell(self, dist: Disturbance, y: np.ndarray, limit: float,
+                  t_now: float) -> tuple[bool, np.ndarray | None, float]:
         """Fit the held samples ``y`` (n,3) that disagree with the calibration in use (relative
-        error beyond ``limit``) with one unit sphere; True when they lie on it and the
-        disturbance is old enough (``t_now`` s)."""
+        error beyond ``limit``) with one unit sphere. Returns ``(ok, center, shell)``: ``ok``
+        when they lie on it and the disturbance is old enough (``t_now`` s); the sphere's
+        centre (3,) (calibrated units) and median residual (relative), or ``(False, None,
+        dist.shell)`` when there are too few samples or it is too early to fit."""
         y = y[np.abs(np.sqrt(np.einsum("nk,nk->n", y, y)) - 1.0) > limit]
-        if len(y) < self.min_held or t_now - dist.start < self.min_age_s:
-            return False
-        dist.center, res = shell_fit(y)
-        dist.shell = float(np.median(res))
-        return dist.shell <= self.shell_k * limit
+        # A unit sphere of free centre needs 3 samples; fewer than 4 fit any centre exactly.
+        if len(y) < max(self.min_held, 4) or t_now - dist.start < self.min_age_s:
+            return False, None, dist.shell
+        center, res = shell_fit(y)
+        shell = float(np.median(res))
+        return shell <= self.shell_k * limit, center, shell

@@ -65,8 +65,26 @@ def radius_of(cal) -> float:
 def holdout_errors(cal, m: np.ndarray, covariates: dict | None = None) -> np.ndarray:
     """Per-sample error (n,) of ``cal`` on samples ``m`` (n,3), sensor unit:
     ``|‖K⁻¹(m − b)‖ − 1|`` times the calibration's radius."""
-    x = cal.apply(m, covariates) if cal.effects else np.linalg.solve(cal.K, (m - cal.b).T).T
+    x = apply_finite(cal, m, covariates)
     return np.abs(np.linalg.norm(x, axis=1) - 1.0) * radius_of(cal)
+
+
+def apply_finite(cal, m: np.ndarray, covariates: dict | None = None) -> np.ndarray:
+    """``cal.apply(m, covariates)`` (n,3), NaN on the rows where a covariate is not finite (a
+    calibration with temperature or aux terms while that channel was never seen): its effect
+    terms cannot be evaluated there."""
+    if not cal.effects:
+        return np.linalg.solve(cal.K, (m - cal.b).T).T
+    cov = covariates or {}
+    ok = np.ones(len(m), dtype=bool)
+    for v in cov.values():
+        ok &= np.isfinite(np.asarray(v, dtype=float))
+    if ok.all():
+        return cal.apply(m, cov)
+    x = np.full(np.shape(m), np.nan)
+    if ok.any():
+        x[ok] = cal.apply(m[ok], {k: np.asarray(v)[ok] for k, v in cov.items()})
+    return x
 
 
 def holdout_error(cal, m: np.ndarray, covariates: dict | None = None) -> float:
