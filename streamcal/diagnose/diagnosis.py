@@ -259,12 +259,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         p_value = cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
                               max(ev.p - ref.p, 1), int(common.sum()), ev.p)
         if name in REGISTRATION_EFFECTS:
-            text = cand.registration_evidence(name, ref.rms, ev.rms, ev.cal, ctx.track.mag_unit,
-                                              ev.kind)
-            if name == "time_lag" and ev.kind == "gravity":
-                gyro = ctx.gyro_lag(model, base.cal)
-                if gyro is not None:   # the gyro's own view of the same lag
-                    text += f"; the gyro alone says {1e3 * gyro.lag:.1f} ms"
+            text = _registration_text(ctx, model, base, name, ref.rms, ev)
         elif base.s is not None:
             term = build_effects([name], ctx.cov)[0] if name in TERMS else None
             text = cand.evidence(name, term, base.s, base.normal, base.x @ base.cal.K.T, ctx.cov,
@@ -287,11 +282,21 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             return out
         top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
         if top.effect in REGISTRATION_EFFECTS:   # its evidence quotes the rms: say the new one
-            text = cand.registration_evidence(top.effect, top.rms_before, ev.rms, ev.cal,
-                                              ctx.track.mag_unit, ev.kind)
-            tail = top.evidence.partition("; the gyro alone says ")[2]
-            top.evidence = text + (f"; the gyro alone says {tail}" if tail else "")
+            top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
     return out
+
+
+def _registration_text(ctx: _Context, model, base: _Evaluated, name: str, rms_before: float,
+                       ev: _Evaluated) -> str:
+    """Evidence for a registration candidate; a gravity-tied time lag adds the lag the gyro
+    alone fits (cached by the context, so asking again costs nothing)."""
+    text = cand.registration_evidence(name, rms_before, ev.rms, ev.cal, ctx.track.mag_unit,
+                                      ev.kind)
+    if name == "time_lag" and ev.kind == "gravity":
+        gyro = ctx.gyro_lag(model, base.cal)
+        if gyro is not None:   # the gyro's own view of the same lag
+            text += f"; the gyro alone says {1e3 * gyro.lag:.1f} ms"
+    return text
 
 
 def _families(ctx: _Context, base: _Evaluated, model) -> dict:
