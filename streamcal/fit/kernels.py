@@ -135,6 +135,20 @@ def make_kernel(name: str, tau: float | None = None):
     return cls()
 
 
+def width_from_residuals(kernel: str, r_norm: np.ndarray) -> float:
+    """Kernel width τ (sensor unit) for residual norms ``r_norm`` (N,): the 95 %-efficiency
+    multiple of σ̂ = median / :data:`HALF_NORMAL_MEDIAN` (Cauchy's multiple for a kernel
+    without a width)."""
+    sigma = max(float(np.median(r_norm)) / HALF_NORMAL_MEDIAN, 1e-12)
+    return EFFICIENCY_TAU.get(kernel, EFFICIENCY_TAU["cauchy"]) * sigma
+
+
+def kernel_weights(kernel: str, r_norm: np.ndarray, width: float) -> np.ndarray:
+    """IRLS weights ρ′(‖r‖²) (N,) of ``kernel`` at width ``width`` (ignored by L1/L2)."""
+    return make_kernel(kernel, width if kernel in WIDTH_KERNELS else None).evaluate(
+        np.asarray(r_norm, dtype=float) ** 2)[1]
+
+
 #: Lower bound on D = 1 + 2 s ρ″/ρ′ in the Triggs correction. Where the kernel's curvature is
 #: negative enough to make D ≤ 0 (Cauchy or GM beyond the width), eq. 24 has no real root;
 #: clamping D keeps the corrected Gauss–Newton matrix positive semi-definite and the gradient

@@ -71,13 +71,12 @@ matters where the direction is combined with the gyro, which is the residual (2)
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..fit.kernels import EFFICIENCY_TAU, HALF_NORMAL_MEDIAN
+from ..fit.kernels import kernel_weights, width_from_residuals
 from ..errors import InsufficientDataError, MissingColumnsError
 
 #: Time between the two samples of a pair (s).
@@ -215,7 +214,7 @@ class GyroPairs:
             lam = RIDGE * np.trace(H) / 12
             p = np.linalg.solve(H + lam * np.eye(12), g + lam * p0)
             rn = np.linalg.norm(np.einsum("pik,k->pi", design, p) - dx, axis=1)
-            s = max(float(np.median(rn)) / 0.6745 * 2.3849, 1e-12)
+            s = width_from_residuals("cauchy", rn)
             w = 1.0 / (1.0 + (rn / s) ** 2)
         # Keep the frame, not the gains: readings held or bunched in time (irregular logging)
         # bias the gains of this short-step fit; the Gauss–Newton fit over H sets them.
@@ -295,18 +294,6 @@ def _n_base_params(cal) -> int:
     return core + sum(t.n_params() for t, _ in terms_from_params(cal.effects))
 
 
-def _width(rn: np.ndarray, kernel: str) -> float:
-    return EFFICIENCY_TAU.get(kernel, 2.3849) * max(float(np.median(rn)) / HALF_NORMAL_MEDIAN,
-                                                    1e-12)
-
-
-def _weights(kernel: str, rn: np.ndarray, width: float) -> np.ndarray:
-    from ..fit.kernels import make_kernel
-
-    k = make_kernel(kernel, width if kernel in EFFICIENCY_TAU else None)
-    return k.evaluate(rn ** 2)[1]
-
-
 def _grid(pairs: GyroPairs, Q: Orientation, sel: np.ndarray) -> tuple[float, np.ndarray]:
     """τ (s) minimizing the trimmed cost on :data:`LAG_GRID`, and the costs."""
     costs = []
@@ -337,10 +324,10 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
         tau, _ = _grid(pairs, Q, use[::step])
     lam = 1e-3
     r = pairs.residual(Q, tau, use)
-    width = _width(np.linalg.norm(r, axis=1), kernel)   # fixed: one robust cost throughout
+    width = width_from_residuals(kernel, np.linalg.norm(r, axis=1))   # fixed: one robust cost
     for _ in range(GN_ROUNDS):
         rn = np.linalg.norm(r, axis=1)
-        w = _weights(kernel, rn, width)
+        w = kernel_weights(kernel, rn, width)
         cost = float(np.sum(w * rn ** 2))
         J = pairs.map_jacobian(Q, tau, use)
         if fit_lag:
@@ -435,7 +422,7 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
     r_pairs = pairs.residual(pairs.orientation(p), lag)
     rn_pairs = np.linalg.norm(r_pairs, axis=1)
     good = inl[f][pairs.a] & inl[f][pairs.b]
-    width = _width(rn_pairs[good], kernel) if good.any() else _width(rn_pairs, kernel)
+    width = width_from_residuals(kernel, rn_pairs[good] if good.any() else rn_pairs)
     at = f[pairs.a]
     r = np.zeros((len(m), 3))
     r[at] = r_pairs
@@ -444,7 +431,7 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
     rn = np.linalg.norm(r, axis=1)
     rms = float(np.sqrt(np.mean(rn[inliers] ** 2))) if inliers.any() else float("nan")
     weights = np.zeros(len(m))
-    weights[at] = _weights(kernel, rn_pairs, width)
+    weights[at] = kernel_weights(kernel, rn_pairs, width)
     M = p[:9].reshape(3, 3)
     U, _, Vt = np.linalg.svd(M)
     rot = U @ np.diag([1, 1, np.sign(np.linalg.det(U @ Vt))]) @ Vt

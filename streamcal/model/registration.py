@@ -90,7 +90,7 @@ import numpy as np
 import scipy.signal
 from scipy.spatial.transform import Rotation
 
-from ..fit.kernels import EFFICIENCY_TAU, HALF_NORMAL_MEDIAN
+from ..fit.kernels import HALF_NORMAL_MEDIAN, kernel_weights, width_from_residuals
 from ..errors import InputError, InsufficientDataError, MissingColumnsError
 from ._common import number, only_keys, vector3
 
@@ -342,13 +342,6 @@ class _Problem:
         return np.stack(cols, axis=2)
 
 
-def _kernel_weights(kernel, r_norm, width):
-    from ..fit.kernels import make_kernel
-
-    k = make_kernel(kernel, width if kernel in EFFICIENCY_TAU else None)
-    return k.evaluate(r_norm ** 2)[1]
-
-
 def _start(track, names, kernel, initial):
     """K, b and effect-term parameters to start from (a warm start or an ellipsoid fit)."""
     from ..fit import fit
@@ -426,7 +419,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     first = (K, b, thetas, R, dip, lag)
     h, r, trust = _evaluate(prob, first)
     rn_first = np.linalg.norm(r, axis=1)
-    width = width_given or _width(kernel, rn_first)
+    width = width_given or width_from_residuals(kernel, rn_first)
     state, budget, settled = first, max_rounds, width_given is not None
     for _ in range(MAX_WIDTH_ROUNDS):   # LM passes at a fixed width until the width settles
         # while the width is still moving a loose tolerance suffices (as in autocal)
@@ -435,7 +428,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
         budget -= rounds
         if settled or budget <= 0:
             break
-        again = _width(kernel, np.linalg.norm(r, axis=1))
+        again = width_from_residuals(kernel, np.linalg.norm(r, axis=1))
         settled = abs(again - width) <= WIDTH_SETTLED * width
         width = again
     else:   # the width kept moving: polish at its last estimate
@@ -458,7 +451,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
         r = prob.residual(K, b, thetas, R, dip, lag, h)
         m = m_all
     rn = np.linalg.norm(r, axis=1)
-    width = width_given or _width(kernel, rn)
+    width = width_given or width_from_residuals(kernel, rn)
     inliers = rn <= OUTLIER_WIDTHS * width if kernel != "l2" else np.ones(len(rn), bool)
     rms = float(np.sqrt(np.mean(rn[inliers] ** 2))) if inliers.any() else float("nan")
     g, _ = prob.down(lag)
@@ -470,7 +463,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     if fit_lag:
         effects["time_lag"] = {"tau": float(lag)}
     n_params = len(prob.pack(K, b, thetas, dip, lag))
-    weights = _kernel_weights(kernel, rn, width)
+    weights = kernel_weights(kernel, rn, width) * inliers   # the capped cost: no pull beyond
     cal = Calibration(K=K, b=b, sensor="mag", model=names, effects=effects, rms=rms, n=len(m),
                       n_outliers=int((~inliers).sum()), coverage=start.coverage,
                       unit=track.mag_unit, field=float(np.cbrt(np.linalg.det(K)))
@@ -479,12 +472,6 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
                       extra={"noise_sigma": float(np.median(rn) / HALF_NORMAL_MEDIAN / np.sqrt(2)),
                              "tau": width, "dip": float(dip), "gravity": gref.method})
     return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms)
-
-
-def _width(kernel: str, rn: np.ndarray) -> float:
-    """Kernel width (sensor unit) implied by the median of the residual norms ``rn`` (N,)."""
-    return EFFICIENCY_TAU.get(kernel, 2.3849) * max(float(np.median(rn) / HALF_NORMAL_MEDIAN),
-                                                    1e-12)
 
 
 @dataclass(frozen=True)
