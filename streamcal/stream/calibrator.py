@@ -587,7 +587,8 @@ class StreamingCalibrator:
         what = ("field no longer fits the calibration" if in_force else
                 "field left the running sphere estimate (no calibration in force)")
         moved = ("" if shift is None else
-                 f"; hard iron moved by {np.round(shift, 2).tolist()} {self.unit}")
+                 f"; the shell's centre moved by {np.round(shift, 2).tolist()} {self.unit} "
+                 "(the hard-iron change, if the soft iron is unchanged)")
         events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} "
                             f"{'>' if check.disagrees else '≤'} {check.limit:.3f} since "
                             f"t={onset:.2f} s; {why}{moved}",
