@@ -118,7 +118,7 @@ def test_passing_phone_is_one_disturbance_and_the_buffer_is_kept(seed):
     assert t0 + 0.5 * duration <= dist.data["end"] <= t0 + duration + 5.0
     peak = np.linalg.norm(d, axis=1).max()
     assert 0.5 * peak <= dist.data["peak"] <= 1.5 * peak          # µT, against the phone's field
-    assert dist.data["held"] > 0 and sc.quarantine.n_held >= dist.data["held"]
+    assert dist.data["held"] > 0 and sc.n_held >= dist.data["held"]
     # Coverage kept; of the samples the phone disturbed by more than half the field, only
     # those its field happened to carry across the shell (they look clean) entered the buffer.
     assert sc.buffer.fraction >= cells_before
@@ -292,7 +292,7 @@ def test_rows_without_the_covariates_the_calibration_needs_are_not_judged(tmp_pa
     t, m = clean(2, 40.0)
     magnet = np.array([15.0, -10.0, 8.0])
     events = feed(sc, t, m + magnet)            # no temperature column: nothing can be judged
-    assert sc.quarantine.n_held == 0 and not of_kind(events, "drift")
+    assert sc.n_held == 0 and not of_kind(events, "drift")
     assert sc.buffer.n_samples > 0
     # With a temperature, the same field disagrees and is held back.
     sc = StreamingCalibrator(store=CalibrationStore(tmp_path), synchronous=True,
@@ -301,7 +301,7 @@ def test_rows_without_the_covariates_the_calibration_needs_are_not_judged(tmp_pa
     for i in range(0, len(t), 50):
         sc.ingest(SampleBlock(t=t[i:i + 50], mag=m[i:i + 50] + magnet,
                               temp=np.full(len(t[i:i + 50]), 25.0)))
-    assert sc.quarantine.n_held > 0
+    assert sc.n_held > 0
 
 
 def test_new_shell_needs_at_least_four_samples():

@@ -69,9 +69,11 @@ class Event:
     """Something the calibrator did or noticed.
 
     ``kind``: ``loaded``, ``load_problem``, ``coverage``, ``fit_started``, ``fit_failed``,
-    ``accepted``, ``rejected``, ``discarded``, ``disturbance`` (a transient disagreement ended;
-    ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back), ``drift``
-    (an environment change), ``forgot``, ``recalled``, ``stored``, ``store_error``. ``t`` is
+    ``accepted``, ``rejected``, ``discarded``, ``disturbance`` (a disagreement ended:
+    ``outcome`` ``transient``, or undecided: ``reference_replaced``, ``open`` at the end of the
+    stream; ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back),
+    ``drift`` (an environment change), ``forgot``, ``recalled``, ``clock_reset`` (sample times
+    went back; later ones are shifted by ``shift`` s), ``stored``, ``store_error``. ``t`` is
     the sample time (s) at which it happened, ``data`` its figures
     (JSON-ready).
     """
@@ -135,6 +137,11 @@ class StreamingCalibrator:
         remember: accepted calibrations remembered for recall after an environment change.
         recall_checks: consecutive drift-window checks (one per quarter window) a remembered
             calibration must pass to be recalled.
+        disturbance: the :class:`~streamcal.stream.disturbance.DisturbanceRule` (when a
+            disagreement is a transient, when an environment change); default its defaults.
+        hold: capacity (samples) of the ring of held-back samples.
+        coarse_judge_coverage: sphere fraction the buffer must cover before the running sphere
+            estimate watches for environment changes (before the first calibration).
         synchronous: run fits inline (deterministic offline replays); default is a worker thread.
 
     Usage::
@@ -194,10 +201,10 @@ class StreamingCalibrator:
         self._cal_ref: _Reference | None = None
         self._coarse_ref: _Reference | None = None
         #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
-        self.environments: deque = deque(maxlen=16)
+        self._environments: deque = deque(maxlen=16)
         self._env_start = float("nan")
         self._env_calibrated = False
-        self.quarantine = Quarantine(hold, len(self.buffer.covariate_names))
+        self._quarantine = Quarantine(hold, len(self.buffer.covariate_names))
         self._disturbance: Disturbance | None = None
         if store is not None:
             self._load()
@@ -207,6 +214,12 @@ class StreamingCalibrator:
     def calibration(self) -> Calibration | None:
         """The calibration in use (None before the first is accepted or loaded)."""
         return self._cal
+
+    @property
+    def n_held(self) -> int:
+        """Samples that disagreed with the reference so far: held back from the buffer against a
+        calibration, only watched against the running sphere estimate before one."""
+        return self._quarantine.n_held
 
     @property
     def coverage(self) -> CoverageReport:
@@ -478,7 +491,7 @@ class StreamingCalibrator:
         self.policy.observe(err[inside], t[inside])
         self._observe_y(y[inside])
         if held.any():
-            self.quarantine.push(m[held], y[held], t[held], cov[held])
+            self._quarantine.push(m[held], y[held], t[held], cov[held])
             if self._disturbance is not None:
                 self._disturbance.note(err[held], t[held])
         return held, d, cell
@@ -496,7 +509,7 @@ class StreamingCalibrator:
         leaves the field within the limit on the directions across the shift."""
         if not dist.hold:
             return False
-        q = self.quarantine
+        q = self._quarantine
         ok, center, _ = self.disturbance_rule.new_shell(dist, q.y[q.since(dist.start)], limit,
                                                         self._t_last)
         if not ok:
@@ -519,9 +532,9 @@ class StreamingCalibrator:
                 return
             dist = self._disturbance = Disturbance(check.onset, radius=ref.radius, hold=ref.hold)
             # Held before the window turned: count them into this disturbance.
-            early = self.quarantine.since(check.onset)
-            dist.note(np.abs(np.linalg.norm(self.quarantine.y[early], axis=1) - 1.0),
-                      self.quarantine.t[early])
+            early = self._quarantine.since(check.onset)
+            dist.note(np.abs(np.linalg.norm(self._quarantine.y[early], axis=1) - 1.0),
+                      self._quarantine.t[early])
         elif check.fraction <= rule.calm_fraction:
             if not self._shift_persists(dist, check.limit):
                 self._end_disturbance(events, "transient")
@@ -533,8 +546,8 @@ class StreamingCalibrator:
         age = self._t_last - dist.start
         if not (check.disagrees or dist.hold and age >= rule.persist_s):
             return
-        idx = self.quarantine.since(dist.start)
-        ok, center, shell = rule.new_shell(dist, self.quarantine.y[idx], check.limit,
+        idx = self._quarantine.since(dist.start)
+        ok, center, shell = rule.new_shell(dist, self._quarantine.y[idx], check.limit,
                                            self._t_last)
         dist.shell = shell
         if ok and check.disagrees:
@@ -577,7 +590,7 @@ class StreamingCalibrator:
              "held": dist.n_held if dist.hold else 0, "disagreeing": dist.n_held,
              "shell_residual": _finite(dist.shell), "outcome": outcome,
              "open": outcome == "open"}, end))
-        self.quarantine.clear()
+        self._quarantine.clear()
 
     def _environment_changed(self, check, dist, reason, why, idx, events, shift=None) -> None:
         """``shift`` (3,): the new shell's centre in the sensor unit (the hard iron's move), or
@@ -598,7 +611,7 @@ class StreamingCalibrator:
                              np.round(shift, 6).tolist(),
                              "held": dist.n_held, "calibrated": in_force}, self._t_last))
         self._close_environment(onset)
-        q = self.quarantine
+        q = self._quarantine
         self._disturbance = None
         self._forget(onset, events, "calibration in use is stale until a new one is accepted "
                      "or a remembered one fits again" if self._cal is not None else
@@ -614,7 +627,7 @@ class StreamingCalibrator:
 
     def _close_environment(self, end: float) -> None:
         """Record the environment that ends at ``end`` (s) with the coverage it reached."""
-        self.environments.append({"start": _finite(self._env_start), "end": end,
+        self._environments.append({"start": _finite(self._env_start), "end": end,
                                   "coverage": round(self.buffer.fraction, 4),
                                   "n_samples": self.buffer.n_samples,
                                   "calibrated": self._env_calibrated})
@@ -627,7 +640,7 @@ class StreamingCalibrator:
                    "coverage": round(self.buffer.fraction, 4),
                    "n_samples": self.buffer.n_samples,
                    "calibrated": self._env_calibrated or (self._cal is not None and not self.stale)}
-        return [*self.environments, current]
+        return [*self._environments, current]
 
     def _forget(self, onset: float, events, why: str, held=None) -> None:
         """Drop the buffer's samples older than ``onset``; ``held`` (m, t, cov): samples held back
@@ -697,7 +710,7 @@ class StreamingCalibrator:
         self._close_environment(start)
         self._env_calibrated = True
         self._disturbance = None            # what it was judged against is gone
-        self.quarantine.clear()
+        self._quarantine.clear()
         self._forget(start, events, "samples of the other environment")
         self.policy.last_request_t = self._t_last   # coverage decides the next fit, as a refit
         self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
