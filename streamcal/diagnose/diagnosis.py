@@ -281,8 +281,23 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         except StreamcalError:
             return out
         top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
-        if top.effect in REGISTRATION_EFFECTS:   # its evidence quotes the rms: say the new one
+        if top.effect in REGISTRATION_EFFECTS:
+            if not base.tied:
+                # compare like with like: the tied model without the effect refitted on every
+                # sample too (its subset fit, evaluated on every sample, is a little worse)
+                try:
+                    ref = ctx.evaluate(model, base.cal, tied=True)
+                except StreamcalError:
+                    ref = None
+                if ref is not None:
+                    common = ref.inliers & ev.inliers
+                    top.p_value = cand.f_test(float(ref.rss[common].sum()),
+                                              float(ev.rss[common].sum()), max(ev.p - ref.p, 1),
+                                              int(common.sum()), ev.p)
+                    top.rms_before = ref.rms
+                    top.significant = cand.is_significant(ref.rms, ev.rms, top.p_value, ctx.floor)
             top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
+            out.sort(key=lambda c: not c.significant)   # stable: a winner no longer significant
     return out
 
 
