@@ -29,8 +29,10 @@ gyro-tied fits without and with τ (same pairs, same 12 gyro-map parameters), so
 rms_after are again the same statistic, and ``streamcal fit --add time_lag`` on that track
 returns the promised rms. Its evidence says what was measured ("gyro-tied rms 1.56 → 0.82 µT;
 direction changes lag the gyro by 30.0 ms"). Overlapping pairs make neighbouring residuals
-correlated, so the F test is optimistic there; the materiality rule is what guards a clean
-track. With an accelerometer the gravity-tied candidate is kept (it is what ``fit`` refits) and
+correlated; so do a slowly varying misfit and the smooth linear accelerations in the gravity
+reference. The F test therefore counts samples by their effective number (:func:`effective_n`,
+the AR(1) rule on the larger model's residuals in time order) rather than one per sample, and
+the materiality rule still guards a clean track. With an accelerometer the gravity-tied candidate is kept (it is what ``fit`` refits) and
 its evidence adds what the gyro alone says.
 """
 from __future__ import annotations
@@ -75,8 +77,26 @@ def n_global_params(cal) -> int:
     return core + sum(t.n_params() for t, _ in terms_from_params(cal.effects))
 
 
-def f_test(rss0: float, rss1: float, p_added: int, n: int, p1: int) -> float:
-    """p-value of the nested-model F test (see module docstring)."""
+def effective_n(r: np.ndarray) -> float:
+    """Independent samples worth of the residuals ``r`` (n,3), in time order: the AR(1) rule
+    n (1 − ρ)/(1 + ρ) with ρ the lag-1 autocorrelation (mean over the axes, clipped to
+    [0, 0.999]). White residuals give n; a slowly varying misfit or the overlapping windows of
+    the gyro-tied pairs give far fewer."""
+    r = np.asarray(r, dtype=float)
+    n = len(r)
+    if n < 3:
+        return float(n)
+    d = r - r.mean(axis=0)
+    num = np.sum(d[1:] * d[:-1], axis=0)
+    den = np.sum(d * d, axis=0)
+    ok = den > 0
+    rho = float(np.clip(np.mean(num[ok] / den[ok]), 0.0, 0.999)) if ok.any() else 0.0
+    return n * (1.0 - rho) / (1.0 + rho)
+
+
+def f_test(rss0: float, rss1: float, p_added: int, n: float, p1: int) -> float:
+    """p-value of the nested-model F test (see module docstring); ``n`` may be an effective
+    sample count (:func:`effective_n`), which scales the statistic's denominator degrees."""
     dof = max(n - p1, 1)
     if rss1 <= 0 or p_added <= 0:
         return 0.0 if rss0 > rss1 else 1.0

@@ -255,9 +255,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             ev = ctx.evaluate((*model, name), base.cal, quick=True)
         except StreamcalError:
             continue  # the data cannot support this effect (e.g. a constant temperature)
-        common = ref.inliers & ev.inliers
-        p_value = cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
-                              max(ev.p - ref.p, 1), int(common.sum()), ev.p)
+        p_value = _f_test(ref, ev)
         if name in REGISTRATION_EFFECTS:
             text = _registration_text(ctx, model, base, name, ref.rms, ev)
         elif base.s is not None:
@@ -290,15 +288,20 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
                 except StreamcalError:
                     ref = None
                 if ref is not None:
-                    common = ref.inliers & ev.inliers
-                    top.p_value = cand.f_test(float(ref.rss[common].sum()),
-                                              float(ev.rss[common].sum()), max(ev.p - ref.p, 1),
-                                              int(common.sum()), ev.p)
+                    top.p_value = _f_test(ref, ev)
                     top.rms_before = ref.rms
                     top.significant = cand.is_significant(ref.rms, ev.rms, top.p_value, ctx.floor)
             top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
             out.sort(key=lambda c: not c.significant)   # stable: a winner no longer significant
     return out
+
+
+def _f_test(ref: _Evaluated, ev: _Evaluated) -> float:
+    """p-value of adding ``ev``'s effect to ``ref`` on the samples both call inliers, counted
+    by their effective number (residuals of the larger model, time order)."""
+    common = ref.inliers & ev.inliers
+    return cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
+                       max(ev.p - ref.p, 1), cand.effective_n(ev.r[common]), ev.p)
 
 
 def _registration_text(ctx: _Context, model, base: _Evaluated, name: str, rms_before: float,
