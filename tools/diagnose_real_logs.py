@@ -31,7 +31,7 @@ SUMMARY = """\
   coherent-disturbance start, 762d4a3): the attached-magnet period is one outlier span
   (38–95 s, 14 491 samples), the rest is at_noise_floor. BROAD 30 (a stationary magnet nearby)
   shows three short spans where it passes the magnet. BROAD 32's gravity-tied time_lag (13.9 ms,
-  1.16 → 1.05 µT on the full refit) is not material; that refit used to drift onto the magnet's
+  1.14 → 1.05 µT, both refitted on every sample) is not material; that refit used to drift onto the magnet's
   samples (4.87 µT) until the registration LM capped its kernel at 2 widths.
 - **BROAD 02 / 30** (≈ 290 Hz magnetometer with gyro and accel): a **time lag of 11–12 ms** of the
   magnetometer behind the IMU is significant on the gravity-tied residual in both recordings (the
@@ -45,7 +45,7 @@ SUMMARY = """\
   ~0.8 ms (3 ms on the magnet-disturbed 32). 29 % of the BROAD magnetometer rows repeat the
   previous reading exactly (logged faster than the sensor updates); they are left out of the
   gyro pairs, so the lag is not that staleness. On the gyro-tied scale the lag is material only
-  in BROAD 30 (rms 2.61 → 1.59 µT, significant on the accel-dropped track); in 02 / 32 it cuts
+  in BROAD 30 (rms 2.53 → 1.58 µT, significant on the accel-dropped track); in 02 / 32 it cuts
   the gyro-tied rms by 6 % / 4 % (< the 10 % materiality rule), so a mag+gyro recording of
   those would come out at_noise_floor — the gyro-tied residual there is dominated by ~1.4 µT of
   other error (the 0.78 µT ellipsoid misfit of both samples of a pair).
@@ -69,6 +69,11 @@ SUMMARY = """\
   gravity-tied scale (marked in the ladder), not comparable with the free-direction rms.
 - tiva_* (magnetometer only, 100 Hz, counts): at_noise_floor verdicts with rms 1.2–3.7 × the
   floor and scattered short spans — the model misfit left is not one of the catalog effects.
+- **p-values** count samples by their effective number (AR(1) rule on the residuals in time
+  order; session 2): slowly varying residuals — the gravity reference's linear accelerations,
+  the gyro pairs' shared windows, a hand's 3 Hz motion in the `jr_*` logs — are worth far fewer
+  independent samples than rows. No verdict changed; immaterial candidates that used to show
+  p ≈ 1e-50 now show what their size supports (freeimucal time_drift 7e-52 → 0.038).
 """
 
 
