@@ -49,7 +49,9 @@ class LinkError(StreamcalError):
 @dataclass
 class LinkStats:
     """What arrived and what was lost. ``lost`` counts frames missing from the board's sequence
-    numbers (so ``received + lost`` = frames the board sent, up to the last one received)."""
+    numbers (so ``received + lost`` = frames the board sent, up to the last one received; a
+    board restart begins a new count). ``restarts``: board reboots seen (a HELLO with sequence
+    number 0 after other frames: brown-out, watchdog, a DTR reset)."""
 
     frames: int = 0
     samples: int = 0
@@ -68,6 +70,7 @@ class LinkStats:
     raw_lines: int = 0
     bad_lines: int = 0
     dropped: int = 0          # samples dropped because nobody read them (bounded queue)
+    restarts: int = 0         # board reboots (its sequence numbers and µs clock restarted)
 
     def as_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -205,7 +208,7 @@ class SerialLink:
         if self.mode == "auto":
             self.mode = "frames"
         if isinstance(frame.msg, fr.Hello) and frame.seq == 0:
-            self.sequence.reset()  # the board (re)booted: its counter restarted
+            self._on_boot()
         self.sequence.observe(frame.seq)
         self._stats.frames += 1
         msg = frame.msg
@@ -223,12 +226,33 @@ class SerialLink:
             self._answers.append(frame)
             del self._answers[:-64]
 
+    def _on_boot(self) -> None:
+        """A HELLO numbered 0: the board booted. Its sequence numbers start again (not a loss)
+        and so does its µs clock. After other frames (not the first HELLO of the link, and not
+        the sequence number wrapping round to 0 from 65535) this is a restart: counted, and
+        the samples from here on are timed from the board's new clock (a mark in the queue,
+        so the samples still waiting keep the old one)."""
+        seq = self.sequence
+        if seq.received and seq.expected != 0:
+            self._stats.restarts += 1
+            if not (self._pending and self._pending[-1][0] == "b"):
+                self._push([("b", None)])
+        seq.reset()
+
+    def _restart_clock(self) -> None:
+        """Forget the board clock's history: the next time unwraps from itself (board time
+        restarts near 0; :class:`~streamcal.stream.StreamingCalibrator` keeps its time
+        monotone across it)."""
+        self._t_last, self._t_wrap = None, 0
+
     def _push(self, items) -> None:
         self._pending.extend(items)
         excess = len(self._pending) - self._max_pending
         for _ in range(max(0, excess)):
-            self._pending.popleft()
-        self._stats.dropped += max(0, excess)
+            if self._pending.popleft()[0] == "b":     # what came before the reboot is gone
+                self._restart_clock()
+            else:
+                self._stats.dropped += 1
 
     def read_block(self, max_samples: int = 256, timeout: float = 0.1) -> SampleBlock | None:
         """Up to ``max_samples`` samples as one block, or None if none arrived within ``timeout`` s.
@@ -250,7 +274,8 @@ class SerialLink:
 
     def has_pending(self) -> bool:
         """Whether decoded samples are waiting for :meth:`read_block`."""
-        return bool(self._pending)
+        pending = self._pending
+        return bool(pending) and not (len(pending) == 1 and pending[0][0] == "b")
 
     def blocks(self, max_samples: int = 256, idle_timeout: float | None = None) -> Iterator[SampleBlock]:
         """Yield blocks as they arrive; stop after ``idle_timeout`` s without samples (None: never)."""
@@ -270,6 +295,9 @@ class SerialLink:
         return self._unwrap_times(rows[:, 0].astype(np.int64), advance=False), rows[:, 1:]
 
     def _take(self, max_samples: int) -> SampleBlock | None:
+        while self._pending and self._pending[0][0] == "b":    # a reboot mark: new board clock
+            self._pending.popleft()
+            self._restart_clock()
         if not self._pending:
             return None
         kind = self._pending[0][0]

@@ -4,7 +4,8 @@
 
     source.read() ──▶ StreamingCalibrator.ingest ──▶ events ──▶ log (stderr), hooks (serial: send
         │  (SampleBlock)        │ (fits on a worker thread)      the accepted calibration back)
-        │                       └─▶ apply ──▶ Outputs (JSON lines: stdout and/or UNIX socket)
+        │                       └─▶ apply, disagreement ──▶ Outputs (JSON lines: stdout and/or
+        │                                 UNIX socket; ``disturbed`` per sample)
         └─ SourceUnavailable ──▶ back off (0.5 s doubling to 10 s), STATUS says why, retry forever
 
 Signals (handled between blocks; a block takes at most about one second):
@@ -160,7 +161,9 @@ class Service:
         try:
             events = self.calibrator.ingest(block)
             self._handle(events)
-            self.outputs.publish(block.t, self.calibrator.apply(block), self.cal_version)
+            cal = self.calibrator
+            self.outputs.publish(block.t, cal.apply(block), self.cal_version,
+                                 cal.disagreement(block) if self.outputs else None)
         except Exception as exc:   # a bug or a hostile block must not take the service down
             self.stats.ingest_errors += 1
             if self.stats.ingest_errors <= 10 or self.stats.ingest_errors % 1000 == 0:

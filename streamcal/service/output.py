@@ -2,7 +2,7 @@
 
 One line per magnetometer sample, UTF-8, ``\\n``-terminated::
 
-    {"t": 12.34, "field_uT": [21.3, -14.9, -38.1], "direction": [0.44, -0.31, -0.79], "cal_version": 3}
+    {"t": 12.34, "field_uT": [21.3, -14.9, -38.1], "direction": [0.44, -0.31, -0.79], "cal_version": 3, "disturbed": false}
 
 - ``t``: sample time, s, on the source's clock (driver clock: monotonic seconds on a Pi, track time
   with a fake bus; board clock for serial).
@@ -12,6 +12,13 @@ One line per magnetometer sample, UTF-8, ``\\n``-terminated::
 - ``cal_version``: which estimate produced the line: 0 = the running sphere estimate before any
   calibration; 1, 2, … increase each time the calibration in use changes (loaded at start,
   accepted, recalled after an environment change, re-read on SIGHUP).
+- ``disturbed``: true when the sample disagrees with the calibration that produced the line by the
+  calibrator's own criterion, the one that holds samples back from fitting (relative error
+  ``|‖x‖ − 1|`` beyond the drift limit on the directions the calibration was fitted on, or beyond
+  half the field anywhere: a phone or a magnet passing, or an environment change not yet
+  recalibrated). Its ``field_uT`` and ``direction`` are then not the Earth field alone: a heading
+  filter should not trust them. Always false with ``cal_version`` 0 (no calibration yet).
+  :meth:`streamcal.stream.StreamingCalibrator.disagreement` computes it.
 
 Samples before any estimate exists are not written. The socket is ``SOCK_STREAM``: connect
 (``socat - UNIX-CONNECT:/run/streamcal/samples.sock``) and read lines; each client gets lines from
@@ -34,9 +41,10 @@ MAX_PENDING = 256 * 1024
 MAX_CLIENTS = 16
 
 
-def format_lines(t, field, cal_version: int) -> str:
+def format_lines(t, field, cal_version: int, disturbed=None) -> str:
     """JSON lines (module docstring) for rows of ``field`` (n,3) µT at times ``t`` (n,);
-    rows with a non-finite or zero field are skipped. Returns ``""`` when none is left."""
+    ``disturbed`` (n,) bool (None: all false). Rows with a non-finite or zero field are
+    skipped. Returns ``""`` when none is left."""
     t = np.asarray(t, dtype=float)
     field = np.asarray(field, dtype=float).reshape(-1, 3)
     norm = np.linalg.norm(field, axis=1)
@@ -44,10 +52,19 @@ def format_lines(t, field, cal_version: int) -> str:
     if not ok.any():
         return ""
     rows = np.column_stack([t[ok], field[ok], field[ok] / norm[ok, None]])
-    v = int(cal_version)
-    template = ('{{"t": {:.6f}, "field_uT": [{:.4f}, {:.4f}, {:.4f}], '
-                '"direction": [{:.6f}, {:.6f}, {:.6f}], "cal_version": %d}}\n' % v)
-    return "".join(template.format(*row) for row in rows.tolist())
+    head = ('{{"t": {:.6f}, "field_uT": [{:.4f}, {:.4f}, {:.4f}], '
+            '"direction": [{:.6f}, {:.6f}, {:.6f}], "cal_version": %d, ' % int(cal_version))
+    calm = head + '"disturbed": false}}\n'
+    if disturbed is None:
+        return "".join(calm.format(*row) for row in rows.tolist())
+    flags = np.asarray(disturbed, dtype=bool).reshape(-1)
+    if flags.shape != t.shape:
+        raise ValueError(f"format_lines: disturbed has {flags.size} rows, t has {t.size}")
+    flags = flags[ok]
+    if not flags.any():
+        return "".join(calm.format(*row) for row in rows.tolist())
+    templates = (calm, head + '"disturbed": true}}\n')
+    return "".join(templates[f].format(*row) for row, f in zip(rows.tolist(), flags.tolist()))
 
 
 class SocketOutput:
@@ -175,10 +192,11 @@ class Outputs:
     def __bool__(self) -> bool:
         return bool(self.sinks)
 
-    def publish(self, t, field, cal_version: int) -> None:
+    def publish(self, t, field, cal_version: int, disturbed=None) -> None:
+        """Format (:func:`format_lines`) and send to every sink; ``disturbed`` (n,) bool or None."""
         if not self.sinks:
             return
-        text = format_lines(t, field, cal_version)
+        text = format_lines(t, field, cal_version, disturbed)
         self.lines += text.count("\n")
         for sink in self.sinks:
             sink.publish(text)

@@ -286,6 +286,33 @@ class StreamingCalibrator:
             out[ok] = (m[ok] - c) / R if unit_vectors else m[ok] - c
         return out
 
+    def disagreement(self, block) -> np.ndarray:
+        """Which samples of ``block`` disagree with the calibration in use (n,) bool: by the
+        criterion that holds samples back (relative error beyond the drift limit on the
+        directions it was fitted on, beyond :data:`~.disturbance.GROSS` anywhere). A stale
+        calibration (after an environment change, still applied by :meth:`apply`) is judged
+        the same way. All False before the first calibration and on rows without a
+        magnetometer sample or whose covariates the calibration's effect terms lack. Pure: the
+        quarantine, the drift window and the disturbance state are untouched, so it may be
+        called on a block whether or not it has been processed yet."""
+        m = np.asarray(block.mag, dtype=float)
+        out = np.zeros(len(m), dtype=bool)
+        ref = self._cal_ref if self._cal is not None else None
+        if ref is None or not len(m):
+            return out
+        ok = np.isfinite(m).all(axis=1)
+        if not ok.any():
+            return out
+        if ref.cal is None:
+            y = ref.project(m[ok], None, None, ())
+        else:       # covariates held as the stage holds them, on the calibration's clock
+            stage = Stage(1, self._stage.names)
+            stage.held = self._stage.held.copy()
+            m_ok, t, cov = stage.rows_of(block)
+            y = ref.project(m_ok, t + self._t_shift, cov, self.buffer.covariate_names)
+        out[ok] = self._beyond(y, ref)[0]
+        return out
+
     def close(self, timeout: float | None = None) -> list:
         """Process what is staged and wait for a fit in flight; returns the last events. A
         disturbance still open is reported as undecided (``open``), and a fit that finished
@@ -472,6 +499,20 @@ class StreamingCalibrator:
         their relative errors, the disagreeing ones are recorded in the quarantine. Returns
         the mask (n,) of disagreeing samples, their unit directions (n,3) and cells (n,)."""
         y = ref.project(m, t, cov, self.buffer.covariate_names)
+        held, err, inside, d, cell = self._beyond(y, ref)
+        self.policy.observe(err[inside], t[inside])
+        self._observe_y(y[inside])
+        if held.any():
+            self._quarantine.push(m[held], y[held], t[held], cov[held])
+            if self._disturbance is not None:
+                self._disturbance.note(err[held], t[held])
+        return held, d, cell
+
+    def _beyond(self, y, ref):
+        """The hold-back criterion, pure: projections ``y`` (n,3) of samples under ``ref``.
+        Returns ``held`` (n,) (relative error ``|‖y‖ − 1|`` beyond ``ref.limit`` on a direction
+        ``ref`` was fitted on, or beyond :data:`GROSS` anywhere when ``ref.hold``), the errors
+        (n,), ``inside`` (n,) (judged by the limit), unit directions (n,3) and cells (n,)."""
         r = np.sqrt(np.einsum("nk,nk->n", y, y))
         # Rows the reference cannot project (NaN: a covariate its effect terms need is missing)
         # are neither judged nor held; they go to the buffer, which projects them itself.
@@ -488,13 +529,7 @@ class StreamingCalibrator:
         held = (err > ref.limit) & inside
         if ref.hold:
             held |= (err > GROSS) & fin
-        self.policy.observe(err[inside], t[inside])
-        self._observe_y(y[inside])
-        if held.any():
-            self._quarantine.push(m[held], y[held], t[held], cov[held])
-            if self._disturbance is not None:
-                self._disturbance.note(err[held], t[held])
-        return held, d, cell
+        return held, err, inside, d, cell
 
     def _observe_y(self, y) -> None:
         """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
