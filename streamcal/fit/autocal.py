@@ -41,6 +41,9 @@ CONTAMINATION_RATIO = 3.0
 RELATIVE_LIMIT = 0.01
 #: Quantile of |N(0,1)| at KEEP (0.25): σ from the nearest quarter of radial residuals.
 HALF_NORMAL_QUANTILE_KEEP = 0.31863936396437514
+#: Under a coherent disturbance the LM runs on the start's supporting chunks, less the samples
+#: farther than this many start bands from the start's surface.
+SUPPORT_BANDS = 2.0
 
 
 @dataclass
@@ -172,7 +175,11 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
             K0, b0 = K1, b1
         coherent = coherent_start(K0, b0, m_n) if structure == "full" and fit_b else None
         if coherent is not None:
-            K0, b0, support = coherent.K, coherent.b, coherent.support
+            # the chunk support less the samples far off the start's shell: a chunk on the edge
+            # of the disturbance holds disturbed samples, and on a cap a few of them are enough
+            # to drag the fit towards the disturbed shell
+            near = radial_error(coherent.K, coherent.b, m_n) < SUPPORT_BANDS * coherent.band
+            K0, b0, support = coherent.K, coherent.b, coherent.support & near
         x0 = directions_from_model(K0, b0, m_n)
         r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
     # σ from the nearest quarter of residuals: unbiased for Gaussian noise and far less

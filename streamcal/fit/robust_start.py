@@ -76,7 +76,9 @@ def robust_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray, n_max: int = 200
 # 3σ̂ of its surface) and refined by a short Geman–McClure LM on those chunks only, and the
 # candidate whose agreeing chunks hold the most samples wins. Rest periods cannot make a
 # candidate (their chunks do not spread) but they do vote: a board resting undisturbed lies on
-# the undisturbed shell.
+# the undisturbed shell. On a cap, the full ellipsoid grown from the global start can agree with
+# the same chunks as a cap sphere while bridging towards the disturbed shell (its 9 parameters
+# are poorly fixed by a cap), so a tie on time goes to a sphere.
 # ---------------------------------------------------------------------------------------------
 
 from dataclasses import dataclass  # noqa: E402
@@ -110,12 +112,15 @@ class StartChoice:
     """A start (normalized units) chosen by :func:`coherent_start`.
 
     ``support`` (N,) bool: the samples of the time chunks that agree with it (the undisturbed
-    part as far as the start can tell); ``score`` the fraction of samples in those chunks."""
+    part as far as the start can tell); ``score`` the fraction of samples in those chunks;
+    ``band`` the half-width of the band (relative radial error, see :func:`radial_error`) the
+    chunks were judged with."""
 
     K: np.ndarray
     b: np.ndarray
     support: np.ndarray
     score: float
+    band: float
 
 
 def fit_sphere(m: np.ndarray):
@@ -214,7 +219,8 @@ def coherent_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray) -> StartChoice
     search runs only when the chunks' inlier fractions under (K0, b0) are heterogeneous (see
     HETEROGENEITY); candidates: (K0, b0) and the chunk spheres, each grown as in the section
     comment; those with cond(K) > MAX_ANISOTROPY are dropped; the winner has the most samples
-    in chunks agreeing with it within a common band (BAND × the smallest σ̂ of the candidates).
+    in chunks agreeing with it within a common band (BAND × the smallest σ̂ of the candidates),
+    ties (the same chunks) going to a sphere, then to the most samples inside the band.
     """
     n = len(m)
     step = max(1, -(-n // N_EVAL))
@@ -233,15 +239,23 @@ def coherent_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray) -> StartChoice
     for K, b, structure in starts:
         g = _grow(K, b, ev, chunk, n_chunks, structure)
         if g is not None and anisotropy(g[0]) <= MAX_ANISOTROPY:
-            grown.append(g)
+            grown.append((*g, structure))
     if not grown:
         return None
     delta = BAND * min(g[2] for g in grown)
-    best = None
-    for K, b, _ in grown:
-        frac, count = _chunk_fractions(radial_error(K, b, ev), chunk, n_chunks, delta)
+    ranked = []
+    for K, b, _, structure in grown:
+        e = radial_error(K, b, ev)
+        frac, count = _chunk_fractions(e, chunk, n_chunks, delta)
         agree = frac >= AGREE
         score = float(count[agree].sum() / count.sum())
-        if best is None or score > best.score:
-            best = StartChoice(K, b, agree[full_chunk], score)
-    return best
+        inside = float(np.mean(agree[chunk] & (e < delta)))
+        choice = StartChoice(K, b, agree[full_chunk], score, delta)
+        ranked.append((score, structure == "sphere", inside, choice))
+    # Candidates agreeing with the same chunks (within half a chunk of the best) are tied on
+    # time; a sphere wins such a tie (on a cap, a full ellipsoid grown from the global start can
+    # explain the same chunks while bridging towards the disturbed shell), then the most samples
+    # inside the band.
+    top = max(r[0] for r in ranked)
+    tied = [r for r in ranked if r[0] >= top - 0.5 / n_chunks]
+    return max(tied, key=lambda r: (r[1], r[2]))[3]
