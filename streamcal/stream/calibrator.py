@@ -310,7 +310,14 @@ class StreamingCalibrator:
             stage.held = self._stage.held.copy()
             m_ok, t, cov = stage.rows_of(block)
             y = ref.project(m_ok, t + self._t_shift, cov, self.buffer.covariate_names)
-        out[ok] = self._beyond(y, ref)[0]
+        r = np.sqrt(np.einsum("nk,nk->n", y, y))
+        fin = np.isfinite(r)
+        err = np.where(fin, np.abs(r - 1.0), 0.0)
+        inside = err > ref.limit                # a cell only where the limit matters
+        if inside.any() and ref.support is not None:
+            k = np.flatnonzero(inside)
+            inside[k] = ref.support[self.buffer.cells.cell_of(y[k] / np.maximum(r[k], 1e-300)[:, None])]
+        out[ok] = _held(ref, err, fin, inside)
         return out
 
     def close(self, timeout: float | None = None) -> list:
@@ -526,10 +533,7 @@ class StreamingCalibrator:
         # Only directions the reference was fitted on: elsewhere it extrapolates, and a large
         # error there asks for a refit on more coverage (new cells), not for holding back.
         inside = (ref.support[cell] if ref.support is not None else True) & fin
-        held = (err > ref.limit) & inside
-        if ref.hold:
-            held |= (err > GROSS) & fin
-        return held, err, inside, d, cell
+        return _held(ref, err, fin, inside), err, inside, d, cell
 
     def _observe_y(self, y) -> None:
         """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
@@ -883,6 +887,16 @@ class _Reference:
         if self.cal is None:
             return (m - self.center) @ self.AT
         return apply_finite(self.cal, m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
+
+
+def _held(ref: _Reference, err, fin, inside) -> np.ndarray:
+    """The hold-back criterion (n,) bool from relative errors ``err`` (n,), finite rows ``fin``
+    and ``inside`` (rows on directions ``ref`` was fitted on): beyond the drift limit there,
+    beyond :data:`GROSS` anywhere when ``ref`` holds samples back."""
+    held = (err > ref.limit) & inside
+    if ref.hold:
+        held |= (err > GROSS) & fin
+    return held
 
 
 def _floor_milestone(frac: float) -> float:
