@@ -92,8 +92,21 @@ def test_sphere_fit_is_exact_on_a_noise_free_cap():
 
 # --- the coherent disturbance -----------------------------------------------------------------
 
-def test_coherent_disturbance_start_lands_on_the_undisturbed_shell():
-    m, disturbed = coherent_track()
+# Every seed tried is listed: the search runs only when the chunks' inlier fractions under the
+# plain start differ by more than robust_start.HETEROGENEITY, which seeds 2, 3 and 7 miss; and a
+# full ellipsoid on a 60° cap plus rests is itself 1.8–4.4 % from the truth, so the whole fit
+# lands within 2 % of the undisturbed part's only on seeds 0 and 4 (1, 5, 6: 8.7, 2.2, 2.0 %).
+_SEARCH_GATE = pytest.mark.xfail(strict=True, reason="known gap: the chunk inlier fractions differ "
+                                 "by less than HETEROGENEITY, so the coherent search never runs")
+_CAP_FIT = pytest.mark.xfail(strict=True, reason="known gap: the start is right but a full "
+                             "ellipsoid on a cap plus rests does not reproduce the part's fit "
+                             "within 2 % (a shared shape with two offsets would)")
+
+
+@pytest.mark.parametrize("seed", [0, 1, 4, 5, 6] + [pytest.param(s, marks=_SEARCH_GATE)
+                                                    for s in (2, 3, 7)])
+def test_coherent_disturbance_start_lands_on_the_undisturbed_shell(seed):
+    m, disturbed = coherent_track(seed)
     m_n, center, scale = normalize(m)
     K0, b0, contaminated = plain_start(m_n)
     assert contaminated
@@ -114,8 +127,10 @@ def test_coherent_disturbance_start_lands_on_the_undisturbed_shell():
     assert choice.score == pytest.approx(choice.support.mean(), abs=0.02)
 
 
-def test_coherent_disturbance_whole_fit_matches_its_undisturbed_part():
-    m, disturbed = coherent_track()
+@pytest.mark.parametrize("seed", [0, 4] + [pytest.param(s, marks=_SEARCH_GATE) for s in (2, 3, 7)]
+                         + [pytest.param(s, marks=_CAP_FIT) for s in (1, 5, 6)])
+def test_coherent_disturbance_whole_fit_matches_its_undisturbed_part(seed):
+    m, disturbed = coherent_track(seed)
     whole = fit(m, check_coverage=False)
     part = fit(m[~disturbed], check_coverage=False)
     # the issue's criterion for BROAD 32: within 2 % (eq. 40) of the undisturbed part's fit
