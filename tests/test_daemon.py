@@ -154,7 +154,7 @@ def test_json_lines_and_socket_output_are_unit_directions(tmp_path):
     lines = stream.getvalue().splitlines()
     assert len(lines) == service.outputs.lines > 10000
     rows = [json.loads(line) for line in lines]
-    assert set(rows[0]) == {"t", "field_uT", "direction", "cal_version"}
+    assert set(rows[0]) == {"t", "field_uT", "direction", "cal_version", "disturbed"}
     x = np.array([r["direction"] for r in rows])
     f = np.array([r["field_uT"] for r in rows])
     np.testing.assert_allclose(np.linalg.norm(x, axis=1), 1.0, atol=2e-6)

@@ -206,6 +206,7 @@ class SerialBlocks:
                 "crc_errors": s.crc_errors, "cobs_errors": s.cobs_errors,
                 "truncated": s.truncated, "garbage_bytes": s.garbage_bytes,
                 "raw_lines": s.raw_lines, "bad_lines": s.bad_lines, "dropped": s.dropped,
+                "restarts": s.restarts,
                 "outages": self.outages}
 
     def close(self) -> None:
