@@ -161,7 +161,9 @@ class _Context:
     gravity reference (built once, on demand)."""
 
     def __init__(self, track, fitter, kernel, floor, subset_max=None):
-        self.track, self.fitter, self.kernel, self.floor = track, fitter, kernel, floor
+        self.track, self.fitter, self.floor = track, fitter, floor
+        # the tied fits have one robust cost of their own (as streamcal.fit does for them)
+        self.kernel = "cauchy" if kernel == "auto" else kernel
         self.m = np.asarray(track.mag, dtype=float)
         self.cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
         self.cov.setdefault("t", np.asarray(track.t_mag, dtype=float))
@@ -334,7 +336,7 @@ def _families(ctx: _Context, base: _Evaluated, model) -> dict:
 
 
 def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
-             fitter: Callable | None = None, kernel: str = "cauchy",
+             fitter: Callable | None = None, kernel: str = "auto",
              candidates: Sequence[str] | None = None, ladder: bool = True,
              subset_max: int | None = SUBSET_MAX) -> Diagnosis:
     """Diagnose ``model`` on ``track`` (a :class:`streamcal.track.Track`).
@@ -343,7 +345,9 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     model) -> Calibration`` replaces :func:`streamcal.fit.fit`; ``candidates`` restricts the effects
     tried (default: every catalog effect the track supports that the model lacks); ``ladder``
     keeps adding the best significant effect (up to :data:`LADDER_STEPS`) and records the rms
-    after each.
+    after each. ``kernel``: as :func:`streamcal.fit.fit` (default ``auto``, so the rms here and
+    ``streamcal fit``'s agree; the gravity- and gyro-tied fits use Cauchy for ``auto``, as
+    ``fit`` does for them).
 
     Speed: every refit is warm-started from the model it extends (``fitter(track, model,
     initial=cal)`` when the fitter takes ``initial``). With more than ``subset_max`` samples the
