@@ -92,3 +92,23 @@ def _rows(a):
     """One hashable value per row of ``a`` (n,3)."""
     a = np.ascontiguousarray(a, dtype=float)
     return a.view(np.dtype((np.void, a.dtype.itemsize * 3))).ravel()
+
+
+def test_a_replacement_calibrator_continues_the_clock_of_the_buffer_it_takes_over():
+    """The daemon's reload (SIGHUP) builds a new calibrator on the old one's buffer: with
+    ``adopt_clock`` the samples after a restart keep landing after the stored ones, so forgetting
+    by onset still drops the old ones; without it they would look older than everything stored."""
+    t, m, after = restarted(3, duration=200.0)
+    old = StreamingCalibrator(synchronous=True)
+    feed(old, t[~after], m[~after])
+    first = np.flatnonzero(after)[:1500]
+    feed(old, t[first], m[first])                    # the restart happens in the old one
+    stored_max = old.buffer.snapshot().t.max()
+    new = StreamingCalibrator(synchronous=True, buffer=old.buffer)
+    new.adopt_clock(old)
+    rest = np.flatnonzero(after)[1500:]
+    events = feed(new, t[rest], m[rest])
+    assert not of_kind(events, "clock_reset")        # the board clock did not go back again
+    assert new.buffer.snapshot().t.max() > stored_max
+    newest = new.buffer.snapshot().t.max()           # on the continued clock
+    assert t[rest][0] + old._t_shift < newest <= t[rest][-1] + old._t_shift + 1e-9

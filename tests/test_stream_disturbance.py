@@ -314,3 +314,35 @@ def test_new_shell_needs_at_least_four_samples():
                   [0.0, -0.8, 0.0]])
     ok, center, shell = rule.new_shell(Disturbance(0.0), y, 0.03, 10.0)
     assert center is not None and np.isfinite(shell)
+
+
+def _hemisphere(rng, n, sign):
+    x = rng.standard_normal((n, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    x[:, 2] = sign * np.abs(x[:, 2])
+    return x
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_disturbance_the_window_cannot_judge_does_not_block_fitting(seed):
+    """Calibrated on the upper half of the sphere; a phone passes; then the board turns only
+    through the lower half, where the drift window does not look (directions the calibration
+    was not fitted on). The fit that finished during the phone waits at most the persistence
+    time for a decision, then the disturbance is reported undecided and fitting goes on —
+    no false environment change, and the lower half is learnt."""
+    rng = np.random.default_rng(seed)
+    fs, n_up, n_phone, n_down = 100.0, 6000, 500, 4000
+    x = np.vstack([_hemisphere(rng, n_up + n_phone, +1), _hemisphere(rng, n_down, -1)])
+    t = np.arange(len(x)) / fs
+    m = x @ K_TRUE.T + B_TRUE + rng.normal(scale=0.3, size=x.shape)
+    m += phone(t, n_up / fs, n_phone / fs, 150.0, rng)
+    sc = StreamingCalibrator(synchronous=True)
+    events = feed(sc, t, m)
+    kinds = [e.kind for e in events]
+    assert "drift" not in kinds and "forgot" not in kinds
+    (dist,) = of_kind(events, "disturbance")
+    assert dist.data["outcome"] in ("transient", "undecided")
+    assert dist.t <= n_up / fs + sc.disturbance_rule.persist_s + 2.0
+    assert any(e.kind == "accepted" and e.t >= dist.t for e in events)   # fitting went on
+    assert sc.buffer.fraction > 0.9
+    assert sc.calibration.model_error(truth()) < BOUND

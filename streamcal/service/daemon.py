@@ -178,7 +178,7 @@ class Service:
         if busy:
             self.log(f"streamcal {self.name}: {reason}; waiting up to {self.grace_s:g} s for the "
                      "fit in flight")
-        self._handle(self.calibrator.drain(timeout=self.grace_s))
+        self._handle(self.calibrator.close(timeout=self.grace_s))
         if self.calibrator.fit_in_flight:
             self.log(f"streamcal {self.name}: fit still running after {self.grace_s:g} s; "
                      "abandoned (the calibration file is unchanged)")
@@ -195,7 +195,8 @@ class Service:
             self.log(f"streamcal {self.name}: SIGHUP: nothing to reload ({why}); the calibration "
                      "in use is kept")
         else:
-            self.calibrator = self.make_calibrator(buffer=self.calibrator.buffer)
+            old, self.calibrator = self.calibrator, self.make_calibrator(buffer=self.calibrator.buffer)
+            self.calibrator.adopt_clock(old)    # the buffer's samples carry its clock
             self._handle(self.calibrator.poll())
             self.log(f"streamcal {self.name}: SIGHUP: calibration re-read from {found.path}")
         self.notifier.ready(self._status_text())

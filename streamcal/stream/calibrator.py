@@ -70,8 +70,9 @@ class Event:
 
     ``kind``: ``loaded``, ``load_problem``, ``coverage``, ``fit_started``, ``fit_failed``,
     ``accepted``, ``rejected``, ``discarded``, ``disturbance`` (a disagreement ended:
-    ``outcome`` ``transient``, or undecided: ``reference_replaced``, ``open`` at the end of the
-    stream; ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back),
+    ``outcome`` ``transient``, or undecided: ``reference_replaced``, ``undecided`` (not
+    judgeable within the persistence time while a finished fit waited), ``open`` at the end of
+    the stream; ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back),
     ``drift`` (an environment change), ``forgot``, ``recalled``, ``clock_reset`` (sample times
     went back; later ones are shifted by ``shift`` s), ``stored``, ``store_error``. ``t`` is
     the sample time (s) at which it happened, ``data`` its figures
@@ -227,7 +228,14 @@ class StreamingCalibrator:
 
     @property
     def fit_in_flight(self) -> bool:
-        return self._job is not None
+        """A fit is running (a finished one waiting for a disturbance's decision is not)."""
+        return self._job is not None and not self._job.done.is_set()
+
+    def adopt_clock(self, other: "StreamingCalibrator") -> None:
+        """Continue ``other``'s monotone clock (its shift after board restarts): a calibrator
+        built to replace another (a daemon's reload) that takes over its buffer must stamp new
+        samples on the clock the buffered ones carry."""
+        self._t_shift, self._t_last, self._dt = other._t_shift, other._t_last, other._dt
 
     @property
     def n_ingested(self) -> int:
@@ -242,10 +250,13 @@ class StreamingCalibrator:
             if stage.push(block, n):
                 return self._drain_pending() + self._process(*stage.take())
             return self._drain_pending() if self._pending else []
-        # Larger than the free room: what is staged and the whole block in one pass.
+        # Larger than the free room: what is staged and the whole block in one pass (the staged
+        # rows first: taking them fills their missing covariates from what came before, and
+        # rows_of then carries the covariates forward from them).
+        staged = stage.take() if stage.n else None
         m, t, cov = stage.rows_of(block)
-        if stage.n:
-            m0, t0, cov0 = stage.take()
+        if staged is not None:
+            m0, t0, cov0 = staged
             m, t, cov = np.concatenate([m0, m]), np.concatenate([t0, t]), \
                 np.concatenate([cov0, cov])
         return self._drain_pending() + self._process(m, t, cov)
@@ -607,7 +618,9 @@ class StreamingCalibrator:
     def _end_disturbance(self, events, outcome: str) -> None:
         """Report the open disturbance and drop its held samples. ``outcome``: ``transient``
         (the field agrees again), ``reference_replaced`` (a first calibration replaced the
-        running estimate it was judged against: undecided) or ``open`` (the stream ended)."""
+        running estimate it was judged against: undecided), ``undecided`` (too few samples in
+        the calibration's directions to judge it within the persistence time, while a finished
+        fit waited) or ``open`` (the stream ended)."""
         dist, self._disturbance = self._disturbance, None
         if dist is None:
             return
@@ -618,7 +631,10 @@ class StreamingCalibrator:
                 f"left undecided: the running estimate it was judged against was replaced by "
                 f"the accepted calibration",
                 "open": f"disturbance since t={dist.start:.2f} s still open (undecided) when "
-                f"the stream ended at t={end:.2f} s"}[outcome]
+                f"the stream ended at t={end:.2f} s",
+                "undecided": f"disturbance from t={dist.start:.2f} to {end:.2f} s left "
+                f"undecided: too few samples in the directions the calibration covers to judge "
+                f"it within {self.disturbance_rule.persist_s:g} s"}[outcome]
         events.append(Event(
             "disturbance", f"{what}: peak error {dist.peak * R:.3g} {self.unit} "
             f"({100 * dist.peak:.0f}% of the field) at t={dist.peak_t:.2f} s; {dist.n_held} "
@@ -792,8 +808,14 @@ class StreamingCalibrator:
         dist = self._disturbance
         if dist is not None and dist.hold and not job.obsolete and job.error is None:
             # Its held-out samples are all from before the disturbance: it waits for the
-            # decision (transient: judged then; environment change: obsolete).
-            return []
+            # decision (transient: judged then; environment change: obsolete) — but not for
+            # good: the drift window only fills with samples in directions the calibration was
+            # fitted on, and a board that stays elsewhere would block every later fit.
+            if self._t_last - dist.start < self.disturbance_rule.persist_s:
+                return []
+            events = []
+            self._end_disturbance(events, "undecided")
+            return events + self._collect()
         self._job = None
         t = self._t_last
         if job.obsolete:
