@@ -274,27 +274,35 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
     # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
     # the rms each was compared with (the same order as rms_after among the others).
     out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
-    if out and ctx.subset is not None:
-        top = out[0]   # the winner is refitted on every sample: its promise is exact
+    # The winner is refitted on every sample, so its promise is exact; a registration winner
+    # that is no longer significant then drops behind the significant ones (a stable sort), and
+    # the new winner is refitted in turn.
+    refitted, tied_full = set(), None
+    while out and ctx.subset is not None and out[0].effect not in refitted:
+        top = out[0]
+        refitted.add(top.effect)
         try:
             ev = ctx.evaluate((*model, top.effect), top.calibration)
         except StreamcalError:
             return out
         top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
-        if top.effect in REGISTRATION_EFFECTS:
-            if not base.tied:
-                # compare like with like: the tied model without the effect refitted on every
-                # sample too (its subset fit, evaluated on every sample, is a little worse)
+        if top.effect not in REGISTRATION_EFFECTS:
+            break
+        if not base.tied:
+            # compare like with like: the tied model without the effect refitted on every
+            # sample too (its subset fit, evaluated on every sample, is a little worse)
+            if tied_full is None:
                 try:
-                    ref = ctx.evaluate(model, base.cal, tied=True)
+                    tied_full = ctx.evaluate(model, base.cal, tied=True)
                 except StreamcalError:
-                    ref = None
-                if ref is not None:
-                    top.p_value = _f_test(ref, ev)
-                    top.rms_before = ref.rms
-                    top.significant = cand.is_significant(ref.rms, ev.rms, top.p_value, ctx.floor)
-            top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
-            out.sort(key=lambda c: not c.significant)   # stable: a winner no longer significant
+                    tied_full = False
+            if tied_full:
+                top.p_value = _f_test(tied_full, ev)
+                top.rms_before = tied_full.rms
+                top.significant = cand.is_significant(tied_full.rms, ev.rms, top.p_value,
+                                                      ctx.floor)
+        top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
+        out.sort(key=lambda c: not c.significant)
     return out
 
 
