@@ -29,10 +29,10 @@ SUMMARY = """\
 
 - **BROAD 32 (magnet attached 1 cm away)**: now fitted on its undisturbed support (autocal's
   coherent-disturbance start, 762d4a3): the attached-magnet period is one outlier span
-  (38–95 s, 14 491 samples), the rest is at_noise_floor. BROAD 30 (a stationary magnet nearby)
+  (38–95 s, 13 423 samples), the rest is at_noise_floor. BROAD 30 (a stationary magnet nearby)
   shows three short spans where it passes the magnet. BROAD 32's gravity-tied time_lag (13.9 ms,
-  1.14 → 1.05 µT, both refitted on every sample) is not material; that refit used to drift onto the magnet's
-  samples (4.87 µT) until the registration LM capped its kernel at 2 widths.
+  1.14 → 1.05 µT, both refitted on every sample) is not material; that refit used to drift
+  onto the magnet's samples (4.87 µT) until the registration LM capped its kernel at 2 widths.
 - **BROAD 02 / 30** (≈ 290 Hz magnetometer with gyro and accel): a **time lag of 11–12 ms** of the
   magnetometer behind the IMU is significant on the gravity-tied residual in both recordings (the
   same board), the frame misalignment only in 30. Their noise floor (≈ 0.014 µT) is an artefact:
@@ -40,35 +40,39 @@ SUMMARY = """\
   candidate is "above the floor"; the ellipsoid candidates are not significant.
 - **The gyro alone** (`streamcal.model.gyro_lag`: the reading predicted 0.5 s ahead by the
   integrated gyro, gyro frame/gains/bias fitted, sample-and-hold repeats and clipped gyro rows
-  left out) sees the **same lag on the BROAD board: 10.7, 11.3 and 10.9 ms** (02, 30, 32)
+  left out) sees the **same lag on the BROAD board: 10.7, 11.3 and 11.0 ms** (02, 30, 32)
   against 11.5, 10.9 and 13.9 ms gravity-tied — two independent references agree within
   ~0.8 ms (3 ms on the magnet-disturbed 32). 29 % of the BROAD magnetometer rows repeat the
   previous reading exactly (logged faster than the sensor updates); they are left out of the
   gyro pairs, so the lag is not that staleness. On the gyro-tied scale the lag is material only
-  in BROAD 30 (rms 2.53 → 1.58 µT, significant on the accel-dropped track); in 02 / 32 it cuts
+  in BROAD 30 (rms 2.55 → 1.58 µT, significant on the accel-dropped track); in 02 / 32 it cuts
   the gyro-tied rms by 6 % / 4 % (< the 10 % materiality rule), so a mag+gyro recording of
   those would come out at_noise_floor — the gyro-tied residual there is dominated by ~1.4 µT of
   other error (the 0.78 µT ellipsoid misfit of both samples of a pair).
-- **sunsided** (mag + gyro + accel): the gyro alone finds ≈ 11 ms (11.2 / 10.8 ms) but not
+- **sunsided** (mag + gyro + accel): the gyro alone finds ≈ 11 ms (11.2 / 10.6 ms) but not
   material (−6 % / −4 %); set 1's gyro clips at 250 °/s (197 rows at full scale; pairs across
   them are dropped). **tlefloch**: 1.7 ms, nothing (the gyro's frame is the magnetometer's turned
   180° about x, which the fitted gyro map absorbs).
 - **jr_mpu9250_accmag (AK8963 14-bit, counts)**: at_noise_floor; the LSB (1 count, quantization
   noise 0.29 counts) is *not* what sets the floor at 3.3 Hz: the second differences still carry
-  the hand's motion, so the floor (4.1 counts) exceeds the rms (1.7 counts ≈ 1 µT). The same
+  the hand's motion, so the floor (4.1 counts) exceeds the rms (1.8 counts ≈ 1 µT). The same
   holds for the other 3 Hz `jr_*` logs (rms / floor < 1): the floor is only an upper bound there.
 - **tlefloch (1.8 K swing)**: enough to see a thermal effect — temperature_scale (r = 0.57) and
   temperature_offset (r = 0.55) are significant and cut the rms by ~20 % — but time_drift (r = 0.60)
   explains it slightly better: the temperature rises monotonically during the 2-minute log, so
-  time and temperature cannot be told apart by this recording. After time_drift the ladder adds
-  mag_accel_misalignment (the 57° frame; gravity-tied 0.358 → 0.315, −12 %, just past the 10 %
-  rule) and axis_nonlinearity (0.315 → 0.278), both on the gravity-tied scale.
+  time and temperature cannot be told apart by this recording. The fitted magnetometer frame is
+  57° from the accelerometer's, but adding it lowers the gravity-tied rms only 5 % (0.368 →
+  0.350), not significant once the smooth residual is counted by its effective samples.
 - **Frames**: for ICM-20948, LSM9DS1 and the sunsided logs the magnetometer axes are not the
   accelerometer's (the fitted rotation is ≈ 180° or ≈ 87°): mag_accel_misalignment is then a
   real and large frame difference, not a small mounting error; its rms_after is on the
   gravity-tied scale (marked in the ladder), not comparable with the free-direction rms.
-- tiva_* (magnetometer only, 100 Hz, counts): at_noise_floor verdicts with rms 1.2–3.7 × the
+- tiva_* (magnetometer only, 100 Hz, counts): at_noise_floor verdicts with rms 1.2–3.9 × the
   floor and scattered short spans — the model misfit left is not one of the catalog effects.
+- **kernel**: diagnose now fits with `streamcal fit`'s default kernel (`auto`: Cauchy, then a
+  Geman–McClure polish; session 2), so every rms and outlier count here is what `streamcal fit`
+  reports (BROAD 32 1.128 µT, 13 423 outliers; with Cauchy it read 0.842 µT, 14 498). No
+  verdict changed.
 - **p-values** count samples by their effective number (AR(1) rule on the residuals in time
   order; session 2): slowly varying residuals — the gravity reference's linear accelerations,
   the gyro pairs' shared windows, a hand's 3 Hz motion in the `jr_*` logs — are worth far fewer
