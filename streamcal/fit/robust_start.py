@@ -82,6 +82,7 @@ def robust_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray, n_max: int = 200
 # ---------------------------------------------------------------------------------------------
 
 from dataclasses import dataclass  # noqa: E402
+from math import comb  # noqa: E402
 
 from .kernels import make_kernel  # noqa: E402
 from .lm import refine  # noqa: E402
@@ -94,8 +95,15 @@ N_EVAL = 6000
 AGREE = 0.5
 #: Coherent search when the chunks' inlier fractions under the plain start differ by more than
 #: this (uniform outliers give every chunk about the same fraction: binomial spread, ~0.3 at 50
-#: samples per chunk and 24 chunks).
+#: samples per chunk and 24 chunks) ...
 HETEROGENEITY = 0.5
+#: ... or by more than CONTIGUOUS_SPREAD (the binomial spread) with the bad chunks (below the
+#: midpoint of the fractions) contiguous in time: one run of them at least RUN_SHARE of the
+#: chunks long, a run that a random order of the same chunks (exchangeable, as uniform outliers
+#: are) would give with probability below RUN_P. A start lying between two shells sees the
+#: disturbed chunks only part-inside, so their fractions can differ from the rest's by little
+#: more than the binomial spread; their contiguity is what gives the disturbance away.
+CONTIGUOUS_SPREAD, RUN_SHARE, RUN_P = 0.3, 0.25, 1e-3
 #: cond(K) above which a start is implausible for a magnetometer.
 MAX_ANISOTROPY = 3.0
 #: A chunk yields a sphere when its points spread (std along the 2nd and 3rd principal axes)
@@ -161,6 +169,34 @@ def _chunk_fractions(e: np.ndarray, chunk: np.ndarray, n_chunks: int, delta: flo
     return frac, count
 
 
+def longest_run_probability(n: int, k: int, run: int) -> float:
+    """P(the longest run of ones ≥ ``run``) for k ones placed in random order among n slots.
+
+    Counts the arrangements whose n − k + 1 gaps between zeros each hold fewer than ``run``
+    ones (inclusion–exclusion over the gaps that overflow)."""
+    if run <= 0:
+        return 1.0
+    if run > k:
+        return 0.0
+    gaps = n - k + 1
+    short = sum((-1) ** j * comb(gaps, j) * comb(k - j * run + gaps - 1, gaps - 1)
+                for j in range(k // run + 1))
+    return 1.0 - short / comb(n, k)
+
+
+def contiguous_bad_chunks(frac: np.ndarray) -> bool:
+    """Do the chunks that fit worst (fractions ``frac`` (n_chunks,) below the midpoint of their
+    range) form one long run in time that a random order would hardly give (see RUN_P)?"""
+    if frac.max() - frac.min() <= CONTIGUOUS_SPREAD:
+        return False
+    bad = frac < 0.5 * (frac.max() + frac.min())
+    # longest run of True: distances between the False positions (padded at both ends)
+    edges = np.flatnonzero(np.concatenate([[True], ~bad, [True]]))
+    run = int(np.diff(edges).max()) - 1
+    n = len(frac)
+    return run >= RUN_SHARE * n and longest_run_probability(n, int(bad.sum()), run) < RUN_P
+
+
 def _sigma(e: np.ndarray) -> float:
     return max(float(np.median(e)) / HALF_NORMAL_MEDIAN, 1e-9) if len(e) else np.inf
 
@@ -216,11 +252,13 @@ def coherent_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray) -> StartChoice
     """Look for a coherent disturbance; None when the data show none (the common case).
 
     ``m`` (N,3) normalized measurements in time order, (K0, b0) the start chosen so far. The
-    search runs only when the chunks' inlier fractions under (K0, b0) are heterogeneous (see
-    HETEROGENEITY); candidates: (K0, b0) and the chunk spheres, each grown as in the section
-    comment; those with cond(K) > MAX_ANISOTROPY are dropped; the winner has the most samples
-    in chunks agreeing with it within a common band (BAND × the smallest σ̂ of the candidates),
-    ties (the same chunks) going to a sphere, then to the most samples inside the band.
+    search runs only when the chunks' inlier fractions under (K0, b0) are heterogeneous, or less
+    so but with the worst-fitting chunks contiguous in time (see HETEROGENEITY and
+    :func:`contiguous_bad_chunks`); candidates: (K0, b0) and the chunk spheres, each grown as
+    in the section comment; those with cond(K) > MAX_ANISOTROPY are dropped; the winner has
+    the most samples in chunks agreeing with it within a common band (BAND × the smallest σ̂ of
+    the candidates), ties (the same chunks) going to a sphere, then to the most samples inside
+    the band.
     """
     n = len(m)
     step = max(1, -(-n // N_EVAL))
@@ -232,7 +270,7 @@ def coherent_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray) -> StartChoice
     e0 = radial_error(K0, b0, ev)
     sigma0 = float(np.quantile(e0, KEEP)) / 0.3186
     frac0, _ = _chunk_fractions(e0, chunk, n_chunks, BAND * sigma0)
-    if frac0.max() - frac0.min() <= HETEROGENEITY:
+    if frac0.max() - frac0.min() <= HETEROGENEITY and not contiguous_bad_chunks(frac0):
         return None
     grown = []
     starts = [(K0, b0, "full")] + [(K, b, "sphere") for K, b in _sphere_candidates(ev, chunk, n_chunks)]
