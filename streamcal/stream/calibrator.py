@@ -443,7 +443,7 @@ class StreamingCalibrator:
     def _buffer_sphere(self):
         """Sphere ``(centre, radius)`` of the stored samples, or None when undetermined."""
         stats = SphereStats()
-        stats.update(self.buffer.snapshot().m)
+        stats.update(self.buffer.stored_mag())
         if stats.n < self.coarse_min:
             return None
         try:
@@ -486,8 +486,8 @@ class StreamingCalibrator:
         cells they occupy (elsewhere a sphere fitted on part of the sphere extrapolates)."""
         if self.buffer.fraction < self.coarse_judge_coverage or self._frame_is_cal:
             return None
-        snap = self.buffer.snapshot()
-        spread = 1.4826 * float(np.median(np.abs(np.linalg.norm(snap.m - c, axis=1) / R - 1.0)))
+        stored = self.buffer.stored_mag()
+        spread = 1.4826 * float(np.median(np.abs(np.linalg.norm(stored - c, axis=1) / R - 1.0)))
         if spread > _COARSE_MAX_SPREAD:
             return None                 # a sphere fitted to a cluster of noise, or to a mixture
         if renew or self._coarse_ref is None:

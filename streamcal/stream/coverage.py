@@ -305,6 +305,11 @@ class CoverageBuffer:
         self._cov[c, s] = cov
         self._used[c, s] = True
 
+    def stored_mag(self) -> np.ndarray:
+        """(n,3) copy of the stored magnetometer samples, in no particular order (cheaper than
+        :meth:`snapshot` where only the readings matter)."""
+        return self._m[self._used]
+
     def snapshot(self) -> Snapshot:
         """Copies of the stored samples, oldest first."""
         c, s = np.nonzero(self._used)
