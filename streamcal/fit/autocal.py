@@ -13,6 +13,9 @@ Where we depart from the paper, on purpose:
   (τ = 3.787σ̂), whose redescending influence ignores the outliers that land near the ellipsoid
   and act as extra noise on Cauchy. On the paper's protocol this keeps autocal within 5 % of
   the oracle that knows the inliers, up to σ = 2 and 30 % outliers (``RESULTS.md``).
+- A coherent disturbance (a magnet riding on the board for a while): the LM runs on the
+  undisturbed support, then one shape K with offsets b and b + Δ is refitted on every sample
+  (``shared_shape``) and kept when both shells fit it alike; the calibration is (K, b).
 - Stage 1 on a bounded, well-spread subset (``stage1_max`` samples): the L1 program costs
   O(N) interior-point work per call while stage 2 refines every sample anyway.
 """
@@ -31,6 +34,7 @@ from .lm import LMResult, refine
 from .normalize import normalize
 from .observability import assess
 from .robust_start import KEEP, coherent_start, lqs_score, radial_error, robust_start
+from .shared_shape import INDICATOR, DisturbanceShift, consistent, shift_start
 
 #: A sample is an outlier when its residual exceeds this many kernel widths.
 OUTLIER_WIDTHS = 2.0
@@ -44,6 +48,8 @@ HALF_NORMAL_QUANTILE_KEEP = 0.31863936396437514
 #: Under a coherent disturbance the LM runs on the start's supporting chunks, less the samples
 #: farther than this many start bands from the start's surface.
 SUPPORT_BANDS = 2.0
+#: The shared-shape refinement is first checked on about this many samples (time-strided).
+SHARED_SHAPE_CHECK = 3000
 
 
 @dataclass
@@ -180,6 +186,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
             # to drag the fit towards the disturbed shell
             near = radial_error(coherent.K, coherent.b, m_n) < SUPPORT_BANDS * coherent.band
             K0, b0, support = coherent.K, coherent.b, coherent.support & near
+            span = ~coherent.support
         x0 = directions_from_model(K0, b0, m_n)
         r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
     # σ from the nearest quarter of residuals: unbiased for Gaussian noise and far less
@@ -195,9 +202,9 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
             return np.sqrt(3.0) / scale
         return float(tau) / scale
 
-    def solve(m_n, covariates, K_start, b_start, x_start, sigma_start):
-        """Width rounds, then the polish, on samples m_n (with their covariates): returns
-        (LMResult, σ̂, τ) in normalized units."""
+    def solve(m_n, covariates, K_start, b_start, x_start, sigma_start, effects=effects, thetas=None):
+        """Width rounds, then the polish, on samples m_n (with their covariates, effects and
+        starting effect parameters): returns (LMResult, σ̂, τ) in normalized units."""
         sig = sigma_start
         tau_cur = width(sig)
         adaptive = tau is None and tau_cur is not None
@@ -205,7 +212,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         # (same or re-estimated width) polishes to rtol from a nearby start.
         res = refine(m_n, K_start, b_start, x_start, kernel=make_kernel(kernel, tau_cur),
                      structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,
-                     max_iter=max_iter, rtol=max(rtol, 1e-3) if adaptive else rtol)
+                     thetas=thetas, max_iter=max_iter, rtol=max(rtol, 1e-3) if adaptive else rtol)
         polished = not adaptive
         for _ in range(max_width_rounds if adaptive else 0):
             new_sig = truncated_sigma(np.linalg.norm(res.residuals, axis=1), sig)
@@ -229,6 +236,36 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
                          thetas=res.thetas, max_iter=max_iter, rtol=rtol)
         return res, sig, tau_cur
 
+    def _shared_shape(part, sigma_part, span, support, x_part):
+        """One shape K, two offsets (b on the support, b + Δ on the disturbed ``span``) fitted
+        on every sample from the support fit ``part``; Δ starts at the span's offset with the
+        part's K fixed. Returns (LMResult without the shift term, σ̂, τ, the samples not in the
+        span) when both shells fit it alike, else None (the support fit stands)."""
+        if span.sum() < 10 or (~span).sum() < 10:
+            return None
+        delta = shift_start(part.K, part.b, m_n[span])
+        x_start = x_part.copy()
+        x_start[span] = directions_from_model(part.K, part.b + delta, m_n[span])
+        cov = {**(covariates or {}), INDICATOR: span.astype(float)}
+        shift_effects = [*effects, DisturbanceShift()]
+        K_s, b_s, th_s = part.K, part.b, [*part.thetas, delta]
+        # first on every SHARED_SHAPE_STRIDE-th sample (time order keeps both spans' shares):
+        # a disturbance that is not a pure shift is rejected at a fraction of the full cost
+        stride = max(1, len(m_n) // SHARED_SHAPE_CHECK)
+        r_part = np.full(len(m_n), np.nan)          # the support fit's residual norms
+        r_part[support] = np.linalg.norm(part.residuals, axis=1)
+        for rows in ([slice(None, None, stride)] if stride > 1 else []) + [slice(None)]:
+            joint, sig, tau_j = solve(m_n[rows], {k: np.asarray(v)[rows] for k, v in cov.items()},
+                                      K_s, b_s, x_start[rows], sigma_part,
+                                      effects=shift_effects, thetas=th_s)
+            rn = np.linalg.norm(joint.residuals, axis=1)
+            limit = OUTLIER_WIDTHS * (tau_j if tau_j is not None else 2.0 * sig)
+            if not consistent(rn, span[rows], limit, support[rows], r_part[rows]):
+                return None
+            K_s, b_s, th_s, sigma_part = joint.K, joint.b, joint.thetas, sig
+        joint.thetas = joint.thetas[:-1]
+        return joint, sig, tau_j, ~span
+
     if support is None:
         result, sigma_n, tau_n = solve(m_n, covariates, K0, b0, x0, sigma_n)
     else:
@@ -238,6 +275,11 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         result, sigma_n, tau_n = solve(m_n[support], cov_support, K0, b0, x0[support], sigma_n)
         x_all = directions_from_model(result.K, result.b, m_n)
         x_all[support] = result.x
+        shared = _shared_shape(result, sigma_n, span, support, x_all)
+        if shared is not None:
+            result, sigma_n, tau_n, keep = shared
+            x_all = directions_from_model(result.K, result.b, m_n)
+            x_all[keep] = result.x[keep]
         result = refine(m_n, result.K, result.b, x_all,
                         kernel=make_kernel("gm" if polish else kernel, tau_n),
                         structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,
