@@ -3,12 +3,12 @@ and sample sources that all yield :class:`SampleBlock`. Nothing here knows about
 
 Heavier pieces (smbus2, pyserial) load on first use.
 """
-from .sample import SampleBlock
+from streamcal.samples import SampleBlock
 
 _LAZY = {
     "MPU9250": "mpu9250", "DeviceError": "mpu9250", "DeviceIOError": "mpu9250",
     "WrongDeviceError": "mpu9250",
-    "open_bus": "i2c_source", "open_i2c_source": "i2c_source", "I2CSource": "i2c_source",
+    "open_bus": "ports", "open_link": "ports", "open_i2c_source": "i2c_source", "I2CSource": "i2c_source",
     "FakeMPU9250Bus": "fake_mpu9250", "Faults": "fake_mpu9250",
     "SerialLink": "serial_link", "LinkError": "serial_link",
 }

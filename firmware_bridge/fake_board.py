@@ -11,7 +11,7 @@ Like a Uno that resets when its port is opened, the board stays in reset until t
 its first byte, so a host sees every frame from the boot HELLO on. Optional faults (dropped,
 corrupted, truncated frames, garbage between frames) exercise the host's accounting.
 
-    with FakeBoard.from_track("track.csv") as board:
+    with FakeBoard.from_track(Track.read("track.csv")) as board:
         port = serial.Serial(board.port_name, 115200, timeout=0.05)
 """
 from __future__ import annotations
@@ -144,11 +144,8 @@ class FakeBoard:
         self._load_calibration()
 
     @classmethod
-    def from_track(cls, path, **options) -> "FakeBoard":
-        """A board replaying a track file (SPEC §1); mag must be in µT."""
-        from streamcal.track import Track
-
-        track = Track.read(path)
+    def from_track(cls, track, **options) -> "FakeBoard":
+        """A board replaying a recording (``t``, ``columns``: a Track); mag must be in µT."""
         cols = track.columns
         nan = np.full(len(track), np.nan)
         triple = lambda names: np.stack([cols.get(c, nan) for c in names], axis=1)  # noqa: E731

@@ -37,7 +37,7 @@ Example::
 
     bus = FakeMPU9250Bus(t, mag=m_uT, accel=a, gyro=w, temp=T, faults=Faults(nack_rate=0.05))
     drv = MPU9250(bus, clock=bus.now)
-    bus = FakeMPU9250Bus.from_file("tiva_mpu9250_mag_02.csv")   # raw AK8963 counts, no IMU
+    bus = FakeMPU9250Bus.from_track(Track.read("tiva_mpu9250_mag_02.csv"))   # raw AK8963 counts, no IMU
 """
 from __future__ import annotations
 
@@ -289,10 +289,10 @@ class FakeMPU9250Bus:
         self._mpu_power_on()
         self._ak_power_on()
 
-    # --- construction from a Track (imported lazily: streamcal.track may not exist yet) -----
+    # --- construction from a recording ---------------------------------------------------------
     @classmethod
     def from_track(cls, track, **kwargs) -> "FakeMPU9250Bus":
-        """Replay a ``streamcal.track.Track`` (anything with ``t``, ``columns`` and ``metadata``).
+        """Replay a ``streamcal.inputs.track.Track`` (anything with ``t``, ``columns`` and ``metadata``).
 
         A µT track is encoded back to counts; a raw AK8963 counts log is served unchanged (see
         the module docstring); missing accel/gyro/temp are served as the board at rest.
@@ -354,17 +354,6 @@ class FakeMPU9250Bus:
         for note in notes:
             (log.warning if note is at_rest else log.info)("fake bus replaying %s: %s", where, note)
         return bus
-
-    @classmethod
-    def from_file(cls, path, **kwargs) -> "FakeMPU9250Bus":
-        """Replay a track file (SPEC §1) read with ``streamcal.track.Track.read``.
-
-        Raises:
-            InputError: the file is unreadable, violates SPEC §1, or cannot be replayed
-                (see :meth:`from_track`).
-        """
-        from streamcal.track import Track
-        return cls.from_track(Track.read(path), **kwargs)
 
     # --- time ----------------------------------------------------------------------------------
     def now(self) -> float:

@@ -19,47 +19,10 @@ from streamcal.errors import InputError
 
 from . import registers as R
 from .mpu9250 import MPU9250, DeviceIOError
-from .sample import SampleBlock
+from .ports import FAKE_PREFIX, open_bus
+from streamcal.samples import SampleBlock
 
 log = logging.getLogger(__name__)
-
-FAKE_PREFIX = "fake:"
-
-
-def open_bus(spec, **fake_kwargs):
-    """Open an I²C bus from a CLI-style spec.
-
-    Args:
-        spec: an int or digit string (``1`` → ``/dev/i2c-1`` via ``smbus2.SMBus``), or
-            ``"fake:PATH.csv"`` for a register-level fake MPU-9250 replaying that track (a µT
-            track, or a raw-count MPU-9250/AK8963 log: see :meth:`FakeMPU9250Bus.from_track`).
-        fake_kwargs: passed to :meth:`FakeMPU9250Bus.from_file` (faults, clock, who_am_i…).
-
-    Raises:
-        InputError: a bad spec, a missing or inaccessible ``/dev/i2c-N``, or a fake track that
-            cannot be read or replayed (the message names the file and what is wrong).
-    """
-    if isinstance(spec, str) and spec.startswith(FAKE_PREFIX):
-        from .fake_mpu9250 import FakeMPU9250Bus
-        path = spec[len(FAKE_PREFIX):]
-        if not path:
-            raise InputError("--bus fake: needs a track file, e.g. fake:log.csv")
-        return FakeMPU9250Bus.from_file(path, **fake_kwargs)
-    if isinstance(spec, int) or (isinstance(spec, str) and spec.strip().isdigit()):
-        number = int(spec)
-        from smbus2 import SMBus
-        try:
-            return SMBus(number)
-        except FileNotFoundError as e:
-            raise InputError(f"/dev/i2c-{number} does not exist: enable I2C (raspi-config → "
-                             f"Interface Options → I2C, or dtparam=i2c_arm=on) and check the bus "
-                             f"number with `ls /dev/i2c-*`") from e
-        except PermissionError as e:
-            raise InputError(f"no permission to open /dev/i2c-{number}: add the user to the "
-                             f"'i2c' group (sudo adduser $USER i2c) and log in again") from e
-    raise InputError(f"bus must be a bus number (e.g. 1 for /dev/i2c-1) or fake:TRACK.csv, "
-                     f"got {spec!r}")
-
 
 class I2CSource:
     """Iterate :class:`SampleBlock` from an :class:`MPU9250` driver.
@@ -122,12 +85,13 @@ class I2CSource:
 
 def open_i2c_source(spec, address: int = R.MPU_ADDRESS_AD0_LOW, *, block_size: int = 50,
                     rate_hz: float | None = None, fake_kwargs: dict | None = None,
-                    **driver_kwargs) -> I2CSource:
+                    read_track=None, **driver_kwargs) -> I2CSource:
     """Bus from ``spec`` (see :func:`open_bus`), driver brought up, source ready to iterate.
 
-    With a fake bus the driver's clock is the track's clock, so block times are track times.
+    With a fake bus the driver's clock is the track's clock, so block times are track times;
+    ``read_track`` reads its file (see :func:`firmware_bridge.ports.open_bus`).
     """
-    bus = open_bus(spec, **(fake_kwargs or {}))
+    bus = open_bus(spec, read_track=read_track, **(fake_kwargs or {}))
     fake = isinstance(spec, str) and spec.startswith(FAKE_PREFIX)
     if fake:
         driver_kwargs.setdefault("clock", bus.now)

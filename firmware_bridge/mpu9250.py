@@ -40,7 +40,7 @@ import numpy as np
 from streamcal.errors import InputError, StreamcalError
 
 from . import registers as R
-from .sample import SampleBlock
+from streamcal.samples import SampleBlock
 
 log = logging.getLogger(__name__)
 

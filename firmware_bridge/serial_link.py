@@ -33,7 +33,7 @@ from streamcal.errors import InputError, StreamcalError
 
 from . import frames as fr
 from .rawlines import RawLineReader, raw_to_si
-from .sample import SampleBlock
+from streamcal.samples import SampleBlock
 
 DEFAULT_BAUD = 115200
 _READ_CHUNK = 4096
@@ -110,42 +110,22 @@ class SerialLink:
     # -- opening ------------------------------------------------------------------------------
     @classmethod
     def open(cls, spec: str, baud: int = DEFAULT_BAUD, *, timeout: float = 0.05, mode: str = "auto",
-             speed: float | None = None, faults=None, **board_options) -> "SerialLink":
-        """Open ``spec`` (``fake:TRACK.csv``, ``simavr:TRACK.csv``, a pyserial URL or a device
-        path) and wake the board.
-
-        ``speed``/``faults``/``board_options`` configure the fake board (``fake:``);
-        ``board_options`` go to :class:`~firmware_bridge.simavr_board.SimavrBoard` (``simavr:``).
-        """
+             board=None, source: str | None = None) -> "SerialLink":
+        """Open ``spec`` (a pyserial URL or a device path) and wake the board. Simulated boards
+        (``fake:``, ``simavr:``) open through :func:`firmware_bridge.ports.open_link`, which
+        passes the simulated ``board`` (closed with the link) and the ``source`` label."""
         import serial
 
-        board = None
-        if spec.startswith("fake:"):
-            from .fake_board import FakeBoard
-
-            board = FakeBoard.from_track(spec[len("fake:"):], speed=speed, faults=faults,
-                                         **board_options).start()
-            target, open_port = board.port_name, lambda: serial.Serial(board.port_name, baud, timeout=timeout)
-        elif spec.startswith("simavr:"):
-            from .simavr_board import SimavrBoard
-
-            if speed is not None or faults is not None:
-                raise InputError(f"{spec}: speed and faults apply to fake: boards only (simavr runs "
-                                 "as fast as the host reads)")
-            path = spec[len("simavr:"):]
-            if not path:
-                raise InputError("simavr: needs a track file, e.g. simavr:track.csv")
-            board = SimavrBoard(path, **board_options).start()
-            target, open_port = board.port_name, lambda: serial.Serial(board.port_name, baud, timeout=timeout)
-        else:
-            target, open_port = spec, lambda: serial.serial_for_url(spec, baudrate=baud, timeout=timeout)
+        if spec.partition(":")[0] in ("fake", "simavr"):
+            raise InputError(f"{spec}: simulated boards open through firmware_bridge.ports.open_link")
+        target, open_port = spec, lambda: serial.serial_for_url(spec, baudrate=baud, timeout=timeout)
         try:
             port = open_port()
         except (serial.SerialException, ValueError, OSError) as exc:
             if board is not None:
                 board.close()
             raise InputError(f"serial port {target!r}: cannot open ({exc})") from None
-        link = cls(port, source=f"serial:{spec}", mode=mode, board=board)
+        link = cls(port, source=source or f"serial:{spec}", mode=mode, board=board)
         link.wake()
         return link
 

@@ -6,13 +6,13 @@ the raw counts the harness's register-level MPU-9250/AK8963 replay (the same con
 :class:`~firmware_bridge.fake_mpu9250.FakeMPU9250Bus`, called, not re-derived), starts the
 harness and exposes the pseudo-terminal that carries the simulated UART0::
 
-    with SimavrBoard.from_track("track.csv") as board:
+    with SimavrBoard(Track.read("track.csv")) as board:
         link = board.open_link()            # a SerialLink on the board's pty
         for block in link.blocks(idle_timeout=2.0): ...
 
 or, through the host's usual entry point (``streamcal serial --port simavr:track.csv``)::
 
-    link = SerialLink.open("simavr:track.csv")   # closing the link stops the board
+    link = open_link("simavr:track.csv", read_track=Track.read)   # closing the link stops the board
 
 Time: the AVR starts at cycle 0 when the host sends its first byte; track row ``t`` becomes the
 chips' current value at simulated time ``t - t[0] + lead_s`` (16 MHz cycles), so the sketch's
@@ -132,7 +132,7 @@ DEFAULT_ASA = (0xB0, 0xB2, 0xA5)
 def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=None, who_am_i: int = 0x71,
                  ak_wia: int = R.AK8963_WIA, magnetometer: bool | None = None, hofl_rate: float = 0.0,
                  seed: int = 0) -> bytes:
-    """The harness's replay file for ``track`` (a :class:`~streamcal.track.Track`, mag in µT).
+    """The harness's replay file for ``track`` (a :class:`~streamcal.inputs.track.Track`, mag in µT).
 
     Raw counts come from :class:`FakeMPU9250Bus` (every ACCEL_FS_SEL/GYRO_FS_SEL setting, 14- and
     16-bit magnetometer output, ASA and axis remap inverted); row times become 16 MHz cycles
@@ -173,7 +173,7 @@ def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=None, who_am_i: i
 class SimavrBoard:
     """The compiled sketch running in simavr on a pty, replaying ``track``.
 
-    ``track``: a :class:`~streamcal.track.Track` or a track file path. ``eeprom``: a 1024-byte
+    ``track``: a :class:`~streamcal.inputs.track.Track` or a track file path. ``eeprom``: a 1024-byte
     EEPROM image file, loaded at start if it exists and saved at close (a calibration survives a
     "reboot"). ``tail_s``: simulated seconds after the last row before the AVR drops to real time.
     Other keywords go to :func:`replay_bytes`. After :meth:`close`, :attr:`stats` holds the
@@ -187,9 +187,7 @@ class SimavrBoard:
 
     def __init__(self, track, *, lead_s: float = DEFAULT_LEAD_S, eeprom=None, tail_s: float = 1.0,
                  cache_dir=None, start_timeout: float = 120.0, **replay_options):
-        from streamcal.track import Track
-
-        self.track = track if isinstance(track, Track) else Track.read(track)
+        self.track = track
         self.lead_s = float(lead_s)
         self.t0 = float(self.track.t[0])
         self.eeprom = None if eeprom is None else Path(eeprom)

@@ -17,15 +17,20 @@ __version__ = "0.1.0"
 __all__ = ["Calibration", "CalibrationFileError", "InputError", "InsufficientDataError",
            "StreamcalError", "Track", "TrackError", "diagnose", "fit"]
 
+# The public functions are bound on first use so that ``import streamcal`` stays light for the
+# command line and the daemon. No subpackage carries one of these names, so importing a
+# submodule can never rebind them.
+_LAZY = {"Track": ("streamcal.inputs.track", "Track"),
+         "fit": ("streamcal.fitting", "fit"),
+         "diagnose": ("streamcal.diagnosis", "diagnose")}
 
-def __getattr__(name):  # lazy: keep `import streamcal` light for the CLI and the daemon
-    if name == "Track":
-        from .track import Track
-        return Track
-    if name == "fit":
-        from .fit import fit
-        return fit
-    if name == "diagnose":
-        from .diagnose import diagnose
-        return diagnose
-    raise AttributeError(f"module 'streamcal' has no attribute {name!r}")
+
+def __getattr__(name):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'streamcal' has no attribute {name!r}")
+    import importlib
+
+    module, attr = _LAZY[name]
+    value = getattr(importlib.import_module(module), attr)
+    globals()[name] = value
+    return value

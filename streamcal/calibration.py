@@ -20,6 +20,8 @@ import numpy as np
 
 from .atomic import atomic_write_text
 from .errors import CalibrationFileError
+from .model import invert_model, validate_effect_params
+from .model.catalog import EFFECT_NAMES
 
 FORMAT = "streamcal-calibration/1"
 SENSORS = ("mag", "accel")
@@ -108,7 +110,6 @@ class Calibration:
         single = m.ndim == 1
         m2 = np.atleast_2d(m)
         if self.effects:
-            from .model import invert_model
 
             x = invert_model(self, m2, covariates or {})
         else:
@@ -233,7 +234,6 @@ def _parse(data, source: str) -> Calibration:
     model = data.get("model")
     if not isinstance(model, list) or not all(isinstance(m, str) for m in model):
         fail("model", "expected a list of effect names")
-    from .model.catalog import EFFECT_NAMES
 
     for name in model:
         if name not in EFFECT_NAMES:
@@ -253,7 +253,6 @@ def _parse(data, source: str) -> Calibration:
         if not isinstance(params, Mapping):
             fail(f"effects.{name}", "expected an object of parameters")
     if effects:
-        from .model import validate_effect_params
 
         try:
             validate_effect_params(effects)

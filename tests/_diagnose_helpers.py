@@ -1,5 +1,5 @@
-"""Fitter used by the diagnosis tests: ``streamcal.fit.fit`` when it is there, else the stage-2
-LM (``streamcal.fit.lm.refine``) started from a sphere on normalized data."""
+"""Fitter used by the diagnosis tests: ``streamcal.fitting.fit`` when it is there, else the stage-2
+LM (``streamcal.fitting.lm.refine``) started from a sphere on normalized data."""
 import numpy as np
 
 from streamcal.calibration import Calibration
@@ -8,14 +8,14 @@ from streamcal.model import build_effects
 
 def fitter(track, model, initial=None):
     try:
-        from streamcal.fit import fit
+        from streamcal.fitting import fit
     except ImportError:
         fit = None
     if fit is not None:
         return fit(track, model=tuple(model), kernel="cauchy", initial=initial)
-    from streamcal.fit.kernels import Cauchy
-    from streamcal.fit.lm import refine
-    from streamcal.fit.normalize import normalize
+    from streamcal.fitting.kernels import Cauchy
+    from streamcal.fitting.lm import refine
+    from streamcal.fitting.normalize import normalize
 
     m = track.mag
     cov = track.covariates_at_mag()

@@ -29,7 +29,7 @@ from streamcal.calibration import Calibration
 from streamcal.service import I2CBlocks, Notifier, Outputs, Service, SocketOutput, StreamOutput
 from streamcal.service.output import format_lines
 from streamcal.stream import CalibrationStore, StreamingCalibrator
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 REPO = Path(__file__).resolve().parent.parent
 DEMO = REPO / "streamcal" / "data" / "demo_track.csv.gz"
@@ -105,7 +105,7 @@ def test_device_absent_at_start_is_retried_not_fatal(tmp_path):
 
 
 def test_garbage_block_is_counted_not_fatal(tmp_path):
-    from firmware_bridge.sample import SampleBlock
+    from streamcal.samples import SampleBlock
 
     class Hostile:
         description, finished, sleep = "hostile", False, staticmethod(lambda s: None)

@@ -34,7 +34,7 @@ from streamcal.calibration import Calibration, canonical_form
 from streamcal.cli import main
 from streamcal.service import I2CBlocks, Notifier, Service
 from streamcal.stream import CalibrationStore, StreamingCalibrator
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 LOGS = ("tiva_mpu9250_mag_02.csv", "tiva_mpu9250_mag_03.csv")
 S = R.mag_scale(16)                  # 4912/32760 µT per LSB, 16-bit output (HARDWARE.md §4)

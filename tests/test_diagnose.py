@@ -5,8 +5,8 @@ import json
 import numpy as np
 import pytest
 
-from streamcal.diagnose import diagnose, noise_floor, outlier_spans
-from streamcal.diagnose.residuals import rms, sensor_residual
+from streamcal.diagnosis import diagnose, noise_floor, outlier_spans
+from streamcal.diagnosis.residuals import rms, sensor_residual
 from streamcal.sim import simulate
 from tests._diagnose_helpers import fitter
 

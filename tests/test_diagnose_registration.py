@@ -7,9 +7,9 @@ import json
 
 import pytest
 
-from streamcal.diagnose import diagnose
-from streamcal.fit import fit
-from streamcal.model.registration import registration_fit
+from streamcal.diagnosis import diagnose
+from streamcal.fitting import fit
+from streamcal.fitting.registration import registration_fit
 from streamcal.sim import simulate
 from tests._diagnose_helpers import fitter
 from tests.test_gyro_lag import LAG_TOL, without_accel
@@ -97,7 +97,7 @@ def test_demo_track_spans_are_only_the_real_burst(demo_track):
 def demo_track():
     from importlib.resources import files
 
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     return Track.read(files("streamcal") / "data" / "demo_track.csv.gz")
 

@@ -7,6 +7,7 @@ from smbus2 import i2c_msg
 
 from firmware_bridge import registers as R
 from firmware_bridge.fake_mpu9250 import FakeMPU9250Bus, Faults
+from streamcal.inputs.track import Track
 
 MPU, AK = 0x68, R.AK8963_ADDRESS
 
@@ -196,7 +197,7 @@ def test_context_manager_closes():
 
 
 def test_from_track():
-    track_mod = pytest.importorskip("streamcal.track")
+    track_mod = pytest.importorskip("streamcal.inputs.track")
     tr = make_track()
     track = track_mod.Track.from_arrays(tr["t"], mag=tr["mag"], accel=tr["accel"],
                                         gyro=tr["gyro"], temp=tr["temp"])
@@ -256,7 +257,7 @@ AK_COUNTS_META = {"sensor": "mpu9250 (AK8963 16-bit, 100 Hz)",
 
 
 def counts_track(meta=AK_COUNTS_META, n=40, seed=3, **channels):
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     rng = np.random.default_rng(seed)
     counts = rng.integers(-300, 300, (n, 3)).astype(float)
@@ -345,7 +346,7 @@ def test_unreplayable_track_is_an_input_error_naming_the_file(tmp_path, meta, wh
     path = tmp_path / "log.csv"
     track.write(path)
     with pytest.raises(InputError) as e:
-        FakeMPU9250Bus.from_file(path)
+        FakeMPU9250Bus.from_track(Track.read(path))
     assert str(path) in str(e.value) and why in str(e.value)
     with pytest.raises(InputError) as e:                   # a Track without a file: "track"
         FakeMPU9250Bus.from_track(track)
@@ -354,7 +355,7 @@ def test_unreplayable_track_is_an_input_error_naming_the_file(tmp_path, meta, wh
 
 def test_wrong_accel_unit_and_empty_track_are_input_errors(tmp_path):
     from streamcal.errors import InputError
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     n = 5
     track = Track.from_arrays(np.arange(n) * 0.01, mag=np.ones((n, 3)), accel=np.ones((n, 3)),
@@ -364,6 +365,6 @@ def test_wrong_accel_unit_and_empty_track_are_input_errors(tmp_path):
     path = tmp_path / "empty.csv"
     path.write_text("# streamcal-track: 1\nt,mx,my,mz\n")
     with pytest.raises(InputError, match="empty.csv:2: no data rows"):   # from Track.read
-        FakeMPU9250Bus.from_file(path)
+        FakeMPU9250Bus.from_track(Track.read(path))
     with pytest.raises(InputError, match="track: cannot replay.*empty"):
         FakeMPU9250Bus.from_track(Track.from_arrays(np.zeros(0), mag=np.zeros((0, 3))))

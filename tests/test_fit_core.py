@@ -26,11 +26,11 @@ import pytest
 from streamcal.calibration import Calibration
 from streamcal.cli import main as cli_main
 from streamcal.errors import InsufficientDataError
-from streamcal.fit import GRAVITY, METHODS, estimation_error, fit
-from streamcal.fit import ellipsoid, kernels
-from streamcal.fit.lm import _Model
-from streamcal.fit.normalize import normalize
-from streamcal.track import Track
+from streamcal.fitting import GRAVITY, METHODS, estimation_error, fit
+from streamcal.fitting import ellipsoid, kernels
+from streamcal.fitting.lm import _Model
+from streamcal.fitting.normalize import normalize
+from streamcal.inputs.track import Track
 
 KERNEL_NAMES = ("l2", "l1", "huber", "cauchy", "gm")
 SPEC_KEYS = {"format", "sensor", "model", "K", "b", "effects", "rms", "n", "n_outliers",
@@ -136,7 +136,7 @@ def _model_for(structure, effects=(), cov=None, seed=0, n=7):
     x = sphere_directions(rng, n)
     m = x @ K.T + b + 0.05 * rng.standard_normal((n, 3))
     model = _Model(m, structure, True, list(effects), cov or {})
-    from streamcal.fit.lm import _k_matrix, _k_vector
+    from streamcal.fitting.lm import _k_matrix, _k_vector
 
     K = _k_matrix(_k_vector(K, structure), structure)
     thetas = [0.1 * rng.standard_normal(e.n_params()) for e in model.effects]
@@ -144,13 +144,13 @@ def _model_for(structure, effects=(), cov=None, seed=0, n=7):
 
 
 def _flat_params(model, K, b, thetas):
-    from streamcal.fit.lm import _k_vector
+    from streamcal.fitting.lm import _k_vector
 
     return np.concatenate([_k_vector(K, model.structure), b] + list(thetas))
 
 
 def _from_flat(model, p):
-    from streamcal.fit.lm import _k_matrix
+    from streamcal.fitting.lm import _k_matrix
 
     k, b, th = model.split(p)
     return _k_matrix(k, model.structure), b, th

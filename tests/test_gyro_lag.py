@@ -1,4 +1,4 @@
-"""time_lag from the gyro alone (streamcal.model.gyro_lag): the analytic Jacobian of the
+"""time_lag from the gyro alone (streamcal.fitting.gyro_lag): the analytic Jacobian of the
 gyro-tied residual against finite differences, recovery of a simulated lag on tracks without an
 accelerometer, the calibration it makes, and what it needs."""
 import numpy as np
@@ -6,11 +6,11 @@ import pytest
 
 from streamcal.calibration import Calibration
 from streamcal.errors import MissingColumnsError
-from streamcal.fit import fit
+from streamcal.fitting import fit
 from streamcal.model import validate_effect_params
-from streamcal.model.gyro_lag import GyroPairs, gyro_lag_fit, gyro_rates
+from streamcal.fitting.gyro_lag import GyroPairs, gyro_lag_fit, gyro_rates
 from streamcal.sim import simulate
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 BASE = ("hard_iron", "soft_iron")
 #: |τ̂ − τ| bound (s): a fifth of the 10 ms magnetometer period. Measured errors on these 40 s

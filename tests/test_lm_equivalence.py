@@ -1,4 +1,4 @@
-"""The optimized LM (``streamcal.fit.lm.refine``) against a slow reference: a literal
+"""The optimized LM (``streamcal.fitting.lm.refine``) against a slow reference: a literal
 transcription of Algorithm 2 with the formulas the LM used before it was restructured (stacked
 (N,3,P) Triggs-corrected Jacobians, tangent projection, 3×3 block Hessians, Schur complement
 with explicit block inverses). Both must reach the same K, b, θ, x and cost to ~1e-10 relative,
@@ -10,8 +10,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from streamcal.fit import kernels
-from streamcal.fit.lm import K_ENTRIES, LAMBDA_MAX, LAMBDA_MIN, refine
+from streamcal.fitting import kernels
+from streamcal.fitting.lm import K_ENTRIES, LAMBDA_MAX, LAMBDA_MIN, refine
 
 RTOL = 1e-10
 
@@ -221,7 +221,7 @@ def test_two_effects_and_damping_retries_match_reference():
 @pytest.mark.parametrize("effect", (None, "temperature_scale"))
 def test_blocks_of_samples_match_reference(monkeypatch, effect):
     """Samples processed in several blocks (a short last one too) give the same result."""
-    from streamcal.fit import lm
+    from streamcal.fitting import lm
     from streamcal.model import build_effects
 
     monkeypatch.setattr(lm, "BLOCK", 70)
@@ -249,8 +249,8 @@ def test_inputs_are_not_modified_and_outputs_are_row_major():
 # -- stage 1: the L1 program handed to Clarabel as its dual vs cvxpy's primal ---------------------
 @pytest.mark.parametrize("case", ("outliers_30", "one_sided"))
 def test_l1_dual_reaches_the_cvxpy_optimum(case):
-    from streamcal.fit import ellipsoid
-    from streamcal.fit.normalize import normalize
+    from streamcal.fitting import ellipsoid
+    from streamcal.fitting.normalize import normalize
 
     rng = np.random.default_rng(17)
     x = rng.standard_normal((250, 3))

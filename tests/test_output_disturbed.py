@@ -15,14 +15,14 @@ import json
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal.calibration import Calibration
 from streamcal.service import Notifier, Outputs, Service, StreamOutput
 from streamcal.service.output import format_lines
 from streamcal.sim import simulate
 from streamcal.stream import CalibrationStore, StreamingCalibrator
 from streamcal.stream.guard import radius_of
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 from streamcal.stream.disturbance import GROSS
 from tests.test_stream_disturbance import B_TRUE, K_TRUE, clean, phone, truth
 

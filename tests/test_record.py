@@ -9,9 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal.cli.record import TrackWriter
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 REPO = Path(__file__).resolve().parent.parent
 DEMO = REPO / "streamcal" / "data" / "demo_track.csv.gz"

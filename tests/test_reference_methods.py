@@ -16,13 +16,13 @@ import pytest
 
 from streamcal.calibration import canonical_form
 from streamcal.errors import InputError, InsufficientDataError
-from streamcal.fit.dorveaux import fit_dorveaux
-from streamcal.fit.ellipsoid import design_matrix
-from streamcal.fit.kok_schon import solve_kok_schon_sdp
-from streamcal.fit.magical import fit_magical
-from streamcal.fit.normalize import denormalize_model, normalize
-from streamcal.fit.reference import reference_methods
-from streamcal.fit.vasconcelos import _jacobian, _residuals, fit_vasconcelos
+from streamcal.fitting.dorveaux import fit_dorveaux
+from streamcal.fitting.ellipsoid import design_matrix
+from streamcal.fitting.kok_schon import solve_kok_schon_sdp
+from streamcal.fitting.magical import fit_magical
+from streamcal.fitting.normalize import denormalize_model, normalize
+from streamcal.fitting.core import reference_method
+from streamcal.fitting.vasconcelos import _jacobian, _residuals, fit_vasconcelos
 
 METHODS = ("magical", "dorveaux", "vasconcelos", "kok_schon")
 RTOL = 1e-6
@@ -57,7 +57,7 @@ def oracle_rms_error(x, K, b, sigma) -> float:
 def run(method: str, m: np.ndarray):
     """normalize → method → denormalize → canonical form, in the sensor unit."""
     m_n, center, scale = normalize(m)
-    A_n, b_n = reference_methods()[method](m_n, max_iter=300, rtol=RTOL)
+    A_n, b_n = reference_method(method)(m_n, max_iter=300, rtol=RTOL)
     A, b = denormalize_model(A_n, b_n, center, scale)
     K, _ = canonical_form(A)
     return K, b
@@ -190,7 +190,7 @@ def test_kok_schon_keeps_c_psd_when_the_unconstrained_fit_is_not():
 # -- input checks ---------------------------------------------------------------------------
 @pytest.mark.parametrize("method", METHODS)
 def test_rejects_bad_shapes_and_too_few_samples(method):
-    fit = reference_methods()[method]
+    fit = reference_method(method)
     with pytest.raises(InputError, match=method):
         fit(np.zeros((20, 2)))
     bad = synthetic(11, n=20)[0]
@@ -204,7 +204,7 @@ def test_rejects_bad_shapes_and_too_few_samples(method):
 # -- through the dispatcher -----------------------------------------------------------------
 @pytest.mark.parametrize("method", METHODS)
 def test_dispatcher_returns_canonical_calibration(method):
-    from streamcal.fit import fit
+    from streamcal.fitting import fit
 
     m, K_true, b_true, x = synthetic(13)
     cal = fit(m, method=method)

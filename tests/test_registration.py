@@ -6,12 +6,12 @@ from scipy.spatial.transform import Rotation
 
 from streamcal.calibration import Calibration
 from streamcal.errors import InputError, MissingColumnsError
-from streamcal.fit import fit
+from streamcal.fitting import fit
 from streamcal.model import validate_effect_params
-from streamcal.model.registration import (LAG_STEP, _Problem, fit_with_registration, gravity_reference,
+from streamcal.fitting.registration import (LAG_STEP, _Problem, fit_with_registration, gravity_reference,
                                           registration_fit)
 from streamcal.sim import simulate
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 BASE = ("hard_iron", "soft_iron")
 

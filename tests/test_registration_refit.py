@@ -11,16 +11,16 @@ with the drift)."""
 import numpy as np
 import pytest
 
-from streamcal.fit import fit
-from streamcal.fit.ellipsoid import spread_subset
-from streamcal.model.registration import (_Problem, _evaluate, _loss, gravity_reference,
+from streamcal.fitting import fit
+from streamcal.fitting.ellipsoid import spread_subset
+from streamcal.fitting.registration import (_Problem, _evaluate, _loss, gravity_reference,
                                           registration_fit)
 from streamcal.sim import simulate
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 BASE = ("hard_iron", "soft_iron")
 LAGGED = (*BASE, "time_lag")
-#: the diagnosis' subset size (streamcal.diagnose.diagnosis.SUBSET_MAX)
+#: the diagnosis' subset size (streamcal.diagnosis.diagnosis.SUBSET_MAX)
 SUBSET = 6000
 BROAD_32 = "broad_32_attached_magnet_1cm.csv.gz"
 #: BROAD 32's attached-magnet period (s), as the diagnosis reports its outlier span

@@ -20,7 +20,7 @@ import pytest
 from streamcal.calibration import Calibration
 from streamcal.sim import simulate
 from streamcal.stream import CalibrationStore, StreamingCalibrator
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 BOUND = 0.01
 K_TRUE = np.array([[46.0, 0.9, -1.2], [0.0, 44.5, 0.7], [0.0, 0.0, 49.5]])

@@ -12,7 +12,7 @@ from matplotlib.image import imread
 from matplotlib.path import Path as MplPath
 
 from streamcal.cli import main
-from streamcal.diagnose import diagnose
+from streamcal.diagnosis import diagnose
 from streamcal.report import (FigureData, coverage_map, coverage_view, render_figures,
                               render_html, write_diagnosis_plots, write_report)
 from streamcal.report.figures import FIGURES, cell_polygons, lambert

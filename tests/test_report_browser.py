@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from matplotlib.image import imread
 
-from streamcal.diagnose import diagnose
+from streamcal.diagnosis import diagnose
 from streamcal.report import write_report
 from streamcal.sim import simulate
 

@@ -11,7 +11,7 @@ import pytest
 from matplotlib.colors import to_rgba
 
 from streamcal.cli.diagnose import _text
-from streamcal.diagnose import diagnose, outlier_spans
+from streamcal.diagnosis import diagnose, outlier_spans
 from streamcal.report import FigureData, render_figures, render_html
 from streamcal.report.figures import (RESIDUAL_FAMILIES, candidate_groups, ladder_figure,
                                       ladder_steps)

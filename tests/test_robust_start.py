@@ -16,12 +16,12 @@ import math
 import numpy as np
 import pytest
 
-from streamcal.fit import fit
-from streamcal.fit.autocal import _looks_contaminated, stage1
-from streamcal.fit.ellipsoid import directions_from_model, spread_subset
-from streamcal.fit.normalize import normalize
-from streamcal.fit.shared_shape import shift_start
-from streamcal.fit.robust_start import (coherent_start, contiguous_bad_chunks, fit_sphere,
+from streamcal.fitting import fit
+from streamcal.fitting.autocal import _looks_contaminated, stage1
+from streamcal.fitting.ellipsoid import directions_from_model, spread_subset
+from streamcal.fitting.normalize import normalize
+from streamcal.fitting.shared_shape import shift_start
+from streamcal.fitting.robust_start import (coherent_start, contiguous_bad_chunks, fit_sphere,
                                         longest_run_probability, lqs_score, radial_error,
                                         robust_start)
 from streamcal.sim import paper_protocol
@@ -163,7 +163,7 @@ def test_contiguity_gate_needs_one_long_run_of_bad_chunks():
     assert not contiguous_bad_chunks(faint)
 
 
-# With the shared-shape refinement (streamcal.fit.shared_shape: one K, offsets b and b + Δ) the
+# With the shared-shape refinement (streamcal.fitting.shared_shape: one K, offsets b and b + Δ) the
 # whole fit is 0.14–0.31 % from the truth on every seed, while the undisturbed part's own fit
 # (a cap plus rests) is 0.6–4.4 % from it: whole vs part now exceeds 2 % wherever the part's fit
 # is itself more than about 2 % off (seeds 0, 1, 3, 4, 5, 6: 4.5, 3.8, 3.3, 2.6, 3.3, 2.9 %).
@@ -216,7 +216,7 @@ def test_a_disturbance_that_is_not_a_shift_keeps_the_support_fit(monkeypatch):
     x = np.linalg.solve(K_TRUE, (m[disturbed] - B_TRUE - SHIFT).T).T
     m[disturbed] = x @ (1.15 * K_TRUE).T + B_TRUE + SHIFT
     whole = fit(m, check_coverage=False)
-    autocal_module = importlib.import_module("streamcal.fit.autocal")
+    autocal_module = importlib.import_module("streamcal.fitting.autocal")
     monkeypatch.setattr(autocal_module, "consistent", lambda *a, **k: False)
     support_only = fit(m, check_coverage=False)
     assert np.array_equal(whole.K, support_only.K) and np.array_equal(whole.b, support_only.b)
@@ -226,7 +226,7 @@ def test_a_disturbance_that_is_not_a_shift_keeps_the_support_fit(monkeypatch):
 # --- BROAD trial 32: a magnet riding on the board for t in [38, 95] s --------------------------
 
 def _broad32(real_tracks_dir):
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     track = Track.read(real_tracks_dir / "broad_32_attached_magnet_1cm.csv.gz")
     t = track.t_mag
@@ -310,7 +310,7 @@ def test_a_disturbance_with_slight_soft_iron_does_not_worsen_the_fit(monkeypatch
     x = np.linalg.solve(K_TRUE, (m[disturbed] - B_TRUE - SHIFT).T).T
     m[disturbed] = x @ (1.05 * K_TRUE).T + B_TRUE + SHIFT
     whole = fit(m, check_coverage=False)
-    monkeypatch.setattr(importlib.import_module("streamcal.fit.autocal"), "consistent",
+    monkeypatch.setattr(importlib.import_module("streamcal.fitting.autocal"), "consistent",
                         lambda *a, **k: False)
     support_only = fit(m, check_coverage=False)
     assert (model_error(whole.K, whole.b, K_TRUE, B_TRUE)

@@ -9,6 +9,8 @@ import serial
 
 from firmware_bridge import frames as fr
 from firmware_bridge.fake_board import Faults, FakeBoard, sphere_sums_add
+from firmware_bridge.ports import open_link
+from streamcal.inputs.track import Track
 from firmware_bridge.rawlines import RawLineReader, raw_to_si
 from firmware_bridge.serial_link import LinkError, SerialLink
 from streamcal.calibration import Calibration
@@ -233,12 +235,12 @@ def test_sphere_sums_on_board_equal_sums_of_received_samples():
 
 
 def test_open_fake_track_file(tmp_path):
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     t, mag, accel, gyro, temp = synthetic(400)
     path = tmp_path / "track.csv"
     Track.from_arrays(t, mag=mag, accel=accel, gyro=gyro, temp=temp).write(path)
-    link = SerialLink.open(f"fake:{path}", timeout=0.02)
+    link = open_link(f"fake:{path}", timeout=0.02, read_track=Track.read)
     try:
         blocks = drain(link, link.board)
         got = np.concatenate([blk.mag for blk in blocks])
@@ -266,7 +268,7 @@ def any_link(request):
         if not spec:
             pytest.skip("real-hardware check: set STREAMCAL_SERIAL_PORT=/dev/ttyACM0 to run it against a "
                         "board running arduino/streamcal_bridge")
-        link = SerialLink.open(spec, int(os.environ.get("STREAMCAL_SERIAL_BAUD", "115200")))
+        link = open_link(spec, int(os.environ.get("STREAMCAL_SERIAL_BAUD", "115200")))
     yield link
     link.close()
 
@@ -304,6 +306,6 @@ def test_any_board_identifies_itself_and_streams_plausible_samples(any_link):
 
 def test_simavr_spec_is_checked_before_anything_starts():
     with pytest.raises(InputError, match="needs a track file"):
-        SerialLink.open("simavr:")
+        open_link("simavr:", read_track=Track.read)
     with pytest.raises(InputError, match="fake: boards only"):
-        SerialLink.open("simavr:track.csv", speed=2.0)
+        open_link("simavr:track.csv", speed=2.0, read_track=Track.read)

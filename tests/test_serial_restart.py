@@ -13,7 +13,7 @@ import serial
 
 from firmware_bridge import frames as fr
 from firmware_bridge.serial_link import SerialLink
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal.stream import StreamingCalibrator
 from tests.test_serial_link import HELLO
 

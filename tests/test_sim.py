@@ -121,7 +121,7 @@ def test_async_rows_have_empty_cells(base):
 
 
 def test_write_and_read_back(base, tmp_path):
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
     path = tmp_path / "sim.csv.gz"
     base.write(path, truth_path=tmp_path / "truth.json")
     back = Track.read(path)
@@ -372,7 +372,7 @@ def test_bundled_demo_track_is_reproducible_and_does_not_tell_the_effect():
     import importlib.util
     from pathlib import Path
 
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
     root = Path(__file__).resolve().parent.parent
     path = root / "streamcal" / "data" / "demo_track.csv.gz"
     assert path.stat().st_size <= 1.5e6

@@ -16,7 +16,7 @@ from firmware_bridge.fake_mpu9250 import FakeMPU9250Bus
 from firmware_bridge.simavr_board import (F_CPU_HZ, REPLAY_MAGIC, SimavrBoard, missing_toolchain,
                                           replay_bytes)
 from streamcal.calibration import Calibration
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 DEMO = os.path.join(os.path.dirname(__file__), "..", "streamcal", "data", "demo_track.csv.gz")
 ASA = (0xB0, 0xB2, 0xA5)          # fuse-ROM bytes of the simulated AK8963 (chip x, y, z)

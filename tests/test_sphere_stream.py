@@ -4,7 +4,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from streamcal.errors import InsufficientDataError
-from streamcal.fit.sphere_stream import SphereStats, fit_sphere_stream
+from streamcal.fitting.sphere_stream import SphereStats, fit_sphere_stream
 
 
 def _sphere_samples(n, center, radius, noise, seed, cap_deg=180.0):

@@ -4,10 +4,10 @@ import threading
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal.calibration import Calibration
 from streamcal.errors import InsufficientDataError
-from streamcal.fit.sphere_stream import fit_sphere_stream
+from streamcal.fitting.sphere_stream import fit_sphere_stream
 from streamcal.stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
 
 B_TRUE = np.array([10.0, -20.0, 30.0])
@@ -200,11 +200,11 @@ def test_accepted_calibration_is_stored_and_reloaded(tmp_path):
 def test_with_the_real_batch_fit():
     fit_mod = pytest.importorskip("streamcal.fit")
     if not hasattr(fit_mod, "fit"):
-        pytest.skip("streamcal.fit.fit is not there yet")
+        pytest.skip("streamcal.fitting.fit is not there yet")
     K = np.array([[50.0, 2.0, -1.0], [0.0, 46.0, 1.5], [0.0, 0.0, 53.0]])
     t, m = spiral_track(70.0)
     m = (m - B_TRUE) / RADIUS @ K.T + B_TRUE          # soft iron
-    sc = StreamingCalibrator(synchronous=True)        # default fitter: streamcal.fit.fit
+    sc = StreamingCalibrator(synchronous=True)        # default fitter: streamcal.fitting.fit
     events = feed(sc, t, m)
     assert "accepted" in kinds(events), [e.message for e in events if e.kind != "coverage"]
     cal = sc.calibration

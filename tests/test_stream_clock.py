@@ -9,7 +9,7 @@ monotone clock. Simulated boards (``streamcal.sim``) as in ``test_stream_disturb
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal.stream import StreamingCalibrator
 from tests.test_stream_disturbance import B_TRUE, BOUND, clean, feed, of_kind, truth
 

@@ -12,7 +12,7 @@ from functools import lru_cache
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal.calibration import Calibration
 from streamcal.sim import simulate
 from streamcal.stream import StreamingCalibrator
@@ -223,7 +223,7 @@ def test_change_before_the_first_calibration_splits_the_environments(seed):
 
 def test_replay_says_why_there_is_no_calibration(tmp_path, capsys):
     from streamcal.cli import main
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     t = np.arange(0.0, 80.0, 0.01)
     b2 = B_TRUE + np.array([20.0, -15.0, 12.0])

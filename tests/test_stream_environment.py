@@ -10,11 +10,11 @@ worse calibration is never accepted, and the calibration recovers once the field
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
-from streamcal.fit import fit
+from streamcal.samples import SampleBlock
+from streamcal.fitting import fit
 from streamcal.stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
 from streamcal.stream.guard import holdout_error
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 
 def replay(sc, tracks, shifts, block=100):

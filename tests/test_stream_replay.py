@@ -6,7 +6,7 @@ import pytest
 
 from streamcal.cli import main
 
-track_mod = pytest.importorskip("streamcal.track")
+track_mod = pytest.importorskip("streamcal.inputs.track")
 pytest.importorskip("streamcal.fit")
 
 

@@ -7,10 +7,10 @@ import os
 import numpy as np
 import pytest
 
-from firmware_bridge.sample import SampleBlock
+from streamcal.samples import SampleBlock
 from streamcal import trackio
 from streamcal.errors import InputError, TrackError
-from streamcal.track import Track
+from streamcal.inputs.track import Track
 
 SPEC_EXAMPLE = """# streamcal-track: 1
 # sensor: mpu9250

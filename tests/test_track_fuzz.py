@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 from tests._corruption import corrupt
 from streamcal import trackio
 from streamcal.errors import TrackError
-from streamcal.track import Track
-from streamcal.trackio import NUMBER
+from streamcal.inputs.track import Track
+from streamcal.inputs.trackio import NUMBER
 
 FUZZ = settings(max_examples=300, deadline=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])

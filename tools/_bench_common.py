@@ -95,7 +95,7 @@ def median_seconds(fn, repeats: int, warmup: int = 1) -> float:
 
 def real_track(name: str):
     """Read ``tracks/<name>.csv[.gz]`` from the shared real-data folder (a Track)."""
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     for suffix in (".csv", ".csv.gz"):
         path = REAL_TRACKS / f"{name}{suffix}"

@@ -25,7 +25,8 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(REPO))
 
-from firmware_bridge.i2c_source import open_bus  # noqa: E402
+from firmware_bridge.ports import open_bus  # noqa: E402
+from streamcal.inputs.track import Track  # noqa: E402
 from firmware_bridge.mpu9250 import MPU9250  # noqa: E402
 from streamcal.service import I2CBlocks, Notifier, Outputs, Service, SocketOutput, StreamOutput  # noqa: E402
 from streamcal.stream import CalibrationStore, StreamingCalibrator  # noqa: E402
@@ -40,7 +41,7 @@ def rss_mib() -> float:
 
 
 def driver_rate(track: str) -> tuple[float, int]:
-    bus = open_bus(f"fake:{track}")
+    bus = open_bus(f"fake:{track}", read_track=Track.read)
     drv = MPU9250(bus, clock=bus.now, sleep=lambda s: None)
     n, t0 = 0, time.perf_counter()
     while not bus.finished:

@@ -11,7 +11,7 @@ the baseline measured in the same run, the diagnosis refitting every candidate o
 
 Then the same track without its accelerometer columns (a mag + gyro recording) with a hidden
 time_lag, diagnosed with every candidate: time_lag is then judged on the gyro-tied residual
-(:mod:`streamcal.model.gyro_lag`); its time is reported beside the shipped diagnosis above.
+(:mod:`streamcal.fitting.gyro_lag`); its time is reported beside the shipped diagnosis above.
 """
 from __future__ import annotations
 
@@ -31,7 +31,7 @@ def main() -> int:
                         help="include mag_accel_misalignment and time_lag among the candidates")
     args = parser.parse_args()
 
-    from streamcal.diagnose import diagnose
+    from streamcal.diagnosis import diagnose
     from streamcal.sim import simulate
     from tests._diagnose_helpers import fitter
 
@@ -39,7 +39,7 @@ def main() -> int:
     t0 = time.perf_counter()
     fitter(track, ("hard_iron", "soft_iron"))
     t_fit = time.perf_counter() - t0
-    from streamcal.diagnose.diagnosis import SUBSET_MAX, _candidate_names
+    from streamcal.diagnosis.diagnosis import SUBSET_MAX, _candidate_names
 
     names = [n for n in _candidate_names(("hard_iron", "soft_iron"), track)
              if args.registration or n not in ("mag_accel_misalignment", "time_lag")]
@@ -64,7 +64,7 @@ def main() -> int:
     print(f"verdict {d.verdict}, top candidate {d.candidates[0].effect if d.candidates else '-'}")
     shipped_t = runs[f"shipped (subset {SUBSET_MAX})"][0]
 
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     lagged = simulate(args.duration, args.seed, effects={"time_lag": 0.02}).track
     gyro_only = Track({k: v for k, v in lagged.columns.items() if k not in ("ax", "ay", "az")},

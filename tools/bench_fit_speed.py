@@ -3,12 +3,12 @@
     python tools/bench_fit_speed.py [--repeats 21] [--quick]
 
 1. Table VI analogue: every method (and every autocal kernel) end to end through
-   ``streamcal.fit.fit`` at N = 450 paper-protocol samples with 5 % outliers, as ratios to two
+   ``streamcal.fitting.fit`` at N = 450 paper-protocol samples with 5 % outliers, as ratios to two
    baselines timed on the same normalized data: the algebraic L2 ellipsoid fit
    (``fit_l2_ellipsoid``, an eigen-decomposition) and a plain cvxpy solve of the L1 program
    (``L1EllipsoidProblem``, built once, then re-solved with Clarabel).
 2. N = 1000 autocal end to end (target ≤ 15 ms), with its stage-1 / stage-2 split.
-3. LM cost per sample per iteration (target ≤ 0.5 µs): ``streamcal.fit.lm.refine`` from the
+3. LM cost per sample per iteration (target ≤ 0.5 µs): ``streamcal.fitting.lm.refine`` from the
    stage-1 start, Cauchy kernel, wall time / (iterations · N), at N = 1000 and N = 1e5.
 4. N = 1e5 end to end (target ≤ 2 s) and its peak memory (target ≤ 250 MB): measured in a fresh
    subprocess as ``ru_maxrss`` after the fit minus ``ru_maxrss`` after imports and data
@@ -39,9 +39,9 @@ TARGETS = {"e2e_1000_s": 0.015, "lm_us": 0.5, "e2e_1e5_s": 2.0, "rss_1e5_mb": 25
 
 
 def table_vi(n: int, repeats: int, seed: int) -> None:
-    from streamcal.fit import METHODS, fit
-    from streamcal.fit.ellipsoid import L1EllipsoidProblem, fit_l2_ellipsoid
-    from streamcal.fit.normalize import normalize
+    from streamcal.fitting import METHODS, fit
+    from streamcal.fitting.ellipsoid import L1EllipsoidProblem, fit_l2_ellipsoid
+    from streamcal.fitting.normalize import normalize
     from streamcal.sim import paper_protocol
 
     data = [paper_protocol(n, 1.0, 0.05, seed + i)[0] for i in range(repeats)]
@@ -86,12 +86,12 @@ def child(n: int, repeats: int, seed: int) -> dict:
     """Runs in a fresh interpreter: e2e time, stage split, LM µs/(sample·it), peak RSS."""
     import resource
 
-    from streamcal.fit import fit
-    from streamcal.fit.autocal import EFFICIENCY_TAU, robust_sigma, stage1
-    from streamcal.fit.ellipsoid import directions_from_model
-    from streamcal.fit.kernels import make_kernel
-    from streamcal.fit.lm import refine
-    from streamcal.fit.normalize import normalize
+    from streamcal.fitting import fit
+    from streamcal.fitting.autocal import EFFICIENCY_TAU, robust_sigma, stage1
+    from streamcal.fitting.ellipsoid import directions_from_model
+    from streamcal.fitting.kernels import make_kernel
+    from streamcal.fitting.lm import refine
+    from streamcal.fitting.normalize import normalize
     from streamcal.sim import paper_protocol
 
     fit(paper_protocol(500, 1.0, 0.05, seed + 1)[0], check_coverage=False)  # load lazy imports

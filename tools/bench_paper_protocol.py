@@ -30,7 +30,7 @@ import numpy as np
 
 from _bench_common import crlb_normalized, normalized_error, run_stamp
 
-from streamcal.fit import METHODS, fit
+from streamcal.fitting import METHODS, fit
 from streamcal.sim import paper_protocol
 
 SIGMAS = (0.5, 1.0, 2.0)
@@ -46,7 +46,7 @@ def conditions(quick: bool):
 
 
 def variants():
-    """Column name → keyword arguments of ``streamcal.fit.fit`` (oracle handled apart)."""
+    """Column name → keyword arguments of ``streamcal.fitting.fit`` (oracle handled apart)."""
     cols = {"autocal": {}}
     cols.update({f"autocal/{k}": {"kernel": k} for k in KERNELS})
     cols["autocal/cauchy τ=√3"] = {"kernel": "cauchy", "tau": "paper"}

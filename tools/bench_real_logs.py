@@ -13,7 +13,7 @@
 (c) The eight ``tiva_mpu9250_mag_*`` sessions (one MPU-9250, one day): Table IV / V analogues
     for every method: eq. 40 deviation from the method's own fit on the reference session 03 (the
     cleanest, SOURCES.md), and eq. 41 average sensor estimation error on session 03 of the model
-    learnt on each session (``streamcal.fit.estimation_error``). Reported, not judged.
+    learnt on each session (``streamcal.fitting.estimation_error``). Reported, not judged.
 
 Fits are called with the default coverage check; where a log is refused the fit is repeated
 with ``check_coverage=False`` and the cell is marked ``*``. ``fail`` = the method produced no
@@ -30,7 +30,7 @@ import numpy as np
 from _bench_common import normalized_error, real_track, run_stamp
 
 from streamcal.errors import InsufficientDataError
-from streamcal.fit import METHODS, estimation_error, fit
+from streamcal.fitting import METHODS, estimation_error, fit
 
 CLEAN = ("sunsided_set2_fullsphere", "freeimucal_mag_data", "jr_altimu10v3_accmag_s2",
          "jr_bno055_accmag", "broad_02_undisturbed_slow_rotation_B", "tiva_mpu9250_mag_03")

@@ -22,7 +22,7 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3, help="renders timed (best is reported)")
     args = parser.parse_args()
 
-    from streamcal.diagnose import diagnose
+    from streamcal.diagnosis import diagnose
     from streamcal.report import FigureData, render_figures, render_html
     from streamcal.sim import simulate
 

@@ -47,7 +47,7 @@ def _fitter(name):
 
     if name == "sphere":
         from streamcal.calibration import Calibration
-        from streamcal.fit.sphere_stream import fit_sphere_stream
+        from streamcal.fitting.sphere_stream import fit_sphere_stream
 
         def sphere(snap):
             K, b = fit_sphere_stream(snap.m)
@@ -58,7 +58,7 @@ def _fitter(name):
 
 
 def bench_single(n: int) -> dict:
-    from firmware_bridge.sample import SampleBlock
+    from streamcal.samples import SampleBlock
     from streamcal.stream import StreamingCalibrator
 
     t, m = synthetic(n / 100.0)
@@ -81,7 +81,7 @@ def bench_single(n: int) -> dict:
 
 
 def bench_batched(n: int, block: int) -> dict:
-    from firmware_bridge.sample import SampleBlock
+    from streamcal.samples import SampleBlock
     from streamcal.stream import StreamingCalibrator
 
     t, m = synthetic(n / 100.0)
@@ -106,7 +106,7 @@ def bench_batched(n: int, block: int) -> dict:
 
 def replay_child(duration_s: float, block: int, fitter: str) -> dict:
     """One replay in this process: wall time, fits, peak RSS (run in a subprocess)."""
-    from firmware_bridge.sample import SampleBlock
+    from streamcal.samples import SampleBlock
     from streamcal.stream import StreamingCalibrator
 
     sc = StreamingCalibrator(fitter=_fitter(fitter))
@@ -153,7 +153,7 @@ def main() -> int:
     p.add_argument("--quick", action="store_true", help="smaller sizes (smoke test)")
     p.add_argument("--json", action="store_true")
     p.add_argument("--fitter", choices=("default", "sphere"), default="default",
-                   help="fitter for the replays: streamcal.fit.fit (default) or the sphere fit")
+                   help="fitter for the replays: streamcal.fitting.fit (default) or the sphere fit")
     args = p.parse_args()
     n_single = 5_000 if args.quick else 50_000
     n_batch = 200_000 if args.quick else 1_000_000

@@ -38,7 +38,7 @@ SUMMARY = """\
   same board), the frame misalignment only in 30. Their noise floor (≈ 0.014 µT) is an artefact:
   x and y are stored with more decimals than the sensor has (second differences ≈ 0), so every
   candidate is "above the floor"; the ellipsoid candidates are not significant.
-- **The gyro alone** (`streamcal.model.gyro_lag`: the reading predicted 0.5 s ahead by the
+- **The gyro alone** (`streamcal.fitting.gyro_lag`: the reading predicted 0.5 s ahead by the
   integrated gyro, gyro frame/gains/bias fitted, sample-and-hold repeats and clipped gyro rows
   left out) sees the **same lag on the BROAD board: 10.7, 11.3 and 11.0 ms** (02, 30, 32)
   against 11.5, 10.9 and 13.9 ms gravity-tied — two independent references agree within
@@ -93,9 +93,9 @@ def _spans(spans) -> str:
 
 
 def diagnose_one(path: Path) -> list[str]:
-    from streamcal.diagnose import diagnose
+    from streamcal.diagnosis import diagnose
     from streamcal.errors import StreamcalError
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     lines = [f"## {path.name}", ""]
     try:
@@ -146,14 +146,14 @@ def diagnose_one(path: Path) -> list[str]:
 
 def _gyro_lines(track, d) -> list[str]:
     """The gyro-consistency family, and the gyro-only time_lag candidate of an accel track."""
-    from streamcal.diagnose import diagnose
+    from streamcal.diagnosis import diagnose
     from streamcal.errors import StreamcalError
 
     fam = d.residual_families.get("gyro")
     if fam is None:
         out = ["- gyro-consistency residual: not available (the gyro-tied fit was refused)"]
         try:
-            from streamcal.model.gyro_lag import gyro_lag_fit
+            from streamcal.fitting.gyro_lag import gyro_lag_fit
 
             gyro_lag_fit(track if not track.has("accel") else _drop_accel(track),
                          ("hard_iron", "soft_iron"))
@@ -178,7 +178,7 @@ def _gyro_lines(track, d) -> list[str]:
 
 
 def _drop_accel(track):
-    from streamcal.track import Track
+    from streamcal.inputs.track import Track
 
     return Track({k: v for k, v in track.columns.items() if k not in ("ax", "ay", "az")},
                  track.metadata)

@@ -3,7 +3,7 @@
 
 For each track in ``../shared/data/real/tracks``: the streaming calibrator (synchronous fits, so
 the result is reproducible; blocks of 100 rows; covariates ``temp`` and aux channels kept) is fed
-the whole track, and its final calibration is compared with :func:`streamcal.fit.fit` on the whole
+the whole track, and its final calibration is compared with :func:`streamcal.fitting.fit` on the whole
 track by the normalized model deviation of the paper (eq. 40, ``Calibration.model_error``). When
 ``fit`` refuses the track for lack of coverage, the comparison is with
 ``fit(..., check_coverage=False)`` and the table says so.
@@ -29,12 +29,12 @@ from _bench_common import REAL_TRACKS, REPO, run_stamp
 
 sys.path.insert(0, str(REPO))
 
-from firmware_bridge.sample import SampleBlock  # noqa: E402
+from streamcal.samples import SampleBlock  # noqa: E402
 from streamcal.errors import StreamcalError  # noqa: E402
-from streamcal.fit import fit  # noqa: E402
+from streamcal.fitting import fit  # noqa: E402
 from streamcal.stream import CalibrationStore, CoverageBuffer, StreamingCalibrator  # noqa: E402
 from streamcal.stream.guard import holdout_error  # noqa: E402
-from streamcal.track import Track  # noqa: E402
+from streamcal.inputs.track import Track  # noqa: E402
 
 BLOCK = 100
 
@@ -200,7 +200,7 @@ def main() -> int:
     rows = per_track(paths)
     text = ["# Streaming calibrator on the real tracks", "", "```", run_stamp(), "```", "",
             "Each track is replayed through `StreamingCalibrator` (synchronous fits, blocks of "
-            f"{BLOCK} rows) and its final calibration is compared with `streamcal.fit.fit` on "
+            f"{BLOCK} rows) and its final calibration is compared with `streamcal.fitting.fit` on "
             "the whole track: deviation = ‖[K b] − [K' b']‖_F / ‖[K' b']‖_F (paper eq. 40). "
             "Radial error: mean of |‖K⁻¹(m − b)‖ − 1|·radius over all samples after dropping the "
             "largest 10 % (sensor unit), for the streaming and the batch calibration.", ""]

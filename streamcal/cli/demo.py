@@ -66,7 +66,7 @@ def run(args) -> int:
 
 def _demo(track_path: Path, out: Path, quiet: bool) -> int:
     from ..report import diagnose_or_reason, write_report
-    from ..track import Track
+    from ..inputs.track import Track
 
     say = (lambda *a, **k: None) if quiet else print
     start = time.monotonic()
@@ -104,11 +104,12 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
 def _replay(track_path: Path, say):
     from firmware_bridge.i2c_source import open_i2c_source
 
+    from ..inputs.track import Track
     from ..report import coverage_view
     from ..stream import CoverageBuffer, StreamingCalibrator
     from ..stream.guard import radius_of
 
-    source = open_i2c_source(f"fake:{track_path}", block_size=BLOCK_SIZE)
+    source = open_i2c_source(f"fake:{track_path}", block_size=BLOCK_SIZE, read_track=Track.read)
     calibrator = None
     blocks, accepted, maps_done = [], [], set()
     for block in source:

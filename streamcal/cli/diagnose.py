@@ -29,8 +29,8 @@ def _report_module():
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..diagnose import diagnose
-    from ..track import Track
+    from ..diagnosis import diagnose
+    from ..inputs.track import Track
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
     report = _report_module() if args.plots else None
@@ -57,7 +57,7 @@ def _change(before: float, after: float) -> str:
 
 def residual_name(residual: str) -> str:
     """How a residual family is called in text ("gravity-tied")."""
-    from ..diagnose.diagnosis import RESIDUAL_LABELS
+    from ..diagnosis.diagnosis import RESIDUAL_LABELS
 
     return RESIDUAL_LABELS.get(residual, residual)
 

@@ -48,8 +48,8 @@ def _tau(value):
 
 
 def run(args) -> int:
-    from ..fit import fit
-    from ..track import Track
+    from ..fitting import fit
+    from ..inputs.track import Track
 
     track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
     cal = fit(track, sensor=args.sensor, model=args.model, add=args.add, kernel=args.kernel,

@@ -48,7 +48,7 @@ class TrackWriter:
     plus that block's auxiliary channels)."""
 
     def __init__(self, path: str | os.PathLike, metadata: dict):
-        from ..trackio import check_metadata
+        from ..inputs.trackio import check_metadata
 
         self.path = Path(path)
         self.metadata = check_metadata(metadata)

@@ -50,7 +50,7 @@ def run(args) -> int:
 
     from ..errors import InputError
     from ..stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
-    from ..track import Track
+    from ..inputs.track import Track
 
     if args.block < 1:
         raise InputError(f"--block: must be a positive number of rows, got {args.block}")

@@ -43,7 +43,7 @@ def default_output(track_path: str) -> Path:
 
 def run(args) -> int:
     from ..report import diagnose_or_reason, write_report
-    from ..track import Track
+    from ..inputs.track import Track
 
     model = model_from_args(args.model, args.add)
     track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)

@@ -9,9 +9,7 @@ from .build import (REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, mis
                     terms_from_params, validate_effect_params)
 from .catalog import BY_NAME, CATALOG, CORE_EFFECTS, EFFECT_NAMES, EffectInfo
 from .invert import invert_model
-from .registration import fit_with_registration, gravity_reference, registration_fit
 
 __all__ = ["BY_NAME", "CATALOG", "CORE_EFFECTS", "EFFECT_NAMES", "EffectInfo",
            "REGISTRATION_EFFECTS", "TERMS", "UnknownEffectError", "build_effects", "check_needs",
-           "fit_with_registration", "gravity_reference", "invert_model", "missing_columns",
-           "registration_fit", "terms_from_params", "validate_effect_params"]
+           "invert_model", "missing_columns", "terms_from_params", "validate_effect_params"]

@@ -2,7 +2,7 @@
 
 Core effects (``hard_iron``, ``scale``, ``soft_iron``) live in ``K`` and ``b``; registration
 effects (``mag_accel_misalignment``, ``time_lag``) have their own solver
-(:mod:`streamcal.model.registration`). Every other catalog effect is a term object fulfilling
+(:mod:`streamcal.fitting.registration`). Every other catalog effect is a term object fulfilling
 :class:`streamcal.model.effect.Effect`.
 """
 from __future__ import annotations
@@ -16,6 +16,7 @@ from .aux import AuxInterference
 from .catalog import BY_NAME, CORE_EFFECTS, EFFECT_NAMES
 from .drift import TimeDrift
 from .nonlinear import AxisNonlinearity
+from .registration_params import validate_registration_params
 from .thermal import TemperatureOffset, TemperatureScale
 
 #: Effect name → term class (the LM contract).
@@ -73,7 +74,6 @@ def check_needs(names: Iterable[str], track) -> None:
 
 def validate_effect_params(effects: Mapping[str, Mapping]) -> None:
     """Check the ``effects`` object of a calibration file; ValueError naming effect and key."""
-    from .registration import validate_registration_params
 
     for name, params in effects.items():
         if name in TERMS:

@@ -1,6 +1,6 @@
 """The contract every non-core effect term fulfils (STYLE practice 3).
 
-The robust LM (``streamcal.fit.lm``) fits
+The robust LM (``streamcal.fitting.lm``) fits
 
     m_j = u_j + b + Σ_e f_e(θ_e, u_j, c_j) + ε_j,      u_j = K x_j,
 

@@ -42,7 +42,7 @@ def diagnose_or_reason(track, model=None, **kwargs):
     (:class:`~streamcal.errors.InsufficientDataError`: too little coverage, too few samples).
     Other errors (bad input, unknown effect) propagate."""
     from ..calibration import DEFAULT_MODEL
-    from ..diagnose import diagnose
+    from ..diagnosis import diagnose
     from ..errors import InsufficientDataError
 
     try:

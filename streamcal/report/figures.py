@@ -41,7 +41,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
-from ..diagnose.diagnosis import RESIDUAL_LABELS
+from ..diagnosis.diagnosis import RESIDUAL_LABELS
 
 #: Most points drawn per scatter series (a fixed stride thins the rest).
 MAX_POINTS = 5000
@@ -100,7 +100,7 @@ class FigureData:
 
     @classmethod
     def build(cls, track, diagnosis=None, reason: str | None = None) -> "FigureData":
-        """Views of ``track`` (:class:`streamcal.track.Track`) with ``diagnosis`` (or, when
+        """Views of ``track`` (:class:`streamcal.inputs.track.Track`) with ``diagnosis`` (or, when
         None, the raw data only, ``reason`` saying why)."""
         m = np.asarray(track.mag, dtype=float)
         cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
@@ -114,8 +114,8 @@ class FigureData:
         return data
 
     def _calibrated(self, cal) -> None:
-        from ..diagnose.diagnosis import OUTLIER_SIGMAS
-        from ..diagnose.residuals import sensor_residual
+        from ..diagnosis.diagnosis import OUTLIER_SIGMAS
+        from ..diagnosis.residuals import sensor_residual
 
         r, x, s, _ = sensor_residual(cal, self.m, self.cov)
         # The diagnosis' outliers (its n_outliers and spans, one model) when it has them.
@@ -134,7 +134,7 @@ class FigureData:
         self.center = np.asarray(cal.b, dtype=float)
 
     def _coarse(self) -> None:
-        from ..fit.sphere_stream import SphereStats
+        from ..fitting.sphere_stream import SphereStats
 
         stats = SphereStats()
         stats.update(self.m)
@@ -476,7 +476,7 @@ def residuals_figure(data: FigureData) -> Figure:
 #: residual keeps (eq. 41: the free direction absorbs the two tangent components); with the
 #: direction tied to gravity only the heading is free, so two components stay (√2 × floor) and
 #: the gravity reference's own error adds to that; the gyro-tied residual compares two samples,
-#: two components each (≈ 2 × floor, :mod:`streamcal.model.gyro_lag`).
+#: two components each (≈ 2 × floor, :mod:`streamcal.fitting.gyro_lag`).
 RESIDUAL_FAMILIES = {
     "sensor": (f"{RESIDUAL_LABELS['sensor']} residual", "every direction free (eq. 41)",
                _INLIER, 1.0),

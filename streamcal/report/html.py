@@ -219,7 +219,7 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
     """The report page as a string.
 
     Args:
-        track: the :class:`streamcal.track.Track` diagnosed.
+        track: the :class:`streamcal.inputs.track.Track` diagnosed.
         diagnosis: its :class:`~streamcal.diagnose.Diagnosis`, or None when the fit refused the
             track; ``reason`` then says why, and the page shows what needs no calibration.
         title: page title (default: the track's name).

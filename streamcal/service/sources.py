@@ -3,7 +3,7 @@ bring-up and reconnection that never give up (a service outlives unplugged cable
 
 Both adapters offer the same small interface to :class:`~streamcal.service.daemon.Service`:
 
-- ``read()`` → a :class:`~firmware_bridge.sample.SampleBlock`, or None when nothing arrived in
+- ``read()`` → a :class:`~streamcal.samples.SampleBlock`, or None when nothing arrived in
   time; raises :class:`SourceUnavailable` while the device does not answer (the loop backs off
   and calls ``read()`` again, which retries);
 - ``finished`` — a replay (``fake:``) has served its whole track;
@@ -15,6 +15,7 @@ from __future__ import annotations
 import time
 
 from ..errors import InputError
+from ..inputs.track import Track
 
 FAKE_PREFIX = "fake:"
 
@@ -43,7 +44,7 @@ class I2CBlocks:
     def __init__(self, spec: str, address: int = 0x68, *, block_size: int = 50,
                  rate_hz: float | None = None, block_timeout: float = 1.0,
                  speed: float | None = None, fake_kwargs: dict | None = None):
-        from firmware_bridge.i2c_source import open_bus
+        from firmware_bridge.ports import open_bus
         from firmware_bridge.mpu9250 import MPU9250
 
         if rate_hz is not None and not rate_hz > 0:
@@ -56,7 +57,7 @@ class I2CBlocks:
         fake_kwargs = dict(fake_kwargs or {})
         if self.fake and speed is not None:
             fake_kwargs.setdefault("clock", lambda: speed * time.monotonic())
-        self.bus = open_bus(spec, **fake_kwargs)
+        self.bus = open_bus(spec, read_track=Track.read, **fake_kwargs)
         driver_kwargs = {}
         if self.fake:
             driver_kwargs["clock"] = self.bus.now
@@ -147,9 +148,9 @@ class SerialBlocks:
         self.description = f"serial {source}"
 
     def _open(self) -> None:
-        from firmware_bridge.serial_link import SerialLink
+        from firmware_bridge.ports import open_link
 
-        self.link = SerialLink.open(self.spec, self.baud)
+        self.link = open_link(self.spec, self.baud, read_track=Track.read)
         self.reopens += 1
 
     @property

@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..errors import InputError, UnknownEffectError
-from ..track import Track
+from ..inputs.track import Track
 from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
 from . import sensor
 from .motion import COVERAGES, hand_motion
@@ -105,7 +105,7 @@ class SimTruth:
 
 @dataclass(frozen=True, eq=False)
 class SimResult:
-    """``track``: the simulated :class:`streamcal.track.Track`; ``truth``: :class:`SimTruth`."""
+    """``track``: the simulated :class:`streamcal.inputs.track.Track`; ``truth``: :class:`SimTruth`."""
 
     track: Track
     truth: SimTruth
@@ -282,7 +282,7 @@ def _effect_params(effects: Mapping, rng: np.random.Generator, field_uT, dip_deg
     if "axis_nonlinearity" in vec:
         out["axis_nonlinearity"] = {"R": float(field_uT), "a": vec["axis_nonlinearity"].tolist()}
     if "mag_accel_misalignment" in vec:
-        # "dip" as streamcal.model.registration defines it: angle between field and down (rad).
+        # "dip" as streamcal.fitting.registration defines it: angle between field and down (rad).
         out["mag_accel_misalignment"] = {"rotation": vec["mag_accel_misalignment"].tolist(),
                                          "dip": float(np.pi / 2 - np.radians(dip_deg))}
     if "time_lag" in effects:

@@ -3,7 +3,7 @@ recalibration policy, fits off the ingest path, an acceptance guard and an atomi
 
     from streamcal.stream import StreamingCalibrator, CalibrationStore
     cal = StreamingCalibrator(store=CalibrationStore("state"))
-    events = cal.ingest(block)          # block: firmware_bridge.sample.SampleBlock
+    events = cal.ingest(block)          # block: streamcal.samples.SampleBlock
 
 Names are imported lazily so that e.g. ``streamcal.stream.store`` loads without the fit code.
 """

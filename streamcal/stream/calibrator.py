@@ -46,7 +46,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
-from ..fit.sphere_stream import SphereStats
+from ..fitting.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
 from .disturbance import GROSS, Disturbance, DisturbanceRule, Quarantine
 from .guard import AcceptanceGuard, Decision, apply_finite, radius_of
@@ -89,11 +89,11 @@ class Event:
 
 
 def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
-    """``fitter(snapshot) -> Calibration`` running :func:`streamcal.fit.fit` on the stored
+    """``fitter(snapshot) -> Calibration`` running :func:`streamcal.fitting.fit` on the stored
     samples (with their covariates when the model has effects beyond K and b)."""
 
     def fit_snapshot(snap: Snapshot) -> Calibration:
-        from ..fit import fit
+        from ..fitting import fit
 
         if set(model) <= {"hard_iron", "soft_iron", "scale"}:
             return fit(snap.m, model=tuple(model), kernel=kernel)

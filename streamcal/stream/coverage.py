@@ -105,8 +105,8 @@ class Snapshot:
                         {k: v[mask] for k, v in self.covariates.items()}, self.cells[mask])
 
     def to_track(self):
-        """The samples as a :class:`streamcal.track.Track` (for fitters that use covariates)."""
-        from ..track import Track
+        """The samples as a :class:`streamcal.inputs.track.Track` (for fitters that use covariates)."""
+        from ..inputs.track import Track
 
         aux = {k: v for k, v in self.covariates.items()
                if k not in ("temp", "ax", "ay", "az", "gx", "gy", "gz")}

@@ -7,7 +7,7 @@ the stage is full: the fixed cost is paid once per ``capacity`` rows, and nothin
 call. Validation (rows without a magnetometer sample are dropped) and sample-and-hold of the
 covariates happen once per stage, vectorized.
 
-Covariates are read from a :class:`~firmware_bridge.sample.SampleBlock` by name: ``temp``, the
+Covariates are read from a :class:`~streamcal.samples.SampleBlock` by name: ``temp``, the
 IMU axes ``ax ay az gx gy gz`` and auxiliary channels; a covariate the block lacks is NaN, and a
 covariate missing on a magnetometer row takes the last value seen (sensors run at different
 rates). The held values carry over from one stage to the next.

@@ -12,7 +12,7 @@ from ..calibration import DEFAULT_MODEL
 from ..errors import StreamcalError
 from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
 from ..model.build import check_known
-from ..model.registration import gravity_reference, registration_fit
+from ..fitting.registration import gravity_reference, registration_fit
 from . import candidates as cand
 from .noise import noise_floor
 from .residuals import families, rms, sensor_residual
@@ -20,7 +20,7 @@ from .spans import outlier_spans
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
 OUTLIER_SIGMAS = 5.0
-#: A fit's inliers: residual within this many kernel widths (as streamcal.fit.autocal).
+#: A fit's inliers: residual within this many kernel widths (as streamcal.fitting.autocal).
 OUTLIER_WIDTHS = 2.0
 #: Candidate refits for the ranking use at most this many well-spread samples.
 SUBSET_MAX = 6000
@@ -40,7 +40,7 @@ class Diagnosis:
     unit.
 
     Which residual each rms is on (``residual``: ``"sensor"``, eq. 41 with free directions;
-    ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnose.candidates`): ``rms`` is
+    ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnosis.candidates`): ``rms`` is
     on ``residual`` (the base model's); each candidate's ``rms_after`` is on the residual named
     in ``candidate_baselines[effect]``, beside ``rms_before``, the model without the effect on
     that same residual — compare a candidate with its ``rms_before``, never with another
@@ -102,7 +102,7 @@ class Diagnosis:
 
 def _default_fitter(kernel: str) -> Callable:
     def fit(track, model, initial=None):
-        from ..fit import fit as _fit
+        from ..fitting import fit as _fit
 
         return _fit(track, model=tuple(model), kernel=kernel, initial=initial)
     return fit
@@ -116,7 +116,7 @@ def _candidate_names(model: Sequence[str], track) -> list[str]:
         names.insert(0, "hard_iron")
     missing = missing_columns(names, track)
     # mag_accel_misalignment needs the accelerometer; time_lag the accelerometer (gravity-tied)
-    # or the gyro (gyro-tied, streamcal.model.gyro_lag).
+    # or the gyro (gyro-tied, streamcal.fitting.gyro_lag).
     return [n for n in names if n not in missing]
 
 
@@ -126,7 +126,7 @@ def _tied(model) -> bool:
 
 class _Evaluated:
     """One fitted model with its residuals (eq. 41, or the gravity- or gyro-tied residual of
-    :mod:`streamcal.model.registration` / :mod:`streamcal.model.gyro_lag` when ``reg`` is
+    :mod:`streamcal.fitting.registration` / :mod:`streamcal.fitting.gyro_lag` when ``reg`` is
     given) and inlier set."""
 
     def __init__(self, cal, m, cov, floor, reg=None):
@@ -172,7 +172,7 @@ class _Context:
         self._warm = "initial" in inspect.signature(fitter).parameters
         self.subset = None    # (mag sample indices, sub-track) for the ranking refits
         if subset_max and len(self.m) > subset_max:
-            from ..fit.ellipsoid import spread_subset
+            from ..fitting.ellipsoid import spread_subset
 
             idx = spread_subset(self.m, subset_max)
             keep = ~np.asarray(track.mag_rows, bool)
@@ -180,7 +180,7 @@ class _Context:
             self.subset = (idx, track.select(keep))
 
     def gyro_fit(self, model, initial=None, *, fit_lag=False, lag=0.0, quick=True):
-        """Gyro-tied fit (:func:`streamcal.model.gyro_lag.gyro_lag_fit`) of the non-registration
+        """Gyro-tied fit (:func:`streamcal.fitting.gyro_lag.gyro_lag_fit`) of the non-registration
         part of ``model`` (plus ``time_lag`` when ``fit_lag``; else τ = ``lag``), fitted on the
         pairs starting in the spread subset when ``quick``; cached. None when the track has no
         gyro or the data cannot support the fit."""
@@ -195,7 +195,7 @@ class _Context:
         quick = quick and self.subset is not None
         key = (names, fit_lag, float(lag), quick)
         if key not in self._gyro:
-            from ..model.gyro_lag import gyro_lag_fit
+            from ..fitting.gyro_lag import gyro_lag_fit
 
             try:
                 self._gyro[key] = gyro_lag_fit(
@@ -347,27 +347,27 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
              fitter: Callable | None = None, kernel: str = "auto",
              candidates: Sequence[str] | None = None, ladder: bool = True,
              subset_max: int | None = SUBSET_MAX) -> Diagnosis:
-    """Diagnose ``model`` on ``track`` (a :class:`streamcal.track.Track`).
+    """Diagnose ``model`` on ``track`` (a :class:`streamcal.inputs.track.Track`).
 
     ``calibration``: an existing fit of ``model`` to use instead of fitting; ``fitter(track,
-    model) -> Calibration`` replaces :func:`streamcal.fit.fit`; ``candidates`` restricts the effects
+    model) -> Calibration`` replaces :func:`streamcal.fitting.fit`; ``candidates`` restricts the effects
     tried (default: every catalog effect the track supports that the model lacks); ``ladder``
     keeps adding the best significant effect (up to :data:`LADDER_STEPS`) and records the rms
-    after each. ``kernel``: as :func:`streamcal.fit.fit` (default ``auto``, so the rms here and
+    after each. ``kernel``: as :func:`streamcal.fitting.fit` (default ``auto``, so the rms here and
     ``streamcal fit``'s agree; the gravity- and gyro-tied fits use Cauchy for ``auto``, as
     ``fit`` does for them).
 
     Speed: every refit is warm-started from the model it extends (``fitter(track, model,
     initial=cal)`` when the fitter takes ``initial``). With more than ``subset_max`` samples the
     candidates are refitted on a well-spread subset of that size
-    (:func:`streamcal.fit.ellipsoid.spread_subset`) and evaluated on every sample (residual,
+    (:func:`streamcal.fitting.ellipsoid.spread_subset`) and evaluated on every sample (residual,
     inliers by the fit's own 2-kernel-width rule); the winner of each ranking is then refitted on
     every sample, so the top candidate's ``rms_after`` is exactly "add it and refit". None
     refits every candidate on every sample.
 
     Registration candidates are judged on the gravity-tied residual, or for ``time_lag`` on a
     track with a gyro and no accelerometer on the gyro-tied one (see
-    :mod:`streamcal.diagnose.candidates`). ``residual_families["gyro"]`` is the gyro-tied
+    :mod:`streamcal.diagnosis.candidates`). ``residual_families["gyro"]`` is the gyro-tied
     residual at the model's lag, with the lag the gyro alone fits (``lag_estimate_s``).
 
     ``n_outliers`` and ``rms`` are the base model's (``rms`` over its own inliers);

@@ -3,42 +3,24 @@
 Each method is a pure function of normalized samples ``m_n`` (N,3) (paper §II-B: median
 centred, divided by the standard deviation) returning a sensor model ``(A, b)`` in normalized
 units with ``m_n ≈ A x + b``, ``x`` unit vectors. ``A`` is general; the dispatcher
-(:func:`streamcal.fit.fit`) denormalizes and puts it in canonical form (RQ, paper §II-A).
+(:func:`streamcal.fitting.fit`) denormalizes and puts it in canonical form (RQ, paper §II-A).
 Iterative methods stop at ``max_iter`` iterations or when the objective changes by less than
 ``rtol`` relative to its previous value (paper §III-A: 300 and 1e-6).
 
 ========================  =========================================  ==============================
 name                      module                                     paper
 ========================  =========================================  ==============================
-``magical``               :mod:`streamcal.fit.magical`               Papafotis & Sotiriadis 2019
-``dorveaux``              :mod:`streamcal.fit.dorveaux`              Dorveaux et al. 2009
-``vasconcelos``           :mod:`streamcal.fit.vasconcelos`           Vasconcelos et al. 2011
-``kok_schon``             :mod:`streamcal.fit.kok_schon`             Kok & Schön 2016
+``magical``               :mod:`streamcal.fitting.magical`               Papafotis & Sotiriadis 2019
+``dorveaux``              :mod:`streamcal.fitting.dorveaux`              Dorveaux et al. 2009
+``vasconcelos``           :mod:`streamcal.fitting.vasconcelos`           Vasconcelos et al. 2011
+``kok_schon``             :mod:`streamcal.fitting.kok_schon`             Kok & Schön 2016
 ========================  =========================================  ==============================
 """
 from __future__ import annotations
 
-from typing import Callable
-
 import numpy as np
 
 from ..errors import InputError, InsufficientDataError
-
-#: fit(m_n (N,3), *, max_iter, rtol) -> (A (3,3), b (3,)) in normalized units.
-ReferenceFit = Callable[..., "tuple[np.ndarray, np.ndarray]"]
-
-
-def reference_methods() -> dict[str, ReferenceFit]:
-    """``{method name: fit function}`` for the four reference methods (imported on demand so
-    that using one does not import cvxpy for the others)."""
-    from .dorveaux import fit_dorveaux
-    from .kok_schon import fit_kok_schon
-    from .magical import fit_magical
-    from .vasconcelos import fit_vasconcelos
-
-    return {"magical": fit_magical, "dorveaux": fit_dorveaux,
-            "vasconcelos": fit_vasconcelos, "kok_schon": fit_kok_schon}
-
 
 def check_samples(m_n, method: str, minimum: int) -> np.ndarray:
     """``m_n`` as a float (N,3) array with finite values and at least ``minimum`` rows;

@@ -1,4 +1,4 @@
-"""Batch calibration: ``streamcal.fit(data, method=…)`` (SPEC §5).
+"""The free-direction fit of a calibration (every method but the registration effects).
 
 Pure functions on arrays live in the modules of this package (normalization, ellipsoid fits,
 kernels, the robust LM, reference methods, the one-pass sphere fit); this entry point validates
@@ -14,12 +14,12 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration, canonical_form
 from ..errors import InputError, InsufficientDataError, UnknownEffectError
+from ..inputs.track import Track
+from ..model.build import build_effects, check_needs
 from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
 from .lm import estimation_error, optimal_directions
 from .normalize import denormalize_model, normalize
 from .observability import assess
-
-__all__ = ["fit", "METHODS", "GRAVITY", "estimation_error", "optimal_directions"]
 
 GRAVITY = 9.80665  # m/s², standard gravity
 #: method name → (module in this package, function), each function maps normalized (N,3)
@@ -56,22 +56,16 @@ def parse_model(model: str | Iterable[str] = DEFAULT_MODEL, add: str | Iterable[
     return tuple(out)
 
 
-def _reference(method: str):
+def reference_method(method: str):
+    """The fit function of a reference method (``magical``, ``dorveaux``, ``vasconcelos``,
+    ``kok_schon``, ``sphere_stream``): ``f(m_n (N,3), **options) -> (A (3,3), b (3,))`` in
+    normalized units. Imported on demand so that one method does not import cvxpy for another."""
     module, func = REFERENCE_METHODS[method]
-    for name in (module, "reference"):
-        try:
-            mod = importlib.import_module(f"{__name__}.{name}")
-        except ModuleNotFoundError:
-            continue
-        if hasattr(mod, func):
-            return getattr(mod, func)
-    raise InputError(f"method {method!r} is not available in this build")
+    return getattr(importlib.import_module(f"{__package__}.{module}"), func)
 
 
 def _measurements(data, sensor: str, covariates):
     """(m (N,3), unit, covariates, track or None) from a Track or an array."""
-    from ..track import Track
-
     if isinstance(data, Track):
         if sensor == "mag":
             m, unit = data.mag, data.mag_unit
@@ -91,7 +85,7 @@ def _measurements(data, sensor: str, covariates):
     return m, ("uT" if sensor == "mag" else "m/s^2"), dict(covariates or {}), None
 
 
-def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL,
+def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL,
         add: str | Sequence[str] = (), kernel: str = "auto", method: str = "autocal",
         tau: float | str | None = None, covariates: Mapping[str, np.ndarray] | None = None,
         check_coverage: bool = True, stage1_max: int = 300, max_iter: int = 300,
@@ -128,15 +122,7 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
         raise InputError(f"method {method!r} fits only {', '.join(CORE_EFFECTS)}; "
                          f"use method 'autocal' for {', '.join(extra)}")
     if any(n in REGISTRATION_EFFECTS for n in extra):
-        if track is None:
-            raise InputError("registration effects (mag_accel_misalignment, time_lag) need a track "
-                             "with accelerometer (or, for time_lag, gyroscope) columns, not an "
-                             "array of readings")
-        from ..model.registration import fit_with_registration
-
-        return fit_with_registration(track, names, kernel="cauchy" if kernel == "auto" else kernel,
-                                     tau=None if tau in (None, "paper") else float(tau),
-                                     sensor=sensor, initial=initial)
+        raise InputError("registration effects are fitted by streamcal.fitting.fit, not fit_core")
     if len(m) < MIN_SAMPLES:
         raise InsufficientDataError(f"{len(m)} {sensor} samples are too few: at least {MIN_SAMPLES} are needed")
     spread = float(np.max(np.std(m, axis=0)))
@@ -149,11 +135,9 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
     fit_b = "hard_iron" in names
     effects = []
     if extra:
-        from .. import model as model_pkg
-
         if track is not None:
-            model_pkg.check_needs(extra, track)
-        effects = model_pkg.build_effects(extra, cov)
+            check_needs(extra, track)
+        effects = build_effects(extra, cov)
 
     try:
         return _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, sensor=sensor,
@@ -210,7 +194,7 @@ def _fit_reference(m, method, structure, *, max_iter=300, rtol=1e-6):
         A, b_n = ellipsoid_to_model(*solver(m_n))
     else:
         kwargs = {} if method == "sphere_stream" else {"max_iter": max_iter, "rtol": rtol}
-        A, b_n = _reference(method)(m_n, **kwargs)
+        A, b_n = reference_method(method)(m_n, **kwargs)
     A = np.asarray(A, dtype=float)
     if not np.all(np.isfinite(A)) or abs(np.linalg.det(A)) < 1e-12:
         raise InsufficientDataError(f"method {method!r} did not produce an invertible sensor matrix")
@@ -219,7 +203,3 @@ def _fit_reference(m, method, structure, *, max_iter=300, rtol=1e-6):
     x = optimal_directions(K, b, m)
     return K, b, x, assess(x, structure, True, K, m=m)
 
-
-from .._callable import make_module_callable  # noqa: E402
-
-make_module_callable(__name__, "fit")

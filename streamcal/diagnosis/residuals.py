@@ -8,7 +8,7 @@
   the field scale (``field`` or the geometric mean of diag K), sensor unit.
 - ``dip`` (needs accel): angle between the calibrated field and the accelerometer's "up"
   direction, minus its median, degrees.
-- ``gyro`` (needs gyro): the gyro-consistency residual of :mod:`streamcal.model.gyro_lag`,
+- ``gyro`` (needs gyro): the gyro-consistency residual of :mod:`streamcal.fitting.gyro_lag`,
   ``r_ab = K (x̂_b − x_b)`` with ``x̂_b`` sample a's direction carried over the horizon H to
   sample b by the integrated gyro (a fixed world vector seen from a body rotating at ω moves as
   ẋ = −ω × x), the gyro's frame, gains and bias fitted, read at ``t − τ`` with the model's lag τ
@@ -138,8 +138,8 @@ def binned_sphere(values: np.ndarray, x: np.ndarray, n_az: int = 8, n_el: int = 
 def families(cal, m, cov, inliers, r=None, x=None, gyro=None) -> dict:
     """Every residual family available for the data: rms (over inliers) and its distribution
     over time, temperature, aux channels and the sphere of directions. ``gyro``: a gyro-tied
-    fit (:class:`streamcal.model.registration.RegistrationFit` from
-    :func:`streamcal.model.gyro_lag.gyro_lag_fit`) for the ``gyro`` family, with optional
+    fit (:class:`streamcal.fitting.registration.RegistrationFit` from
+    :func:`streamcal.fitting.gyro_lag.gyro_lag_fit`) for the ``gyro`` family, with optional
     attribute ``lag_estimate`` (s); None leaves the family out."""
     if r is None:
         r, x, _, _ = sensor_residual(cal, m, cov)

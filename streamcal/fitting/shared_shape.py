@@ -9,7 +9,7 @@ fitting K, b and Δ jointly lets the disturbed samples pin the shape. Δ needs i
 kernel and never pull Δ.
 
 :class:`DisturbanceShift` is the internal model term ``Δ·1[j disturbed]`` for the LM
-(``streamcal.fit.lm.refine``), with the indicator passed as the covariate :data:`INDICATOR`.
+(``streamcal.fitting.lm.refine``), with the indicator passed as the covariate :data:`INDICATOR`.
 All quantities are in the LM's (normalized) units.
 """
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Vasconcelos et al. (2011): geometric ellipsoid fit by nonlinear least squares.
 
-Start from the algebraic L2 ellipsoid fit (:func:`streamcal.fit.ellipsoid.fit_l2_ellipsoid`,
+Start from the algebraic L2 ellipsoid fit (:func:`streamcal.fitting.ellipsoid.fit_l2_ellipsoid`,
 model via Algorithm 1), then minimize (paper Table I)
 
     Σ_j r_j²,    r_j = ‖T (m_j − b)‖ − 1,

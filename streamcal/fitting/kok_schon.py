@@ -9,11 +9,11 @@ and the fit is
 
     minimize ‖M θ‖²   subject to   C ⪰ 0,  trace(C) = 1,
 
-(M as :func:`streamcal.fit.ellipsoid.design_matrix`), whose global minimum a conic solver finds
+(M as :func:`streamcal.fitting.ellipsoid.design_matrix`), whose global minimum a conic solver finds
 (Clarabel here; SeDuMi in the papers). With M = Q R (thin QR), ‖M θ‖ = ‖R θ‖ for the 10×10
 factor R, so the program has the same size for every N; it is built once with R as a
 ``cvxpy.Parameter`` and re-solved. The model follows from
-Algorithm 1 (:func:`streamcal.fit.ellipsoid.ellipsoid_to_model`).
+Algorithm 1 (:func:`streamcal.fitting.ellipsoid.ellipsoid_to_model`).
 """
 from __future__ import annotations
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .atomic import atomic_write_bytes
-from .errors import TrackError
+from ..atomic import atomic_write_bytes
+from ..errors import TrackError
 
 TIME = "t"
 MAG = ("mx", "my", "mz")

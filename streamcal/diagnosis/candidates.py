@@ -14,7 +14,7 @@ at least :data:`MIN_DROP`) and the base rms is clearly above the noise floor
 
 Registration effects (``mag_accel_misalignment``, ``time_lag``) leave no trace in the eq. 41
 residual (every direction is free), so they are judged on the gravity-tied residual of
-:mod:`streamcal.model.registration` instead: the candidate's refit is compared — same F test,
+:mod:`streamcal.fitting.registration` instead: the candidate's refit is compared — same F test,
 same materiality rule — with the gravity-tied fit of the current model *without* the effect.
 Both rms values are sqrt(mean ‖r_j‖²) over each fit's inliers in the sensor unit, computed the
 same way, and "add the effect and refit" returns exactly the promised ``rms_after``; but that
@@ -23,7 +23,7 @@ in the evidence text), not with the diagnosis' free-direction ``rms``. Candidate
 ``rms_after`` / the rms each was compared with.
 
 On a track with a gyro but no accelerometer, ``time_lag`` is judged the same way on the
-gyro-tied residual of :mod:`streamcal.model.gyro_lag` (the reading predicted from the sample
+gyro-tied residual of :mod:`streamcal.fitting.gyro_lag` (the reading predicted from the sample
 0.5 s earlier carried over by the integrated gyro, sensor unit): base and candidate are the
 gyro-tied fits without and with τ (same pairs, same 12 gyro-map parameters), so rms and
 rms_after are again the same statistic, and ``streamcal fit --add time_lag`` on that track

@@ -57,7 +57,7 @@ the Gauss–Newton steps. A minimum on the grid's edge means the data do not det
 Robust weights and the rms
 --------------------------
 Pairs are weighted by the fit's kernel (width from the median residual after the grid, as in
-:mod:`streamcal.model.registration`, then held fixed so the robust cost stays one function);
+:mod:`streamcal.fitting.registration`, then held fixed so the robust cost stays one function);
 pairs across a saturated gyro reading (:func:`saturated`) are dropped, and so are
 sample-and-hold repeats of the magnetometer (:func:`fresh`); a pair is an inlier when both samples are inliers of the
 free-direction fit and ‖r_ab‖ ≤ 2 kernel widths. ``rms`` is sqrt(mean ‖r_ab‖²) over inlier pairs,
@@ -65,7 +65,7 @@ in the sensor unit — computed the same way with and without the lag (same pair
 nuisance parameters), so the two are comparable; not with the free-direction rms (eq. 41),
 which cannot see a lag at all. Without any effect (2) keeps the noise of two samples, ≈ 2σ.
 
-K, b and the other effects come from the free-direction fit (``streamcal.fit.fit``) of the rest
+K, b and the other effects come from the free-direction fit (``streamcal.fitting.fit``) of the rest
 of the model: the lag leaves the ellipsoid residual unchanged, so it changes nothing there; it
 matters where the direction is combined with the gyro, which is the residual (2).
 """
@@ -76,8 +76,12 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..fit.kernels import kernel_weights, width_from_residuals
 from ..errors import InsufficientDataError, MissingColumnsError
+from ..model.build import check_known, terms_from_params
+from ..quaternion import cumulative_rotation, qmul
+from .core import fit_core
+from .kernels import kernel_weights, width_from_residuals
+from .registration_result import RegistrationFit
 
 #: Time between the two samples of a pair (s).
 HORIZON_S = 0.5
@@ -224,7 +228,6 @@ class GyroPairs:
     def orientation(self, p: np.ndarray) -> "Orientation":
         """Q (body = magnetometer frame → gyro-following frame) from the mapped rates
         ω' = M ω + c, integrated on the gyro rows."""
-        from ..sim.motion import cumulative_rotation
 
         M, c = p[:9].reshape(3, 3), p[9:12]
         rates = self.w @ M.T + c
@@ -266,12 +269,11 @@ class Orientation:
         self.t, self.quat, self.steps = t, quat, steps
 
     def at(self, t_query: np.ndarray) -> Rotation:
-        from ..sim.motion import _qmul  # Hamilton product, vectorized
 
         i = np.clip(np.searchsorted(self.t, t_query) - 1, 0, len(self.t) - 2)
         f = np.clip((t_query - self.t[i]) / (self.t[i + 1] - self.t[i]), 0.0, 1.0)
         part = Rotation.from_rotvec(f[:, None] * self.steps[i]).as_quat()
-        return Rotation.from_quat(_qmul(self.quat[i], part))
+        return Rotation.from_quat(qmul(self.quat[i], part))
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -288,7 +290,6 @@ def _identity_map() -> np.ndarray:
 
 def _n_base_params(cal) -> int:
     """Global parameters of a free-direction fit: K, b (at most 9) and the effect terms."""
-    from .build import terms_from_params
 
     core = min(sum({"hard_iron": 3, "scale": 3, "soft_iron": 6}.get(n, 0) for n in cal.model), 9)
     return core + sum(t.n_params() for t, _ in terms_from_params(cal.effects))
@@ -374,7 +375,7 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
 def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: float | None = None,
                  initial=None, rows: np.ndarray | None = None, lag: float = 0.0):
     """Gyro-tied fit of ``model`` on ``track`` (module docstring) →
-    :class:`streamcal.model.registration.RegistrationFit` with the residual (2) per sample
+    :class:`streamcal.fitting.registration.RegistrationFit` with the residual (2) per sample
     (stored at the earlier sample of each pair; none, and not inliers, in the last H seconds and
     at repeated readings), its inliers and rms; ``rotation`` is the polar
     factor of the fitted gyro map M, ``dip`` is NaN (not used), ``lag`` τ (0 without
@@ -386,9 +387,6 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
     model matches). ``rows``: magnetometer sample indices; only pairs starting there are fitted
     (the residuals, inliers and rms returned still cover every pair). ``lag``: the τ (s) used
     when ``time_lag`` is not in ``model`` (e.g. a lag known from another fit)."""
-    from ..fit import fit
-    from .build import check_known
-    from .registration import RegistrationFit
 
     names = check_known(model)
     if "mag_accel_misalignment" in names:
@@ -401,7 +399,7 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
             np.shape(initial.inliers) == (len(track.mag),):
         base = initial
     else:
-        base = fit(track, model=base_names, kernel=kernel, tau=tau, initial=initial)
+        base = fit_core(track, model=base_names, kernel=kernel, tau=tau, initial=initial)
     t_g, w = gyro_rates(track)
     cov = {k: np.asarray(v, float) for k, v in track.covariates_at_mag().items()}
     m = np.asarray(track.mag, dtype=float)

@@ -26,7 +26,7 @@ Stops after ``max_iter`` iterations or when the relative cost change falls below
 (§III-A: 300 and 1e-6).
 
 How the blocks are computed (same numbers, fewer operations). The Triggs correction is folded
-into a per-sample weight matrix (:func:`~streamcal.fit.kernels.triggs_weights`):
+into a per-sample weight matrix (:func:`~streamcal.fitting.kernels.triggs_weights`):
 J̃ᵀJ̃ = Jᵀ W J and J̃ᵀr̃ = γ Jᵀr with W = w I + e r rᵀ. With A_j = J_xj (I − x_j x_jᵀ) the projected
 direction Jacobian and B_j = A_jᵀ W_j (3×3):
 
@@ -318,7 +318,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     Args:
         m: (N,3) measurements (normalized units in the pipeline).
         K, b, x: starting model (3,3), (3,) and unit directions (N,3).
-        kernel: a kernel of :mod:`streamcal.fit.kernels` (default L2).
+        kernel: a kernel of :mod:`streamcal.fitting.kernels` (default L2).
         structure: ``"full"`` (upper-triangular K, soft iron), ``"diag"`` (scale only) or
             ``"sphere"`` (K = k I, hard iron only).
         fit_b: estimate b (else it stays as given).

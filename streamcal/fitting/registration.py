@@ -51,7 +51,7 @@ global parameters p = (K, b, θ, R, δ, τ) and the headings:
       are w_j = trust_j ρ̃′. A trial step is accepted only when the cost itself does not rise.
   width — held fixed during a Levenberg–Marquardt pass (a width re-estimated every round makes
       the cost a moving target: it grew with the drift above), re-estimated from the median
-      residual between passes until it moves < 5 % (as in :mod:`streamcal.fit.autocal`).
+      residual between passes until it moves < 5 % (as in :mod:`streamcal.fitting.autocal`).
       Whatever the passes did, the parameters returned never have a higher cost, at the final
       width, than the start.
 
@@ -73,7 +73,7 @@ data its linear acceleration tilts K by degrees.) The remaining error of ĝ is a
 gravity-tied residual, the same with and without a registration effect.
 
 Without the accelerometer, ``time_lag`` alone is estimated from the gyro: consecutive
-directions are linked by the rotation rate (:mod:`streamcal.model.gyro_lag`, the gyro-tied
+directions are linked by the rotation rate (:mod:`streamcal.fitting.gyro_lag`, the gyro-tied
 residual); :func:`registration_fit` hands such tracks over to it.
 
 The rms reported (``Calibration.rms``) is sqrt(mean ‖r_j‖²) over inliers (‖r_j‖ ≤ 2 kernel
@@ -90,11 +90,17 @@ import numpy as np
 import scipy.signal
 from scipy.spatial.transform import Rotation
 
-from ..fit.kernels import HALF_NORMAL_MEDIAN, kernel_weights, width_from_residuals
+from ..calibration import Calibration
 from ..errors import InputError, InsufficientDataError, MissingColumnsError
-from ._common import number, only_keys, vector3
+from ..inputs.track import Track
+from ..model.build import TERMS, build_effects, check_known, check_needs, terms_from_params
+from ..model.registration_params import NAMES
+from ..quaternion import cumulative_rotation
+from .core import fit_core
+from .registration_result import RegistrationFit
+from .gyro_lag import gyro_lag_fit
+from .kernels import HALF_NORMAL_MEDIAN, WIDTH_KERNELS, kernel_weights, make_kernel, width_from_residuals
 
-NAMES = ("mag_accel_misalignment", "time_lag")
 #: Low-pass cut-off (Hz) of the gravity estimate: in the gyro-following frame / raw readings.
 CUTOFF_GYRO_HZ = 0.05
 CUTOFF_ACCEL_HZ = 3.0
@@ -118,22 +124,6 @@ WIDTH_SETTLED = 0.05
 WIDTH_RTOL = 1e-3
 OUTLIER_WIDTHS = 2.0
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-def validate_registration_params(name: str, params: Mapping) -> None:
-    """ValueError naming the effect and key when ``params`` is malformed."""
-    if name == "mag_accel_misalignment":
-        only_keys(params, ("rotation", "dip"), name)
-        vector3(params, "rotation", name)
-        number(params, "dip", name)
-    elif name == "time_lag":
-        only_keys(params, ("tau",), name)
-        number(params, "tau", name)
-    else:
-        raise ValueError(f"{name!r} is not a registration effect")
-
-
-# ---------------------------------------------------------------------------------- gravity
 
 
 @dataclass(frozen=True)
@@ -175,7 +165,6 @@ def gravity_reference(track) -> GravityReference:
     norm = np.linalg.norm(f, axis=1)
     trust = 1.0 / (1.0 + ((norm - 1.0) / TRUST_G) ** 2)
     if track.has("gyro"):
-        from ..sim.motion import cumulative_rotation  # Hillis–Steele quaternion scan
 
         gr = track.gyro_rows
         w = np.stack([np.interp(t, track.t[gr], track.gyro[:, i]) for i in range(3)], axis=1)
@@ -195,24 +184,6 @@ def gravity_reference(track) -> GravityReference:
 
 
 # ---------------------------------------------------------------------------------- the fit
-
-
-@dataclass
-class RegistrationFit:
-    """Everything a gravity-tied fit learnt: ``calibration`` plus per-sample ``residuals``
-    (N,3) sensor unit, ``directions`` (N,3) magnetometer frame, ``inliers`` (N,), the global
-    ``rotation`` (3,3, mag → accel), ``dip`` (rad), ``lag`` (s) and the number of global
-    parameters ``n_params``."""
-
-    calibration: object
-    residuals: np.ndarray
-    directions: np.ndarray
-    inliers: np.ndarray
-    rotation: np.ndarray
-    dip: float
-    lag: float
-    n_params: int
-    rms: float
 
 
 class _Problem:
@@ -344,10 +315,8 @@ class _Problem:
 
 def _start(track, names, kernel, initial):
     """K, b and effect-term parameters to start from (a warm start or an ellipsoid fit)."""
-    from ..fit import fit
-
     if initial is None:
-        initial = fit(track, model=names, kernel=kernel)
+        initial = fit_core(track, model=names, kernel=kernel)
     return initial
 
 
@@ -367,16 +336,11 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     :func:`gravity_reference`.
 
     A track with a gyro but no accelerometer (and no ``mag_accel_misalignment`` in ``model``) is
-    fitted on the gyro-tied residual instead (:func:`streamcal.model.gyro_lag.gyro_lag_fit`).
+    fitted on the gyro-tied residual instead (:func:`streamcal.fitting.gyro_lag.gyro_lag_fit`).
     """
-    from ..calibration import Calibration
-    from .build import build_effects, check_known, check_needs, terms_from_params, TERMS
-
     names = check_known(model)
     check_needs(names, track)
     if not track.has("accel") and track.has("gyro") and "mag_accel_misalignment" not in names:
-        from .gyro_lag import gyro_lag_fit  # time_lag from the gyro alone
-
         return gyro_lag_fit(track, names, kernel=kernel, tau=tau, initial=initial, rows=rows)
     base_names = tuple(n for n in names if n not in NAMES)
     fit_rot, fit_lag = "mag_accel_misalignment" in names, "time_lag" in names
@@ -491,7 +455,6 @@ class _Capped:
 
 def _loss(kernel: str, width: float):
     """The fit's kernel of ``width`` (sensor unit) capped at :data:`OUTLIER_WIDTHS` widths."""
-    from ..fit.kernels import WIDTH_KERNELS, make_kernel
 
     if kernel not in WIDTH_KERNELS:
         return make_kernel(kernel)
@@ -569,9 +532,7 @@ def fit_with_registration(track, model: Sequence[str] = ("hard_iron", "soft_iron
     whose ``effects`` hold ``{"mag_accel_misalignment": {"rotation": [rx, ry, rz] rad, "dip":
     rad}}`` and/or ``{"time_lag": {"tau": s}}``; ``rms`` is the gravity-tied residual (µT).
     Without accelerometer columns, ``time_lag`` comes from the gyro and ``rms`` is the gyro-tied
-    residual (:mod:`streamcal.model.gyro_lag`)."""
-    from ..track import Track
-
+    residual (:mod:`streamcal.fitting.gyro_lag`)."""
     if sensor != "mag":
         raise InputError(f"registration effects apply to the magnetometer, not --sensor {sensor}")
     if not isinstance(track, Track):

@@ -21,7 +21,8 @@ from typing import Iterable, Iterator, Mapping
 import numpy as np
 
 from . import trackio
-from .errors import InputError, TrackError
+from ..errors import InputError, TrackError
+from ..samples import SampleBlock
 from .trackio import ACCEL, GYRO, KNOWN, MAG, TEMP, TIME, TRIPLES
 
 _UNIT_ALIASES = {"ut": "uT", "µt": "uT", "μt": "uT", "microtesla": "uT", "m/s^2": "m/s^2",
@@ -122,7 +123,7 @@ class Track:
 
     @classmethod
     def from_blocks(cls, blocks: Iterable, metadata=None) -> "Track":
-        """Concatenate :class:`firmware_bridge.sample.SampleBlock` s (inverse of :meth:`blocks`).
+        """Concatenate :class:`streamcal.samples.SampleBlock` s (inverse of :meth:`blocks`).
 
         Sensors missing from some blocks are NaN there. ``metadata`` defaults to the blocks'
         ``source``.
@@ -271,10 +272,8 @@ class Track:
         return out
 
     def blocks(self, n: int) -> Iterator:
-        """Yield :class:`firmware_bridge.sample.SampleBlock` s of ``n`` consecutive rows
+        """Yield :class:`streamcal.samples.SampleBlock` s of ``n`` consecutive rows
         (the last may be shorter); sensors the track lacks are None, unsampled instants NaN."""
-        from firmware_bridge.sample import SampleBlock
-
         if int(n) < 1:
             raise InputError(f"block size must be a positive number of rows, got {n}")
         n = int(n)
