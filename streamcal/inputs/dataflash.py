@@ -37,6 +37,7 @@ from .autopilot_cal import COMPASS_PARAMS, MG_PER_UT, ardupilot_matrix
 from .streams import Stream, merge
 
 MAGIC = b"\xa3\x95"   # HEAD_BYTE1, HEAD_BYTE2 of every DataFlash message
+FMT_TYPE, FMT_LENGTH = 0x80, 89  # the self-describing FMT message: type 128, 89 bytes
 MESSAGES = ("MAG", "IMU", "RCOU", "CURR", "BAT", "BARO", "PARM", "MSG")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
 PWM_RANGE_US = (0.0, 3000.0)
@@ -70,13 +71,45 @@ def looks_like_dataflash(head: bytes) -> bool:
     return head[:2] == MAGIC and head[2:3] == b"\x80"
 
 
+def _cut_bytes(data: bytes) -> int:
+    """Bytes of a message the file ends inside (0 if the last message is complete).
+
+    Walks the message chain (lengths from the FMT messages, resynchronising on the header bytes
+    after garbage) because pymavlink stops silently at a cut message.
+    """
+    lengths = {FMT_TYPE: FMT_LENGTH}
+    offset, size = 0, len(data)
+    while offset + 3 <= size:
+        if data[offset:offset + 2] != MAGIC or data[offset + 2] not in lengths:
+            nxt = data.find(MAGIC, offset + 1)
+            if nxt < 0:
+                return 0  # trailing garbage, not a cut message
+            offset = nxt
+            continue
+        length = lengths[data[offset + 2]]
+        if offset + length > size:
+            return size - offset
+        if data[offset + 2] == FMT_TYPE:
+            lengths[data[offset + 3]] = data[offset + 4]
+        offset += length
+    return size - offset if size - offset >= 2 and data[offset:offset + 2] == MAGIC else 0
+
+
 def _parse(path: Path, skip_bad_rows: bool) -> _Messages:
     from pymavlink import DFReader  # heavy (lxml, ~0.2 s): imported only when a log is read
 
+    try:
+        left = _cut_bytes(path.read_bytes())
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+    if left > 0 and not skip_bad_rows:
+        raise InputError(f"{path}: DataFlash log ends inside a message (its last {left} bytes): "
+                         "the file is truncated or damaged (--skip-bad-rows reads the complete "
+                         "messages)")
     out = _Messages()
     chatter = io.StringIO()
     try:
-        with contextlib.redirect_stdout(chatter):
+        with contextlib.redirect_stdout(chatter), contextlib.redirect_stderr(chatter):
             reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
             while True:
                 msg = reader.recv_match(type=list(MESSAGES))
@@ -93,15 +126,10 @@ def _parse(path: Path, skip_bad_rows: bool) -> _Messages:
                     out.fields[name] = list(msg.get_fieldnames())
                     out.rows[name] = []
                 out.rows[name].append(tuple(getattr(msg, f) for f in out.fields[name]))
-            left = int(reader.data_len - reader.offset)
             formats = {fmt.name: fmt for fmt in reader.formats.values()}
     except Exception as exc:  # pymavlink raises assorted exception types on damaged bytes
         raise InputError(f"{path}: cannot read the DataFlash log ({type(exc).__name__}: {exc})") \
             from None
-    if left > 0 and not skip_bad_rows:
-        raise InputError(f"{path}: DataFlash log ends inside a message ({left} bytes after the "
-                         f"last complete message at byte {reader.offset}): the file is truncated "
-                         "or damaged (--skip-bad-rows reads the complete messages)")
     for name, fmt in formats.items():
         if name in out.fields:
             out.types[name] = dict(zip(fmt.columns, fmt.format))
@@ -209,12 +237,12 @@ def _rcou(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
             continue
         values = msgs.array("RCOU", name)
         label = f"rcou_c{int(match.group(1))}"
-        if np.all(values == values[0]):
-            unused.append(label)  # never driven, or a constant that carries nothing
-            continue
         if values.min() < PWM_RANGE_US[0] or values.max() > PWM_RANGE_US[1]:
             dropped.append(f"{label} (values {values.min():g}..{values.max():g} outside "
                            f"{PWM_RANGE_US[0]:g}..{PWM_RANGE_US[1]:g} us: not a PWM output)")
+            continue
+        if np.all(values == values[0]):
+            unused.append(label)  # never driven, or a constant that carries nothing
             continue
         cols[label] = values
     meta["rcou_channels"] = ",".join(cols) or "none"
