@@ -57,8 +57,9 @@ def test_columns_counts_unit_and_errors(tmp_path, capsys):
     assert track.mag_unit == "counts" and track.skipped_rows == 1
     with pytest.raises(InputError, match="header does not have"):
         read_recording(path, columns="mx=a,my=b,mz=zz")
-    with pytest.raises(InputError, match="--columns"):
+    with pytest.raises(TrackError, match="--columns") as info:
         read_recording(path)
+    assert info.value.line == 1 and info.value.column in ("t", "mx")
     out = tmp_path / "t.csv"
     assert main(["convert", str(path), "-o", str(out), "--columns", "mx=a,my=b,mz=c",
                  "--skip-bad-rows"]) == 0

@@ -15,7 +15,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Mapping
 
-from ..errors import InputError
+from ..errors import InputError, TrackError
 from ..track import Track
 from .autopilot_cal import calibration_from_ardupilot
 from .columns import parse_columns, parse_unit
@@ -68,9 +68,14 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
                              "unit in '# mag_unit:')")
         return Track.read(path, skip_bad_rows=skip_bad_rows)
     else:
-        raise InputError(f"{path}: not a streamcal track (no t,mx,my,mz header) nor a log "
-                         "format streamcal recognises; for another CSV/TSV give "
-                         "--columns mx=NAME,my=NAME,mz=NAME[,t=NAME] and --unit")
+        # Not a section-1 header: the track reader names what is missing; add the way out.
+        try:
+            return Track.read(path, skip_bad_rows=skip_bad_rows)
+        except TrackError as exc:
+            raise TrackError(f"{exc.reason} (not a streamcal track nor a log format streamcal "
+                             "recognises; for another CSV/TSV give --columns mx=NAME,my=NAME,"
+                             "mz=NAME[,t=NAME] and --unit)", exc.path, exc.line,
+                             exc.column) from None
     track.path = path
     return track
 
