@@ -6,12 +6,14 @@ import importlib
 import json
 
 from ..errors import InputError
+from ._common import RECORDING_HELP, add_input_options, read_track
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("diagnose", help="compare the model with the measurements and name "
                               "the missing effect")
-    p.add_argument("track", help="track file (.csv or .csv.gz, SPEC §1)")
+    p.add_argument("track", help=RECORDING_HELP)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--model", default="hard_iron,soft_iron",
                    help="comma-separated effects of SPEC §3 (default: hard_iron,soft_iron)")
     p.add_argument("--json", action="store_true", help="print one JSON object (SPEC §4)")
@@ -30,11 +32,10 @@ def _report_module():
 
 def run(args: argparse.Namespace) -> int:
     from ..diagnosis import diagnose
-    from ..inputs.track import Track
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
     report = _report_module() if args.plots else None
-    track = Track.read(args.track)
+    track = read_track(args)
     result = diagnose(track, model=model)
     if report is not None:
         report.write_diagnosis_plots(result, track, args.plots)

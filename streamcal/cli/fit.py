@@ -6,13 +6,15 @@ import json
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ._common import RECORDING_HELP, add_input_options, read_track
 
 
 def register(sub) -> None:
     p = sub.add_parser("fit", help="calibrate from a recorded track",
                        description="Fit the sensor model to a recorded track (two-stage robust "
                                    "autocalibration by default) and print or save the calibration.")
-    p.add_argument("track", help="track file (.csv or .csv.gz, SPEC §1)")
+    p.add_argument("track", help=RECORDING_HELP)
+    add_input_options(p)
     p.add_argument("--sensor", choices=("mag", "accel"), default="mag")
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects (default: %(default)s)")
@@ -49,9 +51,7 @@ def _tau(value):
 
 def run(args) -> int:
     from ..fitting import fit
-    from ..inputs.track import Track
-
-    track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
+    track = read_track(args)
     cal = fit(track, sensor=args.sensor, model=args.model, add=args.add, kernel=args.kernel,
               method=args.method, tau=_tau(args.tau), check_coverage=not args.no_coverage_check)
     if args.output:

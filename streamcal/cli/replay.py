@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ._common import RECORDING_HELP, add_input_options, read_track
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
 #: environment's: soft iron leaves 1.7–6.4 % on the real one-environment tracks, BROAD 32 (a
@@ -28,7 +29,8 @@ def register(sub) -> None:
                        description="Replay a recorded track through the streaming pipeline "
                                    "(coverage buffer, recalibration policy, background fits, "
                                    "acceptance guard, calibration store) and print its events.")
-    p.add_argument("track", help="track file (.csv or .csv.gz, SPEC §1)")
+    p.add_argument("track", help=RECORDING_HELP)
+    add_input_options(p)
     p.add_argument("--realtime", action="store_true", help="sleep to follow the track's time")
     p.add_argument("--state-dir", metavar="DIR",
                    help="keep calibration.json and its history here, as the daemon does")
@@ -50,12 +52,11 @@ def run(args) -> int:
 
     from ..errors import InputError
     from ..stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
-    from ..inputs.track import Track
 
     if args.block < 1:
         raise InputError(f"--block: must be a positive number of rows, got {args.block}")
     model = tuple(m.strip() for m in args.model.split(",") if m.strip())
-    track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
+    track = read_track(args)
     if not track.mag_rows.any():
         raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
     covariates = tuple(n for n in ("temp", *track.aux_names) if track.has(n))

@@ -10,12 +10,14 @@ import sys
 from pathlib import Path
 
 from ..calibration import DEFAULT_MODEL
+from ._common import RECORDING_HELP, add_input_options, read_track
 
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("report", help="diagnose a track and write a self-contained HTML "
                               "report of figures", description=__doc__.splitlines()[0])
-    p.add_argument("track", help="track file (.csv or .csv.gz, SPEC §1)")
+    p.add_argument("track", help=RECORDING_HELP)
+    add_input_options(p)
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects of SPEC §3 (default: %(default)s)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
@@ -43,10 +45,9 @@ def default_output(track_path: str) -> Path:
 
 def run(args) -> int:
     from ..report import diagnose_or_reason, write_report
-    from ..inputs.track import Track
 
     model = model_from_args(args.model, args.add)
-    track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
+    track = read_track(args)
     diagnosis, reason = diagnose_or_reason(track, model)
     out = Path(args.output) if args.output else default_output(args.track)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,95 @@
-"""Recordings in: track files (CSV/CSV.gz) and the readers of other formats, all into a
-:class:`~streamcal.inputs.track.Track`."""
-from .track import Track
+"""Reading recordings: one entry point for every command that reads one.
 
-__all__ = ["Track"]
+    track = read_recording("flight.BIN")                      # ArduPilot DataFlash
+    track = read_recording("log.ulg")                         # PX4 ULog
+    track = read_recording("capture.txt")                     # MotionCal Raw: lines
+    track = read_recording("other.tsv", columns="mx=Bx,my=By,mz=Bz,t=time", unit="nT")
+
+The format is detected from the content (:mod:`.detect`). Every reader returns a
+:class:`~streamcal.inputs.track.Track` in SPEC §1 units, with units, axes and provenance in its
+metadata, and raises :class:`~streamcal.errors.InputError` (or its subclass ``TrackError``)
+naming the file and what is wrong or missing.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping
+
+from ..errors import InputError, TrackError
+from .track import Track
+from .autopilot_cal import calibration_from_ardupilot
+from .columns import parse_columns, parse_unit
+from .detect import FORMATS, detect
+
+__all__ = ["read_recording", "detect", "FORMATS", "autopilot_calibration",
+           "calibration_from_ardupilot"]
+
+
+def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
+                   unit: str | None = None, skip_bad_rows: bool = False) -> Track:
+    """Read any supported recording into a Track.
+
+    Args:
+        path: the file (``.csv``/``.csv.gz`` track, ``.bin``, ``.ulg``, ``Raw:`` capture, CSV/TSV).
+        columns: ``"mx=NAME,my=NAME,mz=NAME[,t=NAME,…]"`` (or a dict) for a delimited file that
+            is not a SPEC §1 track; also accepted for a track, to rename its columns.
+        unit: the magnetometer unit of such a file: ``uT``, ``nT``, ``mG``, ``G`` or ``counts``.
+        skip_bad_rows: skip and count malformed rows (text) or a cut last message (logs).
+    """
+    path = Path(path)
+    fmt = detect(path)
+    columns = parse_columns(columns)
+    if (columns is not None or unit is not None) and fmt in ("dataflash", "ulog", "raw"):
+        raise InputError(f"{path}: --columns/--unit apply to CSV/TSV files; this is a "
+                         f"{fmt} recording with its own units")
+    if fmt == "dataflash":
+        from .dataflash import read_dataflash
+
+        track = read_dataflash(path, skip_bad_rows=skip_bad_rows)
+    elif fmt == "ulog":
+        from .ulog import read_ulog
+
+        track = read_ulog(path, skip_bad_rows=skip_bad_rows)
+    elif fmt == "raw":
+        from .raw_capture import read_raw_capture
+        from .detect import read_whole
+
+        track = read_raw_capture(path, read_whole(path), skip_bad_rows=skip_bad_rows)
+    elif columns is not None:
+        from .columns import read_columns_file
+        from .detect import read_whole
+
+        text = read_whole(path).decode("utf-8", errors="replace")
+        track = read_columns_file(path, text, columns, unit, skip_bad_rows=skip_bad_rows)
+    elif fmt == "track":
+        if unit is not None:
+            parse_unit(unit)
+            raise InputError(f"{path}: --unit needs --columns (a section-1 track declares its "
+                             "unit in '# mag_unit:')")
+        return Track.read(path, skip_bad_rows=skip_bad_rows)
+    else:
+        # Not a section-1 header: the track reader names what is missing; add the way out.
+        try:
+            return Track.read(path, skip_bad_rows=skip_bad_rows)
+        except TrackError as exc:
+            raise TrackError(f"{exc.reason} (not a streamcal track nor a log format streamcal "
+                             "recognises; for another CSV/TSV give --columns mx=NAME,my=NAME,"
+                             "mz=NAME[,t=NAME] and --unit)", exc.path, exc.line,
+                             exc.column) from None
+    track.path = path
+    return track
+
+
+def autopilot_calibration(track: Track) -> "Calibration":
+    """The autopilot's own calibration from a track read from an ArduPilot log (its
+    ``param.COMPASS_*`` and ``autopilot_field_uT`` metadata, which survive ``convert``)."""
+    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
+              if k.startswith("param.COMPASS_")}
+    where = str(track.path) if track.path else "track"
+    if not params:
+        raise InputError(f"{where}: no COMPASS_* parameters in the metadata (not read from an "
+                         "ArduPilot log, or the log has no PARM messages)")
+    field = track.metadata.get("autopilot_field_uT")
+    if field is None:
+        raise InputError(f"{where}: no autopilot_field_uT in the metadata")
+    return calibration_from_ardupilot(params, float(field), source=f"{where} COMPASS_* parameters")

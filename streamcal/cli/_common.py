@@ -1,0 +1,26 @@
+"""Options and reading shared by every command that reads a recording (SPEC §4 "Inputs")."""
+from __future__ import annotations
+
+RECORDING_HELP = ("recording: track (.csv/.csv.gz), ArduPilot DataFlash .bin, PX4 .ulg, "
+                  "MotionCal Raw: capture, or another CSV/TSV with --columns")
+
+
+def add_input_options(parser, skip_bad_rows: bool = False) -> None:
+    """Add ``--columns`` and ``--unit`` (and ``--skip-bad-rows`` when asked) to ``parser``."""
+    parser.add_argument("--columns", metavar="MAP",
+                        help="for another CSV/TSV: mx=NAME,my=NAME,mz=NAME[,t=NAME,ax=NAME,…,"
+                             "temp=NAME,AUX=NAME]")
+    parser.add_argument("--unit", choices=("uT", "nT", "mG", "G", "counts"),
+                        help="magnetometer unit of a --columns file (default uT)")
+    if skip_bad_rows:
+        parser.add_argument("--skip-bad-rows", action="store_true",
+                            help="skip and count malformed rows (or a cut last log message)")
+
+
+def read_track(args, path=None):
+    """The recording named by ``path`` (default ``args.track``) as a Track."""
+    from ..inputs import read_recording
+
+    return read_recording(args.track if path is None else path,
+                          columns=getattr(args, "columns", None), unit=getattr(args, "unit", None),
+                          skip_bad_rows=getattr(args, "skip_bad_rows", False))

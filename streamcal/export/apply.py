@@ -1,0 +1,91 @@
+"""A calibration applied to recorded readings (SPEC §4 ``streamcal apply``).
+
+Per magnetometer sample: the calibrated field ``f = |B| x`` (µT) with ``x = K⁻¹ (m − b − effect
+terms)``, the unit direction ``x/|x|``, and, when the accelerometer is known at that instant,
+the tilt-compensated magnetic heading of the body x axis. Heading: the specific force measured
+at rest points up in any body frame, so with ``u = a/|a|`` the horizontal field ``n = f − (f·u) u``
+points to magnetic north, ``e = n × u`` to east, and the heading is ``atan2(e_x, n_x)`` in
+degrees, 0..360, clockwise from magnetic north seen from above. Under acceleration the "up"
+is wrong by the acceleration's tilt; the heading is only as good as that.
+"""
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass
+from typing import Mapping
+
+import numpy as np
+
+from ..atomic import atomic_write_text
+from ..calibration import Calibration
+
+
+@dataclass
+class Applied:
+    """Results over M magnetometer samples.
+
+    Attributes:
+        t: (M,) s. field: (M,3) µT (or the calibration's unit). direction: (M,3) unit vectors.
+        heading_deg: (M,) degrees from magnetic north, or None without an accelerometer.
+        field_scale: |B| used; ``field_known`` False when it is K's mean radius instead.
+    """
+
+    t: np.ndarray
+    field: np.ndarray
+    direction: np.ndarray
+    heading_deg: np.ndarray | None
+    field_scale: float
+    field_known: bool
+    unit: str
+
+
+def tilt_heading(field: np.ndarray, accel: np.ndarray) -> np.ndarray:
+    """Heading (M,) degrees of body x from the field (M,3) and the specific force (M,3)."""
+    up = accel / np.linalg.norm(accel, axis=1, keepdims=True)
+    north = field - np.sum(field * up, axis=1, keepdims=True) * up
+    east = np.cross(north, up)
+    return np.degrees(np.arctan2(east[:, 0], north[:, 0])) % 360.0
+
+
+def apply_calibration(cal: Calibration, t, mag, covariates: Mapping[str, np.ndarray] | None = None,
+                      accel=None) -> Applied:
+    """Apply ``cal`` to readings ``mag`` (M,3) at times ``t`` (M,).
+
+    ``covariates`` ``{column: (M,)}`` feed effects beyond K and b (temp, aux channels, t);
+    ``accel`` (M,3) at the same instants (NaN rows allowed) gives the heading.
+    """
+    mag = np.asarray(mag, dtype=float).reshape(-1, 3)
+    x = cal.apply(mag, dict(covariates or {}))
+    known = bool(cal.field)
+    scale = float(cal.field) if known else float(np.prod(np.diag(cal.K)) ** (1 / 3))
+    field = scale * x
+    direction = x / np.linalg.norm(x, axis=1, keepdims=True)
+    heading = None
+    if accel is not None:
+        accel = np.asarray(accel, dtype=float).reshape(-1, 3)
+        heading = np.full(len(mag), np.nan)
+        ok = np.all(np.isfinite(accel), axis=1) & (np.linalg.norm(np.nan_to_num(accel), axis=1) > 0)
+        heading[ok] = tilt_heading(field[ok], accel[ok])
+    return Applied(np.asarray(t, dtype=float).reshape(-1), field, direction, heading, scale,
+                   known, cal.unit)
+
+
+def format_csv(applied: Applied, metadata: Mapping[str, str]) -> str:
+    """CSV text: ``# key: value`` lines, header, one row per sample (NaN → empty cell)."""
+    u = applied.unit
+    cols = {"t": applied.t, f"fx_{u}": applied.field[:, 0], f"fy_{u}": applied.field[:, 1],
+            f"fz_{u}": applied.field[:, 2], "ux": applied.direction[:, 0],
+            "uy": applied.direction[:, 1], "uz": applied.direction[:, 2]}
+    if applied.heading_deg is not None:
+        cols["heading_deg"] = applied.heading_deg
+    head = [f"# {k}: {v}" for k, v in metadata.items()]
+    head.append(",".join(cols))
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack(list(cols.values())), delimiter=",", fmt="%.9g")
+    body = buf.getvalue().replace("nan", "")
+    return "\n".join(head) + "\n" + body
+
+
+def write_applied(path, applied: Applied, metadata: Mapping[str, str]) -> None:
+    """Write :func:`format_csv` atomically."""
+    atomic_write_text(path, format_csv(applied, metadata), mode=0o644)

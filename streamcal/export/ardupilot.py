@@ -1,0 +1,76 @@
+"""ArduPilot parameter file (``NAME,VALUE`` lines, as Mission Planner / MAVProxy load them).
+
+ArduPilot (``AP_Compass`` backend) corrects a body-frame reading ``r`` in milligauss as
+offsets → soft-iron matrix → motor compensation::
+
+    f = S (r + COMPASS_OFS) + COMPASS_MOT · c
+
+``S`` symmetric: diagonal COMPASS_DIA_X/Y/Z, off-diagonal COMPASS_ODI_X = S12, _Y = S13,
+_Z = S23. Offsets are *added* and in mG (1 µT = 10 mG), so ``COMPASS_OFS = −10·o``.
+COMPASS_MOTCT selects ``c``: 1 throttle (0..1), 2 battery current (A). Streamcal's channel term
+``g·a`` in the sensor frame becomes, after the matrix, ``COMPASS_MOT = −10 · S g`` (mG per A,
+or mG at full throttle). One channel only; an aux channel named ``throttle`` (0..1) maps to
+MOTCT 1, ``battery_current_a`` / ``motor_current`` / ``current`` (A) to MOTCT 2.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..calibration import Calibration
+from .common import correction, fmt
+
+MG_PER_UT = 10.0
+CURRENT_CHANNELS = ("battery_current_a", "motor_current", "current", "curr")
+THROTTLE_CHANNELS = ("throttle",)
+
+
+def apply_ardupilot(params: dict, r_mG: np.ndarray, c=None) -> np.ndarray:
+    """ArduPilot's documented correction of readings ``r_mG`` (N,3) with ``params``: (N,3) mG."""
+    S = np.diag([params[f"COMPASS_DIA_{a}"] for a in "XYZ"])
+    S[0, 1] = S[1, 0] = params["COMPASS_ODI_X"]
+    S[0, 2] = S[2, 0] = params["COMPASS_ODI_Y"]
+    S[1, 2] = S[2, 1] = params["COMPASS_ODI_Z"]
+    ofs = np.array([params[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    f = (np.asarray(r_mG) + ofs) @ S.T
+    if c is not None and params.get("COMPASS_MOTCT", 0):
+        mot = np.array([params[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+        f = f + np.asarray(c, dtype=float)[:, None] * mot
+    return f
+
+
+def export(cal: Calibration) -> tuple[str, list[str]]:
+    """(file text, notes on what ArduPilot cannot express)."""
+    corr = correction(cal)
+    S, notes = corr.S, list(corr.not_expressed)
+    params = {}
+    for k, a in enumerate("XYZ"):
+        params[f"COMPASS_OFS_{a}"] = -MG_PER_UT * corr.offset[k]
+    for k, a in enumerate("XYZ"):
+        params[f"COMPASS_DIA_{a}"] = S[k, k]
+    params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"], params["COMPASS_ODI_Z"] = \
+        S[0, 1], S[0, 2], S[1, 2]
+    motct, chosen = 0, None
+    for name in corr.channels:
+        kind = 2 if name in CURRENT_CHANNELS else 1 if name in THROTTLE_CHANNELS else 0
+        if kind and chosen is None:
+            motct, chosen = kind, name
+        else:
+            notes.append(f"aux_interference on {name!r}: ArduPilot compensates one channel, "
+                         "battery current (A) or throttle (0..1)")
+    if chosen is not None:
+        mot = -MG_PER_UT * (S @ corr.channels[chosen])
+        for k, a in enumerate("XYZ"):
+            params[f"COMPASS_MOT_{a}"] = mot[k]
+        params["COMPASS_MOTCT"] = motct
+    lines = [f"# streamcal calibration for ArduPilot (first compass), {cal.created}",
+             "# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG",
+             f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
+             + ("" if corr.field_known else " (K's mean radius: field strength unknown)"),
+             "# the rotation between streamcal's and this frame is unobservable from the "
+             "magnetometer alone and is not exported"]
+    if chosen is not None:
+        lines.append(f"# COMPASS_MOT from aux_interference on {chosen!r} "
+                     f"(COMPASS_MOTCT {motct}: {'current, mG/A' if motct == 2 else 'throttle 0..1, mG'})")
+    lines += [f"# NOT EXPRESSED: {note}" for note in notes]
+    lines += [f"{name},{fmt(value)}" for name, value in params.items()]
+    return "\n".join(lines) + "\n", notes

@@ -1,0 +1,88 @@
+"""What every destination needs: the calibration as a symmetric correction matrix and offsets.
+
+Streamcal's model is ``m = K x + b (+ effect terms)`` with ``K`` upper triangular (µT) and the
+calibrated field ``f = |B| K⁻¹ (m − b)``. Autopilots correct with a *symmetric* matrix,
+``f' = S (m − b)``. Write ``A = |B| K⁻¹`` as ``A = U S`` (polar decomposition: ``U``
+orthogonal, ``S = (AᵀA)^½`` symmetric positive definite); then ``|S (m − b)| = |A (m − b)|``
+for every reading, so the field magnitude, which is all a magnetometer calibration can observe
+without another attitude reference, is the same. ``f' = Uᵀ f``: the two differ by the rotation
+``U``, which the magnetometer alone cannot observe and which the symmetric form sets to the
+smallest rotation.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..errors import InputError
+
+#: Effects that are part of the matrix and offsets themselves.
+CORE = ("hard_iron", "soft_iron", "scale")
+
+
+@dataclass
+class Correction:
+    """A calibration in correction form ``f = S (m − o) − comp``, µT.
+
+    Attributes:
+        S: (3,3) symmetric positive definite, dimensionless.
+        offset: (3,) µT, subtracted from the reading (``= b`` plus any aux term at its median).
+        rotation: (3,3) ``U`` of the polar decomposition (not exported; for tests and notes).
+        field_uT: the calibrated field strength the matrix yields, µT, and whether it is the
+            calibration's ``field_uT`` (``field_known``) or K's mean radius.
+        channels: ``{aux name: (3,) µT per channel unit}`` sensor-frame interference terms.
+        not_expressed: human-readable notes about what the destination cannot carry.
+    """
+
+    S: np.ndarray
+    offset: np.ndarray
+    rotation: np.ndarray
+    field_uT: float
+    field_known: bool
+    channels: dict = field(default_factory=dict)
+    not_expressed: list = field(default_factory=list)
+
+
+def polar(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``A = U S`` with ``U`` orthogonal and ``S`` symmetric positive semidefinite (via SVD)."""
+    W, sigma, Vt = np.linalg.svd(A)
+    return W @ Vt, (Vt.T * sigma) @ Vt
+
+
+def correction(cal: Calibration) -> Correction:
+    """The :class:`Correction` of a magnetometer calibration in µT."""
+    if cal.sensor != "mag":
+        raise InputError(f"export: only magnetometer calibrations can be exported, this one is "
+                         f"for {cal.sensor!r}")
+    if cal.unit != "uT":
+        raise InputError(f"export: the calibration is in {cal.unit!r}, not µT; destinations "
+                         "need physical units (fit a track in µT, or convert its unit)")
+    known = bool(cal.field)
+    field_uT = float(cal.field) if known else float(np.prod(np.diag(cal.K)) ** (1 / 3))
+    U, S = polar(field_uT * np.linalg.inv(cal.K))
+    S = (S + S.T) / 2
+    offset = cal.b.copy()
+    channels, notes = {}, []
+    for name, params in cal.effects.items():
+        if name == "aux_interference":
+            for chan, p in params.get("channels", {}).items():
+                g = np.asarray(p["g"], dtype=float)
+                offset = offset - g * float(p.get("a0", 0.0))  # term g (a − a0) = g a − g a0
+                channels[chan] = g
+        elif name not in CORE:
+            notes.append(f"{name} {dict(params)}")
+    for name in cal.model:
+        if name not in CORE and name not in cal.effects and name != "aux_interference":
+            notes.append(f"{name} (in the model)")
+    if not known:
+        notes.append(f"field strength unknown: the matrix scales the field to K's mean radius "
+                     f"{field_uT:.4g} µT")
+    return Correction(S=S, offset=offset, rotation=U, field_uT=field_uT, field_known=known,
+                      channels=channels, not_expressed=notes)
+
+
+def fmt(value: float) -> str:
+    """A parameter value: shortest round-tripping decimal of a float32-precise number."""
+    return f"{float(value) + 0.0:.7g}"  # + 0.0 turns -0.0 into 0.0

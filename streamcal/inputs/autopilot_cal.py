@@ -1,0 +1,91 @@
+"""An autopilot's own compass calibration (ArduPilot ``COMPASS_*``) as a streamcal Calibration.
+
+ArduPilot corrects a body-frame reading ``r`` (milligauss) as (``AP_Compass`` backend, in this
+order: offsets, soft-iron matrix, motor compensation)::
+
+    f = S (r + o) + mot · c          S = [[DIA_X, ODI_X, ODI_Y],
+                                          [ODI_X, DIA_Y, ODI_Z],
+                                          [ODI_Y, ODI_Z, DIA_Z]]
+
+with ``o`` = COMPASS_OFS_* (mG, *added*), ``mot`` = COMPASS_MOT_* and ``c`` the battery current
+(A, COMPASS_MOTCT = 2) or the throttle (0..1, COMPASS_MOTCT = 1). An all-zero DIA means 1.
+Solving for the reading in µT (``m = r / 10``) with ``f = |F| x``::
+
+    m = (|F|/10) S⁻¹ x − o/10 − S⁻¹ mot c / 10
+
+which is streamcal's ``m = A x + b + g c`` with ``A = |F| S⁻¹`` (|F| in µT), ``b = −o/10`` µT and
+``aux_interference`` ``g = −S⁻¹ mot / 10`` µT per unit of the channel. ``A`` is symmetric;
+its canonical upper-triangular form ``K`` (``A = K Q``) describes the same ellipsoid, with
+directions rotated by ``Q``.
+"""
+from __future__ import annotations
+
+import re
+from typing import Mapping
+
+import numpy as np
+
+from ..calibration import Calibration, canonical_form
+from ..errors import InputError
+
+MG_PER_UT = 10.0
+#: COMPASS_MOTCT values (ArduPilot): 0 disabled, 1 throttle, 2 current.
+MOTCT_CHANNELS = {1: "throttle", 2: "battery_current_a"}
+#: Parameters of the first compass kept in a track's metadata (``param.NAME``).
+COMPASS_PARAMS = re.compile(r"COMPASS_(?:(?:OFS|DIA|ODI|MOT)_[XYZ]|MOTCT|SCALE|ORIENT|EXTERNAL"
+                            r"|DEV_ID|USE)")
+
+
+def ardupilot_matrix(params: Mapping[str, float]) -> np.ndarray:
+    """The symmetric soft-iron matrix ``S`` (3,3) of the first compass (identity when absent)."""
+    dia = np.array([params.get(f"COMPASS_DIA_{a}", 0.0) for a in "XYZ"], dtype=float)
+    if not np.any(dia):
+        dia = np.ones(3)
+    odi = [params.get(f"COMPASS_ODI_{a}", 0.0) for a in "XYZ"]
+    S = np.diag(dia)
+    S[0, 1] = S[1, 0] = odi[0]
+    S[0, 2] = S[2, 0] = odi[1]
+    S[1, 2] = S[2, 1] = odi[2]
+    scale = float(params.get("COMPASS_SCALE", 0.0) or 1.0)
+    return S * scale
+
+
+def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
+                               source: str = "ArduPilot parameters") -> Calibration:
+    """Calibration equivalent to the first compass's ``COMPASS_*`` parameters.
+
+    Args:
+        params: ``{name: value}`` as logged in PARM messages (the last value of each).
+        field_uT: the field strength ArduPilot's corrected field has, µT (e.g. the median
+            norm of the logged MAG field / 10); sets the scale of ``K``.
+        source: said in the calibration's ``extra["source"]``.
+    Raises :class:`InputError` if the offsets are missing or the matrix is not invertible.
+    """
+    missing = [f"COMPASS_OFS_{a}" for a in "XYZ" if f"COMPASS_OFS_{a}" not in params]
+    if missing:
+        raise InputError(f"{source}: no {', '.join(missing)} parameter: the autopilot's "
+                         "calibration cannot be rebuilt")
+    if not (np.isfinite(field_uT) and field_uT > 0):
+        raise InputError(f"{source}: field strength must be a positive number of µT, "
+                         f"got {field_uT!r}")
+    S = ardupilot_matrix(params)
+    if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e6:
+        raise InputError(f"{source}: COMPASS_DIA/ODI give a singular soft-iron matrix")
+    S_inv = np.linalg.inv(S)
+    K, Q = canonical_form(field_uT * S_inv)
+    offsets = np.array([params[f"COMPASS_OFS_{a}"] for a in "XYZ"], dtype=float)
+    b = -offsets / MG_PER_UT
+    model = ["hard_iron", "soft_iron"]
+    effects = {}
+    motct = int(params.get("COMPASS_MOTCT", 0) or 0)
+    mot = np.array([params.get(f"COMPASS_MOT_{a}", 0.0) for a in "XYZ"], dtype=float)
+    if motct in MOTCT_CHANNELS and np.any(mot):
+        g = -(S_inv @ mot) / MG_PER_UT
+        model.append("aux_interference")
+        effects["aux_interference"] = {"channels": {MOTCT_CHANNELS[motct]: {
+            "a0": 0.0, "g": [float(v) for v in g]}}}
+    extra = {"source": source, "frame_rotation_Q": Q.tolist(),
+             "note": "K is the canonical form of ArduPilot's symmetric matrix; calibrated "
+                     "directions are ArduPilot's corrected field rotated by frame_rotation_Q"}
+    return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),
+                       method="ardupilot_params", unit="uT", extra=extra)

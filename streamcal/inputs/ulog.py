@@ -1,0 +1,238 @@
+"""PX4 ULog files (``.ulg``) → Track, read with :mod:`pyulog`.
+
+Magnetometer, from whichever of these topics (instance 0) has the most samples; ties go to the
+uncalibrated one:
+
+===================== ============================= =========================================
+``sensor_mag``        x, y, z (G), temperature (°C)  the driver's reading, not calibrated
+``vehicle_magnetometer`` magnetometer_ga[0..2] (G)   calibrated by PX4 (CAL_MAGn_*, rotated)
+``sensor_combined``   magnetometer_ga[0..2] (G)      older logs; calibrated by PX4's driver
+===================== ============================= =========================================
+
+Gauss → µT is ×100. PX4 corrects ``c = R S (r − o)`` (``o`` = CAL_MAGn_XOFF.. in G, ``S`` the
+symmetric matrix of CAL_MAGn_XSCALE../XODIAG.., ``R`` the board/external rotation). For a
+calibrated topic the reader undoes ``S`` and ``o`` (``r = S⁻¹ c + o``) when ``R`` is the identity
+(CAL_MAGn_ROT ≤ 0 and SENS_BOARD_ROT = 0) and says so in the metadata; otherwise it keeps the
+calibrated field and says why. Power compensation (CAL_MAGn_XCOMP) is not undone; when it is
+non-zero the metadata says so.
+
+Also: ``sensor_combined`` accelerometer_m_s2 / gyro_rad → ``ax..az``, ``gx..gz``;
+``actuator_outputs.output[i]`` → ``act_out{i}`` (outputs that never change are left out);
+``battery_status`` current_a / voltage_v → ``battery_current_a``, ``battery_voltage_v``.
+Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
+"""
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .track import Track
+from .streams import Stream, merge
+
+MAGIC = b"ULog\x01\x12\x35"
+HEADER_BYTES = 16
+UT_PER_GAUSS = 100.0
+MAG_TOPICS = (("sensor_mag", ("x", "y", "z"), False),
+              ("vehicle_magnetometer", tuple(f"magnetometer_ga[{i}]" for i in range(3)), True),
+              ("sensor_combined", tuple(f"magnetometer_ga[{i}]" for i in range(3)), True))
+
+
+def looks_like_ulog(head: bytes) -> bool:
+    return head[:7] == MAGIC
+
+
+def _complete_until(path: Path) -> tuple[int, int]:
+    """(end of the last complete message, file size): pyulog stops silently at a cut message."""
+    data = path.read_bytes()
+    offset = HEADER_BYTES
+    while offset + 3 <= len(data):
+        size = struct.unpack_from("<H", data, offset)[0]
+        if offset + 3 + size > len(data):
+            break
+        offset += 3 + size
+    return offset, len(data)
+
+
+def _load(path: Path, skip_bad_rows: bool):
+    from pyulog import ULog  # imported only when a ULog is read
+
+    try:
+        end, size = _complete_until(path)
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+    if end < size and not skip_bad_rows:
+        raise InputError(f"{path}: ULog ends inside a message ({size - end} bytes after the last "
+                         f"complete message at byte {end}): the file is truncated or damaged "
+                         "(--skip-bad-rows reads the complete messages)")
+    try:
+        ulog = ULog(str(path))
+    except Exception as exc:  # pyulog raises assorted exception types on damaged bytes
+        raise InputError(f"{path}: cannot read the ULog ({type(exc).__name__}: {exc})") from None
+    return ulog, size - end
+
+
+def _topic(ulog, name: str):
+    found = [d for d in ulog.data_list if d.name == name]
+    if not found:
+        return None
+    return min(found, key=lambda d: d.multi_id)
+
+
+def _cal_index(params: dict, device_id) -> int | None:
+    if device_id is None:
+        prime = params.get("CAL_MAG_PRIME")
+        device_id = prime if prime else params.get("CAL_MAG0_ID")
+    for i in range(4):
+        if device_id and params.get(f"CAL_MAG{i}_ID") == device_id:
+            return i
+    return None
+
+
+def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndarray:
+    """``r = S⁻¹ c + o`` for the CAL_MAGn of ``device_id`` when the rotation is the identity."""
+    i = _cal_index(params, device_id)
+    if i is None:
+        meta["mag_calibration_undone"] = ("could not: no CAL_MAGn_ID matches the magnetometer's "
+                                          "device id; mx,my,mz are PX4's calibrated field")
+        return mag_g
+    p = f"CAL_MAG{i}_"
+    rot = int(params.get(p + "ROT", -1))
+    board = int(params.get("SENS_BOARD_ROT", 0))
+    if rot > 0 or board != 0:
+        meta["mag_calibration_undone"] = (f"could not: {p}ROT={rot}, SENS_BOARD_ROT={board} "
+                                          "rotate the field; mx,my,mz are PX4's calibrated field")
+        return mag_g
+    off = np.array([params.get(p + a + "OFF", 0.0) for a in "XYZ"], dtype=float)
+    S = np.diag([params.get(p + a + "SCALE", 1.0) for a in "XYZ"]).astype(float)
+    odiag = [params.get(p + a + "ODIAG", 0.0) for a in "XYZ"]
+    S[0, 1] = S[1, 0] = odiag[0]
+    S[0, 2] = S[2, 0] = odiag[1]
+    S[1, 2] = S[2, 1] = odiag[2]
+    raw = np.linalg.solve(S, mag_g.T).T + off
+    trims = [params.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
+    meta["mag_calibration_undone"] = (
+        f"{p}XOFF.. added back ({','.join(f'{v:g}' for v in off)} G) and the inverse of the "
+        f"{p}SCALE/ODIAG matrix applied (PX4 corrects c = S (r - o))"
+        + (f"; board trim SENS_BOARD_X/Y/Z_OFF = {','.join(f'{v:g}' for v in trims)} deg not undone"
+           if any(trims) else ""))
+    if any(params.get(p + a + "COMP", 0.0) for a in "XYZ"):
+        meta["mag_power_compensation"] = f"{p}XCOMP.. non-zero: PX4's power compensation not undone"
+    return raw
+
+
+def _mag(ulog, path: Path, meta: dict) -> Stream:
+    candidates = []
+    for name, fields, calibrated in MAG_TOPICS:
+        d = _topic(ulog, name)
+        if d is not None and all(f in d.data for f in fields) and len(d.data["timestamp"]):
+            candidates.append((len(d.data["timestamp"]), not calibrated, name, fields, calibrated, d))
+    if not candidates:
+        raise InputError(f"{path}: no magnetometer topic (looked for sensor_mag.x/y/z, "
+                         "vehicle_magnetometer.magnetometer_ga, sensor_combined.magnetometer_ga; "
+                         f"topics found: {', '.join(sorted({d.name for d in ulog.data_list}))})")
+    _, _, name, fields, calibrated, d = max(candidates, key=lambda c: c[:2])
+    t = d.data["timestamp"] * 1e-6
+    mag_g = np.column_stack([d.data[f].astype(np.float64) for f in fields])
+    if name == "sensor_combined":
+        # each row carries the latest mag sample; keep one row per new sample
+        new = np.r_[True, np.any(np.diff(mag_g, axis=0) != 0, axis=1)]
+        if "magnetometer_timestamp_relative" in d.data:
+            t = t + d.data["magnetometer_timestamp_relative"] * 1e-6
+        t, mag_g = t[new], mag_g[new]
+    meta["mag_topic"] = f"{name} (instance {d.multi_id}, {len(t)} samples, gauss x100 = uT)"
+    meta["mag_calibrated_by_px4"] = "yes" if calibrated else "no (driver reading)"
+    device_id = int(d.data["device_id"][0]) if "device_id" in d.data else None
+    if calibrated:
+        mag_g = _undo_px4(mag_g, ulog.initial_parameters, device_id, meta)
+    cols = dict(zip(("mx", "my", "mz"), (mag_g * UT_PER_GAUSS).T))
+    if "temperature" in d.data and np.any(d.data["temperature"] != 0) \
+            and np.all(np.isfinite(d.data["temperature"])):
+        cols["temp"] = d.data["temperature"].astype(np.float64)[:len(t)]
+        meta["temp_source"] = f"{name}.temperature (the magnetometer's)"
+    return Stream(name, t, cols)
+
+
+def _imu(ulog) -> Stream | None:
+    d = _topic(ulog, "sensor_combined")
+    fields = [f"accelerometer_m_s2[{i}]" for i in range(3)] + [f"gyro_rad[{i}]" for i in range(3)]
+    if d is None or not all(f in d.data for f in fields):
+        return None
+    cols = dict(zip(("ax", "ay", "az", "gx", "gy", "gz"),
+                    (d.data[f].astype(np.float64) for f in fields)))
+    return Stream("sensor_combined", d.data["timestamp"] * 1e-6, cols)
+
+
+def _actuators(ulog, meta: dict) -> Stream | None:
+    d = _topic(ulog, "actuator_outputs")
+    if d is None:
+        return None
+    cols, constant = {}, []
+    for i in range(32):
+        key = f"output[{i}]"
+        if key not in d.data:
+            break
+        values = d.data[key].astype(np.float64)
+        if not np.all(np.isfinite(values)) or np.all(values == values[0]):
+            constant.append(f"act_out{i}")
+            continue
+        cols[f"act_out{i}"] = values
+    meta["actuator_outputs"] = ",".join(cols) or "none"
+    if constant:
+        meta["actuator_outputs_dropped"] = f"{len(constant)} outputs constant or non-finite"
+    return Stream("actuator_outputs", d.data["timestamp"] * 1e-6, cols) if cols else None
+
+
+def _battery(ulog, meta: dict) -> Stream | None:
+    d = _topic(ulog, "battery_status")
+    if d is None:
+        return None
+    cols = {}
+    for key, label in (("current_a", "battery_current_a"), ("voltage_v", "battery_voltage_v")):
+        if key in d.data:
+            values = d.data[key].astype(np.float64)
+            # PX4 logs -1 for "no current measurement"
+            if np.all(np.isfinite(values)) and not np.all(values == values[0]):
+                cols[label] = values
+    meta["battery_channels"] = ",".join(cols) or "none (constant or not measured)"
+    return Stream("battery_status", d.data["timestamp"] * 1e-6, cols) if cols else None
+
+
+def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
+    """Read a PX4 ``.ulg`` log into a Track (see the module docstring).
+
+    Raises :class:`InputError` naming the file when it is truncated (unless ``skip_bad_rows``)
+    or has no magnetometer topic.
+    """
+    path = Path(path)
+    ulog, cut = _load(path, skip_bad_rows)
+    info = ulog.msg_info_dict
+    meta = {"sensor": "px4 magnetometer", "source": f"PX4 ULog {path.name}",
+            "input_format": "px4-ulog", "mag_unit": "uT",
+            "units": "mx,my,mz uT (from gauss x100); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
+                     "act_out* as logged by actuator_outputs; battery_current_a A; "
+                     "battery_voltage_v V"}
+    for key in ("ver_hw", "ver_sw", "sys_name"):
+        if key in info:
+            meta[f"px4_{key}"] = str(info[key]).strip() or "?"
+    streams = [_mag(ulog, path, meta)]
+    meta["mag_axes"] = ("body frame (PX4 rotated it)" if meta["mag_calibrated_by_px4"] == "yes"
+                        else "board frame of the driver (sensor_mag); body if SENS_BOARD_ROT = 0")
+    for stream in (_imu(ulog), _actuators(ulog, meta), _battery(ulog, meta)):
+        if stream is not None:
+            streams.append(stream)
+    for name, value in ulog.initial_parameters.items():
+        if name.startswith("CAL_MAG0_") or name in ("CAL_MAG_PRIME", "CAL_MAG_COMP_TYP",
+                                                     "SENS_BOARD_ROT"):
+            meta[f"param.{name}"] = f"{value:g}"
+    if cut:
+        meta["read_warnings"] = f"truncated: {cut} trailing bytes ignored"
+    if ulog.file_corruption:
+        meta["read_warnings"] = (meta.get("read_warnings", "") + "; " if "read_warnings" in meta
+                                 else "") + "pyulog reports file corruption (some data skipped)"
+    t0 = min(float(s.t.min()) for s in streams if len(s.t))
+    meta["time_origin"] = f"ULog timestamp {t0:.6f} s is t = 0"
+    meta["messages"] = ", ".join(f"{s.name} {len(s.t)}" for s in streams)
+    return merge(streams, meta, t0=t0)

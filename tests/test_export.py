@@ -1,0 +1,138 @@
+"""Export: each destination's documented correction, applied to raw readings, gives the same
+field magnitude as streamcal's own Calibration.apply; the c-header keeps its exact format."""
+import json
+import re
+
+import numpy as np
+import pytest
+
+from streamcal.calibration import Calibration
+from streamcal.cli import main
+from streamcal.export import export
+from streamcal.export.ardupilot import apply_ardupilot
+from streamcal.export.common import polar
+from streamcal.export.px4 import apply_px4
+from streamcal.sim import simulate
+
+FIELD = 48.0
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return simulate(duration_s=60.0, seed=3, motor=False, field_uT=FIELD)
+
+
+def _cal(truth, **kw):
+    return Calibration(K=truth.K, b=truth.b, field=FIELD, n=100, **kw)
+
+
+def _ardupilot_params(text):
+    return {name: float(value) for name, value in
+            (line.split(",") for line in text.splitlines() if line and not line.startswith("#"))}
+
+
+def _px4_params(text):
+    rows = [line.split("\t") for line in text.splitlines() if line and not line.startswith("#")]
+    return {r[2]: float(r[3]) for r in rows}
+
+
+def test_polar_decomposition():
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(3, 3)) + 3 * np.eye(3)
+    U, S = polar(A)
+    np.testing.assert_allclose(U @ S, A, atol=1e-12)
+    np.testing.assert_allclose(U.T @ U, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(S, S.T, atol=1e-12)
+    assert np.all(np.linalg.eigvalsh(S) > 0)
+
+
+def test_ardupilot_correction_matches_streamcal(sim):
+    cal = _cal(sim.truth)
+    assert abs(cal.K[0, 1]) > 0.1  # a real soft-iron term, so ODI is exercised
+    text, notes = export(cal, "ardupilot")
+    params = _ardupilot_params(text)
+    assert params["COMPASS_ODI_X"] != 0 and "COMPASS_MOTCT" not in params
+    m = sim.track.mag
+    ours = np.linalg.norm(cal.apply_field(m), axis=1)
+    theirs = np.linalg.norm(apply_ardupilot(params, m * 10.0), axis=1) / 10.0  # mG → µT
+    np.testing.assert_allclose(theirs, ours, rtol=2e-6)
+    raw = np.linalg.norm(m - m.mean(axis=0), axis=1)
+    assert np.std(theirs) < 0.1 * np.std(raw)  # the correction does flatten the magnitude
+    np.testing.assert_allclose(np.median(theirs), FIELD, rtol=0.02)
+    np.testing.assert_allclose([params[f"COMPASS_OFS_{a}"] for a in "XYZ"],
+                               -10.0 * sim.truth.b, rtol=1e-6)
+
+
+def test_px4_correction_matches_streamcal(sim):
+    cal = _cal(sim.truth)
+    text, _ = export(cal, "px4")
+    params = _px4_params(text)
+    m = sim.track.mag
+    ours = np.linalg.norm(cal.apply_field(m), axis=1)
+    theirs = np.linalg.norm(apply_px4(params, m / 100.0), axis=1) * 100.0  # G → µT
+    np.testing.assert_allclose(theirs, ours, rtol=2e-6)
+    np.testing.assert_allclose([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"], sim.truth.b / 100,
+                               rtol=1e-6)
+
+
+def test_ardupilot_motor_compensation_from_aux_interference():
+    """m = K x + b + g (a − a0): ArduPilot's S(r + ofs) + MOT·a must give a constant |f|."""
+    rng = np.random.default_rng(5)
+    K = np.array([[50.0, 2.0, -1.5], [0.0, 46.0, 3.0], [0.0, 0.0, 52.0]])
+    b = np.array([12.0, -30.0, 8.0])
+    g, a0 = np.array([0.8, -0.5, 1.2]), 3.0
+    x = rng.normal(size=(2000, 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    current = rng.uniform(0.0, 20.0, 2000)
+    m = x @ K.T + b + np.outer(current - a0, g)
+    cal = Calibration(K=K, b=b, field=FIELD, n=2000,
+                      model=("hard_iron", "soft_iron", "aux_interference"),
+                      effects={"aux_interference": {"channels": {
+                          "battery_current_a": {"a0": a0, "g": g.tolist()}}}})
+    text, notes = export(cal, "ardupilot")
+    params = _ardupilot_params(text)
+    assert params["COMPASS_MOTCT"] == 2 and not notes
+    f = apply_ardupilot(params, m * 10.0, current) / 10.0
+    np.testing.assert_allclose(np.linalg.norm(f, axis=1), FIELD, rtol=1e-5)
+    without = apply_ardupilot(dict(params, COMPASS_MOTCT=0), m * 10.0, current) / 10.0
+    assert np.std(np.linalg.norm(without, axis=1)) > 1.0  # the motor term matters here
+    # PX4: not expressed, and said so
+    px4_text, px4_notes = export(cal, "px4")
+    assert any("battery_current_a" in n for n in px4_notes) and "NOT EXPRESSED" in px4_text
+
+
+def test_c_header_exact_format(sim):
+    cal = _cal(sim.truth)
+    text, _ = export(cal, "c-header")
+    assert "#ifndef SC_INITIAL_CAL_H\n#define SC_INITIAL_CAL_H\n" in text
+    k = re.search(r"#define SC_INITIAL_CAL_K \{([^}]*)\}", text).group(1).split(", ")
+    b = re.search(r"#define SC_INITIAL_CAL_B \{([^}]*)\}", text).group(1).split(", ")
+    assert len(k) == 6 and len(b) == 3 and all(v.endswith("f") for v in k + b)
+    K = cal.K
+    np.testing.assert_allclose([float(v[:-1]) for v in k],
+                               [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2], K[2, 2]], rtol=1e-8)
+    np.testing.assert_allclose([float(v[:-1]) for v in b], cal.b, rtol=1e-8)
+
+
+def test_json_is_the_calibration_file(sim):
+    cal = _cal(sim.truth)
+    text, notes = export(cal, "json")
+    back = Calibration.from_json(text)
+    np.testing.assert_array_equal(back.K, cal.K)
+    assert back.field == FIELD and not notes
+
+
+def test_cli_export_says_what_is_not_expressed(sim, tmp_path, capsys):
+    cal = _cal(sim.truth, model=("hard_iron", "soft_iron", "temperature_offset"),
+               effects={"temperature_offset": {"T0": 25.0, "c": [0.1, -0.2, 0.05]}})
+    path = tmp_path / "cal.json"
+    cal.save(path)
+    for fmt in ("ardupilot", "px4", "c-header"):
+        out = tmp_path / f"out.{fmt}"
+        assert main(["export", str(path), "--format", fmt, "-o", str(out)]) == 0
+        err = capsys.readouterr().err
+        assert "temperature_offset" in err and "cannot express" in err
+        assert "NOT EXPRESSED: temperature_offset" in out.read_text()
+    assert main(["export", str(path), "--format", "json"]) == 0
+    assert json.loads(capsys.readouterr().out)["effects"]["temperature_offset"]["T0"] == 25.0
+    assert main(["export", str(tmp_path / "missing.json"), "--format", "px4"]) == 2
