@@ -4,20 +4,14 @@
 // streamcal/fit/sphere_stream.py on the same sums. Single precision, no heap.
 //
 // The fit is the 4-parameter sphere model of sphere_stream.py: residual r = 1 - |u|^2/R^2,
-// u = x - c, x in uT. Every entry of J'J and J'r at (c, R) needs only these centred means:
-//   M1 = <u>, M2 = <u u'>, T = <|u|^2 u>, Q = <|u|^4>
-// and they follow from seven raw means about the sums' origin o (x = o + d):
-//   m1 = <d>, S2 = <d d'>, P = <|d|^2 d>, D2 = <|d|^2>, D4 = <|d|^4>
-// by expanding |u|^2 = |d|^2 - 2 c.d + |c|^2 with c relative to o:
-//   M1 = m1 - c
-//   M2 = S2 - c m1' - m1 c' + c c'
-//   T  = P - 2 S2 c + |c|^2 m1 - D2 c + 2 (c.m1) c - |c|^2 c
-//   Q  = D4 + 4 c'S2 c + |c|^4 - 4 c.P + 2 |c|^2 D2 - 4 |c|^2 (c.m1)
-// Then, per sample (the 1/n cancels in the step):
-//   J'J = [ 4/R^4 M2     4/R^5 T  ]     J'r = [ 2/R^2 (M1 - T/R^2)   ]
-//         [ 4/R^5 T'     4/R^6 Q  ]           [ 2/R^3 (trM2 - Q/R^2) ]
-//   cost = 1 - 2 trM2/R^2 + Q/R^4
-// The start is the Kasa fit |x|^2 = 2 c.x + e on the same means.
+// u = x - c, x in uT. With d = x - o (o the sums' origin) and c relative to o, r is linear in
+// the augmented sample w = (d0, d1, d2, |d|^2, 1):
+//   r = a.w,   a(c, R) = (2c/R^2, -1/R^2, 1 - |c|^2/R^2)
+// so with the 5x5 moment matrix G = <w w'> (from the 25 sums, mean per sample):
+//   cost = a'G a,   J'J = A'G A,   J'r = A'G a,   A = da/d(c, R) (5x4)
+//   da/dc_j = 2/R^2 e_j - 2c_j/R^2 e_4,   da/dR = (-4c/R^3, 2/R^3, 2|c|^2/R^3)
+// The start is the Kasa fit |d|^2 = 2 c.d + e: least squares of G's rows/columns 0,1,2,4
+// against column 3.
 #ifndef SC_SELFCAL_H
 #define SC_SELFCAL_H
 
@@ -32,102 +26,100 @@
 #define SC_MASK_CELLS 64           // 8 equal-area z bands x 8 sectors of 45 degrees
 #define SC_MASK_NEED 56            // cells a window must reach before a fit (7/8 of the sphere)
 #define SC_SCORE_CAP 0.0625f       // held-out loss per sample: min((|x|^2 - 1)^2, cap), cap = 0.25^2
+#define SC_ACCEPT_LOSS 0.004f      // mean held-out loss a fit needs when no calibration is in force
+                                   // (|x|^2 within ~6 %, |x| within ~3 % rms)
 
-// Seven means about the sums' origin, uT (see above).
-struct ScMoments { float m1[3], s2[6], p[3], d2, d4; };
 static const uint8_t sc_pj[6] = {0, 0, 0, 1, 1, 2}, sc_pk[6] = {0, 1, 2, 1, 2, 2};
 
-static inline uint8_t sc_pair(uint8_t j, uint8_t k) {
-  if (j > k) { uint8_t t = j; j = k; k = t; }
-  return (uint8_t)(j == 0 ? k : j + k + 1);      // index into the 6 symmetric entries
-}
-
-// Raw count sums -> means in uT; `scale` uT per count per axis. Returns false if s.n < 4.
-static inline bool sc_moments(const ScSums &s, const float scale[3], ScMoments &m) {
+// G = <w w'> (5x5, row-major), w = (d, |d|^2, 1) in uT about the sums' origin; `scale` uT per
+// count per axis. Returns false if s.n < 4.
+static inline bool sc_moments(const ScSums &s, const float scale[3], float *G) {
   if (s.n < 4) return false;
   float inv = 1.0f / (float)s.n;
-  m.d2 = m.d4 = 0.0f;
-  for (uint8_t j = 0; j < 3; ++j) {
-    m.m1[j] = (float)s.s1[j] * scale[j] * inv;
-    float pj = 0.0f;
-    for (uint8_t k = 0; k < 3; ++k) pj += (float)s.s3[3 * k + j] * scale[k] * scale[k];
-    m.p[j] = pj * scale[j] * inv;
-  }
+  memset(G, 0, 25 * sizeof(float));
   for (uint8_t q = 0; q < 6; ++q) {
-    float sj = scale[sc_pj[q]], sk = scale[sc_pk[q]];
-    m.s2[q] = (float)s.s2[q] * sj * sk * inv;
-    float w = (sc_pj[q] == sc_pk[q]) ? 1.0f : 2.0f;
-    m.d4 += w * (float)s.s4[q] * sj * sj * sk * sk * inv;
-    if (w == 1.0f) m.d2 += m.s2[q];
+    uint8_t j = sc_pj[q], k = sc_pk[q];
+    float sjk = scale[j] * scale[k] * inv;
+    G[5 * j + k] = (float)s.s2[q] * sjk;
+    G[18] += (j == k ? 1.0f : 2.0f) * (float)s.s4[q] * sjk * scale[j] * scale[k];
   }
+  for (uint8_t j = 0; j < 3; ++j) {
+    G[5 * j + 4] = (float)s.s1[j] * scale[j] * inv;
+    G[19] += G[6 * j];
+    float t = 0.0f;
+    for (uint8_t k = 0; k < 3; ++k) t += (float)s.s3[3 * k + j] * scale[k] * scale[k];
+    G[5 * j + 3] = t * scale[j] * inv;
+  }
+  G[24] = 1.0f;
+  for (uint8_t i = 1; i < 5; ++i)
+    for (uint8_t k = 0; k < i; ++k) G[5 * i + k] = G[5 * k + i];
   return true;
 }
 
-// Solve the 4x4 system a x = a[.][4] in place (Gaussian elimination, partial pivoting); false if a
-// pivot is below 1e-6 of the largest diagonal entry (the samples do not fix the fit).
-static inline bool sc_solve4(float a[4][5], float x[4]) {
+// Solve the 4x4 system in a (4 rows of 5, the last column the right-hand side) in place by
+// Gaussian elimination with partial pivoting; false if a pivot is below 1e-6 of the largest
+// diagonal entry (the samples do not fix the fit).
+static inline bool sc_solve4(float *a, float *x) {
   float big = 0.0f;
-  for (uint8_t i = 0; i < 4; ++i) big = fmaxf(big, fabsf(a[i][i]));
+  for (uint8_t i = 0; i < 4; ++i) if (fabsf(a[6 * i]) > big) big = fabsf(a[6 * i]);
   for (uint8_t c = 0; c < 4; ++c) {
-    uint8_t p = c;
-    for (uint8_t r = c + 1; r < 4; ++r) if (fabsf(a[r][c]) > fabsf(a[p][c])) p = r;
-    if (!(fabsf(a[p][c]) > 1e-6f * big)) return false;
-    for (uint8_t k = 0; k < 5; ++k) { float t = a[c][k]; a[c][k] = a[p][k]; a[p][k] = t; }
-    for (uint8_t r = c + 1; r < 4; ++r) {
-      float f = a[r][c] / a[c][c];
-      for (uint8_t k = c; k < 5; ++k) a[r][k] -= f * a[c][k];
+    float *pc = a + 6 * c, *best = pc;
+    for (float *pr = pc + 5; pr < a + 20; pr += 5) if (fabsf(*pr) > fabsf(*best)) best = pr;
+    if (!(fabsf(*best) > 1e-6f * big)) return false;
+    for (uint8_t k = 0; k < 5 - c; ++k) { float t = pc[k]; pc[k] = best[k]; best[k] = t; }
+    for (float *pr = pc + 5; pr < a + 20; pr += 5) {
+      float f = *pr / *pc;
+      for (uint8_t k = 0; k < 5 - c; ++k) pr[k] -= f * pc[k];
     }
   }
   for (int8_t r = 3; r >= 0; --r) {
-    float v = a[r][4];
-    for (uint8_t k = r + 1; k < 4; ++k) v -= a[r][k] * x[k];
-    x[r] = v / a[r][r];
+    const float *pr = a + 5 * r;
+    float v = pr[4];
+    for (uint8_t k = r + 1; k < 4; ++k) v -= pr[k] * x[k];
+    x[r] = v / pr[r];
   }
   return true;
 }
 
 // Kasa start: centre c (relative to the origin) and R; false if undetermined.
-static inline bool sc_kasa(const ScMoments &m, float c[3], float &R) {
-  float a[4][5], x[4];
-  for (uint8_t j = 0; j < 3; ++j) {
-    for (uint8_t k = 0; k < 3; ++k) a[j][k] = 4.0f * m.s2[sc_pair(j, k)];
-    a[j][3] = a[3][j] = 2.0f * m.m1[j];
-    a[j][4] = 2.0f * m.p[j];
-  }
-  a[3][3] = 1.0f;
-  a[3][4] = m.d2;
+static inline bool sc_kasa(const float *G, float c[3], float &R) {
+  static const uint8_t f[5] = {0, 1, 2, 4, 3};
+  float a[20], x[4];
+  for (uint8_t i = 0; i < 4; ++i)
+    for (uint8_t k = 0; k < 5; ++k) a[5 * i + k] = G[5 * f[i] + f[k]];
   if (!sc_solve4(a, x)) return false;
-  float r2 = x[3] + x[0] * x[0] + x[1] * x[1] + x[2] * x[2];
+  float r2 = x[3];
+  for (uint8_t j = 0; j < 3; ++j) { c[j] = 0.5f * x[j]; r2 += c[j] * c[j]; }
   if (!(r2 > 0.0f)) return false;
-  for (uint8_t j = 0; j < 3; ++j) c[j] = x[j];
   R = sqrtf(r2);
   return true;
 }
 
-// Centred means at c (relative to the origin): m2 (6), t (3), trM2 and Q.
-static inline void sc_centred(const ScMoments &m, const float c[3], float m2[6], float t[3],
-                              float &tr, float &q) {
-  float cc = 0.0f, cm = 0.0f, cp = 0.0f, cs2c = 0.0f, s2c[3];
+// a(c, R) (5) and, if A is given, da/d(c, R) (5x4, row-major).
+static inline void sc_sphere_a(const float c[3], float R, float a[5], float *A) {
+  float i2 = 1.0f / (R * R), i3 = i2 / R, cc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+  a[3] = -i2;
+  a[4] = 1.0f - cc * i2;
+  if (A) {
+    memset(A, 0, 20 * sizeof(float));
+    A[15] = 2.0f * i3;
+    A[19] = 2.0f * cc * i3;
+  }
   for (uint8_t j = 0; j < 3; ++j) {
-    s2c[j] = 0.0f;
-    for (uint8_t k = 0; k < 3; ++k) s2c[j] += m.s2[sc_pair(j, k)] * c[k];
-    cc += c[j] * c[j]; cm += c[j] * m.m1[j]; cp += c[j] * m.p[j];
+    a[j] = 2.0f * c[j] * i2;
+    if (A) { A[5 * j] = 2.0f * i2; A[16 + j] = -a[j]; A[4 * j + 3] = -4.0f * c[j] * i3; }
   }
-  for (uint8_t j = 0; j < 3; ++j) cs2c += c[j] * s2c[j];
-  for (uint8_t p = 0; p < 6; ++p) {
-    uint8_t j = sc_pj[p], k = sc_pk[p];
-    m2[p] = m.s2[p] - c[j] * m.m1[k] - m.m1[j] * c[k] + c[j] * c[k];
-  }
-  for (uint8_t j = 0; j < 3; ++j)
-    t[j] = m.p[j] - 2.0f * s2c[j] + cc * m.m1[j] - m.d2 * c[j] + 2.0f * cm * c[j] - cc * c[j];
-  tr = m.d2 - 2.0f * cm + cc;
-  q = m.d4 + 4.0f * cs2c + cc * cc - 4.0f * cp + 2.0f * cc * m.d2 - 4.0f * cc * cm;
 }
 
-static inline float sc_sphere_cost(const ScMoments &m, const float c[3], float R) {
-  float m2[6], t[3], tr, q, a = 1.0f / (R * R);
-  sc_centred(m, c, m2, t, tr, q);
-  return 1.0f - 2.0f * tr * a + q * a * a;
+// v = G a (5); returns a'G a. `stride` steps through a (1, or 4 for a column of A).
+static inline float sc_quad(const float *G, const float *a, uint8_t stride, float v[5]) {
+  float q = 0.0f;
+  for (uint8_t i = 0; i < 5; ++i) {
+    v[i] = 0.0f;
+    for (uint8_t k = 0; k < 5; ++k) v[i] += G[5 * i + k] * a[stride * k];
+    q += a[stride * i] * v[i];
+  }
+  return q;
 }
 
 // The fit's result: centre b (uT, sensor frame), radius R (uT), mean squared residual, iterations.
@@ -136,31 +128,39 @@ struct ScSphereFit { float b[3], R, cost; uint8_t iters; };
 // Gauss-Newton sphere fit from the sums, as SphereStats.fit() in sphere_stream.py (same start,
 // same step halving); false if the samples do not determine a sphere.
 static inline bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out) {
-  ScMoments m;
-  float c[3], R;
-  if (!sc_moments(s, scale, m) || !sc_kasa(m, c, R)) return false;
-  float cost = sc_sphere_cost(m, c, R);
+  float G[25], c[3], R, a[5], v[5], A[20];
+  if (!sc_moments(s, scale, G) || !sc_kasa(G, c, R)) return false;
+  sc_sphere_a(c, R, a, 0);
+  float cost = sc_quad(G, a, 1, v);
   uint8_t it = 0;
   for (; it < SC_FIT_MAX_ITER; ++it) {
     SC_FIT_IDLE();
-    float m2[6], t[3], tr, q, a[4][5], step[4];
-    sc_centred(m, c, m2, t, tr, q);
-    float i2 = 1.0f / (R * R), i3 = i2 / R;
-    for (uint8_t j = 0; j < 3; ++j) {
-      for (uint8_t k = 0; k < 3; ++k) a[j][k] = 4.0f * i2 * i2 * m2[sc_pair(j, k)];
-      a[j][3] = a[3][j] = 4.0f * i2 * i3 * t[j];
-      a[j][4] = -2.0f * i2 * (m.m1[j] - c[j] - t[j] * i2);
+    float H[20], step[4], GA[5];
+    sc_sphere_a(c, R, a, A);
+    sc_quad(G, a, 1, v);
+    for (uint8_t i = 0; i < 4; ++i) {           // H = A'G A | -A'G a
+      sc_quad(G, A + i, 4, GA);
+      float g = 0.0f;
+      for (uint8_t k = 0; k < 4; ++k) {
+        float h = 0.0f;
+        for (uint8_t l = 0; l < 5; ++l) h += A[4 * l + k] * GA[l];
+        H[5 * k + i] = h;
+      }
+      for (uint8_t l = 0; l < 5; ++l) g -= A[4 * l + i] * v[l];
+      H[5 * i + 4] = g;
     }
-    a[3][3] = 4.0f * i3 * i3 * q;
-    a[3][4] = -2.0f * i3 * (tr - q * i2);
-    if (!sc_solve4(a, step)) return false;
-    float norm2 = step[0] * step[0] + step[1] * step[1] + step[2] * step[2] + step[3] * step[3];
+    if (!sc_solve4(H, step)) return false;
+    float norm2 = 0.0f;
+    for (uint8_t k = 0; k < 4; ++k) norm2 += step[k] * step[k];
     float tol2 = SC_FIT_STEP_TOL * SC_FIT_STEP_TOL * R * R;
     while (norm2 > tol2) {                       // step halving keeps the cost decreasing
-      float tc[3] = {c[0] + step[0], c[1] + step[1], c[2] + step[2]}, tR = R + step[3];
-      float tcost = tR > 0.0f ? sc_sphere_cost(m, tc, tR) : INFINITY;
+      float tc[3], tR = R + step[3], tcost = INFINITY;
+      for (uint8_t j = 0; j < 3; ++j) tc[j] = c[j] + step[j];
+      if (tR > 0.0f) { sc_sphere_a(tc, tR, a, 0); tcost = sc_quad(G, a, 1, v); }
       if (tcost <= cost) {
-        c[0] = tc[0]; c[1] = tc[1]; c[2] = tc[2]; R = tR; cost = tcost;
+        memcpy(c, tc, sizeof tc);
+        R = tR;
+        cost = tcost;
         break;
       }
       for (uint8_t k = 0; k < 4; ++k) step[k] *= 0.5f;
@@ -199,7 +199,8 @@ static inline float sc_score(const ScCal &c, const float m[3]) {
   float x[3];
   sc_cal_apply(c, m, x);
   float e = x[0] * x[0] + x[1] * x[1] + x[2] * x[2] - 1.0f;
-  return fminf(e * e, SC_SCORE_CAP);
+  e *= e;
+  return e < SC_SCORE_CAP ? e : SC_SCORE_CAP;
 }
 
 // A sphere as a calibration block: K = R I, b = centre (uT), CRC filled in.
