@@ -26,8 +26,8 @@
 #define SC_MASK_CELLS 64           // 8 equal-area z bands x 8 sectors of 45 degrees
 #define SC_MASK_NEED 56            // cells a window must reach before a fit (7/8 of the sphere)
 #define SC_SCORE_CAP 0.0625f       // held-out loss per sample: min((|x|^2 - 1)^2, cap), cap = 0.25^2
-#define SC_ACCEPT_LOSS 0.004f      // mean held-out loss a fit needs when no calibration is in force
-                                   // (|x|^2 within ~6 %, |x| within ~3 % rms)
+#define SC_ACCEPT_LOSS 0.02f       // mean held-out loss a fit needs when no calibration is in force
+                                   // (|x|^2 within ~14 %, |x| within ~7 % rms; garbage scores ~cap)
 
 static const uint8_t sc_pj[6] = {0, 0, 0, 1, 1, 2}, sc_pk[6] = {0, 1, 2, 1, 2, 2};
 
@@ -114,6 +114,7 @@ static inline void sc_sphere_a(const float c[3], float R, float a[5], float *A) 
 // v = G a (5); returns a'G a. `stride` steps through a (1, or 4 for a column of A).
 static inline float sc_quad(const float *G, const float *a, uint8_t stride, float v[5]) {
   float q = 0.0f;
+  SC_FIT_IDLE();
   for (uint8_t i = 0; i < 5; ++i) {
     v[i] = 0.0f;
     for (uint8_t k = 0; k < 5; ++k) v[i] += G[5 * i + k] * a[stride * k];
@@ -134,7 +135,6 @@ static inline bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphere
   float cost = sc_quad(G, a, 1, v);
   uint8_t it = 0;
   for (; it < SC_FIT_MAX_ITER; ++it) {
-    SC_FIT_IDLE();
     float H[20], step[4], GA[5];
     sc_sphere_a(c, R, a, A);
     sc_quad(G, a, 1, v);
