@@ -426,6 +426,10 @@ static void window_end() {
   uint32_t t0 = micros();
   bool ok = sc_sphere_fit(g_sums, g_mag_scale, f);
   g_fit_us = micros() - t0;
+  // A fit that does not even match its own window (a magnet went by) is no candidate, and its
+  // centre would skew the next window's cells.
+  uint8_t why = ok ? SC_SR_TOO_POOR : SC_SR_UNDETERMINED;
+  ok = ok && f.cost < SC_ACCEPT_LOSS;
   g_cand_n = g_sums.n;
   g_cand_cost = f.cost;
   // cal_id of a board fit: 0xB000 + a 12-bit counter
@@ -436,7 +440,7 @@ static void window_end() {
   }
   g_check_n = 0;
   g_loss_new = g_loss_old = 0.0f;
-  announce(ok ? SC_SE_FITTED : SC_SE_FIT_FAILED, ok ? SC_SR_NONE : SC_SR_UNDETERMINED, cells);
+  announce(ok ? SC_SE_FITTED : SC_SE_FIT_FAILED, ok ? SC_SR_NONE : why, cells);
   sc_sums_reset(g_sums);
   g_sums_since = 0;
   g_proc_us = g_proc_n = 0;
