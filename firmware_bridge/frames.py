@@ -53,6 +53,7 @@ class MsgType(enum.IntEnum):
     CAL_REPORT = 0x05
     ACK = 0x06
     NAK = 0x07
+    SELF_CAL = 0x08       # firmware_bridge/selfcal_frames.py
     GET_INFO = 0x10
     START = 0x11
     STOP = 0x12
@@ -78,6 +79,7 @@ class HelloFlags(enum.IntFlag):
     CAL_LOADED = 0x01     # a valid calibration was found in EEPROM (or set since boot)
     MAG_PRESENT = 0x02    # AK8963 answered WIA = 0x48
     STREAMING = 0x04
+    SELF_CAL = 0x08       # the firmware calibrates itself (SELF_CAL frames)
 
 
 class Output(enum.IntFlag):
@@ -309,6 +311,9 @@ class ClearCal(Message):
 MESSAGES: dict[int, type[Message]] = {cls.TYPE: cls for cls in (
     Hello, Sample, CalSample, SphereSums, CalReport, Ack, Nak, GetInfo, Start, Stop,
     SetCalibration, QueryCal, ClearCal)}
+from .selfcal_frames import SelfCal  # noqa: E402  (needs Message above; registers SELF_CAL)
+
+MESSAGES[MsgType.SELF_CAL] = SelfCal
 BOARD_TO_HOST = frozenset(t for t in MESSAGES if t < 0x10)
 
 

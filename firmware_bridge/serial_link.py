@@ -94,6 +94,8 @@ class SerialLink:
         self.board = board
         self.hello: fr.Hello | None = None
         self.sphere_sums: fr.SphereSums | None = None
+        #: the board's own calibration: its SELF_CAL frames, oldest first (bounded)
+        self.self_cal: collections.deque = collections.deque(maxlen=256)
         self.sequence = fr.SequenceCounter()
         self._decoder = fr.FrameDecoder()
         self._raw = RawLineReader()
@@ -200,6 +202,8 @@ class SerialLink:
             self._cal.append((msg.t_us,) + tuple(msg.x))
         elif isinstance(msg, fr.SphereSums):
             self.sphere_sums = msg
+        elif isinstance(msg, fr.SelfCal):
+            self.self_cal.append(msg)
         elif isinstance(msg, fr.Hello):
             self.hello = msg
         else:

@@ -173,9 +173,11 @@ def replay_bytes(track, *, lead_s: float = DEFAULT_LEAD_S, asa=None, who_am_i: i
 class SimavrBoard:
     """The compiled sketch running in simavr on a pty, replaying ``track``.
 
-    ``track``: a :class:`~streamcal.inputs.track.Track` or a track file path. ``eeprom``: a 1024-byte
+    ``track``: a recording (``t``, ``columns``, ``metadata``: a Track). ``eeprom``: a 1024-byte
     EEPROM image file, loaded at start if it exists and saved at close (a calibration survives a
     "reboot"). ``tail_s``: simulated seconds after the last row before the AVR drops to real time.
+    ``reset_at_eeprom_write``: reset the AVR right after it starts its N-th EEPROM byte write
+    (``stats["eeprom_writes"]`` counts them).
     Other keywords go to :func:`replay_bytes`. After :meth:`close`, :attr:`stats` holds the
     harness's counters (``sim_s``, ``wall_s``, ``samples_latched``, ``skipped``, ``dor_reported``,
     ``violations``, ``uart_tx_bytes``…).
@@ -186,7 +188,8 @@ class SimavrBoard:
     streams_after_replay = True
 
     def __init__(self, track, *, lead_s: float = DEFAULT_LEAD_S, eeprom=None, tail_s: float = 1.0,
-                 cache_dir=None, start_timeout: float = 120.0, **replay_options):
+                 cache_dir=None, start_timeout: float = 120.0, reset_at_eeprom_write: int = 0,
+                 **replay_options):
         self.track = track
         self.lead_s = float(lead_s)
         self.t0 = float(self.track.t[0])
@@ -194,6 +197,7 @@ class SimavrBoard:
         self.tail_s = float(tail_s)
         self.cache_dir = cache_dir
         self.start_timeout = start_timeout
+        self.reset_at_eeprom_write = int(reset_at_eeprom_write)
         self.replay_options = replay_options
         self.port_name: str | None = None
         self.stats: dict | None = None
@@ -224,6 +228,8 @@ class SimavrBoard:
         cmd = [str(harness), str(elf), str(replay), "--stats", str(self._stats_path), "--tail", str(self.tail_s)]
         if self.eeprom is not None:
             cmd += ["--eeprom", str(self.eeprom)]
+        if self.reset_at_eeprom_write:
+            cmd += ["--reset-at-eeprom-write", str(self.reset_at_eeprom_write)]
         self._log = open(self._log_path, "wb")
         try:
             self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=self._log, stdin=subprocess.DEVNULL)

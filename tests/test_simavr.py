@@ -231,6 +231,17 @@ def test_firmware_streams_track_accounts_for_every_frame_and_applies_calibration
     assert link.sphere_sums is not None and link.sphere_sums.n > 0
 
 
+EE_SLOTS = (0, 64)          # EEPROM layout 2: two 46-byte slots (streamcal_bridge.ino)
+
+
+def ee_slot(image: bytes, i: int):
+    """(valid, origin, seq, SetCalibration) of EEPROM slot ``i``: layout 2, slot CRC, block CRC."""
+    raw = image[EE_SLOTS[i]:EE_SLOTS[i] + 46]
+    block = fr.SetCalibration.unpack_body(raw[4:44])
+    valid = raw[0] == 2 and fr.crc16(raw[:44]) == struct.unpack("<H", raw[44:])[0] and block.crc_ok()
+    return valid, raw[1], struct.unpack("<H", raw[2:4])[0], block
+
+
 @pytest.mark.toolchain
 def test_calibration_survives_reboot_in_simulated_eeprom(tmp_path):
     _need_toolchain()
@@ -243,8 +254,8 @@ def test_calibration_survives_reboot_in_simulated_eeprom(tmp_path):
         link.close()
     assert board.returncode == 0 and eeprom.stat().st_size == 1024
     image = eeprom.read_bytes()
-    assert image[:3] == b"SC\x01"
-    stored = fr.SetCalibration.unpack_body(image[3:43])
+    valid, origin, seq, stored = ee_slot(image, 0)
+    assert valid and origin == 1 and seq == 1 and not ee_slot(image, 1)[0]
     assert stored.cal_id == cal_id == 77 and stored.crc_ok()
     with SimavrBoard(track, asa=ASA, eeprom=eeprom) as rebooted:
         link = rebooted.open_link()
@@ -254,4 +265,47 @@ def test_calibration_survives_reboot_in_simulated_eeprom(tmp_path):
         link.clear_calibration()
         assert link.query_calibration().valid == 0
         link.close()
-    assert eeprom.read_bytes()[0] == 0xFF          # CLEAR_CAL invalidated the magic
+    image = eeprom.read_bytes()
+    assert not ee_slot(image, 0)[0] and not ee_slot(image, 1)[0]     # CLEAR_CAL invalidated both
+
+
+@pytest.mark.toolchain
+def test_reset_in_the_middle_of_an_eeprom_write_keeps_the_previous_calibration(tmp_path):
+    """SET_CAL A, then SET_CAL B with the AVR reset right after its k-th EEPROM byte write: on
+    reboot A is in force for every k before the last byte, B once the write is complete."""
+    _need_toolchain()
+    track = _excerpt(0.5)
+    first = tmp_path / "a.bin"
+    cal_b = CAL.replace(b=CAL.b + np.array([3.0, -2.0, 1.0]))
+    with SimavrBoard(track, asa=ASA, eeprom=first) as board:
+        link = board.open_link()
+        link.send_calibration(CAL, cal_id=0xA)
+        link.close()
+    dry = tmp_path / "dry.bin"
+    dry.write_bytes(first.read_bytes())
+    with SimavrBoard(track, asa=ASA, eeprom=dry) as board:
+        link = board.open_link()
+        link.send_calibration(cal_b, cal_id=0xB)
+        link.close()
+    writes_b = board.stats["eeprom_writes"]
+    assert 10 < writes_b <= 46                   # EEPROM.update writes only the bytes that change
+    for k in sorted({1, writes_b // 2, writes_b - 1, writes_b}):
+        image = tmp_path / f"k{k}.bin"
+        image.write_bytes(first.read_bytes())
+        with SimavrBoard(track, asa=ASA, eeprom=image, reset_at_eeprom_write=k) as board:
+            link = board.open_link()
+            try:
+                link.send_calibration(cal_b, cal_id=0xB, retries=0, timeout=1.0)
+            except Exception:
+                pass                             # the board reset before it could answer
+            deadline = time.monotonic() + 1.0
+            while time.monotonic() < deadline:
+                link.pump()
+            link.request_info()                   # the boot HELLO may be glued to the cut frame
+            report = link.query_calibration()
+            link.close()
+        assert board.stats["resets"] == 1 and board.stats["eeprom_writes"] >= k
+        changed = image.read_bytes() != first.read_bytes()
+        assert changed                            # the write had begun
+        expected = 0xB if k == writes_b else 0xA
+        assert report.valid == 1 and report.cal_id == expected, (k, writes_b, report)

@@ -25,7 +25,7 @@
 
 enum ScType {
   SC_HELLO = 0x01, SC_SAMPLE = 0x02, SC_CAL_SAMPLE = 0x03, SC_SPHERE_SUMS = 0x04,
-  SC_CAL_REPORT = 0x05, SC_ACK = 0x06, SC_NAK = 0x07,
+  SC_CAL_REPORT = 0x05, SC_ACK = 0x06, SC_NAK = 0x07, SC_SELF_CAL = 0x08,
   SC_GET_INFO = 0x10, SC_START = 0x11, SC_STOP = 0x12, SC_SET_CAL = 0x13,
   SC_QUERY_CAL = 0x14, SC_CLEAR_CAL = 0x15
 };
@@ -33,7 +33,8 @@ enum ScType {
 // Body sizes, bytes (frames.py: Message.body_size()).
 enum ScSize {
   SC_SIZE_HELLO = 37, SC_SIZE_SAMPLE = 25, SC_SIZE_CAL_SAMPLE = 17, SC_SIZE_SPHERE_SUMS = 206,
-  SC_SIZE_CAL = 40, SC_SIZE_CAL_REPORT = 41, SC_SIZE_ACK = 3, SC_SIZE_NAK = 4, SC_SIZE_START = 7
+  SC_SIZE_CAL = 40, SC_SIZE_CAL_REPORT = 41, SC_SIZE_ACK = 3, SC_SIZE_NAK = 4, SC_SIZE_START = 7,
+  SC_SIZE_SELF_CAL = 74
 };
 
 enum ScStatus {
@@ -41,7 +42,14 @@ enum ScStatus {
   SC_ST_ACCEL_VALID = 0x08, SC_ST_GYRO_VALID = 0x10, SC_ST_TEMP_VALID = 0x20,
   SC_ST_I2C_ERROR = 0x40, SC_ST_CAL_ACTIVE = 0x80
 };
-enum ScHelloFlags { SC_HF_CAL_LOADED = 0x01, SC_HF_MAG_PRESENT = 0x02, SC_HF_STREAMING = 0x04 };
+enum ScHelloFlags { SC_HF_CAL_LOADED = 0x01, SC_HF_MAG_PRESENT = 0x02, SC_HF_STREAMING = 0x04,
+                    SC_HF_SELF_CAL = 0x08 };
+// SELF_CAL: what happened, why, and where the calibration in force came from.
+enum ScSelfCalEvent { SC_SE_FITTED = 1, SC_SE_ACCEPTED = 2, SC_SE_REJECTED = 3, SC_SE_FIT_FAILED = 4 };
+enum ScSelfCalReason { SC_SR_NONE = 0, SC_SR_NO_CAL_IN_FORCE = 1, SC_SR_BEATS_IN_FORCE = 2,
+                       SC_SR_NOT_BETTER = 3, SC_SR_EEPROM_FAILED = 4, SC_SR_UNDETERMINED = 5,
+                       SC_SR_TOO_POOR = 6 };
+enum ScCalOrigin { SC_ORIGIN_NONE = 0, SC_ORIGIN_HOST = 1, SC_ORIGIN_BOARD = 2, SC_ORIGIN_BUILTIN = 3 };
 enum ScOutput { SC_OUT_SAMPLES = 0x01, SC_OUT_CALIBRATED = 0x02, SC_OUT_SPHERE_SUMS = 0x04,
                 SC_OUT_RESET_SUMS = 0x08 };
 enum ScNakReason { SC_NAK_BAD_CAL_CRC = 1, SC_NAK_BAD_CAL_VALUES = 2, SC_NAK_UNKNOWN_TYPE = 3,
@@ -102,6 +110,19 @@ struct ScCalSample { uint32_t t_us; float x[3]; uint8_t status; };
 struct ScCal { uint16_t cal_id; float k[6]; float b[3]; uint16_t crc; };  // k: k11 k12 k13 k22 k23 k33
 struct ScAck { uint8_t acked_type; uint16_t acked_seq; uint8_t reason; };  // reason: NAK only
 struct ScStart { uint8_t outputs; uint32_t period_us; uint16_t sums_every; };
+// The board's own calibration: event, reason, origin and id of the calibration in force after it,
+// coverage cells of the window that ended, samples fitted / scored, fit's mean squared residual,
+// mean held-out losses of the candidate and of the calibration in force (NaN: none), the fit's
+// cycles and one magnetometer sample's calibration work in cycles, and the candidate block.
+struct ScSelfCal {
+  uint8_t event, reason, origin;
+  uint16_t in_force_id;
+  uint8_t cells;
+  uint32_t n_fit, n_check;
+  float fit_cost, loss_new, loss_old;
+  uint32_t fit_cycles, sample_cycles;
+  ScCal cand;
+};
 // The 25 one-pass sphere-fit statistics over d = m - center (mag counts), see SphereSums in frames.py.
 struct ScSums {
   uint32_t n, rejected;
@@ -158,6 +179,22 @@ static inline void sc_get_cal(ScReader &r, ScCal &c) {
   for (uint8_t i = 0; i < 6; ++i) c.k[i] = sc_get_f32(r);
   for (uint8_t i = 0; i < 3; ++i) c.b[i] = sc_get_f32(r);
   c.crc = sc_get_u16(r);
+}
+static inline void sc_put_self_cal(ScWriter &w, const ScSelfCal &f) {
+  sc_put_u8(w, f.event); sc_put_u8(w, f.reason); sc_put_u8(w, f.origin);
+  sc_put_u16(w, f.in_force_id); sc_put_u8(w, f.cells);
+  sc_put_u32(w, f.n_fit); sc_put_u32(w, f.n_check);
+  sc_put_f32(w, f.fit_cost); sc_put_f32(w, f.loss_new); sc_put_f32(w, f.loss_old);
+  sc_put_u32(w, f.fit_cycles); sc_put_u32(w, f.sample_cycles);
+  sc_put_cal(w, f.cand);
+}
+static inline void sc_get_self_cal(ScReader &r, ScSelfCal &f) {
+  f.event = sc_get_u8(r); f.reason = sc_get_u8(r); f.origin = sc_get_u8(r);
+  f.in_force_id = sc_get_u16(r); f.cells = sc_get_u8(r);
+  f.n_fit = sc_get_u32(r); f.n_check = sc_get_u32(r);
+  f.fit_cost = sc_get_f32(r); f.loss_new = sc_get_f32(r); f.loss_old = sc_get_f32(r);
+  f.fit_cycles = sc_get_u32(r); f.sample_cycles = sc_get_u32(r);
+  sc_get_cal(r, f.cand);
 }
 static inline void sc_put_start(ScWriter &w, const ScStart &s) {
   sc_put_u8(w, s.outputs); sc_put_u32(w, s.period_us); sc_put_u16(w, s.sums_every);

@@ -4,11 +4,27 @@
 // (x = K^-1 (m - b), computed here) when a calibration is held, and the 25 one-pass sphere-fit
 // sums. Accepts SET_CAL (validated, stored in EEPROM with its own CRC, loaded at boot), QUERY_CAL,
 // CLEAR_CAL, START/STOP and GET_INFO. Protocol: firmware_bridge/PROTOCOL.md; codec: sc_protocol.h.
+//
+// Self-calibration (sc_selfcal.h; off with -DSC_NO_SELFCAL): the magnetometer samples are cut into
+// windows, each ending when its coverage mask holds SC_MASK_NEED of 64 cells. At a window's end
+// the sphere fitted to it becomes the candidate, and the next window is its held-out check: each
+// of its samples is scored under the candidate and under the calibration in force. At that
+// window's end the candidate replaces the calibration in force only if it scores better by a
+// quarter (or none is in force and it is good enough); it is then stored in EEPROM and applied at
+// once. Every fit and decision is announced in a SELF_CAL frame.
+// A header sc_initial_cal.h beside the sketch (streamcal export --format c-header) gives the
+// calibration to start from while the EEPROM holds none.
 // Register facts: HARDWARE.md sections 2-4 (MPU-9250 register map, AK8963 datasheet).
 #include <EEPROM.h>
 #include <Wire.h>
 
 #include "sc_protocol.h"
+
+#if defined(__has_include)
+#if __has_include("sc_initial_cal.h")
+#include "sc_initial_cal.h"
+#endif
+#endif
 
 #define FW_MAJOR 1
 #define FW_MINOR 0
@@ -59,11 +75,13 @@
 #define TEMP_SCALE (1.0f / 333.87f)                      // degC per count
 #define TEMP_OFFSET 21.0f
 
-// EEPROM layout: magic "SC", layout version, then the 40-byte calibration block (with its CRC).
-#define EE_MAGIC0 'S'
-#define EE_MAGIC1 'C'
-#define EE_LAYOUT 1
-#define EE_CAL_ADDR 3
+// EEPROM layout 2: two slots of 46 bytes, layout u8, origin u8, seq u16, the 40-byte calibration
+// block, crc u16 over the 44 bytes before it. The newer valid slot is in force; a write goes to
+// the other one, so a reset in the middle of it leaves the previous calibration in force.
+#define EE_LAYOUT 2
+#define EE_SLOT_SIZE 46
+#define EE_SLOT_A 0
+#define EE_SLOT_B 64
 
 static uint8_t g_tx[SC_FRAME_BUF(SC_SIZE_SPHERE_SUMS)];
 static uint8_t g_rx_buf[SC_SIZE_CAL + SC_HEADER_SIZE + SC_CRC_SIZE + 2];
@@ -71,6 +89,9 @@ static ScDecoder g_rx;
 static ScSums g_sums;
 static ScCal g_cal;
 static bool g_cal_valid;
+static uint8_t g_origin;         // ScCalOrigin of g_cal
+static uint8_t g_slot;           // EEPROM slot holding g_cal (0/1), 0xFF none
+static uint16_t g_ee_seq;        // sequence number of the newest slot written
 static float g_mag_scale[3];     // uT per count along body x, y, z (ASA applied)
 static uint16_t g_seq;
 static uint8_t g_whoami, g_ak_wia, g_outputs;
@@ -139,6 +160,10 @@ static void sensor_setup() {
 
 // ---- frames out ----
 static void poll_while_busy();
+#ifndef SC_NO_SELFCAL
+#define SC_FIT_IDLE() poll_while_busy()
+#include "sc_selfcal.h"
+#endif
 
 // Write a frame; while Serial's 64-byte transmit buffer is full, keep polling the sensors (a
 // 215-byte SPHERE_SUMS frame holds the line for ~19 ms, long enough for the AK8963 to overwrite
@@ -160,6 +185,9 @@ static void send_hello() {
   h.fw_major = FW_MAJOR; h.fw_minor = FW_MINOR; h.whoami = g_whoami; h.ak_wia = g_ak_wia;
   h.flags = (g_cal_valid ? SC_HF_CAL_LOADED : 0) | (g_mag_present ? SC_HF_MAG_PRESENT : 0) |
             (g_streaming ? SC_HF_STREAMING : 0);
+#ifndef SC_NO_SELFCAL
+  h.flags |= SC_HF_SELF_CAL;
+#endif
   h.period_us = g_period_us;
   h.accel_scale = ACCEL_SCALE; h.gyro_scale = GYRO_SCALE;
   h.temp_scale = TEMP_SCALE; h.temp_offset = TEMP_OFFSET;
@@ -191,29 +219,56 @@ static void send_sums() {
 }
 
 // ---- calibration in EEPROM ----
-static void load_calibration() {
-  g_cal_valid = false;
-  memset(&g_cal, 0, sizeof g_cal);
-  if (EEPROM.read(0) != EE_MAGIC0 || EEPROM.read(1) != EE_MAGIC1 || EEPROM.read(2) != EE_LAYOUT) return;
-  uint8_t block[SC_SIZE_CAL];
-  for (uint8_t i = 0; i < SC_SIZE_CAL; ++i) block[i] = EEPROM.read(EE_CAL_ADDR + i);
-  ScReader r = {block};
-  ScCal c;
+static bool read_slot(uint8_t slot, ScCal &c, uint8_t &origin, uint16_t &seq) {
+  uint8_t b[EE_SLOT_SIZE];
+  uint16_t at = slot ? EE_SLOT_B : EE_SLOT_A;
+  for (uint8_t i = 0; i < EE_SLOT_SIZE; ++i) b[i] = EEPROM.read(at + i);
+  ScReader r = {b};
+  if (sc_get_u8(r) != EE_LAYOUT) return false;
+  origin = sc_get_u8(r);
+  seq = sc_get_u16(r);
   sc_get_cal(r, c);
-  if (sc_cal_check(c) == 0) { g_cal = c; g_cal_valid = true; }
+  return sc_get_u16(r) == sc_crc16(b, EE_SLOT_SIZE - 2) && sc_cal_check(c) == 0;
 }
 
-static uint8_t store_calibration(const ScCal &c) {
-  uint8_t block[SC_SIZE_CAL];
-  ScWriter w = {block};
+static void load_calibration() {
+  g_cal_valid = false;
+  g_origin = SC_ORIGIN_NONE;
+  g_slot = 0xFF;
+  ScCal c;
+  uint8_t origin;
+  uint16_t seq;
+  for (uint8_t i = 0; i < 2; ++i) {
+    if (!read_slot(i, c, origin, seq)) continue;
+    if (g_cal_valid && (int16_t)(seq - g_ee_seq) <= 0) continue;
+    g_cal = c; g_cal_valid = true; g_origin = origin; g_slot = i; g_ee_seq = seq;
+  }
+#ifdef SC_INITIAL_CAL_K
+  if (!g_cal_valid) {
+    static const float k0[6] PROGMEM = SC_INITIAL_CAL_K;
+    static const float b0[3] PROGMEM = SC_INITIAL_CAL_B;
+    c.cal_id = 0;
+    memcpy_P(c.k, k0, sizeof c.k);
+    memcpy_P(c.b, b0, sizeof c.b);
+    c.crc = sc_cal_crc(c);
+    if (sc_cal_check(c) == 0) { g_cal = c; g_cal_valid = true; g_origin = SC_ORIGIN_BUILTIN; }
+  }
+#endif
+}
+
+// Write c to the slot not in force, read it back, then make it the calibration in force.
+static uint8_t store_calibration(const ScCal &c, uint8_t origin) {
+  uint8_t b[EE_SLOT_SIZE];
+  uint8_t slot = g_slot == 0 ? 1 : 0;
+  uint16_t at = slot ? EE_SLOT_B : EE_SLOT_A, seq = g_ee_seq + 1;
+  ScWriter w = {b};
+  sc_put_u8(w, EE_LAYOUT); sc_put_u8(w, origin); sc_put_u16(w, seq);
   sc_put_cal(w, c);
-  EEPROM.update(0, 0xFF);  // invalidate first: a reset mid-write leaves no half calibration
-  for (uint8_t i = 0; i < SC_SIZE_CAL; ++i) EEPROM.update(EE_CAL_ADDR + i, block[i]);
-  EEPROM.update(2, EE_LAYOUT);
-  EEPROM.update(1, EE_MAGIC1);
-  EEPROM.update(0, EE_MAGIC0);
-  for (uint8_t i = 0; i < SC_SIZE_CAL; ++i)
-    if (EEPROM.read(EE_CAL_ADDR + i) != block[i]) return SC_NAK_EEPROM_FAILED;
+  sc_put_u16(w, sc_crc16(b, EE_SLOT_SIZE - 2));
+  for (uint8_t i = 0; i < EE_SLOT_SIZE; ++i) EEPROM.update(at + i, b[i]);
+  for (uint8_t i = 0; i < EE_SLOT_SIZE; ++i)
+    if (EEPROM.read(at + i) != b[i]) return SC_NAK_EEPROM_FAILED;
+  g_cal = c; g_cal_valid = true; g_origin = origin; g_slot = slot; g_ee_seq = seq;
   return 0;
 }
 
@@ -242,8 +297,11 @@ static void handle_frame(int16_t n) {
       return;
     case SC_CLEAR_CAL:
       if (body_len != 0) break;
-      EEPROM.update(0, 0xFF);
+      EEPROM.update(EE_SLOT_A, 0xFF);
+      EEPROM.update(EE_SLOT_B, 0xFF);
       g_cal_valid = false;
+      g_origin = SC_ORIGIN_NONE;
+      g_slot = 0xFF;
       send_ack(type, seq, 0);
       return;
     case SC_START: {
@@ -264,8 +322,7 @@ static void handle_frame(int16_t n) {
       ScCal c;
       sc_get_cal(r, c);
       uint8_t reason = sc_cal_check(c);
-      if (reason == 0) reason = store_calibration(c);
-      if (reason == 0) { g_cal = c; g_cal_valid = true; }
+      if (reason == 0) reason = store_calibration(c, SC_ORIGIN_HOST);
       send_ack(type, seq, reason);
       return;
     }
@@ -329,6 +386,99 @@ static void poll_while_busy() {
   g_have_held = true;
 }
 
+#ifndef SC_NO_SELFCAL
+// ---- self-calibration ----
+static uint8_t g_mask[8];        // coverage cells of the current window
+static float g_mask_c[3], g_mask_r;  // centre and radius (uT) the cells are counted about; r 0: none
+static ScCal g_cand;             // candidate sphere: K = R I, b (uT); k[0] = 0: none
+static float g_cand_cost, g_loss_new, g_loss_old;
+static uint32_t g_cand_n, g_check_n, g_fit_us, g_proc_us, g_proc_n;
+
+static void announce(uint8_t event, uint8_t reason, uint8_t cells) {
+  ScWriter w = sc_begin(g_tx, SC_SELF_CAL, g_seq);
+  sc_put_u8(w, event); sc_put_u8(w, reason); sc_put_u8(w, g_cal_valid ? g_origin : SC_ORIGIN_NONE);
+  sc_put_u16(w, g_cal_valid ? g_cal.cal_id : 0); sc_put_u8(w, cells);
+  sc_put_u32(w, g_cand_n); sc_put_u32(w, g_check_n);
+  sc_put_f32(w, g_cand_cost);
+  sc_put_f32(w, g_loss_new / g_check_n);
+  sc_put_f32(w, g_cal_valid ? g_loss_old / g_check_n : NAN);
+  sc_put_u32(w, g_fit_us * 16);
+  sc_put_u32(w, g_proc_n ? g_proc_us * 16 / g_proc_n : 0);
+  sc_put_cal(w, g_cand);
+  send(w);
+}
+
+// A window has reached its coverage: judge the pending candidate on it, fit the next one to it.
+static void window_end() {
+  uint8_t cells = sc_mask_count(g_mask);
+  if (g_cand.k[0] > 0.0f) {
+    uint8_t event = SC_SE_REJECTED, reason = SC_SR_NOT_BETTER;
+    if (g_cal_valid ? 4.0f * g_loss_new < 3.0f * g_loss_old : g_loss_new < SC_ACCEPT_LOSS * g_check_n) {
+      reason = g_cal_valid ? SC_SR_BEATS_IN_FORCE : SC_SR_NO_CAL_IN_FORCE;
+      if (store_calibration(g_cand, SC_ORIGIN_BOARD) == 0) event = SC_SE_ACCEPTED;
+      else reason = SC_SR_EEPROM_FAILED;
+    } else if (!g_cal_valid) {
+      reason = SC_SR_TOO_POOR;
+    }
+    announce(event, reason, cells);
+  }
+  ScSphereFit f;
+  uint32_t t0 = micros();
+  bool ok = sc_sphere_fit(g_sums, g_mag_scale, f);
+  g_fit_us = micros() - t0;
+  // A fit that does not even match its own window (a magnet went by) is no candidate, and its
+  // centre would skew the next window's cells.
+  uint8_t why = ok ? SC_SR_TOO_POOR : SC_SR_UNDETERMINED;
+  ok = ok && f.cost < SC_ACCEPT_LOSS;
+  g_cand_n = g_sums.n;
+  g_cand_cost = f.cost;
+  // cal_id of a board fit: 0xB000 + a 12-bit counter
+  sc_cal_from_sphere(g_cand, 0xB000 | ((g_cand.cal_id + 1) & 0x0FFF), f.b, ok ? f.R : 0.0f);
+  if (ok) {
+    memcpy(g_mask_c, f.b, sizeof f.b);
+    g_mask_r = f.R;
+  }
+  g_check_n = 0;
+  g_loss_new = g_loss_old = 0.0f;
+  announce(ok ? SC_SE_FITTED : SC_SE_FIT_FAILED, ok ? SC_SR_NONE : why, cells);
+  sc_sums_reset(g_sums);
+  g_sums_since = 0;
+  g_proc_us = g_proc_n = 0;
+  memset(g_mask, 0, sizeof g_mask);
+}
+
+// Per magnetometer sample m (uT), after it was summed: coverage cell and held-out scores.
+// Returns true when the window is complete.
+static bool selfcal_sample(const float m[3]) {
+  if (g_cand.k[0] == 0.0f && (g_sums.n & 31) == 0) {
+    // No fitted centre yet: count cells about the Kasa centre of the window so far, and start
+    // again when that centre moves by more than an eighth of the radius.
+    float G[25], c[3], R;
+    if (sc_moments(g_sums, g_mag_scale, G) && sc_kasa(G, c, R)) {
+      float d2 = 0.0f;
+      for (uint8_t j = 0; j < 3; ++j) {
+        c[j] += g_sums.center[j] * g_mag_scale[j];
+        d2 += (c[j] - g_mask_c[j]) * (c[j] - g_mask_c[j]);
+      }
+      if (64.0f * d2 > R * R) memset(g_mask, 0, sizeof g_mask);
+      memcpy(g_mask_c, c, sizeof c);
+      g_mask_r = R;
+    }
+  }
+  if (g_mask_r == 0.0f) return false;
+  float u[3];
+  for (uint8_t j = 0; j < 3; ++j) u[j] = m[j] - g_mask_c[j];
+  uint8_t cell = sc_cell(u);
+  g_mask[cell >> 3] |= (uint8_t)(1 << (cell & 7));
+  if (g_cand.k[0] > 0.0f) {
+    g_loss_new += sc_score(g_cand, m);
+    if (g_cal_valid) g_loss_old += sc_score(g_cal, m);
+    ++g_check_n;
+  }
+  return sc_mask_count(g_mask) >= SC_MASK_NEED;
+}
+#endif
+
 static void emit_sample(const ScSample &s) {
   if (g_outputs & SC_OUT_SAMPLES) {
     ScWriter w = sc_begin(g_tx, SC_SAMPLE, g_seq);
@@ -336,10 +486,10 @@ static void emit_sample(const ScSample &s) {
     send(w);
   }
   if (!(s.status & SC_ST_MAG_VALID)) return;
+  float m[3];
+  for (uint8_t i = 0; i < 3; ++i) m[i] = s.mag[i] * g_mag_scale[i];
   if (g_cal_valid && (g_outputs & SC_OUT_CALIBRATED)) {
-    float m[3];
     ScCalSample c;
-    for (uint8_t i = 0; i < 3; ++i) m[i] = s.mag[i] * g_mag_scale[i];
     sc_cal_apply(g_cal, m, c.x);
     c.t_us = s.t_us;
     c.status = s.status;
@@ -347,11 +497,22 @@ static void emit_sample(const ScSample &s) {
     sc_put_cal_sample(w, c);
     send(w);
   }
+#ifndef SC_NO_SELFCAL
+  uint32_t t0 = micros();
   sc_sums_add(g_sums, s.mag);
+  bool done = selfcal_sample(m);
+  g_proc_us += micros() - t0;
+  ++g_proc_n;
+#else
+  sc_sums_add(g_sums, s.mag);
+#endif
   if ((g_outputs & SC_OUT_SPHERE_SUMS) && g_sums_every && ++g_sums_since >= g_sums_every) {
     g_sums_since = 0;
     send_sums();
   }
+#ifndef SC_NO_SELFCAL
+  if (done) window_end();
+#endif
 }
 
 void setup() {

@@ -7,6 +7,9 @@
 //   acc X Y Z X Y Z ...      -> the SPHERE_SUMS body values after adding these mag samples
 //   app K6 B3 M3             -> the three float bits of x = K^-1 (m - b) (sc_cal_apply)
 //   chk K6 B3 ID             -> "<crc> <sc_cal_check reason with that crc>"
+//   fit SCALE3 SUMS29        -> "OK B3 R COST ITERS" (float bits) of sc_sphere_fit, or "FAIL"
+//   cel U3 ...               -> the sc_cell index of each direction u (float bits)
+//   scr K6 B3 M3             -> float bits of sc_score (held-out loss of m under K, b)
 // tests/test_arduino_build.py drives it with arduino/test_vectors/vectors.json.
 #include <stdio.h>
 #include <stdlib.h>
@@ -16,6 +19,7 @@
 #include <vector>
 
 #include "../streamcal_bridge/sc_protocol.h"
+#include "../streamcal_bridge/sc_selfcal.h"
 
 typedef std::vector<long long> Values;
 
@@ -217,7 +221,28 @@ int main() {
         sc_sums_add(s, m);
       }
       print_sums(s); printf("\n");
-    } else if (cmd == "app" || cmd == "chk") {
+    } else if (cmd == "fit") {
+      if (v.size() != 32) { printf("ERR fit needs 3 scales and 29 sums values\n"); continue; }
+      float scale[3] = {f_of(v[0]), f_of(v[1]), f_of(v[2])};
+      ScSums s;
+      size_t i = 3;
+      s.n = v[i++]; s.rejected = v[i++];
+      for (int j = 0; j < 3; ++j) s.center[j] = v[i++];
+      for (int j = 0; j < 3; ++j) s.s1[j] = v[i++];
+      for (int j = 0; j < 6; ++j) s.s2[j] = v[i++];
+      for (int j = 0; j < 9; ++j) s.s3[j] = v[i++];
+      for (int j = 0; j < 6; ++j) s.s4[j] = v[i++];
+      ScSphereFit f;
+      if (!sc_sphere_fit(s, scale, f)) { printf("FAIL\n"); continue; }
+      printf("OK %lld %lld %lld %lld %lld %u\n", bits_of(f.b[0]), bits_of(f.b[1]), bits_of(f.b[2]),
+             bits_of(f.R), bits_of(f.cost), f.iters);
+    } else if (cmd == "cel") {
+      for (size_t i = 0; i + 2 < v.size(); i += 3) {
+        float u[3] = {f_of(v[i]), f_of(v[i + 1]), f_of(v[i + 2])};
+        printf(i ? " %u" : "%u", sc_cell(u));
+      }
+      printf("\n");
+    } else if (cmd == "app" || cmd == "chk" || cmd == "scr") {
       ScCal c; memset(&c, 0, sizeof c);
       for (int j = 0; j < 6; ++j) c.k[j] = f_of(v.at(j));
       for (int j = 0; j < 3; ++j) c.b[j] = f_of(v.at(6 + j));
@@ -228,6 +253,7 @@ int main() {
         continue;
       }
       float m[3] = {f_of(v.at(9)), f_of(v.at(10)), f_of(v.at(11))}, x[3];
+      if (cmd == "scr") { printf("%lld\n", bits_of(sc_score(c, m))); continue; }
       sc_cal_apply(c, m, x);
       printf("%lld %lld %lld\n", bits_of(x[0]), bits_of(x[1]), bits_of(x[2]));
     } else {

@@ -11,6 +11,7 @@
  * separate GPL-3 program, not part of the streamcal Python package. See COPYING.
  *
  *   simavr_harness FIRMWARE.elf REPLAY.bin [--eeprom FILE] [--stats FILE] [--tail SECONDS]
+ *                  [--reset-at-eeprom-write N]
  *
  * Prints the slave pty path on stdout (one line; a second line "replay-end" when the replay and
  * its tail are over and real time begins), then waits for the host's first byte before
@@ -27,6 +28,10 @@
  * USER_CTRL.I2C_MST_EN clear) gating the AK8963, big-endian 14-byte accel/temp/gyro burst from
  * one instant, AK8963 WIA, ST1 DRDY/DOR, little-endian HXL..HZH, ST2 HOFL/BITM ending the read,
  * CNTL1 modes through power-down, fuse ROM readable in fuse-ROM mode, CNTL2 soft reset.
+ *
+ * EEPROM byte writes (EECR.EEPE strobes) are counted ("eeprom_writes" in the stats);
+ * --reset-at-eeprom-write N resets the AVR right after the instruction that starts the N-th one
+ * (a power glitch in the middle of an EEPROM update; the chips keep their state).
  *
  * Replay file (little-endian; written by firmware_bridge/simavr_board.py):
  *   "SCSIMRP1"  u32 n_acc n_gyr n_tmp n_mag  u8 whoami ak_wia has_mag asa[3] pad[2]
@@ -472,6 +477,19 @@ static void uart_attach(avr_t *avr) {
     avr_cycle_timer_register(avr, F_CPU_HZ / 1000, uart_feed_timer, NULL);
 }
 
+/* ---- EEPROM writes ------------------------------------------------------------------------------ */
+#define EECR_DATA_ADDR 0x3F                /* ATmega328P EECR: I/O 0x1F */
+#define EECR_EEPE 0x02
+static uint64_t g_ee_writes, g_ee_reset_at, g_resets_done;
+static int g_reset_pending;
+
+static void eecr_write_hook(avr_t *avr, avr_io_addr_t addr, uint8_t v, void *param) {
+    (void)avr; (void)addr; (void)param;
+    if (!(v & EECR_EEPE)) return;
+    g_ee_writes += 1;
+    if (g_ee_reset_at && g_ee_writes == g_ee_reset_at) g_reset_pending = 1;
+}
+
 /* ---- EEPROM file, stats, logging ---------------------------------------------------------------- */
 static void eeprom_load(avr_t *avr, const char *path) {
     uint8_t buf[EEPROM_SIZE];
@@ -518,10 +536,11 @@ static void stats_write(avr_t *avr, const char *path, double wall_s, const char 
              "\"transactions\": %" PRIu64 ", \"refused_absent\": %" PRIu64 ", "
              "\"samples_latched\": %" PRIu64 ", \"skipped\": %" PRIu64 ", \"dor_reported\": %" PRIu64 ", "
              "\"hofl\": %" PRIu64 ", \"violations\": %" PRIu64 ", \"mag_rows\": %u, \"mag_next\": %u, "
-             "\"uart_tx_bytes\": %" PRIu64 ", \"uart_tx_frames\": %" PRIu64 ", \"uart_rx_bytes\": %" PRIu64 ", \"out_overflow\": %" PRIu64 "}\n",
+             "\"uart_tx_bytes\": %" PRIu64 ", \"uart_tx_frames\": %" PRIu64 ", \"uart_rx_bytes\": %" PRIu64 ", \"out_overflow\": %" PRIu64 ", "
+             "\"eeprom_writes\": %" PRIu64 ", \"resets\": %" PRIu64 "}\n",
              state, avr ? (uint64_t)avr->cycle : 0, sim_s, wall_s, B.transactions, B.refused_absent,
              B.samples_latched, B.skipped, B.dor_reported, B.hofl, B.violations, R.mag.n, B.ak_next,
-             U.tx_bytes, U.tx_delimiters, U.rx_bytes, U.out_overflow);
+             U.tx_bytes, U.tx_delimiters, U.rx_bytes, U.out_overflow, g_ee_writes, g_resets_done);
     fprintf(stderr, "simavr_harness: stats %s", js);
     if (path && write_atomic(path, js, strlen(js)) != 0)
         fprintf(stderr, "simavr_harness: %s: cannot write stats (%s)\n", path, strerror(errno));
@@ -543,6 +562,8 @@ int main(int argc, char **argv) {
         if (!strcmp(argv[i], "--eeprom") && i + 1 < argc) eeprom = argv[++i];
         else if (!strcmp(argv[i], "--stats") && i + 1 < argc) stats = argv[++i];
         else if (!strcmp(argv[i], "--tail") && i + 1 < argc) tail_s = atof(argv[++i]);
+        else if (!strcmp(argv[i], "--reset-at-eeprom-write") && i + 1 < argc)
+            g_ee_reset_at = strtoull(argv[++i], NULL, 10);
         else if (argv[i][0] == '-') die("unknown option %s", argv[i]);
         else if (!elf) elf = argv[i];
         else if (!replay) replay = argv[i];
@@ -574,6 +595,7 @@ int main(int argc, char **argv) {
     if (eeprom) eeprom_load(avr, eeprom);
     chips_attach(avr);
     uart_attach(avr);
+    avr_register_io_write(avr, EECR_DATA_ADDR, eecr_write_hook, NULL);
     pty_open();
 
     /* Held in reset until the host's first byte (as an Uno resets when its port opens). */
@@ -613,6 +635,15 @@ int main(int argc, char **argv) {
         while (avr->cycle < target) {
             st = avr_run(avr);
             if (st == cpu_Done || st == cpu_Crashed) break;
+            if (g_reset_pending) {
+                g_reset_pending = 0;
+                g_resets_done += 1;
+                fprintf(stderr, "simavr_harness: reset after EEPROM write %" PRIu64 "\n", g_ee_writes);
+                avr_reset(avr);
+                /* avr_reset clears the cycle timers: start feeding host bytes again */
+                U.xoff = 0;
+                avr_cycle_timer_register(avr, F_CPU_HZ / 1000, uart_feed_timer, NULL);
+            }
         }
         if (st == cpu_Done || st == cpu_Crashed) {
             state = st == cpu_Done ? "done" : "crashed";

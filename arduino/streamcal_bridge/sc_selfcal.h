@@ -1,0 +1,214 @@
+// sc_selfcal.h -- the board's own calibration: a Gauss-Newton sphere fit from the 25 one-pass
+// sums (ScSums), a coarse coverage mask and the held-out score. Shared by the sketch and the
+// host test program (arduino/test_vectors/sc_vectors.cpp), which checks it against
+// streamcal/fit/sphere_stream.py on the same sums. Single precision, no heap.
+//
+// The fit is the 4-parameter sphere model of sphere_stream.py: residual r = 1 - |u|^2/R^2,
+// u = x - c, x in uT. With d = x - o (o the sums' origin) and c relative to o, r is linear in
+// the augmented sample w = (d0, d1, d2, |d|^2, 1):
+//   r = a.w,   a(c, R) = (2c/R^2, -1/R^2, 1 - |c|^2/R^2)
+// so with the 5x5 moment matrix G = <w w'> (from the 25 sums, mean per sample):
+//   cost = a'G a,   J'J = A'G A,   J'r = A'G a,   A = da/d(c, R) (5x4)
+//   da/dc_j = 2/R^2 e_j - 2c_j/R^2 e_4,   da/dR = (-4c/R^3, 2/R^3, 2|c|^2/R^3)
+// The start is the Kasa fit |d|^2 = 2 c.d + e: least squares of G's rows/columns 0,1,2,4
+// against column 3.
+#ifndef SC_SELFCAL_H
+#define SC_SELFCAL_H
+
+#include "sc_protocol.h"
+
+#ifndef SC_FIT_IDLE
+#define SC_FIT_IDLE()   // the sketch keeps polling its sensors between iterations
+#endif
+
+#define SC_FIT_MAX_ITER 12
+#define SC_FIT_STEP_TOL 1e-5f      // stop when the step is below this fraction of R
+#define SC_MASK_CELLS 64           // 8 equal-area z bands x 8 sectors of 45 degrees
+#define SC_MASK_NEED 56            // cells a window must reach before a fit (7/8 of the sphere)
+#define SC_SCORE_CAP 0.0625f       // held-out loss per sample: min((|x|^2 - 1)^2, cap), cap = 0.25^2
+#define SC_ACCEPT_LOSS 0.02f       // mean held-out loss a fit needs when no calibration is in force
+                                   // (|x|^2 within ~14 %, |x| within ~7 % rms; garbage scores ~cap)
+
+static const uint8_t sc_pj[6] = {0, 0, 0, 1, 1, 2}, sc_pk[6] = {0, 1, 2, 1, 2, 2};
+
+// G = <w w'> (5x5, row-major), w = (d, |d|^2, 1) in uT about the sums' origin; `scale` uT per
+// count per axis. Returns false if s.n < 4.
+static inline bool sc_moments(const ScSums &s, const float scale[3], float *G) {
+  if (s.n < 4) return false;
+  float inv = 1.0f / (float)s.n;
+  memset(G, 0, 25 * sizeof(float));
+  for (uint8_t q = 0; q < 6; ++q) {
+    uint8_t j = sc_pj[q], k = sc_pk[q];
+    float sjk = scale[j] * scale[k] * inv;
+    G[5 * j + k] = (float)s.s2[q] * sjk;
+    G[18] += (j == k ? 1.0f : 2.0f) * (float)s.s4[q] * sjk * scale[j] * scale[k];
+  }
+  for (uint8_t j = 0; j < 3; ++j) {
+    G[5 * j + 4] = (float)s.s1[j] * scale[j] * inv;
+    G[19] += G[6 * j];
+    float t = 0.0f;
+    for (uint8_t k = 0; k < 3; ++k) t += (float)s.s3[3 * k + j] * scale[k] * scale[k];
+    G[5 * j + 3] = t * scale[j] * inv;
+  }
+  G[24] = 1.0f;
+  for (uint8_t i = 1; i < 5; ++i)
+    for (uint8_t k = 0; k < i; ++k) G[5 * i + k] = G[5 * k + i];
+  return true;
+}
+
+// Solve the 4x4 system in a (4 rows of 5, the last column the right-hand side) in place by
+// Gaussian elimination with partial pivoting; false if a pivot is below 1e-6 of the largest
+// diagonal entry (the samples do not fix the fit).
+static inline bool sc_solve4(float *a, float *x) {
+  float big = 0.0f;
+  for (uint8_t i = 0; i < 4; ++i) if (fabsf(a[6 * i]) > big) big = fabsf(a[6 * i]);
+  for (uint8_t c = 0; c < 4; ++c) {
+    float *pc = a + 6 * c, *best = pc;
+    for (float *pr = pc + 5; pr < a + 20; pr += 5) if (fabsf(*pr) > fabsf(*best)) best = pr;
+    if (!(fabsf(*best) > 1e-6f * big)) return false;
+    for (uint8_t k = 0; k < 5 - c; ++k) { float t = pc[k]; pc[k] = best[k]; best[k] = t; }
+    for (float *pr = pc + 5; pr < a + 20; pr += 5) {
+      float f = *pr / *pc;
+      for (uint8_t k = 0; k < 5 - c; ++k) pr[k] -= f * pc[k];
+    }
+  }
+  for (int8_t r = 3; r >= 0; --r) {
+    const float *pr = a + 5 * r;
+    float v = pr[4];
+    for (uint8_t k = r + 1; k < 4; ++k) v -= pr[k] * x[k];
+    x[r] = v / pr[r];
+  }
+  return true;
+}
+
+// Kasa start: centre c (relative to the origin) and R; false if undetermined.
+static inline bool sc_kasa(const float *G, float c[3], float &R) {
+  static const uint8_t f[5] = {0, 1, 2, 4, 3};
+  float a[20], x[4];
+  for (uint8_t i = 0; i < 4; ++i)
+    for (uint8_t k = 0; k < 5; ++k) a[5 * i + k] = G[5 * f[i] + f[k]];
+  if (!sc_solve4(a, x)) return false;
+  float r2 = x[3];
+  for (uint8_t j = 0; j < 3; ++j) { c[j] = 0.5f * x[j]; r2 += c[j] * c[j]; }
+  if (!(r2 > 0.0f)) return false;
+  R = sqrtf(r2);
+  return true;
+}
+
+// a(c, R) (5) and, if A is given, da/d(c, R) (5x4, row-major).
+static inline void sc_sphere_a(const float c[3], float R, float a[5], float *A) {
+  float i2 = 1.0f / (R * R), i3 = i2 / R, cc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
+  a[3] = -i2;
+  a[4] = 1.0f - cc * i2;
+  if (A) {
+    memset(A, 0, 20 * sizeof(float));
+    A[15] = 2.0f * i3;
+    A[19] = 2.0f * cc * i3;
+  }
+  for (uint8_t j = 0; j < 3; ++j) {
+    a[j] = 2.0f * c[j] * i2;
+    if (A) { A[5 * j] = 2.0f * i2; A[16 + j] = -a[j]; A[4 * j + 3] = -4.0f * c[j] * i3; }
+  }
+}
+
+// v = G a (5); returns a'G a. `stride` steps through a (1, or 4 for a column of A).
+static inline float sc_quad(const float *G, const float *a, uint8_t stride, float v[5]) {
+  float q = 0.0f;
+  SC_FIT_IDLE();
+  for (uint8_t i = 0; i < 5; ++i) {
+    v[i] = 0.0f;
+    for (uint8_t k = 0; k < 5; ++k) v[i] += G[5 * i + k] * a[stride * k];
+    q += a[stride * i] * v[i];
+  }
+  return q;
+}
+
+// The fit's result: centre b (uT, sensor frame), radius R (uT), mean squared residual, iterations.
+struct ScSphereFit { float b[3], R, cost; uint8_t iters; };
+
+// Gauss-Newton sphere fit from the sums, as SphereStats.fit() in sphere_stream.py (same start,
+// same step halving); false if the samples do not determine a sphere.
+static inline bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out) {
+  float G[25], c[3], R, a[5], v[5], A[20];
+  if (!sc_moments(s, scale, G) || !sc_kasa(G, c, R)) return false;
+  sc_sphere_a(c, R, a, 0);
+  float cost = sc_quad(G, a, 1, v);
+  uint8_t it = 0;
+  for (; it < SC_FIT_MAX_ITER; ++it) {
+    float H[20], step[4], GA[5];
+    sc_sphere_a(c, R, a, A);
+    sc_quad(G, a, 1, v);
+    for (uint8_t i = 0; i < 4; ++i) {           // H = A'G A | -A'G a
+      sc_quad(G, A + i, 4, GA);
+      float g = 0.0f;
+      for (uint8_t k = 0; k < 4; ++k) {
+        float h = 0.0f;
+        for (uint8_t l = 0; l < 5; ++l) h += A[4 * l + k] * GA[l];
+        H[5 * k + i] = h;
+      }
+      for (uint8_t l = 0; l < 5; ++l) g -= A[4 * l + i] * v[l];
+      H[5 * i + 4] = g;
+    }
+    if (!sc_solve4(H, step)) return false;
+    float norm2 = 0.0f;
+    for (uint8_t k = 0; k < 4; ++k) norm2 += step[k] * step[k];
+    float tol2 = SC_FIT_STEP_TOL * SC_FIT_STEP_TOL * R * R;
+    while (norm2 > tol2) {                       // step halving keeps the cost decreasing
+      float tc[3], tR = R + step[3], tcost = INFINITY;
+      for (uint8_t j = 0; j < 3; ++j) tc[j] = c[j] + step[j];
+      if (tR > 0.0f) { sc_sphere_a(tc, tR, a, 0); tcost = sc_quad(G, a, 1, v); }
+      if (tcost <= cost) {
+        memcpy(c, tc, sizeof tc);
+        R = tR;
+        cost = tcost;
+        break;
+      }
+      for (uint8_t k = 0; k < 4; ++k) step[k] *= 0.5f;
+      norm2 *= 0.25f;
+    }
+    if (norm2 <= tol2) break;
+  }
+  for (uint8_t j = 0; j < 3; ++j) out.b[j] = c[j] + (float)s.center[j] * scale[j];
+  out.R = R;
+  out.cost = cost;
+  out.iters = it;
+  return isfinite(R) && R > 0.0f;
+}
+
+// Coverage cell (0..63) of the direction u = m - centre (uT): equal-area band of u_z/|u| (8 bands
+// of 1/4 in z, Archimedes) times the 45-degree sector of (u_x, u_y).
+static inline uint8_t sc_cell(const float u[3]) {
+  float r = sqrtf(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
+  int8_t band = (int8_t)((u[2] / r + 1.0f) * 4.0f);
+  if (band < 0 || r == 0.0f) band = 0;
+  if (band > 7) band = 7;
+  uint8_t sec = (uint8_t)((u[0] < 0 ? 4 : 0) | (((u[0] < 0) != (u[1] < 0)) ? 2 : 0) |
+                          (((fabsf(u[0]) < fabsf(u[1])) != ((u[0] < 0) != (u[1] < 0))) ? 1 : 0));
+  return (uint8_t)(band * 8 + sec);
+}
+
+static inline uint8_t sc_mask_count(const uint8_t mask[8]) {
+  uint8_t n = 0;
+  for (uint8_t i = 0; i < 8; ++i)
+    for (uint8_t v = mask[i]; v; v &= (uint8_t)(v - 1)) ++n;
+  return n;
+}
+
+// Held-out loss of one sample m (uT) under a calibration: min((|K^-1 (m - b)|^2 - 1)^2, cap).
+static inline float sc_score(const ScCal &c, const float m[3]) {
+  float x[3];
+  sc_cal_apply(c, m, x);
+  float e = x[0] * x[0] + x[1] * x[1] + x[2] * x[2] - 1.0f;
+  e *= e;
+  return e < SC_SCORE_CAP ? e : SC_SCORE_CAP;
+}
+
+// A sphere as a calibration block: K = R I, b = centre (uT), CRC filled in.
+static inline void sc_cal_from_sphere(ScCal &c, uint16_t cal_id, const float b[3], float R) {
+  c.cal_id = cal_id;
+  for (uint8_t i = 0; i < 6; ++i) c.k[i] = (i == 0 || i == 3 || i == 5) ? R : 0.0f;
+  for (uint8_t i = 0; i < 3; ++i) c.b[i] = b[i];
+  c.crc = sc_cal_crc(c);
+}
+
+#endif  // SC_SELFCAL_H
