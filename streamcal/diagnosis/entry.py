@@ -37,7 +37,5 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         if calibration is not None or kwargs.get("fitter") is not None or \
                 any(n in REGISTRATION_EFFECTS for n in model):
             raise
-        fresh_error = True
-    if fresh_error:
-        return diagnose_against(track, None, model=model, candidates=kwargs.get("candidates"),
-                                ladder=kwargs.get("ladder", True))
+    return diagnose_against(track, None, model=model, candidates=kwargs.get("candidates"),
+                            ladder=kwargs.get("ladder", True))
