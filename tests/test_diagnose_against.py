@@ -124,3 +124,24 @@ def test_real_cap_against_its_full_calibration(real_tracks_dir):
     d = streamcal.diagnose(cap, calibration=cal)
     assert d.held
     assert d.rms <= REAL_RMS_FACTOR * cal.rms, (d.rms, cal.rms)
+    # without the calibration: b from the cap, K = r·I held
+    d0 = streamcal.diagnose(cap)
+    assert {"K_xx", "K_yy", "K_zz"} <= set(d0.held) and {"b_x", "b_y", "b_z"} <= set(d0.estimated)
+    assert d0.rms <= REAL_RMS_FACTOR * cal.rms, (d0.rms, cal.rms)
+
+
+def test_state_dir_falls_back_to_history(tmp_path, full_and_slice):
+    from streamcal.cli._calarg import load_calibration_arg
+    from streamcal.errors import CalibrationFileError
+
+    cal, _ = full_and_slice
+    state = tmp_path / "state"
+    (state / "history").mkdir(parents=True)
+    cal.save(state / "history" / "0001.json")
+    (state / "calibration.json").write_text("{ damaged")
+    loaded, source = load_calibration_arg(str(state))
+    assert source.endswith("0001.json") and np.allclose(loaded.K, cal.K)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(CalibrationFileError, match="no usable calibration"):
+        load_calibration_arg(str(empty))

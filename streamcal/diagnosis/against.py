@@ -151,16 +151,18 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     tol = tolerance * field_radius(K0)
     if not np.isfinite(sigma) or sigma <= 0:
         sigma = float(np.median(np.abs(np.linalg.norm(m - b0, axis=1) - field_radius(K0))))
-    free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol)
+    b_names = [p for p, _ in B_PARAMS]
+    keep = () if given else b_names   # without a calibration b is what is asked for
+    free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
     if not given:
         _refuse_b(n, errors, tol, unit, sigma)
         for _ in range(DEFAULT_ROUNDS):   # b on the slice, r from it
-            fit = held_fit(m, cov, K0, b0, [p for p, _ in B_PARAMS], held_terms)
+            fit = held_fit(m, cov, K0, b0, b_names, held_terms)
             b0 = fit.b
             K0 = float(np.median(np.linalg.norm(m - b0, axis=1))) * np.eye(3)
         base_cal = base_cal.replace(K=K0, b=b0)
         tol = tolerance * field_radius(K0)
-        free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol)
+        free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
         _refuse_b(n, errors, tol, unit, sigma)
 
     def evaluate(new_terms, free_=free):

@@ -117,9 +117,11 @@ def predicted_errors(A: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
-                tolerance: float) -> tuple[list[str], dict]:
+                tolerance: float, keep: Sequence[str] = ()) -> tuple[list[str], dict]:
     """Estimated subset of ``names`` (see module doc) and every parameter's predicted error
-    when it was last considered ({name: σ_CR}, sensor unit)."""
+    when it was last considered ({name: σ_CR}, sensor unit). Parameters in ``keep`` are never
+    held: the worst of the others is held until every estimated one is within ``tolerance``
+    or only ``keep`` is left (whose errors are then the caller's to judge)."""
     _, x, _, normal, D = project(K, b, terms, m, cov)
     A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T)
     free = list(names)
@@ -128,10 +130,10 @@ def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
         idx = [list(names).index(n) for n in free]
         err = predicted_errors(A[:, idx], sigma)
         errors.update({n: float(e) for n, e in zip(free, err)})
-        worst = int(np.argmax(err))
-        if err[worst] <= tolerance:
+        may_hold = [k for k, n in enumerate(free) if n not in keep]
+        if np.max(err) <= tolerance or not may_hold:
             break
-        free.pop(worst)
+        free.pop(max(may_hold, key=lambda k: err[k]))
     return free, errors
 
 
