@@ -17,8 +17,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (SPEC §4)")
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
-                   "daemon/replay state dir): re-estimate only what the track determines, hold "
-                   "the rest")
+                   "daemon/replay state dir; its model replaces --model): re-estimate only what "
+                   "the track determines, hold the rest")
     p.set_defaults(func=run)
 
 
@@ -58,10 +58,10 @@ def held_text(d) -> str:
     """The lines of a diagnosis against held parameters (empty for a fresh fit)."""
     if not hasattr(d, "held"):
         return ""
-    unit = "sensor unit"
+    unit = d.unit or "sensor unit"
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
-             f"{d.tolerance:.3g}, or not in the model)"]
+             f"{d.tolerance:.3g} {unit}, or not in the model)"]
     if d.estimated:
         lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
         lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]

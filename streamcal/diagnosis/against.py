@@ -49,11 +49,12 @@ class HeldDiagnosis(Diagnosis):
     predicted_sigma: dict = field(default_factory=dict)
     tolerance: float = float("nan")
     calibration_source: str = ""
+    unit: str = ""
 
     def to_dict(self) -> dict:
         out = super().to_dict()
         out.update(held=list(self.held), estimated=self.estimated,
-                   predicted_sigma=self.predicted_sigma, tolerance=self.tolerance,
+                   predicted_sigma=self.predicted_sigma, tolerance=self.tolerance, unit=self.unit,
                    calibration_source=self.calibration_source)
         return out
 
@@ -165,12 +166,14 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
         _refuse_b(n, errors, tol, unit, sigma)
 
-    def evaluate(new_terms, free_=free):
-        fit = held_fit(m, cov, K0, b0, free_, held_terms, new_terms, sigma)
+    def evaluate(new_terms, start=None):
+        # candidates start from the model they extend (same held values, a lower cost)
+        K_s, b_s = (K0, b0) if start is None else (start.fit.K, start.fit.b)
+        fit = held_fit(m, cov, K_s, b_s, free, held_terms, new_terms, sigma)
         cal = _calibration(fit.K, fit.b, base_cal, list(zip([t for t, _ in new_terms],
                                                             fit.thetas)),
                            fit, (*model, *(t.name for t, _ in new_terms)))
-        return _Eval(fit, cal, len(free_) + sum(len(th) for th in fit.thetas))
+        return _Eval(fit, cal, len(free) + sum(len(th) for th in fit.thetas))
 
     base = evaluate([])
     if candidates is None:
@@ -187,7 +190,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                 term = build_effects([name], cov)[0]
                 prior = [(t, th) for t, th in zip(
                     [build_effects([a], cov)[0] for a in added], ref.fit.thetas)]
-                ev = evaluate([*prior, (term, term.initial())])
+                ev = evaluate([*prior, (term, term.initial())], ref)
             except (StreamcalError, ValueError, np.linalg.LinAlgError):
                 continue   # the data cannot support this effect (e.g. a constant channel)
             common = ref.inliers & ev.inliers
@@ -229,4 +232,4 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                "method": nf.method, "n_used": nf.n_used},
         calibration=base.cal, held=held, estimated=estimated,
         predicted_sigma={k: errors[k] for k in names if k in errors}, tolerance=tol,
-        calibration_source=source)
+        calibration_source=source, unit=unit)
