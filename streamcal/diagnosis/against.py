@@ -20,7 +20,8 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
 from ..errors import InputError, InsufficientDataError, StreamcalError
-from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns
+from ..model import (REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns,
+                     terms_from_params)
 from ..model.build import check_known
 from . import candidates as cand
 from .diagnosis import LADDER_STEPS, Diagnosis
@@ -69,7 +70,6 @@ class _Eval:
         self.rss = np.sum(fit.r ** 2, axis=1)
         self.rms = float(np.sqrt(np.mean(self.rss[self.inliers]))) if self.inliers.any() \
             else float("nan")
-        self.kind, self.tied = None, False
 
 
 def default_calibration(m: np.ndarray, model: Sequence[str] = DEFAULT_MODEL) -> Calibration:
@@ -143,10 +143,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         base_cal = default_calibration(m, model)
         source = ("default: b re-estimated from this recording, K = r·I with "
                   "r = median |m − b|")
-    held_terms = [(TERMS[name].from_params(p), None) for name, p in base_cal.effects.items()
-                  if name in TERMS]
-    held_terms = [(term, term.from_physical(base_cal.effects[term.name], 1.0))
-                  for term, _ in held_terms]
+    held_terms = terms_from_params(base_cal.effects)   # the calibration's effects, held
     names = core_params(model)
     K0, b0 = base_cal.K, base_cal.b
     tol = tolerance * field_radius(K0)
