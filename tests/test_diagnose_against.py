@@ -145,3 +145,13 @@ def test_state_dir_falls_back_to_history(tmp_path, full_and_slice):
     empty.mkdir()
     with pytest.raises(CalibrationFileError, match="no usable calibration"):
         load_calibration_arg(str(empty))
+
+
+def test_full_sphere_without_cal_is_the_fresh_diagnosis():
+    from streamcal.diagnosis.against import HeldDiagnosis
+    from streamcal.diagnosis.diagnosis import diagnose as fresh
+
+    track = simulate(20, seed=4, temp_profile="constant").track
+    d = streamcal.diagnose(track, ladder=False)
+    assert not isinstance(d, HeldDiagnosis) and "held" not in d.to_dict()
+    assert d.to_dict() == fresh(track, ladder=False).to_dict()
