@@ -18,6 +18,9 @@ def register(subparsers) -> None:
                    help="comma-separated effects of SPEC §3 (default: hard_iron,soft_iron)")
     p.add_argument("--json", action="store_true", help="print one JSON object (SPEC §4)")
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
+    p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
+                   "daemon/replay state dir; its model replaces --model): re-estimate only what "
+                   "the track determines, hold the rest")
     p.set_defaults(func=run)
 
 
@@ -36,14 +39,34 @@ def run(args: argparse.Namespace) -> int:
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
     report = _report_module() if args.plots else None
     track = read_track(args)
-    result = diagnose(track, model=model)
+    if getattr(args, "cal", None):
+        from ._calarg import load_calibration_arg
+
+        cal, source = load_calibration_arg(args.cal)
+        result = diagnose(track, model=model, calibration=cal, calibration_source=source)
+    else:
+        result = diagnose(track, model=model)
     if report is not None:
         report.write_diagnosis_plots(result, track, args.plots)
     if args.json:
         print(json.dumps(result.to_dict(), allow_nan=False, default=lambda v: None))
         return 0
-    print(_text(result))
+    print(_text(result) + held_text(result))
     return 0
+
+
+def held_text(d) -> str:
+    """The lines of a diagnosis against held parameters (empty for a fresh fit)."""
+    if not hasattr(d, "held"):
+        return ""
+    unit = d.unit or "sensor unit"
+    lines = ["", f"against    {d.calibration_source}",
+             f"held       {', '.join(d.held) or 'none'} (predicted error above "
+             f"{d.tolerance:.3g} {unit}, or not in the model)"]
+    if d.estimated:
+        lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
+        lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]
+    return "\n".join(lines)
 
 
 

@@ -30,6 +30,8 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration file (atomic)")
     p.add_argument("--json", action="store_true", help="print the calibration as one JSON object")
     p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
+    p.add_argument("--initial", metavar="CAL", help="warm start from this calibration (JSON "
+                   "file or state dir): the LM starts from its K and b")
     p.add_argument("--no-coverage-check", action="store_true",
                    help="fit even when the directions seen leave the model undetermined")
     p.set_defaults(func=run)
@@ -52,8 +54,13 @@ def _tau(value):
 def run(args) -> int:
     from ..fitting import fit
     track = read_track(args)
+    initial = None
+    if getattr(args, "initial", None):
+        from ._calarg import load_calibration_arg
+
+        initial, _ = load_calibration_arg(args.initial, "--initial")
     cal = fit(track, sensor=args.sensor, model=args.model, add=args.add, kernel=args.kernel,
-              method=args.method, tau=_tau(args.tau), check_coverage=not args.no_coverage_check)
+              method=args.method, tau=_tau(args.tau), check_coverage=not args.no_coverage_check, initial=initial)
     if args.output:
         cal.save(args.output)
     if args.json:

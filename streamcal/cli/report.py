@@ -25,6 +25,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", metavar="HTML",
                    help="report file (default: <track name>-report.html in the current directory)")
     p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
+    p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
+                   "state dir), holding what the track does not determine")
     p.set_defaults(func=run)
 
 
@@ -48,7 +50,13 @@ def run(args) -> int:
 
     model = model_from_args(args.model, args.add)
     track = read_track(args)
-    diagnosis, reason = diagnose_or_reason(track, model)
+    kwargs = {}
+    if getattr(args, "cal", None):
+        from ._calarg import load_calibration_arg
+
+        cal, source = load_calibration_arg(args.cal)
+        kwargs = {"calibration": cal, "calibration_source": source}
+    diagnosis, reason = diagnose_or_reason(track, model, **kwargs)
     out = Path(args.output) if args.output else default_output(args.track)
     out.parent.mkdir(parents=True, exist_ok=True)
     out = write_report(out, track, diagnosis,

@@ -1,6 +1,7 @@
 """Model diagnosis (SPEC §4 ``streamcal diagnose``): residual families, the noise floor,
 outlier spans and the ranking of missing effects."""
-from .diagnosis import Diagnosis, diagnose
+from .diagnosis import Diagnosis
+from .entry import diagnose
 from .noise import NoiseFloor, noise_floor
 from .spans import outlier_spans
 

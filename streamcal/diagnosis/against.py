@@ -1,0 +1,232 @@
+"""Diagnose a recording against a calibration the user already holds (issue #10).
+
+Flights, drives and warm-ups cover a slice of the sphere, which cannot determine a fresh K and
+b. Here the base model is the *given* calibration: the parameters the slice determines
+(:func:`streamcal.diagnosis.held.choose_free`, a Cramér–Rao error below a tolerance) are
+re-estimated, the others held at the calibration's values; the candidate effects are fitted the
+same way (held parameters stay held, the effect's θ is free) and ranked as in
+:func:`streamcal.diagnosis.diagnose` (F test on common inliers, materiality, the noise floor).
+
+Without a calibration the held values are a stated default: b from an algebraic sphere fit
+re-estimated on the slice, K = r·I with r = median ‖m − b‖. b must then be determined
+(refused otherwise, saying how many samples at this noise would do).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+
+from ..calibration import DEFAULT_MODEL, Calibration
+from ..errors import InputError, InsufficientDataError, StreamcalError
+from ..model import (REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns,
+                     terms_from_params)
+from ..model.build import check_known
+from . import candidates as cand
+from .diagnosis import LADDER_STEPS, Diagnosis
+from .held import (B_PARAMS, TOLERANCE, HeldFit, choose_free, core_params, field_radius,
+                   held_fit)
+from .noise import noise_floor
+from .residuals import families
+from .spans import outlier_spans
+
+#: Fewest samples for any diagnosis against a calibration.
+MIN_SAMPLES = 30
+#: Default-calibration iterations (b on the slice, then r from it).
+DEFAULT_ROUNDS = 3
+
+
+@dataclass
+class HeldDiagnosis(Diagnosis):
+    """A :class:`~streamcal.diagnosis.diagnosis.Diagnosis` against a given (or default)
+    calibration: ``held`` names the parameters kept at their given values, ``estimated`` maps
+    each re-estimated one to ``{"value", "sigma"}`` (sensor unit; σ from σ̂²(AᵀWA)⁻¹),
+    ``predicted_sigma`` the Cramér–Rao error each had when chosen, ``tolerance`` the bound they
+    were held to, ``calibration_source`` where the held values came from."""
+
+    held: list = field(default_factory=list)
+    estimated: dict = field(default_factory=dict)
+    predicted_sigma: dict = field(default_factory=dict)
+    tolerance: float = float("nan")
+    calibration_source: str = ""
+    unit: str = ""
+
+    def to_dict(self) -> dict:
+        out = super().to_dict()
+        out.update(held=list(self.held), estimated=self.estimated,
+                   predicted_sigma=self.predicted_sigma, tolerance=self.tolerance, unit=self.unit,
+                   calibration_source=self.calibration_source)
+        return out
+
+
+class _Eval:
+    """One held fit evaluated like :class:`streamcal.diagnosis.diagnosis._Evaluated`."""
+
+    def __init__(self, fit: HeldFit, cal: Calibration, p: int):
+        self.fit, self.cal, self.p = fit, cal, p
+        self.r, self.x, self.s, self.normal = fit.r, fit.x, fit.s, fit.normal
+        self.inliers = fit.inliers
+        self.rss = np.sum(fit.r ** 2, axis=1)
+        self.rms = float(np.sqrt(np.mean(self.rss[self.inliers]))) if self.inliers.any() \
+            else float("nan")
+
+
+def default_calibration(m: np.ndarray, model: Sequence[str] = DEFAULT_MODEL) -> Calibration:
+    """The stated default: b from the algebraic sphere fit ‖m‖² = 2 mᵀb + c, K = r·I with
+    r = median ‖m − b‖ (sensor unit)."""
+    A = np.column_stack([2 * m, np.ones(len(m))])
+    sol, *_ = np.linalg.lstsq(A, np.sum(m * m, axis=1), rcond=None)
+    b = sol[:3]
+    r = float(np.median(np.linalg.norm(m - b, axis=1)))
+    return Calibration(K=r * np.eye(3), b=b, model=tuple(model), method="default")
+
+
+def _calibration(K, b, base: Calibration, terms, fit: HeldFit, model) -> Calibration:
+    effects = dict(base.effects)
+    for term, theta in terms:
+        effects[term.name] = term.to_physical(theta, 1.0)
+    return base.replace(K=K, b=b, model=tuple(model), effects=effects, inliers=fit.inliers,
+                        weights=None, directions=fit.x,
+                        extra={**dict(base.extra or {}), "tau": fit.tau})
+
+
+def _refuse_b(n: int, errors: dict, tol: float, unit: str, sigma: float) -> None:
+    worst = max(errors.get(name, np.inf) for name, _ in B_PARAMS)
+    if worst <= tol:
+        return
+    need = int(np.ceil(n * (worst / tol) ** 2)) if np.isfinite(worst) else None
+    more = (f"about {need} samples at this noise ({sigma:.3g} {unit} per axis), " if need else "")
+    raise InsufficientDataError(
+        f"without a calibration the hard-iron offset b must come from this recording, but its "
+        f"{n} samples predict it to ±{worst:.3g} {unit} (Cramér–Rao, noise {sigma:.3g} {unit}), "
+        f"above the tolerance {tol:.3g} {unit} ({TOLERANCE:.1%} of the field radius). What "
+        f"would answer it: {more}a wider range of directions, or a calibration you already "
+        f"hold (--cal CAL.json)")
+
+
+def diagnose_against(track, calibration: Calibration | None = None, *,
+                     model: Sequence[str] = DEFAULT_MODEL, candidates: Sequence[str] | None = None,
+                     ladder: bool = True, calibration_source: str | None = None,
+                     tolerance: float = TOLERANCE) -> HeldDiagnosis:
+    """Diagnose ``track`` relative to ``calibration`` (None: the default of
+    :func:`default_calibration`), holding what the recording does not determine.
+
+    ``tolerance``: a parameter is re-estimated when its predicted error is below ``tolerance``
+    × the field radius. Refuses (InsufficientDataError) with fewer than :data:`MIN_SAMPLES`
+    samples, or, without a calibration, when b cannot be determined to that tolerance.
+    Registration effects (gravity- and gyro-tied) are not ranked here."""
+    m = np.asarray(track.mag, dtype=float)
+    n = len(m)
+    unit = track.mag_unit
+    if n < MIN_SAMPLES:
+        raise InsufficientDataError(f"{n} samples are too few to diagnose anything: at least "
+                                    f"{MIN_SAMPLES} are needed (record longer)")
+    t = np.asarray(track.t_mag, dtype=float)
+    cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
+    cov.setdefault("t", t)
+    gyro = np.stack([cov[k] for k in ("gx", "gy", "gz")], 1) if all(
+        k in cov for k in ("gx", "gy", "gz")) else None
+    nf = noise_floor(m, t, gyro)
+    sigma = float(np.sqrt(np.mean(np.square(nf.sigma_axes)))) if np.all(
+        np.isfinite(nf.sigma_axes)) and np.any(nf.sigma_axes > 0) else float("nan")
+    given = calibration is not None
+    if given:
+        if calibration.sensor != "mag":
+            raise InputError(f"{calibration_source or 'calibration'}: a {calibration.sensor} "
+                             "calibration cannot diagnose magnetometer readings")
+        base_cal = calibration
+        model = tuple(n_ for n_ in calibration.model if n_ not in REGISTRATION_EFFECTS)
+        source = calibration_source or "given calibration"
+    else:
+        model = tuple(check_known(model))
+        base_cal = default_calibration(m, model)
+        source = ("default: b re-estimated from this recording, K = r·I with "
+                  "r = median |m − b|")
+    held_terms = terms_from_params(base_cal.effects)   # the calibration's effects, held
+    names = core_params(model)
+    K0, b0 = base_cal.K, base_cal.b
+    tol = tolerance * field_radius(K0)
+    if not np.isfinite(sigma) or sigma <= 0:
+        sigma = float(np.median(np.abs(np.linalg.norm(m - b0, axis=1) - field_radius(K0))))
+    b_names = [p for p, _ in B_PARAMS]
+    keep = () if given else b_names   # without a calibration b is what is asked for
+    free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
+    if not given:
+        _refuse_b(n, errors, tol, unit, sigma)
+        for _ in range(DEFAULT_ROUNDS):   # b on the slice, r from it
+            fit = held_fit(m, cov, K0, b0, b_names, held_terms)
+            b0 = fit.b
+            K0 = float(np.median(np.linalg.norm(m - b0, axis=1))) * np.eye(3)
+        base_cal = base_cal.replace(K=K0, b=b0)
+        tol = tolerance * field_radius(K0)
+        free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
+        _refuse_b(n, errors, tol, unit, sigma)
+
+    def evaluate(new_terms, start=None):
+        # candidates start from the model they extend (same held values, a lower cost)
+        K_s, b_s = (K0, b0) if start is None else (start.fit.K, start.fit.b)
+        fit = held_fit(m, cov, K_s, b_s, free, held_terms, new_terms, sigma)
+        cal = _calibration(fit.K, fit.b, base_cal, list(zip([t for t, _ in new_terms],
+                                                            fit.thetas)),
+                           fit, (*model, *(t.name for t, _ in new_terms)))
+        return _Eval(fit, cal, len(free) + sum(len(th) for th in fit.thetas))
+
+    base = evaluate([])
+    if candidates is None:
+        names_c = [c for c in TERMS if c not in model and c not in base_cal.effects]
+        absent = missing_columns(names_c, track)
+        names_c = [c for c in names_c if c not in absent]
+    else:
+        names_c = [c for c in check_known(candidates) if c in TERMS and c not in model]
+
+    def rank(ref: _Eval, added: tuple, pool) -> list:
+        out = []
+        for name in pool:
+            try:
+                term = build_effects([name], cov)[0]
+                prior = [(t, th) for t, th in zip(
+                    [build_effects([a], cov)[0] for a in added], ref.fit.thetas)]
+                ev = evaluate([*prior, (term, term.initial())], ref)
+            except (StreamcalError, ValueError, np.linalg.LinAlgError):
+                continue   # the data cannot support this effect (e.g. a constant channel)
+            common = ref.inliers & ev.inliers
+            p_value = cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
+                                  max(ev.p - ref.p, 1), cand.effective_n(ev.r[common]), ev.p)
+            text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov,
+                                 ref.inliers)
+            c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
+                               cand.is_significant(ref.rms, ev.rms, p_value, nf.floor), ev.cal)
+            c.rms_before, c.residual, c._evaluated = ref.rms, "sensor", ev
+            out.append(c)
+        out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
+        return out
+
+    ranked = rank(base, (), names_c)
+    steps = [{"model": list(model), "rms": base.rms, "residual": "sensor"}]
+    current, added, cur_ranked = base, (), ranked
+    while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
+        top = cur_ranked[0]
+        added, current = (*added, top.effect), top._evaluated
+        steps.append({"model": [*model, *added], "added": top.effect, "rms": current.rms,
+                      "rms_before": top.rms_before, "residual": "sensor",
+                      "p_value": top.p_value, "gravity_tied": False, "gyro_tied": False})
+        rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
+        cur_ranked = rank(current, added, rest) if rest else []
+    verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
+    outliers = ~np.asarray(current.inliers, bool)
+    held = [p for p in names if p not in free] + [
+        p for p in ("K_xx", "K_xy", "K_xz", "K_yy", "K_yz", "K_zz", "b_x", "b_y", "b_z")
+        if p not in names] + [f"{t.name}" for t, _ in held_terms]
+    estimated = {k: {"value": v, "sigma": e} for k, (v, e) in base.fit.estimated.items()}
+    return HeldDiagnosis(
+        model=tuple(model), n=n, n_outliers=int((~base.inliers).sum()),
+        n_outliers_model=int(outliers.sum()), rms=base.rms, noise_floor=nf.floor,
+        verdict=verdict, candidates=ranked, outlier_spans=outlier_spans(t, outliers),
+        ladder=steps, residual="sensor", outliers_model=(*model, *added), outliers=outliers,
+        residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x),
+        noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
+               "method": nf.method, "n_used": nf.n_used},
+        calibration=base.cal, held=held, estimated=estimated,
+        predicted_sigma={k: errors[k] for k in names if k in errors}, tolerance=tol,
+        calibration_source=source, unit=unit)

@@ -1,0 +1,253 @@
+"""Re-estimate only what a recording determines, holding the rest (issue #10).
+
+A slice of the sphere (a drone flying level, a robot driving) constrains some combinations of
+K and b well and leaves others free. Here the parameters are named one by one
+(``K_xx, K_xy, K_xz, K_yy, K_yz, K_zz`` — the upper-triangular K — and ``b_x, b_y, b_z``, sensor
+unit) and each is either *estimated* from the recording or *held* at a given value.
+
+Which are estimated is decided by the Cramér–Rao bound. With directions free, sample j tells the
+model only along the surface normal n_j, through the row a_j = n_jᵀ ∂g(x_j)/∂p
+(:mod:`streamcal.fitting.observability`); with per-axis noise σ the information is
+F = Σ a_j a_jᵀ / σ², and the predicted standard error of the estimated set E is
+sqrt(diag (F_EE)⁻¹). :func:`choose_free` starts from every parameter of the model and holds the
+one with the largest predicted error until every remaining one is below the tolerance
+(:data:`TOLERANCE` × the field radius r, the geometric mean of diag K). This weighs the number
+of samples and the noise, not a scale-free coverage fraction: a long quiet slice determines more
+than a short noisy one of the same directions.
+
+:func:`held_fit` is a robust Gauss–Newton/LM on the scalar normal residual
+s_j = −n_jᵀ(g(x̂_j) − m_j) (x̂_j the closest point of the model surface, re-projected every
+iteration), Cauchy weights of width 2.385 σ̂, over the estimated core parameters and the
+parameters of any added effect term; the covariance of the estimate is σ̂² (AᵀWA)⁻¹.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from types import SimpleNamespace
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from ..errors import InsufficientDataError
+from .residuals import GN_ITERATIONS, _model, _tangent_basis
+
+#: Core parameter names: (name, kind, index) — kind "K" with (row, col), or "b" with axis.
+K_PARAMS = (("K_xx", (0, 0)), ("K_xy", (0, 1)), ("K_xz", (0, 2)), ("K_yy", (1, 1)),
+            ("K_yz", (1, 2)), ("K_zz", (2, 2)))
+B_PARAMS = (("b_x", 0), ("b_y", 1), ("b_z", 2))
+#: A parameter is re-estimated when its predicted (Cramér–Rao) standard error is below this
+#: fraction of the field radius r (0.5 % of r: 0.24 µT at 48 µT).
+TOLERANCE = 0.005
+#: Cauchy width in noise σ (95 % Gaussian efficiency), and inliers within this many widths.
+CAUCHY_C, OUTLIER_WIDTHS = 2.385, 2.0
+MAX_ITER, RTOL = 30, 1e-7
+
+
+def core_params(model: Sequence[str]) -> list[str]:
+    """The named core parameters a model has (hard_iron → b; soft_iron → 6 K entries; scale →
+    the diagonal). A model without soft_iron/scale keeps K as given (held)."""
+    names = []
+    if "soft_iron" in model:
+        names += [n for n, _ in K_PARAMS]
+    elif "scale" in model:
+        names += ["K_xx", "K_yy", "K_zz"]
+    if "hard_iron" in model:
+        names += [n for n, _ in B_PARAMS]
+    return names
+
+
+def field_radius(K: np.ndarray) -> float:
+    """Geometric mean of diag K (sensor unit)."""
+    return float(np.prod(np.abs(np.diag(K))) ** (1 / 3))
+
+
+def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
+    """Closest point of the model surface to each reading (eq. 41): returns ``r`` (N,3) =
+    g(x̂) − m, ``x̂`` (N,3), the signed normal distance ``s`` (N,), the unit normals (N,3) and
+    the model Jacobian D = ∂g/∂u (N,3,3). ``terms``: [(effect term, θ)] in sensor units."""
+    cal = SimpleNamespace(K=np.asarray(K, float), b=np.asarray(b, float))
+    if x is None:
+        x = np.linalg.solve(cal.K, (m - cal.b).T).T
+    x = x / np.linalg.norm(x, axis=1, keepdims=True)
+    for _ in range(iters):
+        g, J = _model(cal, terms, x, cov)
+        B = _tangent_basis(x)
+        JB = J @ B
+        A = np.einsum("nki,nkj->nij", JB, JB)
+        rhs = np.einsum("nki,nk->ni", JB, g - m)
+        x = x - np.einsum("nij,nj->ni", B, np.linalg.solve(A, rhs[..., None])[..., 0])
+        x /= np.linalg.norm(x, axis=1, keepdims=True)
+    g, J = _model(cal, terms, x, cov)
+    normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    r = g - m
+    D = J @ np.linalg.inv(cal.K)
+    return r, x, -np.einsum("ni,ni->n", r, normal), normal, D
+
+
+def jacobian(free: Sequence[str], terms, x, normal, D, cov, u) -> np.ndarray:
+    """Rows a_j = n_jᵀ ∂g(x_j)/∂p (N,P) for the named core parameters ``free`` then every θ of
+    ``terms`` (the derivative of s_j is −a_j); ``u`` = K x (N,3)."""
+    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
+    nD = np.einsum("ni,nik->nk", normal, D)            # nᵀ ∂g/∂u
+    cols = []
+    for name in free:
+        if name in K_idx:
+            i, j = K_idx[name]
+            cols.append(nD[:, i] * x[:, j])
+        else:
+            cols.append(normal[:, B_idx[name]])
+    for term, theta in terms:
+        cols.extend(np.einsum("ni,nip->np", normal, term.jac_theta(theta, u, cov)).T)
+    return np.column_stack(cols) if cols else np.zeros((len(x), 0))
+
+
+def predicted_errors(A: np.ndarray, sigma: float) -> np.ndarray:
+    """Cramér–Rao standard errors sqrt(diag (AᵀA/σ²)⁻¹) (inf where undetermined)."""
+    if A.shape[1] == 0:
+        return np.zeros(0)
+    F = A.T @ A / sigma ** 2
+    w, V = np.linalg.eigh(F)
+    if w[-1] <= 0:
+        return np.full(A.shape[1], np.inf)
+    with np.errstate(divide="ignore"):
+        inv = np.where(w > w[-1] * 1e-12, 1.0 / w, np.inf)
+    var = (V ** 2) @ np.where(np.isfinite(inv), inv, 1e300)
+    return np.sqrt(np.minimum(var, np.inf))
+
+
+def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
+                tolerance: float, keep: Sequence[str] = ()) -> tuple[list[str], dict]:
+    """Estimated subset of ``names`` (see module doc) and every parameter's predicted error
+    when it was last considered ({name: σ_CR}, sensor unit). Parameters in ``keep`` are never
+    held: the worst of the others is held until every estimated one is within ``tolerance``
+    or only ``keep`` is left (whose errors are then the caller's to judge)."""
+    _, x, _, normal, D = project(K, b, terms, m, cov)
+    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T)
+    free = list(names)
+    errors = {}
+    while free:
+        idx = [list(names).index(n) for n in free]
+        err = predicted_errors(A[:, idx], sigma)
+        errors.update({n: float(e) for n, e in zip(free, err)})
+        may_hold = [k for k, n in enumerate(free) if n not in keep]
+        if np.max(err) <= tolerance or not may_hold:
+            break
+        free.pop(max(may_hold, key=lambda k: err[k]))
+    return free, errors
+
+
+@dataclass
+class HeldFit:
+    """Outcome of :func:`held_fit`, sensor units. ``estimated``: {name: (value, σ)} for the
+    free core parameters and each added θ (named ``<effect>[k]``)."""
+
+    K: np.ndarray
+    b: np.ndarray
+    thetas: list
+    r: np.ndarray
+    x: np.ndarray
+    s: np.ndarray
+    normal: np.ndarray
+    inliers: np.ndarray
+    sigma: float
+    tau: float
+    estimated: dict = field(default_factory=dict)
+    iterations: int = 0
+
+
+def _set(K, b, free, p):
+    K, b = K.copy(), b.copy()
+    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
+    for name, v in zip(free, p):
+        if name in K_idx:
+            K[K_idx[name]] += v
+        else:
+            b[B_idx[name]] += v
+    return K, b
+
+
+def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequence[str],
+             held_terms=(), new_terms=(), sigma0: float | None = None) -> HeldFit:
+    """Robust fit of the core parameters ``free`` and the θ of ``new_terms`` ([(term, θ0)]),
+    with every other core parameter and the ``held_terms`` ([(term, θ)]) at their values."""
+    m = np.asarray(m, float)
+    K0, b0 = np.asarray(K0, float), np.asarray(b0, float)
+    nf = len(free)
+    thetas0 = [np.asarray(t, float) for _, t in new_terms]
+    sizes = [len(t) for t in thetas0]
+    P = nf + sum(sizes)
+    if len(m) <= P + 2:
+        raise InsufficientDataError(f"{len(m)} samples cannot determine {P} parameters")
+
+    def unpack(p):
+        K, b = _set(K0, b0, free, p[:nf])
+        out, k = [], nf
+        for (term, _), t0, size in zip(new_terms, thetas0, sizes):
+            out.append((term, t0 + p[k:k + size]))
+            k += size
+        return K, b, [*held_terms, *out]
+
+    def state(p, x=None):
+        K, b, terms = unpack(p)
+        r, x, s, normal, D = project(K, b, terms, m, cov, x, 3 if x is not None else GN_ITERATIONS)
+        return K, b, terms, r, x, s, normal, D
+
+    p = np.zeros(P)
+    K, b, terms, r, x, s, normal, D = state(p)
+    sigma = sigma0 or float(np.median(np.abs(s)) * 1.4826) or 1e-9
+    tau = CAUCHY_C * sigma
+
+    def cost(s_):
+        return float(np.sum(np.log1p((s_ / tau) ** 2)))
+
+    lam, it = 1e-3, 0
+    c = cost(s)
+    for it in range(1, MAX_ITER + 1):
+        if P == 0:
+            break
+        A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
+        w = 1.0 / (1.0 + (s / tau) ** 2)
+        H = A.T @ (A * w[:, None])
+        g = A.T @ (w * s)            # s(p + dp) ≈ s − A dp
+        improved = False
+        for _ in range(10):
+            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
+            trial = state(p + dp, x)
+            c_new = cost(trial[5])
+            if c_new < c:
+                p, (K, b, terms, r, x, s, normal, D) = p + dp, trial
+                rel = (c - c_new) / max(c, 1e-300)
+                c, lam, improved = c_new, max(lam / 10, 1e-12), True
+                break
+            lam *= 10
+        if not improved or rel < RTOL:
+            break
+    # noise and width re-estimated at the solution; covariance σ̂² (AᵀWA)⁻¹
+    inliers = np.abs(s) <= OUTLIER_WIDTHS * tau
+    sigma = float(np.sqrt(np.mean(s[inliers] ** 2))) if inliers.sum() > P else sigma
+    estimated = {}
+    if P:
+        A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
+        w = 1.0 / (1.0 + (s / tau) ** 2)
+        try:
+            C = sigma ** 2 * np.linalg.inv(A.T @ (A * w[:, None]))
+            sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+        except np.linalg.LinAlgError:
+            sd = np.full(P, np.inf)
+        values = [*(_value(K, b, n) for n in free)]
+        for (term, th) in terms[len(held_terms):]:
+            values += list(th)
+        labels = [*free]
+        for term, th in terms[len(held_terms):]:
+            labels += [f"{term.name}[{k}]" for k in range(len(th))]
+        estimated = {n: (float(v), float(e)) for n, v, e in zip(labels, values, sd)}
+    rn = np.linalg.norm(r, axis=1)
+    return HeldFit(K=K, b=b, thetas=[t for _, t in terms[len(held_terms):]], r=r, x=x, s=s,
+                   normal=normal, inliers=rn <= OUTLIER_WIDTHS * tau, sigma=sigma, tau=tau,
+                   estimated=estimated, iterations=it)
+
+
+def _value(K, b, name):
+    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
+    return K[K_idx[name]] if name in K_idx else b[B_idx[name]]
