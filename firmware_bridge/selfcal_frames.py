@@ -14,7 +14,7 @@ from typing import ClassVar
 
 import numpy as np
 
-from .frames import Message, MsgType, SetCalibration
+from .messages import Message, MsgType, SetCalibration
 
 
 class SelfCalEvent(enum.IntEnum):
