@@ -14,7 +14,8 @@ import sys
 from ..errors import StreamcalError
 
 #: Order in ``--help``; modules found in this package but not listed come after.
-ORDER = ("demo", "fit", "diagnose", "report", "replay", "daemon", "serial", "record")
+ORDER = ("demo", "fit", "diagnose", "report", "convert", "export", "apply", "batch", "replay",
+         "daemon", "serial", "record")
 
 
 def build_parser() -> argparse.ArgumentParser:
