@@ -17,11 +17,13 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from streamcal.constants import GRAVITY
+
 PREFIX = b"Raw:"
 G_PER_COUNT = 1.0 / 8192.0
 DEG_PER_SEC_PER_COUNT = 1.0 / 16.0
 UT_PER_COUNT = 0.1
-STANDARD_GRAVITY = 9.80665  # m/s² per g
+STANDARD_GRAVITY = GRAVITY  # m/s² per g
 #: Longest line kept (bytes); nine int16 fields need at most 4 + 9 × 7 = 67.
 MAX_LINE = 128
 

@@ -58,19 +58,7 @@ global parameters p = (K, b, θ, R, δ, τ) and the headings:
 τ is first located on a grid (the cost is not convex in τ beyond a fraction of the motion's
 period) and then refined by (b).
 
-The gravity direction
----------------------
-The accelerometer measures specific force: gravity plus the hand's linear acceleration
-(≈ 0.4 m/s², 2–3° of tilt error, several times the magnetometer noise). With a gyro, the readings
-are rotated into a frame that follows the integrated gyro (bias taken from still samples),
-low-passed there by a zero-phase filter (:data:`CUTOFF_GYRO_HZ`: gravity is constant in that
-frame, the linear acceleration and — as the body turns — the accelerometer's own offset average
-out) and rotated back: ≈ 1.3° rms on the simulated hand motion against 3.4° for the raw
-direction. Without a gyro, a zero-phase low-pass of the readings and trust_j = 1 / (1 + (|‖a_j‖
-− g| / 0.05 g)²) down-weight samples under strong acceleration. Zero-phase filters add no delay,
-so τ is not biased. (An accelerometer ellipsoid fit first was tried and dropped: on hand-motion
-data its linear acceleration tilts K by degrees.) The remaining error of ĝ is a floor of the
-gravity-tied residual, the same with and without a registration effect.
+The gravity direction ĝ and its trust come from :mod:`streamcal.fitting.gravity`.
 
 Without the accelerometer, ``time_lag`` alone is estimated from the gyro: consecutive
 directions are linked by the rotation rate (:mod:`streamcal.fitting.gyro_lag`, the gyro-tied
@@ -87,29 +75,24 @@ from dataclasses import dataclass
 from typing import Mapping, Sequence
 
 import numpy as np
-import scipy.signal
 from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration
-from ..errors import InputError, InsufficientDataError, MissingColumnsError
+from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
+from ..errors import InputError, InsufficientDataError
 from ..inputs.track import Track
 from ..model.build import TERMS, build_effects, check_known, check_needs, terms_from_params
 from ..model.registration_params import NAMES
-from ..quaternion import cumulative_rotation
 from .core import fit_core
+from .damped_lm import damped_lm, lag_grid, search_lag, trimmed_cost
+from .gravity import GravityReference, gravity_reference
 from .registration_result import RegistrationFit
+from .result import FitResult
 from .gyro_lag import gyro_lag_fit
-from .kernels import HALF_NORMAL_MEDIAN, WIDTH_KERNELS, kernel_weights, make_kernel, width_from_residuals
+from .kernels import WIDTH_KERNELS, kernel_weights, make_kernel, width_from_residuals
 
-#: Low-pass cut-off (Hz) of the gravity estimate: in the gyro-following frame / raw readings.
-CUTOFF_GYRO_HZ = 0.05
-CUTOFF_ACCEL_HZ = 3.0
-#: ‖a‖ deviation from 1 g (in g) at which a sample's trust halves.
-TRUST_G = 0.05
-#: ‖ω‖ (rad/s) below which a sample counts as still for the gyro bias.
-STILL_RATE = 0.05
 #: Grid of τ (s) searched before refining.
-LAG_GRID = np.arange(-0.25, 0.2501, 0.01)
+LAG_GRID = lag_grid(0.25)
 LAG_GRID_SAMPLES = 1500
 #: A fitted |τ| beyond this (s) means the data do not determine the lag (the grid spans ±0.25).
 MAX_LAG = 0.3
@@ -122,65 +105,7 @@ MAX_WIDTH_ROUNDS = 4
 WIDTH_SETTLED = 0.05
 #: Relative cost decrease that ends an LM pass while the width is still being estimated.
 WIDTH_RTOL = 1e-3
-OUTLIER_WIDTHS = 2.0
 _UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-@dataclass(frozen=True)
-class GravityReference:
-    """Unit down direction ĝ (A,3) in the accelerometer frame at the IMU instants ``t`` (A,) s,
-    with per-sample ``trust`` (A,) in (0, 1]; ``method`` says how it was made."""
-
-    t: np.ndarray
-    down: np.ndarray
-    trust: np.ndarray
-    method: str
-
-    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(ĝ (M,3) unit, trust (M,)) at the instants ``t`` (M,) s, linear interpolation."""
-        g = np.stack([np.interp(t, self.t, self.down[:, i]) for i in range(3)], axis=1)
-        g /= np.linalg.norm(g, axis=1, keepdims=True)
-        return g, np.interp(t, self.t, self.trust)
-
-
-def _lowpass(values: np.ndarray, t: np.ndarray, cutoff_hz: float) -> np.ndarray:
-    fs = 1.0 / float(np.median(np.diff(t)))
-    if len(t) < 30 or cutoff_hz >= 0.45 * fs:
-        return values
-    sos = scipy.signal.butter(2, cutoff_hz, fs=fs, output="sos")
-    return scipy.signal.sosfiltfilt(sos, values, axis=0)
-
-
-def gravity_reference(track) -> GravityReference:
-    """The down direction from ``track``'s accelerometer (and gyro when present)."""
-    if not track.has("accel"):
-        raise MissingColumnsError("the registration effects need accelerometer columns "
-                                  "(ax, ay, az), which the track lacks")
-    rows = track.accel_rows
-    t = np.asarray(track.t[rows], dtype=float)
-    keep = np.r_[True, np.diff(t) > 0]
-    t = t[keep]
-    f = np.asarray(track.accel, dtype=float)[keep]
-    f = f / np.median(np.linalg.norm(f, axis=1))               # in g, whatever the unit
-    norm = np.linalg.norm(f, axis=1)
-    trust = 1.0 / (1.0 + ((norm - 1.0) / TRUST_G) ** 2)
-    if track.has("gyro"):
-
-        gr = track.gyro_rows
-        w = np.stack([np.interp(t, track.t[gr], track.gyro[:, i]) for i in range(3)], axis=1)
-        still = (np.linalg.norm(w, axis=1) < STILL_RATE) & (np.abs(norm - 1) < 0.02)
-        if still.sum() >= 100:
-            w = w - np.median(w[still], axis=0)
-        steps = np.vstack([np.zeros(3), 0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None]])
-        q = cumulative_rotation(Rotation.from_rotvec(steps))   # body → gyro-following frame
-        up = q.inv().apply(_lowpass(q.apply(f), t, CUTOFF_GYRO_HZ))
-        trust = np.ones_like(trust)  # the filter has removed the linear acceleration
-        method = "gyro-aided zero-phase low-pass"
-    else:
-        up = _lowpass(f, t, CUTOFF_ACCEL_HZ)
-        method = "zero-phase low-pass"
-    down = -up / np.linalg.norm(up, axis=1, keepdims=True)
-    return GravityReference(t, down, trust, method)
 
 
 # ---------------------------------------------------------------------------------- the fit
@@ -387,21 +312,26 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     state, budget, settled = first, max_rounds, width_given is not None
     for _ in range(MAX_WIDTH_ROUNDS):   # LM passes at a fixed width until the width settles
         # while the width is still moving a loose tolerance suffices (as in autocal)
-        state, rounds, cost, h, r = _refine(prob, state, kernel, width, budget,
-                                            RTOL if settled else WIDTH_RTOL)
-        budget -= rounds
+        lm, cost, h, r = _refine(prob, state, kernel, width, budget,
+                                 RTOL if settled else WIDTH_RTOL)
+        state = lm.x
+        budget -= lm.iterations
         if settled or budget <= 0:
             break
         again = width_from_residuals(kernel, np.linalg.norm(r, axis=1))
         settled = abs(again - width) <= WIDTH_SETTLED * width
         width = again
     else:   # the width kept moving: polish at its last estimate
-        state, _, cost, h, r = _refine(prob, state, kernel, width, budget, RTOL)
+        lm, cost, h, r = _refine(prob, state, kernel, width, budget, RTOL)
+        state = lm.x
+        budget -= lm.iterations
+    status, message = lm.status, lm.message
     # The invariant: never return parameters whose robust cost (at the final width) is worse
     # than the start's (a width pass that moved away from a better start is undone).
     if not cost <= float(np.sum(trust * _loss(kernel, width).evaluate(rn_first ** 2)[0])):
         state = first
         h, r, _ = _evaluate(prob, first)
+        message += "; the start was kept (the passes ended costlier at the final width)"
     K, b, thetas, R, dip, lag = state
     if fit_lag and abs(lag) > MAX_LAG:
         raise InsufficientDataError(f"the time lag is not determined by the data: the fit "
@@ -435,7 +365,8 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
                       inliers=inliers, weights=weights, directions=x,
                       extra={"noise_sigma": float(np.median(rn) / HALF_NORMAL_MEDIAN / np.sqrt(2)),
                              "tau": width, "dip": float(dip), "gravity": gref.method})
-    return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms)
+    return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms,
+                           status=status, iterations=max_rounds - budget, message=message)
 
 
 @dataclass(frozen=True)
@@ -469,8 +400,8 @@ def _evaluate(prob: "_Problem", state: tuple):
 
 def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_rounds: int,
             rtol: float = RTOL) -> tuple:
-    """One LM pass at a fixed ``width`` → (state never costlier than ``state``, rounds used,
-    its cost Σ trust ρ̃, headings (N,3), residuals (N,3))."""
+    """One LM pass at a fixed ``width`` → (:class:`~.damped_lm.LMStatus` whose ``x`` is never
+    costlier than ``state``, its cost Σ trust ρ̃, headings (N,3), residuals (N,3))."""
     loss = _loss(kernel, width)
 
     def cost_at(st):
@@ -479,31 +410,24 @@ def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_round
         cost = float(np.sum(trust * rho))
         return (cost if np.isfinite(cost) else np.inf), trust * d1, h, r
 
-    cost, w, h, r = cost_at(state)
-    lam, rounds = 1e-3, 0
-    for rounds in range(1, max_rounds + 1):
-        if not np.isfinite(cost):
-            break
-        K, b, thetas, R, dip, lag = state
-        H, grad = prob.reduced_normal(K, b, thetas, R, dip, lag, h, r, w)
-        p0 = prob.pack(K, b, thetas, dip, lag)
-        trial = None
-        for _ in range(10):   # Levenberg–Marquardt damping
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
-            cand = prob.unpack(p0 + step, R, lag)
-            cost1, w1, h1, r1 = cost_at(cand)
-            if cost1 <= cost:
-                trial = cand
-                lam = max(lam / 3, 1e-9)
-                break
-            lam *= 4
-        if trial is None:
-            break
-        drop = cost - cost1
-        state, cost, w, h, r = trial, cost1, w1, h1, r1
-        if drop <= rtol * cost:
-            break
-    return state, rounds, cost, h, r
+    def linearize(st, aux):
+        cost, w, h, r = aux
+        H, grad = prob.reduced_normal(*st, h, r, w)
+        return cost, H, grad, None
+
+    def propose(st, d):
+        K, b, thetas, R, dip, lag = st
+        return prob.unpack(prob.pack(K, b, thetas, dip, lag) + d, R, lag)
+
+    def evaluate(st, _ctx):
+        aux = cost_at(st)
+        return aux[0], aux
+
+    aux = cost_at(state)
+    res = damped_lm(state, aux, aux[0], linearize=linearize, propose=propose,
+                    evaluate=evaluate, max_iter=max_rounds, rtol=rtol)
+    cost, _, h, r = res.aux
+    return res, cost, h, r
 
 
 def _lag_grid(prob, K, b, thetas, R, dip) -> float:
@@ -513,29 +437,32 @@ def _lag_grid(prob, K, b, thetas, R, dip) -> float:
     idx = np.arange(0, len(prob.m), step)
     prob = _Problem(prob.m[idx], {k: v[idx] for k, v in prob.cov.items()}, prob.gref,
                     prob.terms, prob.fit_rot, prob.fit_lag)
-    costs = []
-    for lag in LAG_GRID:
+
+    def cost_at(lag):
         h = prob.headings(K, b, thetas, R, dip, lag, gn_steps=1)
         rn = np.linalg.norm(prob.residual(K, b, thetas, R, dip, lag, h), axis=1)
-        _, trust = prob.down(lag)
-        c = np.median(rn) * 3.0
-        costs.append(np.sum(trust * np.minimum(rn, c) ** 2))
-    return float(LAG_GRID[int(np.argmin(costs))])
+        return trimmed_cost(rn, prob.down(lag)[1])
+
+    return search_lag(LAG_GRID, cost_at)[0]
 
 
 def fit_with_registration(track, model: Sequence[str] = ("hard_iron", "soft_iron",
                                                           "mag_accel_misalignment"), *,
                           kernel: str = "cauchy", tau: float | None = None, sensor: str = "mag",
-                          initial=None):
+                          initial=None, full_output: bool = False):
     """Calibrate ``track``'s magnetometer with the registration effects in ``model`` (and any
     other catalog effects) by the gravity-tied fit of the module docstring → :class:`Calibration`
     whose ``effects`` hold ``{"mag_accel_misalignment": {"rotation": [rx, ry, rz] rad, "dip":
     rad}}`` and/or ``{"time_lag": {"tau": s}}``; ``rms`` is the gravity-tied residual (µT).
     Without accelerometer columns, ``time_lag`` comes from the gyro and ``rms`` is the gyro-tied
-    residual (:mod:`streamcal.fitting.gyro_lag`)."""
+    residual (:mod:`streamcal.fitting.gyro_lag`). ``full_output``: a
+    :class:`~streamcal.fitting.result.FitResult` instead (the calibration and the solver status)."""
     if sensor != "mag":
         raise InputError(f"registration effects apply to the magnetometer, not --sensor {sensor}")
     if not isinstance(track, Track):
         raise InputError("registration effects need a track with accelerometer (or, for "
                          "time_lag, gyroscope) columns, not an array of readings")
-    return registration_fit(track, model, kernel=kernel, tau=tau, initial=initial).calibration
+    res = registration_fit(track, model, kernel=kernel, tau=tau, initial=initial)
+    if full_output:
+        return FitResult(res.calibration, res.status, res.iterations, res.message)
+    return res.calibration
