@@ -13,7 +13,7 @@ from typing import Iterable, Mapping, Sequence
 import numpy as np
 
 from ..constants import GRAVITY
-from ..calibration import DEFAULT_MODEL, Calibration, canonical_form
+from ..calibration import DEFAULT_MODEL, Calibration, canonical_form, field_radius
 from ..errors import InputError, InsufficientDataError, UnknownEffectError
 from ..inputs.track import Track
 from ..model.build import build_effects, check_needs
@@ -185,7 +185,7 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
     if check_coverage and not obs.ok:
         raise InsufficientDataError(obs.message)
     rms = float(np.sqrt(np.mean(residual_norm[inliers] ** 2))) if inliers.any() else float("nan")
-    field = GRAVITY if sensor == "accel" else (float(np.cbrt(np.linalg.det(K))) if unit == "uT" else None)
+    field = GRAVITY if sensor == "accel" else (field_radius(K) if unit == "uT" else None)
     extra_keys = {"noise_sigma": sigma}
     if tau_used is not None:
         extra_keys["tau"] = tau_used

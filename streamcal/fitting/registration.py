@@ -77,7 +77,7 @@ from typing import Mapping, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ..calibration import Calibration
+from ..calibration import Calibration, field_radius
 from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import InputError, InsufficientDataError
 from ..inputs.track import Track
@@ -360,7 +360,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     weights = kernel_weights(kernel, rn, width) * inliers   # the capped cost: no pull beyond
     cal = Calibration(K=K, b=b, sensor="mag", model=names, effects=effects, rms=rms, n=len(m),
                       n_outliers=int((~inliers).sum()), coverage=start.coverage,
-                      unit=track.mag_unit, field=float(np.cbrt(np.linalg.det(K)))
+                      unit=track.mag_unit, field=field_radius(K)
                       if track.mag_unit == "uT" else None, method="autocal", kernel=kernel,
                       inliers=inliers, weights=weights, directions=x,
                       extra={"noise_sigma": float(np.median(rn) / HALF_NORMAL_MEDIAN / np.sqrt(2)),
