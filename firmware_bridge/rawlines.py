@@ -86,11 +86,6 @@ class RawLineReader:
         return row
 
 
-def looks_like_raw_text(data: bytes) -> bool:
-    """True if ``data`` holds the start of a ``Raw:`` line (auto-detection on a shared port)."""
-    return PREFIX in data
-
-
 def raw_to_si(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(n,9)`` MotionCal counts → accel (n,3) m/s², gyro (n,3) rad/s, mag (n,3) µT."""
     counts = np.asarray(counts, dtype=float).reshape(-1, 9)

@@ -145,12 +145,6 @@ class Calibration:
             x = np.linalg.solve(self.K, (m2 - self.b).T).T
         return x[0] if single else x
 
-    def apply_field(self, m, covariates=None) -> np.ndarray:
-        """Calibrated field vectors in the sensor unit, ``|B| x`` (needs ``field``; else uses
-        the mean radius of K, the geometric mean of its diagonal)."""
-        scale = self.field if self.field else self.radius
-        return scale * self.apply(m, covariates)
-
     def model_error(self, other: "Calibration") -> float:
         """Normalized model deviation ‖[K,b] − [K',b']‖_F / ‖[K',b']‖_F (paper eq. 39/40)."""
         a = np.hstack([self.K, self.b[:, None]])
@@ -192,12 +186,6 @@ class Calibration:
     def save(self, path: str | os.PathLike) -> None:
         """Write the calibration file atomically (temp file, fsync, rename)."""
         atomic_write_text(path, self.to_json() + "\n")
-
-    @classmethod
-    def from_dict(cls, data: Mapping[str, Any], source: str = "<calibration>") -> "Calibration":
-        """Validate every key and shape (SPEC §2); raise :class:`CalibrationFileError` naming
-        the key and what was expected."""
-        return _parse(data, source)
 
     @classmethod
     def from_json(cls, text: str, source: str = "<calibration>") -> "Calibration":

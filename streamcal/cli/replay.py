@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ..constants import MAD_TO_SIGMA
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
 #: environment's: soft iron leaves 1.7–6.4 % on the real one-environment tracks, BROAD 32 (a
@@ -212,7 +213,7 @@ def _sphere_spread(m) -> float | None:
     if not (np.all(np.isfinite(sol)) and R2 > 0):
         return None
     R = float(np.sqrt(R2))
-    return 1.4826 * float(np.median(np.abs(np.linalg.norm(u - c, axis=1) / R - 1.0)))
+    return MAD_TO_SIGMA * float(np.median(np.abs(np.linalg.norm(u - c, axis=1) / R - 1.0)))
 
 
 def _jsonable(value):

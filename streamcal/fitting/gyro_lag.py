@@ -192,19 +192,19 @@ class GyroPairs:
         return len(self.a)
 
     # -- the gyro map ------------------------------------------------------------------------
-    def initial_map(self, tau: float, weights_of=None) -> np.ndarray:
+    def initial_map(self, lag_s: float) -> np.ndarray:
         """12 parameters (M row-major, c) from the linear Cayley fit on consecutive pairs."""
         j = np.arange(len(self.t) - 1)
         dt = np.diff(self.t)
         ok = (dt > 0) & (dt <= GAP_FACTOR * self.period) & \
-             (self.t[j] - tau >= self.t_g[0]) & (self.t[j + 1] - tau <= self.t_g[-1])
+             (self.t[j] - lag_s >= self.t_g[0]) & (self.t[j + 1] - lag_s <= self.t_g[-1])
         j, dt = j[ok], dt[ok]
         if len(j) < 12:
             raise InsufficientDataError("too few consecutive magnetometer samples within the "
                                         "gyro's span for the gyro-tied lag")
         phi = _cumtrapz(self.t_g, self.w)
-        theta = _interp_rows(self.t[j + 1] - tau, self.t_g, phi) - \
-            _interp_rows(self.t[j] - tau, self.t_g, phi)                      # (P,3) rad
+        theta = _interp_rows(self.t[j + 1] - lag_s, self.t_g, phi) - \
+            _interp_rows(self.t[j] - lag_s, self.t_g, phi)                      # (P,3) rad
         xm = self.x[j] + self.x[j + 1]
         xm /= np.linalg.norm(xm, axis=1, keepdims=True)
         dx = self.x[j + 1] - self.x[j]
@@ -237,21 +237,21 @@ class GyroPairs:
         return Orientation(self.t_g, Q.as_quat(), steps)
 
     # -- the residual (2) --------------------------------------------------------------------
-    def residual(self, Q: "Orientation", tau: float, sel=None) -> np.ndarray:
+    def residual(self, Q: "Orientation", lag_s: float, sel=None) -> np.ndarray:
         """(P,3) sensor-unit residual r_ab of the pairs ``sel`` (default all)."""
         a, b = (self.a, self.b) if sel is None else (self.a[sel], self.b[sel])
-        Qa, Qb = Q.at(self.t[a] - tau), Q.at(self.t[b] - tau)
+        Qa, Qb = Q.at(self.t[a] - lag_s), Q.at(self.t[b] - lag_s)
         xb_hat = Qb.apply(Qa.apply(self.x[a]), inverse=True)
         return (xb_hat - self.x[b]) @ self.K.T
 
-    def map_jacobian(self, Q: "Orientation", tau: float, sel=None) -> np.ndarray:
+    def map_jacobian(self, Q: "Orientation", lag_s: float, sel=None) -> np.ndarray:
         """(P,3,12) ∂r_ab/∂(M, c), analytic (module docstring)."""
         a, b = (self.a, self.b) if sel is None else (self.a[sel], self.b[sel])
         R = Rotation.from_quat(Q.quat).as_matrix()                              # (G,3,3)
         integrand = np.concatenate([np.einsum("gia,gb->giab", R, self.w).reshape(-1, 3, 9), R],
                                    axis=2)                                      # (G,3,12)
         F = _cumtrapz(self.t_g, integrand)
-        ta, tb = self.t[a] - tau, self.t[b] - tau
+        ta, tb = self.t[a] - lag_s, self.t[b] - lag_s
         dphi = _interp_rows(ta, self.t_g, F) - _interp_rows(tb, self.t_g, F)   # φ_a − φ_b
         Qa, Qb = Q.at(ta), Q.at(tb)
         za = Qa.apply(self.x[a])
@@ -298,13 +298,13 @@ def _n_base_params(cal) -> int:
 
 def _grid(pairs: GyroPairs, Q: Orientation, sel: np.ndarray) -> tuple[float, np.ndarray]:
     """τ (s) minimizing the trimmed cost on :data:`LAG_GRID`, and the costs."""
-    return search_lag(LAG_GRID, lambda tau: trimmed_cost(
-        np.linalg.norm(pairs.residual(Q, tau, sel), axis=1)))
+    return search_lag(LAG_GRID, lambda lag_s: trimmed_cost(
+        np.linalg.norm(pairs.residual(Q, lag_s, sel), axis=1)))
 
 
 def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
                   inlier_samples: np.ndarray | None = None, sel: np.ndarray | None = None,
-                  tau0: float = 0.0) -> tuple[np.ndarray, float]:
+                  lag0: float = 0.0) -> tuple[np.ndarray, float]:
     """Robust fit of the gyro map (12) and, if ``fit_lag``, τ (s) on the pairs ``sel`` whose
     samples are ``inlier_samples`` (N,) → (p (12,), τ, :class:`~.damped_lm.LMStatus`)."""
     use = np.arange(len(pairs)) if sel is None else np.asarray(sel)
@@ -313,22 +313,22 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
     if len(use) < 3 * (N_GYRO_PARAMS + 1):
         raise InsufficientDataError(f"{len(use)} sample pairs {HORIZON_S} s apart within the "
                                     "gyro's span are too few for the gyro-tied lag")
-    tau = float(tau0)
-    p = pairs.initial_map(tau)
+    lag_s = float(lag0)
+    p = pairs.initial_map(lag_s)
     Q = pairs.orientation(p)
     if fit_lag:
         step = max(1, len(use) // GRID_PAIRS)
-        tau, _ = _grid(pairs, Q, use[::step])
-    r = pairs.residual(Q, tau, use)
+        lag_s, _ = _grid(pairs, Q, use[::step])
+    r = pairs.residual(Q, lag_s, use)
     width = width_from_residuals(kernel, np.linalg.norm(r, axis=1))   # fixed: one robust cost
 
     def linearize(state, aux):   # IRLS: this round's weights define the merit
-        (p, tau), (Q, r) = state, aux
+        (p, lag_s), (Q, r) = state, aux
         rn = np.linalg.norm(r, axis=1)
         w = kernel_weights(kernel, rn, width)
-        J = pairs.map_jacobian(Q, tau, use)
+        J = pairs.map_jacobian(Q, lag_s, use)
         if fit_lag:
-            jt = (pairs.residual(Q, tau + LAG_STEP, use) - pairs.residual(Q, tau - LAG_STEP, use)
+            jt = (pairs.residual(Q, lag_s + LAG_STEP, use) - pairs.residual(Q, lag_s - LAG_STEP, use)
                   ) / (2 * LAG_STEP)
             J = np.concatenate([J, jt[:, :, None]], axis=2)
         H = np.einsum("p,pik,pil->kl", w, J, J)
@@ -336,20 +336,20 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
         return float(np.sum(w * rn ** 2)), H, g, w
 
     def propose(state, d):
-        p, tau = state
-        return p + d[:12], tau + (float(d[12]) if fit_lag else 0.0)
+        p, lag_s = state
+        return p + d[:12], lag_s + (float(d[12]) if fit_lag else 0.0)
 
     def evaluate(state, w):
-        p1, tau1 = state
-        if abs(tau1) > MAX_LAG:
+        p1, lag1 = state
+        if abs(lag1) > MAX_LAG:
             return np.inf, None
         Q1 = pairs.orientation(p1)
-        r1 = pairs.residual(Q1, tau1, use)
+        r1 = pairs.residual(Q1, lag1, use)
         return float(np.sum(w * np.sum(r1 * r1, axis=1))), (Q1, r1)
 
-    lm = damped_lm((p, tau), (Q, r), np.inf, linearize=linearize, propose=propose,
+    lm = damped_lm((p, lag_s), (Q, r), np.inf, linearize=linearize, propose=propose,
                    evaluate=evaluate, max_iter=GN_ROUNDS, rtol=RTOL)
-    (p, tau), (Q, r) = lm.x, lm.aux
+    (p, lag_s), (Q, r) = lm.x, lm.aux
     gains = np.linalg.svd(p[:9].reshape(3, 3), compute_uv=False)
     still = np.sqrt(np.mean(np.sum(((pairs.x[pairs.a[use]] - pairs.x[pairs.b[use]])
                                     @ pairs.K.T) ** 2, axis=1)))   # predicting "no rotation"
@@ -359,10 +359,10 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
             f"the gyro does not follow the magnetometer's direction changes: the fitted gyro "
             f"gains are {', '.join(f'{g:.2f}' for g in gains)} (expected ≈ 1; a saturated gyro "
             "or one that is not on the magnetometer's board)")
-    if fit_lag and abs(tau) >= MAX_LAG - 0.5 * (LAG_GRID[1] - LAG_GRID[0]):
+    if fit_lag and abs(lag_s) >= MAX_LAG - 0.5 * (LAG_GRID[1] - LAG_GRID[0]):
         raise InsufficientDataError(f"the time lag is not determined by the gyro: the fit went "
-                                    f"to {tau:.3f} s, the edge of ±{MAX_LAG} s")
-    return p, tau, lm
+                                    f"to {lag_s:.3f} s, the edge of ±{MAX_LAG} s")
+    return p, lag_s, lm
 
 
 def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: float | None = None,
@@ -409,7 +409,7 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
         start[np.asarray(rows)] = True
         sel = np.flatnonzero(start[f][pairs.a])
     p, lag, lm = fit_gyro_tied(pairs, fit_lag=fit_lag, kernel=kernel, inlier_samples=inl[f],
-                           sel=sel, tau0=lag)
+                           sel=sel, lag0=lag)
     r_pairs = pairs.residual(pairs.orientation(p), lag)
     rn_pairs = np.linalg.norm(r_pairs, axis=1)
     good = inl[f][pairs.a] & inl[f][pairs.b]

@@ -125,11 +125,6 @@ def _jac_k(x: np.ndarray, structure: str) -> np.ndarray:
     return J
 
 
-def _gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Stacked AᵀB for A (N,3,P), B (N,3,Q) → (N,P,Q)."""
-    return A.transpose(0, 2, 1) @ B
-
-
 def _inv3(A: np.ndarray) -> np.ndarray:
     """Inverses of a stack of 3×3 matrices (N,3,3) by cofactors (faster than np.linalg.inv)."""
     a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
