@@ -90,3 +90,13 @@ def test_fit_full_output_says_max_iter_when_the_budget_is_one(track):
 def test_reference_method_reports_no_status(track):
     full = fit(track, method="l2_ellipsoid", full_output=True)
     assert full.status is None and "reports no solver status" in full.message
+
+
+def test_registration_fit_full_output_carries_the_helper_status():
+    tr = simulate(20.0, 3, effects={"time_lag": 0.02}).track
+    full = fit(tr, add="time_lag", full_output=True)
+    plain = fit(tr, add="time_lag")
+    assert isinstance(full, FitResult) and full.status in STATUSES
+    assert full.iterations >= 1 and full.message
+    assert np.array_equal(full.calibration.K, plain.K)
+    assert full.calibration.effects["time_lag"] == plain.effects["time_lag"]
