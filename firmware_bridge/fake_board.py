@@ -26,11 +26,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from streamcal.constants import GRAVITY
+
 from . import frames as fr
 from . import registers as R
 
 # Scales the sketch announces (streamcal_bridge.ino; PS-MPU-9250A-01 p8/p9/p12), as float32.
-ACCEL_SCALE = float(np.float32(9.80665) / np.float32(8192.0))      # m/s² per count (±4 g)
+ACCEL_SCALE = float(np.float32(GRAVITY) / np.float32(8192.0))      # m/s² per count (±4 g)
 GYRO_SCALE = float(np.float32(3.14159265) / np.float32(180.0) / np.float32(16.4))  # rad/s per count
 TEMP_SCALE = float(np.float32(1.0) / np.float32(333.87))          # °C per count
 TEMP_OFFSET = 21.0

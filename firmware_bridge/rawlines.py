@@ -17,11 +17,13 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
+from streamcal.constants import GRAVITY
+
 PREFIX = b"Raw:"
 G_PER_COUNT = 1.0 / 8192.0
 DEG_PER_SEC_PER_COUNT = 1.0 / 16.0
 UT_PER_COUNT = 0.1
-STANDARD_GRAVITY = 9.80665  # m/s² per g
+STANDARD_GRAVITY = GRAVITY  # m/s² per g
 #: Longest line kept (bytes); nine int16 fields need at most 4 + 9 × 7 = 67.
 MAX_LINE = 128
 
@@ -82,11 +84,6 @@ class RawLineReader:
             return None
         self.stats.lines += 1
         return row
-
-
-def looks_like_raw_text(data: bytes) -> bool:
-    """True if ``data`` holds the start of a ``Raw:`` line (auto-detection on a shared port)."""
-    return PREFIX in data
 
 
 def raw_to_si(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

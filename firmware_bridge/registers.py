@@ -14,6 +14,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from streamcal.constants import GRAVITY
+
 # --- Bus addresses (HARDWARE.md §1) -------------------------------------------------------------
 MPU_ADDRESS_AD0_LOW = 0x68    # AD0 pin tied low [PS p12]
 MPU_ADDRESS_AD0_HIGH = 0x69   # AD0 pin tied high [PS p12]
@@ -144,7 +146,7 @@ WHO_AM_I_TABLE = {
 AK8963_WIA = 0x48              # [LNX-MAGN], [KW]
 
 # --- Scales (HARDWARE.md §2 "Full-scale ranges") [PS p8], [PS p9] -------------------------------
-STANDARD_GRAVITY = 9.80665     # m/s² per g (CGPM 1901 definition)
+STANDARD_GRAVITY = GRAVITY     # m/s² per g (CGPM 1901 definition)
 GYRO_LSB_PER_DPS = (131.0, 65.5, 32.8, 16.4)          # index = GYRO_FS_SEL
 GYRO_RANGE_DPS = (250, 500, 1000, 2000)
 ACCEL_LSB_PER_G = (16384.0, 8192.0, 4096.0, 2048.0)   # index = ACCEL_FS_SEL

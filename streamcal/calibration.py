@@ -34,6 +34,20 @@ def _utc_now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).replace(microsecond=0).isoformat().replace("+00:00", "Z")
 
 
+def field_radius(K: np.ndarray) -> float:
+    """Geometric-mean radius of the sensor matrix ``K`` (3,3), sensor unit: |det K|^(1/3)
+    (for the canonical upper-triangular K the geometric mean of its diagonal)."""
+    return float(np.cbrt(abs(np.linalg.det(np.asarray(K, dtype=float)))))
+
+
+def _frozen(value, shape) -> np.ndarray:
+    """A read-only float copy of ``value`` reshaped to ``shape`` (the caller's array is left
+    writeable)."""
+    arr = np.array(value, dtype=float).reshape(shape)
+    arr.flags.writeable = False
+    return arr
+
+
 def canonical_form(A: np.ndarray, directions: np.ndarray | None = None):
     """Write a general 3×3 sensor matrix ``A`` as ``K Q`` (RQ decomposition), ``K`` upper
     triangular with positive diagonal, ``Q`` orthogonal; return ``(K, Q)``.
@@ -57,7 +71,9 @@ def canonical_form(A: np.ndarray, directions: np.ndarray | None = None):
 
 @dataclass(frozen=True, eq=False)
 class Calibration:
-    """A fitted sensor model.
+    """A fitted sensor model: a value. ``K`` and ``b`` are read-only arrays; two calibrations
+    are equal when their saved content (:meth:`to_dict`) is; the per-sample results
+    (``inliers``, ``weights``, ``directions``) travel with it but are neither saved nor compared.
 
     Attributes:
         K: (3,3) upper triangular, positive diagonal, sensor unit per unit direction.
@@ -88,15 +104,28 @@ class Calibration:
     method: str = "autocal"
     kernel: str | None = None
     created: str = _field(default_factory=_utc_now)
-    inliers: np.ndarray | None = None
-    weights: np.ndarray | None = None
-    directions: np.ndarray | None = None
+    inliers: np.ndarray | None = _field(default=None, compare=False, repr=False)
+    weights: np.ndarray | None = _field(default=None, compare=False, repr=False)
+    directions: np.ndarray | None = _field(default=None, compare=False, repr=False)
     extra: Mapping[str, Any] = _field(default_factory=dict)
 
     def __post_init__(self):
-        object.__setattr__(self, "K", np.asarray(self.K, dtype=float).reshape(3, 3))
-        object.__setattr__(self, "b", np.asarray(self.b, dtype=float).reshape(3))
+        object.__setattr__(self, "K", _frozen(self.K, (3, 3)))
+        object.__setattr__(self, "b", _frozen(self.b, (3,)))
         object.__setattr__(self, "model", tuple(self.model))
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Calibration):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+    def __hash__(self) -> int:
+        return hash(self.to_json(indent=None))
+
+    @property
+    def radius(self) -> float:
+        """Geometric-mean radius of ``K`` (:func:`field_radius`), sensor unit."""
+        return field_radius(self.K)
 
     # -- using it ---------------------------------------------------------------------------
     def apply(self, m, covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
@@ -115,12 +144,6 @@ class Calibration:
         else:
             x = np.linalg.solve(self.K, (m2 - self.b).T).T
         return x[0] if single else x
-
-    def apply_field(self, m, covariates=None) -> np.ndarray:
-        """Calibrated field vectors in the sensor unit, ``|B| x`` (needs ``field``; else uses
-        the mean radius of K, the geometric mean of its diagonal)."""
-        scale = self.field if self.field else float(np.prod(np.diag(self.K)) ** (1 / 3))
-        return scale * self.apply(m, covariates)
 
     def model_error(self, other: "Calibration") -> float:
         """Normalized model deviation ‖[K,b] − [K',b']‖_F / ‖[K',b']‖_F (paper eq. 39/40)."""
@@ -165,12 +188,6 @@ class Calibration:
         atomic_write_text(path, self.to_json() + "\n")
 
     @classmethod
-    def from_dict(cls, data: Mapping[str, Any], source: str = "<calibration>") -> "Calibration":
-        """Validate every key and shape (SPEC §2); raise :class:`CalibrationFileError` naming
-        the key and what was expected."""
-        return _parse(data, source)
-
-    @classmethod
     def from_json(cls, text: str, source: str = "<calibration>") -> "Calibration":
         try:
             data = json.loads(text, parse_constant=_reject_constant)
@@ -180,15 +197,24 @@ class Calibration:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> "Calibration":
+        """Read and validate a calibration file. A symbolic link is refused (opened with
+        ``O_NOFOLLOW``: a link planted where a calibration is expected cannot redirect the
+        read); files over :data:`MAX_FILE_BYTES` are refused."""
         path = os.fspath(path)
         try:
-            size = os.path.getsize(path)
-            if size > MAX_FILE_BYTES:
-                raise CalibrationFileError(f"{path}: {size} bytes is too large for a calibration file")
-            with open(path, "rb") as handle:
-                raw = handle.read(MAX_FILE_BYTES + 1)
+            fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
         except OSError as exc:
+            reason = "is a symbolic link; refusing to follow it" if os.path.islink(path) \
+                else f"cannot read ({exc.strerror or exc})"
+            raise CalibrationFileError(f"{path}: {reason}") from None
+        try:
+            with os.fdopen(fd, "rb") as handle:
+                raw = handle.read(MAX_FILE_BYTES + 1)
+        except OSError as exc:   # e.g. a directory
             raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
+        if len(raw) > MAX_FILE_BYTES:
+            raise CalibrationFileError(f"{path}: {len(raw)} bytes or more is too large for a "
+                                       "calibration file")
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError as exc:

@@ -107,7 +107,6 @@ def _replay(track_path: Path, say):
     from ..inputs.track import Track
     from ..report import coverage_view
     from ..stream import CoverageBuffer, StreamingCalibrator
-    from ..stream.guard import radius_of
 
     source = open_i2c_source(f"fake:{track_path}", block_size=BLOCK_SIZE, read_track=Track.read)
     calibrator = None
@@ -119,18 +118,18 @@ def _replay(track_path: Path, say):
             calibrator = StreamingCalibrator(model=DEFAULT_MODEL, synchronous=True,
                                              buffer=CoverageBuffer(covariates=covariates))
         for event in calibrator.ingest(block):
-            _event(event, calibrator, accepted, maps_done, say, radius_of, coverage_view)
+            _event(event, calibrator, accepted, maps_done, say, coverage_view)
     if calibrator is not None:
         for event in calibrator.close():
-            _event(event, calibrator, accepted, maps_done, say, radius_of, coverage_view)
+            _event(event, calibrator, accepted, maps_done, say, coverage_view)
     return blocks, accepted, calibrator
 
 
-def _event(event, calibrator, accepted, maps_done, say, radius_of, coverage_view) -> None:
+def _event(event, calibrator, accepted, maps_done, say, coverage_view) -> None:
     when = f"[{event.t:7.1f} s]" if event.t is not None and math.isfinite(event.t) else " " * 11
     if event.kind == "accepted":
         cal = calibrator.calibration
-        field = cal.field or radius_of(cal)
+        field = cal.field or cal.radius
         coverage = event.data.get("coverage_at_fit", cal.coverage) or 0.0
         accepted.append({"t": event.t, "coverage": coverage, "rms": cal.rms, "field": field,
                          "b": np.asarray(cal.b).tolist()})

@@ -16,6 +16,7 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ..constants import MAD_TO_SIGMA
 from ._common import RECORDING_HELP, add_input_options, read_track
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
@@ -213,7 +214,7 @@ def _sphere_spread(m) -> float | None:
     if not (np.all(np.isfinite(sol)) and R2 > 0):
         return None
     R = float(np.sqrt(R2))
-    return 1.4826 * float(np.median(np.abs(np.linalg.norm(u - c, axis=1) / R - 1.0)))
+    return MAD_TO_SIGMA * float(np.median(np.abs(np.linalg.norm(u - c, axis=1) / R - 1.0)))
 
 
 def _jsonable(value):

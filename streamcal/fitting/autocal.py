@@ -26,10 +26,11 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
+from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
 from .ellipsoid import (directions_from_model, ellipsoid_to_model, fit_l1_ellipsoid,
                         fit_l2_ellipsoid, spread_subset)
-from .kernels import EFFICIENCY_TAU, HALF_NORMAL_MEDIAN, WIDTH_KERNELS, make_kernel
+from .kernels import EFFICIENCY_TAU, WIDTH_KERNELS, make_kernel
 from .lm import LMResult, refine
 from .normalize import normalize
 from .observability import assess
@@ -37,7 +38,6 @@ from .robust_start import KEEP, coherent_start, lqs_score, radial_error, robust_
 from .shared_shape import INDICATOR, DisturbanceShift, consistent, shift_start
 
 #: A sample is an outlier when its residual exceeds this many kernel widths.
-OUTLIER_WIDTHS = 2.0
 #: Median over lower-quartile ratio of the stage-1 residuals above which the L1 start is
 #: double-checked by :func:`robust_start` (|N(0,1)| gives 0.674 / 0.319 = 2.1).
 CONTAMINATION_RATIO = 3.0
@@ -68,6 +68,9 @@ class AutocalResult:
     scale: float              # normalization scale
     center: np.ndarray
     lm: LMResult
+    #: the last LM run that moved the parameters (``lm`` may be a final evaluation on every
+    #: sample): its status, iterations and message
+    solver: LMResult | None = None
 
     @property
     def rms(self) -> float:
@@ -268,6 +271,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
 
     if support is None:
         result, sigma_n, tau_n = solve(m_n, covariates, K0, b0, x0, sigma_n)
+        solver = result
     else:
         # A coherent disturbance: refine on the undisturbed chunks only (the disturbed shell
         # would drag a cap-limited fit towards it), then evaluate every sample at that model.
@@ -280,6 +284,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
             result, sigma_n, tau_n, keep = shared
             x_all = directions_from_model(result.K, result.b, m_n)
             x_all[keep] = result.x[keep]
+        solver = result
         result = refine(m_n, result.K, result.b, x_all,
                         kernel=make_kernel("gm" if polish else kernel, tau_n),
                         structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,
@@ -300,4 +305,4 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
     return AutocalResult(K=scale * K_n, b=scale * result.b + center, x=x, thetas=result.thetas,
                          residuals=scale * result.residuals, weights=result.weights, inliers=inliers,
                          sigma=scale * sigma_n, tau=None if tau_n is None else scale * tau_n,
-                         scale=scale, center=center, lm=result)
+                         scale=scale, center=center, lm=result, solver=solver)

@@ -12,7 +12,8 @@ from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL, Calibration, canonical_form
+from ..constants import GRAVITY
+from ..calibration import DEFAULT_MODEL, Calibration, canonical_form, field_radius
 from ..errors import InputError, InsufficientDataError, UnknownEffectError
 from ..inputs.track import Track
 from ..model.build import build_effects, check_needs
@@ -20,8 +21,8 @@ from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
 from .lm import estimation_error, optimal_directions
 from .normalize import denormalize_model, normalize
 from .observability import assess
+from .result import FitResult
 
-GRAVITY = 9.80665  # m/s², standard gravity
 #: method name → (module in this package, function), each function maps normalized (N,3)
 #: measurements to a normalized (A, b) with m ≈ A x + b.
 REFERENCE_METHODS = {
@@ -89,7 +90,7 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
         add: str | Sequence[str] = (), kernel: str = "auto", method: str = "autocal",
         tau: float | str | None = None, covariates: Mapping[str, np.ndarray] | None = None,
         check_coverage: bool = True, stage1_max: int = 300, max_iter: int = 300,
-        rtol: float = 1e-6, initial: Calibration | None = None) -> Calibration:
+        rtol: float = 1e-6, initial: Calibration | None = None, full_output: bool = False):
     """Calibrate a magnetometer (µT) or accelerometer (m/s²) from a Track or an (N,3) array.
 
     Args:
@@ -106,6 +107,8 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
             model undetermined.
         initial: warm start (autocal only): skip stage 1 and start the LM from this
             calibration's K and b (its effect parameters are not reused).
+        full_output: return a :class:`~streamcal.fitting.result.FitResult` (the calibration
+            and the solver's status) instead of the calibration alone.
     Returns: a :class:`Calibration` whose ``inliers``, ``weights`` and ``directions`` cover the
         samples used, in order.
     """
@@ -140,13 +143,18 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
         effects = build_effects(extra, cov)
 
     try:
-        return _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, sensor=sensor,
+        cal, solver = _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, sensor=sensor,
                             kernel=kernel, method=method, tau=tau, check_coverage=check_coverage,
                             stage1_max=stage1_max, max_iter=max_iter, rtol=rtol, initial=initial)
     except (np.linalg.LinAlgError, FloatingPointError) as exc:
         raise InsufficientDataError(f"the {sensor} readings are numerically degenerate for this "
                                     f"model ({exc}); record while rotating the sensor through many "
                                     "orientations") from None
+    if not full_output:
+        return cal
+    if solver is None:
+        return FitResult(cal, None, 0, f"method {method!r} reports no solver status")
+    return FitResult(cal, solver.status, solver.iterations, solver.message)
 
 
 def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, sensor, kernel, method,
@@ -164,6 +172,7 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
         obs = assess(x[inliers], structure, fit_b, K, m=m[inliers])
         used_kernel = kernel
         sigma, tau_used = res.sigma, res.tau
+        solver = res.solver
     else:
         K, b, x, obs = _fit_reference(m, method, structure, max_iter=max_iter, rtol=rtol)
         residual_norm = estimation_error(K, b, m)
@@ -171,18 +180,19 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
         weights = np.ones(len(m))
         effect_params = {}
         used_kernel = None
+        solver = None
         sigma, tau_used = float(np.sqrt(np.mean(residual_norm ** 2) / 3)), None
     if check_coverage and not obs.ok:
         raise InsufficientDataError(obs.message)
     rms = float(np.sqrt(np.mean(residual_norm[inliers] ** 2))) if inliers.any() else float("nan")
-    field = GRAVITY if sensor == "accel" else (float(np.cbrt(np.linalg.det(K))) if unit == "uT" else None)
+    field = GRAVITY if sensor == "accel" else (field_radius(K) if unit == "uT" else None)
     extra_keys = {"noise_sigma": sigma}
     if tau_used is not None:
         extra_keys["tau"] = tau_used
     return Calibration(K=K, b=b, sensor=sensor, model=names, effects=effect_params, rms=rms,
                        n=len(m), n_outliers=int((~inliers).sum()), coverage=obs.coverage, unit=unit,
                        field=field, method=method, kernel=used_kernel, inliers=inliers,
-                       weights=weights, directions=x, extra=extra_keys)
+                       weights=weights, directions=x, extra=extra_keys), solver
 
 
 def _fit_reference(m, method, structure, *, max_iter=300, rtol=1e-6):

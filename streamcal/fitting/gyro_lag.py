@@ -76,17 +76,19 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
 from ..model.build import check_known, terms_from_params
 from ..quaternion import cumulative_rotation, qmul
 from .core import fit_core
+from .damped_lm import damped_lm, lag_grid, search_lag, trimmed_cost
 from .kernels import kernel_weights, width_from_residuals
 from .registration_result import RegistrationFit
 
 #: Time between the two samples of a pair (s).
 HORIZON_S = 0.5
 #: Grid of τ (s) searched before refining; its edge is the largest lag the fit accepts.
-LAG_GRID = np.arange(-0.30, 0.30001, 0.01)
+LAG_GRID = lag_grid(0.30)
 MAX_LAG = 0.3
 #: Most pairs used on the grid (the Gauss–Newton refinement uses them all).
 GRID_PAIRS = 2000
@@ -98,7 +100,6 @@ RTOL = 1e-6
 RIDGE = 1e-6
 #: Gaps longer than this many typical periods break a pair.
 GAP_FACTOR = 1.5
-OUTLIER_WIDTHS = 2.0
 #: The gyro must predict the direction H later this much better (rms over the pairs) than
 #: assuming no rotation, else it does not explain the direction changes (refused).
 EXPLAINED = 0.5
@@ -191,19 +192,19 @@ class GyroPairs:
         return len(self.a)
 
     # -- the gyro map ------------------------------------------------------------------------
-    def initial_map(self, tau: float, weights_of=None) -> np.ndarray:
+    def initial_map(self, lag_s: float) -> np.ndarray:
         """12 parameters (M row-major, c) from the linear Cayley fit on consecutive pairs."""
         j = np.arange(len(self.t) - 1)
         dt = np.diff(self.t)
         ok = (dt > 0) & (dt <= GAP_FACTOR * self.period) & \
-             (self.t[j] - tau >= self.t_g[0]) & (self.t[j + 1] - tau <= self.t_g[-1])
+             (self.t[j] - lag_s >= self.t_g[0]) & (self.t[j + 1] - lag_s <= self.t_g[-1])
         j, dt = j[ok], dt[ok]
         if len(j) < 12:
             raise InsufficientDataError("too few consecutive magnetometer samples within the "
                                         "gyro's span for the gyro-tied lag")
         phi = _cumtrapz(self.t_g, self.w)
-        theta = _interp_rows(self.t[j + 1] - tau, self.t_g, phi) - \
-            _interp_rows(self.t[j] - tau, self.t_g, phi)                      # (P,3) rad
+        theta = _interp_rows(self.t[j + 1] - lag_s, self.t_g, phi) - \
+            _interp_rows(self.t[j] - lag_s, self.t_g, phi)                      # (P,3) rad
         xm = self.x[j] + self.x[j + 1]
         xm /= np.linalg.norm(xm, axis=1, keepdims=True)
         dx = self.x[j + 1] - self.x[j]
@@ -236,21 +237,21 @@ class GyroPairs:
         return Orientation(self.t_g, Q.as_quat(), steps)
 
     # -- the residual (2) --------------------------------------------------------------------
-    def residual(self, Q: "Orientation", tau: float, sel=None) -> np.ndarray:
+    def residual(self, Q: "Orientation", lag_s: float, sel=None) -> np.ndarray:
         """(P,3) sensor-unit residual r_ab of the pairs ``sel`` (default all)."""
         a, b = (self.a, self.b) if sel is None else (self.a[sel], self.b[sel])
-        Qa, Qb = Q.at(self.t[a] - tau), Q.at(self.t[b] - tau)
+        Qa, Qb = Q.at(self.t[a] - lag_s), Q.at(self.t[b] - lag_s)
         xb_hat = Qb.apply(Qa.apply(self.x[a]), inverse=True)
         return (xb_hat - self.x[b]) @ self.K.T
 
-    def map_jacobian(self, Q: "Orientation", tau: float, sel=None) -> np.ndarray:
+    def map_jacobian(self, Q: "Orientation", lag_s: float, sel=None) -> np.ndarray:
         """(P,3,12) ∂r_ab/∂(M, c), analytic (module docstring)."""
         a, b = (self.a, self.b) if sel is None else (self.a[sel], self.b[sel])
         R = Rotation.from_quat(Q.quat).as_matrix()                              # (G,3,3)
         integrand = np.concatenate([np.einsum("gia,gb->giab", R, self.w).reshape(-1, 3, 9), R],
                                    axis=2)                                      # (G,3,12)
         F = _cumtrapz(self.t_g, integrand)
-        ta, tb = self.t[a] - tau, self.t[b] - tau
+        ta, tb = self.t[a] - lag_s, self.t[b] - lag_s
         dphi = _interp_rows(ta, self.t_g, F) - _interp_rows(tb, self.t_g, F)   # φ_a − φ_b
         Qa, Qb = Q.at(ta), Q.at(tb)
         za = Qa.apply(self.x[a])
@@ -297,66 +298,58 @@ def _n_base_params(cal) -> int:
 
 def _grid(pairs: GyroPairs, Q: Orientation, sel: np.ndarray) -> tuple[float, np.ndarray]:
     """τ (s) minimizing the trimmed cost on :data:`LAG_GRID`, and the costs."""
-    costs = []
-    for tau in LAG_GRID:
-        rn = np.linalg.norm(pairs.residual(Q, tau, sel), axis=1)
-        c = 3.0 * np.median(rn)
-        costs.append(float(np.sum(np.minimum(rn, c) ** 2)))
-    costs = np.asarray(costs)
-    return float(LAG_GRID[int(np.argmin(costs))]), costs
+    return search_lag(LAG_GRID, lambda lag_s: trimmed_cost(
+        np.linalg.norm(pairs.residual(Q, lag_s, sel), axis=1)))
 
 
 def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
                   inlier_samples: np.ndarray | None = None, sel: np.ndarray | None = None,
-                  tau0: float = 0.0) -> tuple[np.ndarray, float]:
+                  lag0: float = 0.0) -> tuple[np.ndarray, float]:
     """Robust fit of the gyro map (12) and, if ``fit_lag``, τ (s) on the pairs ``sel`` whose
-    samples are ``inlier_samples`` (N,) → (p (12,), τ)."""
+    samples are ``inlier_samples`` (N,) → (p (12,), τ, :class:`~.damped_lm.LMStatus`)."""
     use = np.arange(len(pairs)) if sel is None else np.asarray(sel)
     if inlier_samples is not None:
         use = use[inlier_samples[pairs.a[use]] & inlier_samples[pairs.b[use]]]
     if len(use) < 3 * (N_GYRO_PARAMS + 1):
         raise InsufficientDataError(f"{len(use)} sample pairs {HORIZON_S} s apart within the "
                                     "gyro's span are too few for the gyro-tied lag")
-    tau = float(tau0)
-    p = pairs.initial_map(tau)
+    lag_s = float(lag0)
+    p = pairs.initial_map(lag_s)
     Q = pairs.orientation(p)
     if fit_lag:
         step = max(1, len(use) // GRID_PAIRS)
-        tau, _ = _grid(pairs, Q, use[::step])
-    lam = 1e-3
-    r = pairs.residual(Q, tau, use)
+        lag_s, _ = _grid(pairs, Q, use[::step])
+    r = pairs.residual(Q, lag_s, use)
     width = width_from_residuals(kernel, np.linalg.norm(r, axis=1))   # fixed: one robust cost
-    for _ in range(GN_ROUNDS):
+
+    def linearize(state, aux):   # IRLS: this round's weights define the merit
+        (p, lag_s), (Q, r) = state, aux
         rn = np.linalg.norm(r, axis=1)
         w = kernel_weights(kernel, rn, width)
-        cost = float(np.sum(w * rn ** 2))
-        J = pairs.map_jacobian(Q, tau, use)
+        J = pairs.map_jacobian(Q, lag_s, use)
         if fit_lag:
-            jt = (pairs.residual(Q, tau + LAG_STEP, use) - pairs.residual(Q, tau - LAG_STEP, use)
+            jt = (pairs.residual(Q, lag_s + LAG_STEP, use) - pairs.residual(Q, lag_s - LAG_STEP, use)
                   ) / (2 * LAG_STEP)
             J = np.concatenate([J, jt[:, :, None]], axis=2)
         H = np.einsum("p,pik,pil->kl", w, J, J)
         g = np.einsum("p,pik,pi->k", w, J, r)
-        improved = False
-        for _ in range(10):
-            d = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
-            p1 = p + d[:12]
-            tau1 = tau + (float(d[12]) if fit_lag else 0.0)
-            if abs(tau1) > MAX_LAG:
-                lam *= 4
-                continue
-            Q1 = pairs.orientation(p1)
-            r1 = pairs.residual(Q1, tau1, use)
-            cost1 = float(np.sum(w * np.sum(r1 * r1, axis=1)))
-            if cost1 <= cost:
-                improved, lam = True, max(lam / 3, 1e-9)
-                break
-            lam *= 4
-        if not improved:
-            break
-        p, tau, Q, r = p1, tau1, Q1, r1
-        if cost - cost1 <= RTOL * cost:
-            break
+        return float(np.sum(w * rn ** 2)), H, g, w
+
+    def propose(state, d):
+        p, lag_s = state
+        return p + d[:12], lag_s + (float(d[12]) if fit_lag else 0.0)
+
+    def evaluate(state, w):
+        p1, lag1 = state
+        if abs(lag1) > MAX_LAG:
+            return np.inf, None
+        Q1 = pairs.orientation(p1)
+        r1 = pairs.residual(Q1, lag1, use)
+        return float(np.sum(w * np.sum(r1 * r1, axis=1))), (Q1, r1)
+
+    lm = damped_lm((p, lag_s), (Q, r), np.inf, linearize=linearize, propose=propose,
+                   evaluate=evaluate, max_iter=GN_ROUNDS, rtol=RTOL)
+    (p, lag_s), (Q, r) = lm.x, lm.aux
     gains = np.linalg.svd(p[:9].reshape(3, 3), compute_uv=False)
     still = np.sqrt(np.mean(np.sum(((pairs.x[pairs.a[use]] - pairs.x[pairs.b[use]])
                                     @ pairs.K.T) ** 2, axis=1)))   # predicting "no rotation"
@@ -366,10 +359,10 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
             f"the gyro does not follow the magnetometer's direction changes: the fitted gyro "
             f"gains are {', '.join(f'{g:.2f}' for g in gains)} (expected ≈ 1; a saturated gyro "
             "or one that is not on the magnetometer's board)")
-    if fit_lag and abs(tau) >= MAX_LAG - 0.5 * (LAG_GRID[1] - LAG_GRID[0]):
+    if fit_lag and abs(lag_s) >= MAX_LAG - 0.5 * (LAG_GRID[1] - LAG_GRID[0]):
         raise InsufficientDataError(f"the time lag is not determined by the gyro: the fit went "
-                                    f"to {tau:.3f} s, the edge of ±{MAX_LAG} s")
-    return p, tau
+                                    f"to {lag_s:.3f} s, the edge of ±{MAX_LAG} s")
+    return p, lag_s, lm
 
 
 def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: float | None = None,
@@ -415,8 +408,8 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
         start = np.zeros(len(m), bool)
         start[np.asarray(rows)] = True
         sel = np.flatnonzero(start[f][pairs.a])
-    p, lag = fit_gyro_tied(pairs, fit_lag=fit_lag, kernel=kernel, inlier_samples=inl[f],
-                           sel=sel, tau0=lag)
+    p, lag, lm = fit_gyro_tied(pairs, fit_lag=fit_lag, kernel=kernel, inlier_samples=inl[f],
+                           sel=sel, lag0=lag)
     r_pairs = pairs.residual(pairs.orientation(p), lag)
     rn_pairs = np.linalg.norm(r_pairs, axis=1)
     good = inl[f][pairs.a] & inl[f][pairs.b]
@@ -444,4 +437,5 @@ def gyro_lag_fit(track, model: Sequence[str], *, kernel: str = "cauchy", tau: fl
                                             "gyro_map": [[float(v) for v in row] for row in M],
                                             "gyro_offset_rad_s": [float(v) for v in p[9:]]}})
     n_params = _n_base_params(base) + N_GYRO_PARAMS + int(fit_lag)
-    return RegistrationFit(cal, r, x, inliers, rot, float("nan"), float(lag), n_params, rms)
+    return RegistrationFit(cal, r, x, inliers, rot, float("nan"), float(lag), n_params, rms,
+                           status=lm.status, iterations=lm.iterations, message=lm.message)

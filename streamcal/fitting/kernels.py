@@ -14,6 +14,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..constants import HALF_NORMAL_MEDIAN  # noqa: F401  (re-exported)
+
 #: Smallest s used where a kernel's derivative is singular at 0 (L1).
 _S_FLOOR = 1e-12
 
@@ -112,8 +114,6 @@ class GemanMcClure:
 
 #: τ / σ giving each width kernel 95 % asymptotic efficiency under Gaussian noise.
 EFFICIENCY_TAU = {"cauchy": 2.3849, "huber": 1.345, "gm": 3.787}
-#: Median of |N(0,1)|: converts a median residual norm into σ.
-HALF_NORMAL_MEDIAN = 0.6744897501960817
 
 KERNELS = {"l2": L2, "l1": L1, "huber": Huber, "cauchy": Cauchy, "gm": GemanMcClure}
 #: Kernels whose width τ matters.

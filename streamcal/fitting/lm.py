@@ -93,6 +93,11 @@ class LMResult:
     iterations: int
     converged: bool
     history: list = field(default_factory=list)
+    #: :data:`streamcal.fitting.damped_lm.STATUSES`: ``converged`` (relative decrease below
+    #: rtol), ``stalled`` (no trial step lowered the cost; ``converged`` is also True then, as
+    #: it always was) or ``max_iter``; ``message`` in words.
+    status: str = "max_iter"
+    message: str = ""
 
 
 def _k_vector(K: np.ndarray, structure: str) -> np.ndarray:
@@ -118,11 +123,6 @@ def _jac_k(x: np.ndarray, structure: str) -> np.ndarray:
     for col, (i, j) in enumerate(entries):
         J[:, i, col] = x[:, j]
     return J
-
-
-def _gram(A: np.ndarray, B: np.ndarray) -> np.ndarray:
-    """Stacked AᵀB for A (N,3,P), B (N,3,Q) → (N,P,Q)."""
-    return A.transpose(0, 2, 1) @ B
 
 
 def _inv3(A: np.ndarray) -> np.ndarray:
@@ -355,6 +355,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     history = [f]
     converged = False
     iterations = 0
+    status = "max_iter"
     for iterations in range(1, max_iter + 1):
         _, d1, d2 = kernel.evaluate(s)
         w, e, gw = triggs_weights(s, d1, d2)
@@ -400,11 +401,15 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         history.append(f)
         if not improved or rel < rtol:
             converged = True
+            status = "stalled" if not improved else "converged"
             break
     weights = kernel.evaluate(s)[1]
     return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
                     residuals=np.ascontiguousarray(r.T), weights=weights, cost=f,
-                    iterations=iterations, converged=converged, history=history)
+                    iterations=iterations, converged=converged, history=history, status=status,
+                    message={"stalled": f"no step lowered the cost in {max_trials} trials",
+                             "converged": f"relative cost decrease below {rtol:g}",
+                             "max_iter": f"{max_iter} iterations used"}[status])
 
 
 def optimal_directions(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int = 8) -> np.ndarray:

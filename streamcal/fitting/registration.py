@@ -58,19 +58,7 @@ global parameters p = (K, b, θ, R, δ, τ) and the headings:
 τ is first located on a grid (the cost is not convex in τ beyond a fraction of the motion's
 period) and then refined by (b).
 
-The gravity direction
----------------------
-The accelerometer measures specific force: gravity plus the hand's linear acceleration
-(≈ 0.4 m/s², 2–3° of tilt error, several times the magnetometer noise). With a gyro, the readings
-are rotated into a frame that follows the integrated gyro (bias taken from still samples),
-low-passed there by a zero-phase filter (:data:`CUTOFF_GYRO_HZ`: gravity is constant in that
-frame, the linear acceleration and — as the body turns — the accelerometer's own offset average
-out) and rotated back: ≈ 1.3° rms on the simulated hand motion against 3.4° for the raw
-direction. Without a gyro, a zero-phase low-pass of the readings and trust_j = 1 / (1 + (|‖a_j‖
-− g| / 0.05 g)²) down-weight samples under strong acceleration. Zero-phase filters add no delay,
-so τ is not biased. (An accelerometer ellipsoid fit first was tried and dropped: on hand-motion
-data its linear acceleration tilts K by degrees.) The remaining error of ĝ is a floor of the
-gravity-tied residual, the same with and without a registration effect.
+The gravity direction ĝ and its trust come from :mod:`streamcal.fitting.gravity`.
 
 Without the accelerometer, ``time_lag`` alone is estimated from the gyro: consecutive
 directions are linked by the rotation rate (:mod:`streamcal.fitting.gyro_lag`, the gyro-tied
@@ -84,36 +72,31 @@ fit (whose residual cannot see these effects).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Mapping, Sequence
+from typing import Sequence
 
 import numpy as np
-import scipy.signal
 from scipy.spatial.transform import Rotation
 
-from ..calibration import Calibration
-from ..errors import InputError, InsufficientDataError, MissingColumnsError
+from ..calibration import Calibration, field_radius
+from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
+from ..errors import InputError, InsufficientDataError
 from ..inputs.track import Track
 from ..model.build import TERMS, build_effects, check_known, check_needs, terms_from_params
 from ..model.registration_params import NAMES
-from ..quaternion import cumulative_rotation
 from .core import fit_core
+from .damped_lm import damped_lm, lag_grid, search_lag, trimmed_cost
+from .gravity import GravityReference, gravity_reference
+from .registration_problem import LAG_STEP, _Problem  # noqa: F401  (LAG_STEP re-exported)
 from .registration_result import RegistrationFit
+from .result import FitResult
 from .gyro_lag import gyro_lag_fit
-from .kernels import HALF_NORMAL_MEDIAN, WIDTH_KERNELS, kernel_weights, make_kernel, width_from_residuals
+from .kernels import WIDTH_KERNELS, kernel_weights, make_kernel, width_from_residuals
 
-#: Low-pass cut-off (Hz) of the gravity estimate: in the gyro-following frame / raw readings.
-CUTOFF_GYRO_HZ = 0.05
-CUTOFF_ACCEL_HZ = 3.0
-#: ‖a‖ deviation from 1 g (in g) at which a sample's trust halves.
-TRUST_G = 0.05
-#: ‖ω‖ (rad/s) below which a sample counts as still for the gyro bias.
-STILL_RATE = 0.05
 #: Grid of τ (s) searched before refining.
-LAG_GRID = np.arange(-0.25, 0.2501, 0.01)
+LAG_GRID = lag_grid(0.25)
 LAG_GRID_SAMPLES = 1500
 #: A fitted |τ| beyond this (s) means the data do not determine the lag (the grid spans ±0.25).
 MAX_LAG = 0.3
-LAG_STEP = 1e-3
 MAX_ROUNDS = 40
 RTOL = 1e-7
 #: LM passes at a fixed kernel width (re-estimated between passes; settled when it moves less
@@ -122,195 +105,9 @@ MAX_WIDTH_ROUNDS = 4
 WIDTH_SETTLED = 0.05
 #: Relative cost decrease that ends an LM pass while the width is still being estimated.
 WIDTH_RTOL = 1e-3
-OUTLIER_WIDTHS = 2.0
-_UPPER = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-
-
-@dataclass(frozen=True)
-class GravityReference:
-    """Unit down direction ĝ (A,3) in the accelerometer frame at the IMU instants ``t`` (A,) s,
-    with per-sample ``trust`` (A,) in (0, 1]; ``method`` says how it was made."""
-
-    t: np.ndarray
-    down: np.ndarray
-    trust: np.ndarray
-    method: str
-
-    def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(ĝ (M,3) unit, trust (M,)) at the instants ``t`` (M,) s, linear interpolation."""
-        g = np.stack([np.interp(t, self.t, self.down[:, i]) for i in range(3)], axis=1)
-        g /= np.linalg.norm(g, axis=1, keepdims=True)
-        return g, np.interp(t, self.t, self.trust)
-
-
-def _lowpass(values: np.ndarray, t: np.ndarray, cutoff_hz: float) -> np.ndarray:
-    fs = 1.0 / float(np.median(np.diff(t)))
-    if len(t) < 30 or cutoff_hz >= 0.45 * fs:
-        return values
-    sos = scipy.signal.butter(2, cutoff_hz, fs=fs, output="sos")
-    return scipy.signal.sosfiltfilt(sos, values, axis=0)
-
-
-def gravity_reference(track) -> GravityReference:
-    """The down direction from ``track``'s accelerometer (and gyro when present)."""
-    if not track.has("accel"):
-        raise MissingColumnsError("the registration effects need accelerometer columns "
-                                  "(ax, ay, az), which the track lacks")
-    rows = track.accel_rows
-    t = np.asarray(track.t[rows], dtype=float)
-    keep = np.r_[True, np.diff(t) > 0]
-    t = t[keep]
-    f = np.asarray(track.accel, dtype=float)[keep]
-    f = f / np.median(np.linalg.norm(f, axis=1))               # in g, whatever the unit
-    norm = np.linalg.norm(f, axis=1)
-    trust = 1.0 / (1.0 + ((norm - 1.0) / TRUST_G) ** 2)
-    if track.has("gyro"):
-
-        gr = track.gyro_rows
-        w = np.stack([np.interp(t, track.t[gr], track.gyro[:, i]) for i in range(3)], axis=1)
-        still = (np.linalg.norm(w, axis=1) < STILL_RATE) & (np.abs(norm - 1) < 0.02)
-        if still.sum() >= 100:
-            w = w - np.median(w[still], axis=0)
-        steps = np.vstack([np.zeros(3), 0.5 * (w[1:] + w[:-1]) * np.diff(t)[:, None]])
-        q = cumulative_rotation(Rotation.from_rotvec(steps))   # body → gyro-following frame
-        up = q.inv().apply(_lowpass(q.apply(f), t, CUTOFF_GYRO_HZ))
-        trust = np.ones_like(trust)  # the filter has removed the linear acceleration
-        method = "gyro-aided zero-phase low-pass"
-    else:
-        up = _lowpass(f, t, CUTOFF_ACCEL_HZ)
-        method = "zero-phase low-pass"
-    down = -up / np.linalg.norm(up, axis=1, keepdims=True)
-    return GravityReference(t, down, trust, method)
 
 
 # ---------------------------------------------------------------------------------- the fit
-
-
-class _Problem:
-    """Residuals and Jacobians of (1) over the samples ``m`` (N,3)."""
-
-    def __init__(self, m, cov, gref, terms, fit_rot, fit_lag):
-        self.m, self.cov, self.gref, self.terms = m, cov, gref, terms
-        self.fit_rot, self.fit_lag = fit_rot, fit_lag
-        self.sizes = [t.n_params() for t in terms]
-        self.t = np.asarray(cov["t"], dtype=float)
-
-    def pack(self, K, b, thetas, dip, lag):
-        p = [K[tuple(zip(*_UPPER))], b, *thetas]
-        if self.fit_rot:
-            p.append(np.zeros(3))
-        p.append([dip])
-        if self.fit_lag:
-            p.append([lag])
-        return np.concatenate([np.ravel(v) for v in p]).astype(float)
-
-    def unpack(self, p, R0, lag0):
-        K = np.zeros((3, 3))
-        K[tuple(zip(*_UPPER))] = p[:6]
-        b, i = p[6:9], 9
-        thetas = []
-        for n in self.sizes:
-            thetas.append(p[i:i + n])
-            i += n
-        R = R0
-        if self.fit_rot:
-            R = R0 @ Rotation.from_rotvec(p[i:i + 3]).as_matrix()
-            i += 3
-        dip = p[i]
-        lag = p[i + 1] if self.fit_lag else lag0
-        return K, b, thetas, R, dip, lag
-
-    def down(self, lag):
-        return self.gref.at(self.t - lag)
-
-    def model(self, K, b, thetas, x):
-        u = x @ K.T
-        g = u + b
-        A = np.broadcast_to(np.eye(3), (len(x), 3, 3)).copy()
-        for term, th in zip(self.terms, thetas):
-            g = g + term.term(th, u, self.cov)
-            ju = term.jac_u(th, u, self.cov)
-            if ju is not None:
-                A += ju
-        return g, A
-
-    @staticmethod
-    def direction(R, dip, g, h):
-        h = h - np.einsum("ni,ni->n", h, g)[:, None] * g
-        h /= np.linalg.norm(h, axis=1, keepdims=True)
-        return (np.cos(dip) * g + np.sin(dip) * h) @ R, h
-
-    def residual(self, K, b, thetas, R, dip, lag, h):
-        g, _ = self.down(lag)
-        x, _ = self.direction(R, dip, g, h)
-        return self.model(K, b, thetas, x)[0] - self.m
-
-    def headings(self, K, b, thetas, R, dip, lag, h=None, gn_steps=2):
-        """Step (a): best heading per sample (N,3) ⟂ ĝ_j."""
-        g, _ = self.down(lag)
-        target = self.m - b
-        u0 = target - sum((t.term(th, target, self.cov) for t, th in zip(self.terms, thetas)),
-                          np.zeros_like(target))
-        y = u0 @ (R @ np.linalg.inv(K)).T                          # R K⁻¹(m − b − Σf)
-        h = y - np.einsum("ni,ni->n", y, g)[:, None] * g
-        small = np.linalg.norm(h, axis=1) < 1e-9
-        if small.any():  # reading along gravity: any heading is as good
-            h[small] = np.cross(g[small], [0.37, 0.48, 0.79])
-        h /= np.linalg.norm(h, axis=1, keepdims=True)
-        for _ in range(gn_steps):
-            x, h = self.direction(R, dip, g, h)
-            r, A = self.model(K, b, thetas, x)
-            r -= self.m
-            side = np.cross(g, h)
-            J = np.einsum("nij,nj->ni", A, (np.sin(dip) * side @ R) @ K.T)
-            step = -np.einsum("ni,ni->n", J, r) / np.maximum(np.einsum("ni,ni->n", J, J), 1e-300)
-            h = np.cos(step)[:, None] * h + np.sin(step)[:, None] * side
-        return h
-
-    def reduced_normal(self, K, b, thetas, R, dip, lag, h, r, w):
-        """Gauss–Newton normal equations (P,P), (P,) of the weighted residual over p with each
-        sample's heading eliminated (Schur complement of the 1×1 heading blocks):
-
-            J̃_j = Π_j J_p,j,   Π_j = I − a_j a_jᵀ / ‖a_j‖²,   a_j = ∂r_j/∂φ_j
-            H = Σ w_j J̃_jᵀ J̃_j,   g = Σ w_j J̃_jᵀ r_j
-        """
-        g, _ = self.down(lag)
-        x, hh = self.direction(R, dip, g, h)
-        _, A = self.model(K, b, thetas, x)
-        a = np.einsum("nij,nj->ni", A @ K, (np.sin(dip) * np.cross(g, hh)) @ R)
-        a /= np.maximum(np.linalg.norm(a, axis=1, keepdims=True), 1e-300)
-        J = self.jacobian(K, b, thetas, R, dip, lag, h)
-        J = J - a[:, :, None] * np.einsum("ni,nip->np", a, J)[:, None, :]
-        Jw = J * w[:, None, None]
-        H = np.einsum("nip,niq->pq", Jw, J)
-        return H, np.einsum("nip,ni->p", Jw, r)
-
-    def jacobian(self, K, b, thetas, R, dip, lag, h):
-        """(N,3,P) derivative of the residual with respect to the packed parameters."""
-        g, _ = self.down(lag)
-        x, hh = self.direction(R, dip, g, h)
-        u = x @ K.T
-        _, A = self.model(K, b, thetas, x)
-        cols = []
-        for a, c in _UPPER:
-            e = np.zeros((len(x), 3))
-            e[:, a] = x[:, c]
-            cols.append(np.einsum("nij,nj->ni", A, e))
-        cols += [np.broadcast_to(np.eye(3)[:, k], (len(x), 3)) for k in range(3)]
-        for term, th in zip(self.terms, thetas):
-            jt = term.jac_theta(th, u, self.cov)
-            cols += [jt[:, :, k] for k in range(jt.shape[2])]
-        AK = A @ K
-        if self.fit_rot:
-            for k in range(3):
-                cols.append(np.einsum("nij,nj->ni", AK, np.cross(x, np.eye(3)[k])))
-        dx = (-np.sin(dip) * g + np.cos(dip) * hh) @ R
-        cols.append(np.einsum("nij,nj->ni", AK, dx))
-        if self.fit_lag:
-            rp = self.residual(K, b, thetas, R, dip, lag + LAG_STEP, h)
-            rm = self.residual(K, b, thetas, R, dip, lag - LAG_STEP, h)
-            cols.append((rp - rm) / (2 * LAG_STEP))
-        return np.stack(cols, axis=2)
 
 
 def _start(track, names, kernel, initial):
@@ -387,21 +184,26 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     state, budget, settled = first, max_rounds, width_given is not None
     for _ in range(MAX_WIDTH_ROUNDS):   # LM passes at a fixed width until the width settles
         # while the width is still moving a loose tolerance suffices (as in autocal)
-        state, rounds, cost, h, r = _refine(prob, state, kernel, width, budget,
-                                            RTOL if settled else WIDTH_RTOL)
-        budget -= rounds
+        lm, cost, h, r = _refine(prob, state, kernel, width, budget,
+                                 RTOL if settled else WIDTH_RTOL)
+        state = lm.x
+        budget -= lm.iterations
         if settled or budget <= 0:
             break
         again = width_from_residuals(kernel, np.linalg.norm(r, axis=1))
         settled = abs(again - width) <= WIDTH_SETTLED * width
         width = again
     else:   # the width kept moving: polish at its last estimate
-        state, _, cost, h, r = _refine(prob, state, kernel, width, budget, RTOL)
+        lm, cost, h, r = _refine(prob, state, kernel, width, budget, RTOL)
+        state = lm.x
+        budget -= lm.iterations
+    status, message = lm.status, lm.message
     # The invariant: never return parameters whose robust cost (at the final width) is worse
     # than the start's (a width pass that moved away from a better start is undone).
     if not cost <= float(np.sum(trust * _loss(kernel, width).evaluate(rn_first ** 2)[0])):
         state = first
         h, r, _ = _evaluate(prob, first)
+        message += "; the start was kept (the passes ended costlier at the final width)"
     K, b, thetas, R, dip, lag = state
     if fit_lag and abs(lag) > MAX_LAG:
         raise InsufficientDataError(f"the time lag is not determined by the data: the fit "
@@ -430,12 +232,13 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     weights = kernel_weights(kernel, rn, width) * inliers   # the capped cost: no pull beyond
     cal = Calibration(K=K, b=b, sensor="mag", model=names, effects=effects, rms=rms, n=len(m),
                       n_outliers=int((~inliers).sum()), coverage=start.coverage,
-                      unit=track.mag_unit, field=float(np.cbrt(np.linalg.det(K)))
+                      unit=track.mag_unit, field=field_radius(K)
                       if track.mag_unit == "uT" else None, method="autocal", kernel=kernel,
                       inliers=inliers, weights=weights, directions=x,
                       extra={"noise_sigma": float(np.median(rn) / HALF_NORMAL_MEDIAN / np.sqrt(2)),
                              "tau": width, "dip": float(dip), "gravity": gref.method})
-    return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms)
+    return RegistrationFit(cal, r, x, inliers, R, float(dip), float(lag), n_params, rms,
+                           status=status, iterations=max_rounds - budget, message=message)
 
 
 @dataclass(frozen=True)
@@ -469,8 +272,8 @@ def _evaluate(prob: "_Problem", state: tuple):
 
 def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_rounds: int,
             rtol: float = RTOL) -> tuple:
-    """One LM pass at a fixed ``width`` → (state never costlier than ``state``, rounds used,
-    its cost Σ trust ρ̃, headings (N,3), residuals (N,3))."""
+    """One LM pass at a fixed ``width`` → (:class:`~.damped_lm.LMStatus` whose ``x`` is never
+    costlier than ``state``, its cost Σ trust ρ̃, headings (N,3), residuals (N,3))."""
     loss = _loss(kernel, width)
 
     def cost_at(st):
@@ -479,31 +282,24 @@ def _refine(prob: "_Problem", state: tuple, kernel: str, width: float, max_round
         cost = float(np.sum(trust * rho))
         return (cost if np.isfinite(cost) else np.inf), trust * d1, h, r
 
-    cost, w, h, r = cost_at(state)
-    lam, rounds = 1e-3, 0
-    for rounds in range(1, max_rounds + 1):
-        if not np.isfinite(cost):
-            break
-        K, b, thetas, R, dip, lag = state
-        H, grad = prob.reduced_normal(K, b, thetas, R, dip, lag, h, r, w)
-        p0 = prob.pack(K, b, thetas, dip, lag)
-        trial = None
-        for _ in range(10):   # Levenberg–Marquardt damping
-            step = -np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), grad)
-            cand = prob.unpack(p0 + step, R, lag)
-            cost1, w1, h1, r1 = cost_at(cand)
-            if cost1 <= cost:
-                trial = cand
-                lam = max(lam / 3, 1e-9)
-                break
-            lam *= 4
-        if trial is None:
-            break
-        drop = cost - cost1
-        state, cost, w, h, r = trial, cost1, w1, h1, r1
-        if drop <= rtol * cost:
-            break
-    return state, rounds, cost, h, r
+    def linearize(st, aux):
+        cost, w, h, r = aux
+        H, grad = prob.reduced_normal(*st, h, r, w)
+        return cost, H, grad, None
+
+    def propose(st, d):
+        K, b, thetas, R, dip, lag = st
+        return prob.unpack(prob.pack(K, b, thetas, dip, lag) + d, R, lag)
+
+    def evaluate(st, _ctx):
+        aux = cost_at(st)
+        return aux[0], aux
+
+    aux = cost_at(state)
+    res = damped_lm(state, aux, aux[0], linearize=linearize, propose=propose,
+                    evaluate=evaluate, max_iter=max_rounds, rtol=rtol)
+    cost, _, h, r = res.aux
+    return res, cost, h, r
 
 
 def _lag_grid(prob, K, b, thetas, R, dip) -> float:
@@ -513,29 +309,32 @@ def _lag_grid(prob, K, b, thetas, R, dip) -> float:
     idx = np.arange(0, len(prob.m), step)
     prob = _Problem(prob.m[idx], {k: v[idx] for k, v in prob.cov.items()}, prob.gref,
                     prob.terms, prob.fit_rot, prob.fit_lag)
-    costs = []
-    for lag in LAG_GRID:
+
+    def cost_at(lag):
         h = prob.headings(K, b, thetas, R, dip, lag, gn_steps=1)
         rn = np.linalg.norm(prob.residual(K, b, thetas, R, dip, lag, h), axis=1)
-        _, trust = prob.down(lag)
-        c = np.median(rn) * 3.0
-        costs.append(np.sum(trust * np.minimum(rn, c) ** 2))
-    return float(LAG_GRID[int(np.argmin(costs))])
+        return trimmed_cost(rn, prob.down(lag)[1])
+
+    return search_lag(LAG_GRID, cost_at)[0]
 
 
 def fit_with_registration(track, model: Sequence[str] = ("hard_iron", "soft_iron",
                                                           "mag_accel_misalignment"), *,
                           kernel: str = "cauchy", tau: float | None = None, sensor: str = "mag",
-                          initial=None):
+                          initial=None, full_output: bool = False):
     """Calibrate ``track``'s magnetometer with the registration effects in ``model`` (and any
     other catalog effects) by the gravity-tied fit of the module docstring → :class:`Calibration`
     whose ``effects`` hold ``{"mag_accel_misalignment": {"rotation": [rx, ry, rz] rad, "dip":
     rad}}`` and/or ``{"time_lag": {"tau": s}}``; ``rms`` is the gravity-tied residual (µT).
     Without accelerometer columns, ``time_lag`` comes from the gyro and ``rms`` is the gyro-tied
-    residual (:mod:`streamcal.fitting.gyro_lag`)."""
+    residual (:mod:`streamcal.fitting.gyro_lag`). ``full_output``: a
+    :class:`~streamcal.fitting.result.FitResult` instead (the calibration and the solver status)."""
     if sensor != "mag":
         raise InputError(f"registration effects apply to the magnetometer, not --sensor {sensor}")
     if not isinstance(track, Track):
         raise InputError("registration effects need a track with accelerometer (or, for "
                          "time_lag, gyroscope) columns, not an array of readings")
-    return registration_fit(track, model, kernel=kernel, tau=tau, initial=initial).calibration
+    res = registration_fit(track, model, kernel=kernel, tau=tau, initial=initial)
+    if full_output:
+        return FitResult(res.calibration, res.status, res.iterations, res.message)
+    return res.calibration

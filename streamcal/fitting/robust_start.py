@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..constants import HALF_NORMAL_MEDIAN
 from ..errors import InsufficientDataError
 from .ellipsoid import ellipsoid_to_model, fit_l2_ellipsoid, spread_subset
 
@@ -111,8 +112,6 @@ MAX_ANISOTROPY = 3.0
 MIN_SPREAD, MIN_DEPTH = 0.15, 0.02
 #: Band half-width in units of the noise σ̂, and the GM width (95 % efficiency) of the short LM.
 BAND, GM_TAU = 3.0, 3.787
-#: Median of |N(0,1)|.
-HALF_NORMAL_MEDIAN = 0.6744897501960817
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,7 @@ from typing import Mapping
 
 import numpy as np
 
+from ..constants import MAD_TO_SIGMA
 from .kernels import EFFICIENCY_TAU
 
 #: Covariate name of the disturbed-span indicator (N,) of 0/1.
@@ -74,7 +75,7 @@ def shift_start(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int = 30) ->
         d = y - c
         rad = np.maximum(np.linalg.norm(d, axis=1), 1e-12)
         r = rad - 1.0
-        sigma = max(1.4826 * float(np.median(np.abs(r))), 1e-9)
+        sigma = max(MAD_TO_SIGMA * float(np.median(np.abs(r))), 1e-9)
         tau = EFFICIENCY_TAU["cauchy"] * sigma
         w = 1.0 / (1.0 + (r / tau) ** 2)
         J = -d / rad[:, None]                               # ∂r/∂c, (M,3)

@@ -39,7 +39,9 @@ from __future__ import annotations
 
 import numpy as np
 
-G = 9.80665  # standard gravity, m/s²
+from ..constants import GRAVITY
+
+G = GRAVITY  # standard gravity, m/s²
 MAG_RANGE_UT = 4912.0
 MAG_LSB_UT = {16: 4912.0 / 32760.0, 14: 4912.0 / 8190.0}
 ACCEL_LSB = G / 16384.0           # m/s² per LSB at ±2 g

@@ -1,0 +1,11 @@
+"""Numbers used across layers (bottom layer: imports nothing from the package)."""
+from __future__ import annotations
+
+#: Standard gravity (m/s², CGPM 1901): the accelerometer's known field, m/s² per g.
+GRAVITY = 9.80665
+#: Median of |N(0,1)|: a median residual norm over this is σ (half-normal).
+HALF_NORMAL_MEDIAN = 0.6744897501960817
+#: σ = MAD_TO_SIGMA × median |r| for Gaussian r (1 / HALF_NORMAL_MEDIAN ≈ 1.4826).
+MAD_TO_SIGMA = 1.0 / HALF_NORMAL_MEDIAN
+#: A residual farther than this many kernel widths is reported an outlier.
+OUTLIER_WIDTHS = 2.0
