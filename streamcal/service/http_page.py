@@ -246,9 +246,15 @@ class _Handler(BaseHTTPRequestHandler):
     def log_message(self, format, *args):      # noqa: A002 — no access log on the journal
         pass
 
+    error_message_format = "streamcal live page: %(code)d %(message)s\n"
+    error_content_type = "text/plain; charset=utf-8"
+
     def send_error(self, code, message=None, explain=None):
         if code == 400:
             self.server.page.stats["bad_requests"] += 1
+        # A one-word request line parses as HTTP/0.9, which would get a bare body: answer with
+        # a status line and headers whatever came in.
+        self.request_version = "HTTP/1.0"
         super().send_error(code, message, explain)
 
     def _plain(self, status: HTTPStatus, text: str) -> None:
