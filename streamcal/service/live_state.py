@@ -68,7 +68,7 @@ class LiveState:
         self._seq = 0
         self._next = -math.inf
         self._start = clock()
-        n = int(window_s / period_s) + 4
+        n = int(window_s / max(period_s, 0.05)) + 4
         self._mag = deque(maxlen=n)                       # (wall s, raw, calibrated)
         self._rate = deque(maxlen=16)                     # (wall s, samples ingested)
         self._held = deque(maxlen=9)                      # (wall s, n_held)
@@ -76,6 +76,8 @@ class LiveState:
         self._disturb_events = deque(maxlen=8)
         self.closed = False
         self.capture_errors = 0
+        self.gap_every_s = 2.0
+        self._gap = None                                  # (occupied bytes, wall s, center, deg)
 
     # -- observer side (the loop's thread) -----------------------------------------------------
     def on_events(self, events) -> None:
@@ -153,18 +155,31 @@ class LiveState:
             cap, seq = self._captured, self._seq
         if cap is None:
             return None
-        return _snapshot(cap, seq, self._start)
+        return _snapshot(cap, seq, self._start, self._largest_gap(cap))
+
+    def _largest_gap(self, cap: dict) -> tuple[np.ndarray, float]:
+        """The largest empty cap of the captured directions, recomputed only when the occupied
+        cells changed and at most every ``gap_every_s`` (it costs O(probes × stored samples),
+        tens of ms on a busy Pi; the terminal report computes the same figure)."""
+        key = np.packbits(np.asarray(cap["occupied"], bool)).tobytes()
+        if self._gap is not None and (self._gap[0] == key
+                                      or cap["now"] - self._gap[1] < self.gap_every_s):
+            return self._gap[2], self._gap[3]
+        m = cap["stored"]
+        d = np.empty((0, 3))
+        if len(m):
+            x = (m - cap["center"]) @ cap["A"].T
+            norm = np.linalg.norm(x, axis=1)
+            d = x[norm > 0] / norm[norm > 0, None]
+        center, radius = largest_empty_cap(d)
+        self._gap = (key, cap["now"], center, radius)
+        return center, radius
 
 
-def _snapshot(cap: dict, seq: int, start: float) -> dict:
+def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
     now = cap["now"]
     m = cap["stored"]
-    d = np.empty((0, 3))
-    if len(m):
-        x = (m - cap["center"]) @ cap["A"].T
-        norm = np.linalg.norm(x, axis=1, keepdims=True)
-        d = x[norm[:, 0] > 0] / norm[norm[:, 0] > 0]
-    center, radius = largest_empty_cap(d)
+    center, radius = gap
     cells = cap["cells"]
     occupied = np.asarray(cap["occupied"], bool)
     mag = cap["mag"]
