@@ -19,12 +19,13 @@ REPO = Path(__file__).resolve().parent.parent
 TRACK = REPO / "streamcal" / "data" / "demo_track.csv.gz"
 
 
-def start_daemon(tmp_path, *extra, speed="3", seconds="60"):
-    """``streamcal daemon --bus fake:TRACK --http 127.0.0.1:0``; returns (process, base URL)."""
+def start_daemon(tmp_path, *extra, speed="3", seconds="60", device=None):
+    """``streamcal daemon --bus fake:TRACK --speed SPEED --http 127.0.0.1:0`` (``device``: other
+    leading arguments, e.g. ``serial --port fake:TRACK``); returns (process, base URL)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     err = open(tmp_path / "stderr.txt", "w+")
-    proc = subprocess.Popen([sys.executable, "-m", "streamcal", "daemon", "--bus", f"fake:{TRACK}",
-                             "--speed", speed, "--no-socket", "--state-dir", str(tmp_path / "s"),
+    device = device or ["daemon", "--bus", f"fake:{TRACK}", "--speed", speed]
+    proc = subprocess.Popen([sys.executable, "-m", "streamcal", *device, "--no-socket", "--state-dir", str(tmp_path / "s"),
                              "--max-seconds", seconds, "--http", "127.0.0.1:0", *extra],
                             stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=REPO)
     deadline = time.monotonic() + 60
@@ -249,3 +250,16 @@ def test_non_loopback_warns_on_stderr(tmp_path):
                           cwd=REPO, timeout=60)
     assert "warning: --http 0.0.0.0:0 listens beyond this machine" in done.stderr
     assert "--http-token" in done.stderr
+
+
+def test_serial_host_serves_the_page(tmp_path):
+    proc, url = start_daemon(tmp_path, device=["serial", "--port", f"fake:{TRACK}"], seconds="30")
+    try:
+        events = sse_events(url, seconds=3.0)
+        assert proc.poll() is None
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    assert events and events[-1]["device"]["bus_errors_name"] == "frames lost"
+    assert "restarts" in events[-1]["device"]["counters"]
+    assert events[-1]["coverage"] > 0

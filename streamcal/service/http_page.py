@@ -100,7 +100,7 @@ class LivePage:
         self._connections = 0
         self.latest = b""                # the last event's JSON, UTF-8
         self.stats = {"streams": 0, "refused_busy": 0, "dropped_slow": 0, "events": 0,
-                      "bad_requests": 0, "forbidden": 0, "not_found": 0}
+                      "bad_requests": 0, "forbidden": 0, "not_found": 0, "build_errors": 0}
         self._stop = threading.Event()
         server_cls = _Server6 if ":" in host else _Server
         try:
@@ -152,11 +152,12 @@ class LivePage:
             seq = new
             try:
                 snap = self.state.build()
+                if snap is None:
+                    continue
+                data = json.dumps(snap, separators=(",", ":"), allow_nan=False).encode()
             except Exception:          # a bad capture must not stop the page
+                self.stats["build_errors"] += 1
                 continue
-            if snap is None:
-                continue
-            data = json.dumps(snap, separators=(",", ":"), allow_nan=False).encode()
             self.latest = data
             self.stats["events"] += 1
             with self._lock:
