@@ -256,6 +256,13 @@ def test_serial_host_serves_the_page(tmp_path):
     proc, url = start_daemon(tmp_path, device=["serial", "--port", f"fake:{TRACK}"], seconds="30")
     try:
         events = sse_events(url, seconds=3.0)
+        deadline = time.monotonic() + 25
+        while time.monotonic() < deadline:
+            body = request(url, b"GET /state.json HTTP/1.0\r\n\r\n").partition(b"\r\n\r\n")[2]
+            state = json.loads(body)
+            if state and state["calibration"] is not None:
+                break
+            time.sleep(0.5)
         assert proc.poll() is None
     finally:
         proc.terminate()
@@ -263,3 +270,11 @@ def test_serial_host_serves_the_page(tmp_path):
     assert events and events[-1]["device"]["bus_errors_name"] == "frames lost"
     assert "restarts" in events[-1]["device"]["counters"]
     assert events[-1]["coverage"] > 0
+    cal = state["calibration"]
+    assert cal is not None, state["fits"]
+    assert cal["version"] >= 1 and cal["rms"] > 0 and "inliers" in cal["residual"]
+    assert state["fits"]["accepted"] >= 1
+    accepted = [e for e in state["fits"]["recent"] if e["kind"] == "accepted"]
+    assert accepted and accepted[-1]["reason"]            # the guard's named rule
+    cal_mag = [v for v in state["magnitude"]["calibrated"] if v is not None]
+    assert cal_mag and abs(cal_mag[-1] / cal["field"] - 1) < 0.5
