@@ -76,7 +76,7 @@ class LiveState:
         self._disturb_events = deque(maxlen=8)
         self.closed = False
         self.capture_errors = 0
-        self.gap_every_s = 2.0
+        self.gap_every_s = 0.5
         self._gap = None                                  # (occupied bytes, wall s, center, deg)
 
     # -- observer side (the loop's thread) -----------------------------------------------------
