@@ -5,10 +5,12 @@ fits on the worker thread → store; no sample outputs, so the page's share is a
 be) runs over the demo track as fast as it can be read (``--bus fake:TRACK``, time continued over
 ``--laps`` laps, as ``tools/bench_daemon.py`` measures it), alternately without the page
 (baseline) and with the page and one SSE client reading every event, ``--repeats`` times each
-in the same run. Reported: the median samples/s of each, their ratio (target ≥ 0.95) and the
+in the same run. Reported: the median samples/s of each, their ratio and the median ratio of
+the paired runs (target ≥ 0.95), the process CPU time per sample with and without (the cost the
+page adds, all its threads included, which other load on the machine does not blur) and the
 events the client received per wall second (the page must still update ≥ 2 per second).
 
-    python tools/bench_live_page.py [--track T.csv.gz] [--laps 2] [--repeats 3] [--json]
+    python tools/bench_live_page.py [--track T.csv.gz] [--laps 1] [--repeats 5] [--json]
 """
 from __future__ import annotations
 
@@ -73,13 +75,13 @@ def one_run(track: str, laps: int, page: bool) -> dict:
     service = Service(lambda buffer=None: StreamingCalibrator(store=store), Laps(track, laps, []),
                       outputs=Outputs([]), notifier=Notifier(environ={}), log=lambda line: None,
                       observers=observers)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     service.run()
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     stop.set()
     if reader is not None:
         reader.join(timeout=2)
-    return {"samples": service.stats.samples, "seconds": wall,
+    return {"samples": service.stats.samples, "seconds": wall, "cpu_s": cpu,
             "rate": service.stats.samples / wall, "events": counts["events"],
             "events_per_s": counts["events"] / wall, "bytes": counts["bytes"]}
 
@@ -87,8 +89,8 @@ def one_run(track: str, laps: int, page: bool) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--track", default=str(REPO / "streamcal" / "data" / "demo_track.csv.gz"))
-    p.add_argument("--laps", type=int, default=2)
-    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--laps", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--json", action="store_true")
     a = p.parse_args()
     runs = {False: [], True: []}
@@ -97,10 +99,16 @@ def main() -> int:
             runs[page].append(one_run(a.track, a.laps, page))
     base = statistics.median(r["rate"] for r in runs[False])
     live = statistics.median(r["rate"] for r in runs[True])
+    paired = statistics.median(b["rate"] / a["rate"] for a, b in zip(runs[False], runs[True]))
+    cpu = {k: statistics.median(1e6 * r["cpu_s"] / r["samples"] for r in v) for k, v in runs.items()}
     eps = statistics.median(r["events_per_s"] for r in runs[True])
     out = {"track": a.track, "laps": a.laps, "repeats": a.repeats,
            "baseline_samples_per_s": round(base), "with_page_samples_per_s": round(live),
            "ratio_with_to_without": round(live / base, 3),
+           "median_paired_ratio": round(paired, 3),
+           "cpu_us_per_sample_without": round(cpu[False], 1),
+           "cpu_us_per_sample_with": round(cpu[True], 1),
+           "cpu_ratio_with_to_without": round(cpu[True] / cpu[False], 3),
            "client_events_per_s": round(eps, 2),
            "baseline_rates": [round(r["rate"]) for r in runs[False]],
            "with_page_rates": [round(r["rate"]) for r in runs[True]],
@@ -112,8 +120,11 @@ def main() -> int:
           f"({a.laps} laps), {a.repeats} runs each, interleaved")
     print(f"daemon loop without page (baseline) {base:10.0f} samples/s  runs {out['baseline_rates']}")
     print(f"daemon loop with page + SSE client  {live:10.0f} samples/s  runs {out['with_page_rates']}")
-    print(f"ratio with/without {live / base:.3f} (target >= 0.95); the client received "
-          f"{eps:.2f} events/s")
+    print(f"ratio with/without {live / base:.3f}, median of the paired runs' ratios {paired:.3f} "
+          f"(target >= 0.95); the client received {eps:.2f} events/s")
+    print(f"process CPU per sample (all threads: loop, fits, page) without {cpu[False]:.1f} µs, "
+          f"with {cpu[True]:.1f} µs: ratio {cpu[True] / cpu[False]:.3f} (wall rates on a shared "
+          "machine vary run to run; the CPU the page adds does not depend on the neighbours)")
     return 0
 
 
