@@ -58,6 +58,11 @@ def add_service_options(p) -> None:
                    help="fit inline instead of on a worker thread (reproducible replays)")
     p.add_argument("--grace", type=float, default=10.0, metavar="S",
                    help="on stop, wait this long for the fit in flight (default: %(default)s)")
+    p.add_argument("--http", metavar="[HOST:]PORT",
+                   help="serve a read-only live page of the calibration (127.0.0.1 unless HOST "
+                        "is given; see docs/live_page.md)")
+    p.add_argument("--http-token", metavar="TOKEN",
+                   help="with --http: require ?token=TOKEN (or an X-Streamcal-Token header)")
 
 
 def _address(text: str) -> int:
@@ -126,9 +131,41 @@ def build(args, source, name: str, on_calibration=None):
     if not args.no_socket:
         sinks.append(SocketOutput(args.socket or os.path.join(store.dir, SOCKET_NAME),
                                   mode=args.socket_mode))
+    observers = [live_page(args, name)] if getattr(args, "http", None) else []
     return Service(make_calibrator, source, outputs=Outputs(sinks), on_calibration=on_calibration,
                    on_coverage=None if args.json_lines else show_coverage,
-                   max_seconds=args.max_seconds, grace_s=args.grace, name=name)
+                   max_seconds=args.max_seconds, grace_s=args.grace, name=name,
+                   observers=observers)
+
+
+def live_page(args, name: str):
+    """Start the ``--http`` page; returns the service observer feeding it (closing it stops
+    the server)."""
+    from ..service.http_page import LivePage, is_loopback, parse_http
+    from ..service.live_state import LiveState
+
+    host, port = parse_http(args.http)
+    if not is_loopback(host):
+        print(f"streamcal {name}: warning: --http {args.http} listens beyond this machine; "
+              + ("requests must carry the --http-token" if args.http_token else
+                 "anyone who can reach it sees the calibration (add --http-token, or use an "
+                 "SSH tunnel: docs/live_page.md)"), file=sys.stderr, flush=True)
+    state = LiveState()
+    page = LivePage(state, host, port, token=args.http_token).start()
+    print(f"streamcal {name}: live page at {page.url}", file=sys.stderr, flush=True)
+    return _PageObserver(state, page)
+
+
+class _PageObserver:
+    """The :class:`~streamcal.service.live_state.LiveState` observer that also stops the page."""
+
+    def __init__(self, state, page):
+        self.state, self.page = state, page
+        self.on_block, self.on_events = state.on_block, state.on_events
+
+    def close(self) -> None:
+        self.state.close()
+        self.page.close()
 
 
 def show_coverage(calibrator) -> None:

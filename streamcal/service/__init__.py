@@ -5,6 +5,7 @@
 - :mod:`.sources` — I²C and serial device adapters with bring-up and reconnection.
 - :mod:`.output` — calibrated samples as JSON lines on stdout and/or a local UNIX socket.
 - :mod:`.notify` — the ``sd_notify`` protocol (READY, STATUS, WATCHDOG…).
+- :mod:`.live_state`, :mod:`.http_page` — the ``--http`` live page (docs/live_page.md).
 
     from streamcal.service import Service, I2CBlocks, Outputs
 """

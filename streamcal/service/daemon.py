@@ -70,18 +70,24 @@ class Service:
             draw :func:`streamcal.report.terminal.coverage_view` here).
         grace_s: how long a stop waits for the fit in flight.
         name: command name in log lines.
+        observers: objects told what the loop does, on the loop's thread: ``on_block(service,
+            block)`` after each block (None when idle or the device is absent),
+            ``on_events(events)`` with the calibrator's events, ``close()`` at the end (the live
+            page, :mod:`streamcal.service.live_state`). They must return quickly.
     """
 
     def __init__(self, make_calibrator: Callable, source, *, outputs: Outputs | None = None,
                  notifier: Notifier | None = None, max_seconds: float | None = None,
                  on_calibration: Callable | None = None, log: Callable[[str], None] | None = None,
-                 on_coverage: Callable | None = None, grace_s: float = 10.0, name: str = "daemon"):
+                 on_coverage: Callable | None = None, grace_s: float = 10.0, name: str = "daemon",
+                 observers=()):
         self.make_calibrator, self.source = make_calibrator, source
         self.outputs = outputs if outputs is not None else Outputs()
         self.notifier = notifier if notifier is not None else Notifier()
         self.max_seconds, self.grace_s, self.name = max_seconds, grace_s, name
         self.on_calibration = on_calibration
         self.on_coverage = on_coverage
+        self.observers = list(observers)
         self.log = log or (lambda line: print(line, file=sys.stderr, flush=True))
         self.stats = RunStats()
         self.cal_version = 0
@@ -129,6 +135,7 @@ class Service:
                         self.log(f"streamcal {self.name}: device not answering: {exc}")
                     self.device_state = "absent"
                     self._status(force=True, extra=f"retrying in {backoff:g} s")
+                    self._observe(None)
                     self._pause(backoff)
                     backoff = min(2 * backoff, BACKOFF_S[1])
                     continue
@@ -144,11 +151,14 @@ class Service:
                     self.outputs.publish((), (), self.cal_version)
                 else:
                     self._ingest(block)
+                self._observe(block)
                 self.notifier.tick()
                 self._status()
             self._finish()
         finally:
             self.outputs.close()
+            for observer in self.observers:
+                observer.close()
             self.source.close()
             self.notifier.close()
         if self._stop == "end of replay" and self.calibrator.calibration is None:
@@ -169,6 +179,10 @@ class Service:
             if self.stats.ingest_errors <= 10 or self.stats.ingest_errors % 1000 == 0:
                 self.log(f"streamcal {self.name}: block dropped ({type(exc).__name__}: {exc}); "
                          f"{self.stats.ingest_errors} so far")
+
+    def _observe(self, block) -> None:
+        for observer in self.observers:
+            observer.on_block(self, block)
 
     def _finish(self) -> None:
         reason = self._stop or "stopped"
@@ -217,6 +231,9 @@ class Service:
 
     # -- events and status ----------------------------------------------------------------------
     def _handle(self, events) -> None:
+        if events:
+            for observer in self.observers:
+                observer.on_events(events)
         for event in events:
             kind = event.kind
             self.stats.events[kind] = self.stats.events.get(kind, 0) + 1
