@@ -76,13 +76,15 @@ class Event:
     ``drift`` (an environment change), ``forgot``, ``recalled``, ``clock_reset`` (sample times
     went back; later ones are shifted by ``shift`` s), ``stored``, ``store_error``. ``t`` is
     the sample time (s) at which it happened, ``data`` its figures
-    (JSON-ready).
+    (JSON-ready); ``detail`` an object behind them, not serialized (a ``coverage`` event's
+    :class:`~.coverage.CoverageReport`, with the occupied cells, for a map that agrees with it).
     """
 
     kind: str
     message: str
     data: dict = field(default_factory=dict)
     t: float | None = None
+    detail: object = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {"event": self.kind, "t": self.t, "message": self.message, **self.data}
@@ -779,7 +781,7 @@ class StreamingCalibrator:
             report = self.buffer.report()
             events.append(Event("coverage", f"coverage {100 * frac:.0f}% of the sphere; "
                                 f"largest gap {report.empty_cap_deg:.0f}°: {report.hint}",
-                                report.to_dict(), self._t_last))
+                                report.to_dict(), self._t_last, report))
 
     # -- fitting ------------------------------------------------------------------------------
     def _submit(self, request, t_now) -> list:
