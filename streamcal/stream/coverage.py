@@ -184,6 +184,15 @@ class CoverageBuffer:
 
     # -- contents -------------------------------------------------------------------------------
     @property
+    def nbytes(self) -> int:
+        """Bytes held by the preallocated arrays (fixed whatever the samples inserted)."""
+        return sum(a.nbytes for a in (self._m, self._d, self._t, self._cov, self._used))
+
+    def stored_directions(self) -> np.ndarray:
+        """(n,3) unit directions of the stored samples in the current frame."""
+        return self._d[self._used]
+
+    @property
     def capacity(self) -> int:
         return self._used.size
 
