@@ -69,3 +69,23 @@ def test_recaller_needs_consecutive_checks_and_restarts():
     rec.restart()
     assert all(rec.observe(*on(np.array([40.0, 0, 0]), t0=k)) is None for k in range(12))
     assert len(rec.remembered) == 1 and rec.capacity == 2
+
+
+def test_reference_holds_back_beyond_its_limit_on_its_support_and_gross_anywhere():
+    from streamcal.stream.coverage import CoverageBuffer
+    from streamcal.stream.disturbance import GROSS
+    from streamcal.stream.reference import Reference, beyond
+
+    cells = CoverageBuffer().cells
+    d = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
+    support = np.zeros(cells.n_cells, dtype=bool)
+    support[cells.cell_of(d[:1])] = True                  # fitted on the +x direction only
+    for hold in (True, False):
+        ref = Reference(np.zeros(3), np.eye(3) / 50.0, 50.0, 0.5, 0.1, support, None, hold)
+        scale = np.array([1.2, 1.2, 1.0 + GROSS + 0.1])   # +x, +y beyond the limit; z gross
+        y = ref.project(50.0 * d * scale[:, None], None, None, ())
+        held, err, inside, dirs, cell = beyond(y, ref, cells)
+        np.testing.assert_allclose(err, scale - 1.0)
+        np.testing.assert_array_equal(inside, [True, False, False])
+        np.testing.assert_array_equal(held, [True, False, hold])
+        np.testing.assert_allclose(dirs, d)

@@ -15,7 +15,11 @@ Per stage of samples (DESIGN §1)::
                   ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
 
 Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at most one at a
-time, and its result is picked up by a later ``ingest`` or ``poll``. Rows are staged ``stage`` at
+time, and its result is picked up by a later ``ingest`` or ``poll`` (``synchronous=True``, for
+reproducible replays: the fit runs when it is due and is picked up at once). The parts live in
+their own modules: the monotone clock (:mod:`.clock`), the fit worker (:mod:`.fitworker`), the
+hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.disturbance`) and the
+recall of remembered calibrations (:mod:`.recall`). Rows are staged ``stage`` at
 a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
 up and drift is judged at most one stage late; a block larger than the free room is processed
 at once, with what was staged. ``poll()`` processes what is staged (call it when the source is
@@ -48,12 +52,13 @@ from ..calibration import DEFAULT_MODEL, Calibration
 from ..fitting.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
 from .clock import MonotoneClock
-from .disturbance import GROSS, Disturbance, DisturbanceRule, Quarantine
+from .disturbance import Disturbance, DisturbanceRule, Quarantine
 from .events import Event
 from .fitworker import FitJob, FitWorker
-from .guard import AcceptanceGuard, Decision, apply_finite, radius_of
+from .guard import AcceptanceGuard, Decision, radius_of
 from .policy import RecalPolicy
 from .recall import Recaller
+from .reference import Reference, beyond, held_mask
 from .staging import Stage, block_covariates
 
 #: Coverage milestones reported as events (fractions of the sphere).
@@ -154,8 +159,8 @@ class StreamingCalibrator:
         self._pending: list[Event] = []
         self.disturbance_rule = disturbance if disturbance is not None else DisturbanceRule()
         self.coarse_judge_coverage = float(coarse_judge_coverage)
-        self._cal_ref: _Reference | None = None
-        self._coarse_ref: _Reference | None = None
+        self._cal_ref: Reference | None = None
+        self._coarse_ref: Reference | None = None
         #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
         self._environments: deque = deque(maxlen=16)
         self._env_start = float("nan")
@@ -298,7 +303,7 @@ class StreamingCalibrator:
         if inside.any() and ref.support is not None:
             k = np.flatnonzero(inside)
             inside[k] = ref.support[self.buffer.cells.cell_of(y[k] / np.maximum(r[k], 1e-300)[:, None])]
-        out[ok] = _held(ref, err, fin, inside)
+        out[ok] = held_mask(ref, err, fin, inside)
         return out
 
     def close(self, timeout: float | None = None) -> list:
@@ -410,7 +415,7 @@ class StreamingCalibrator:
         if from_cal:
             cal = self._cal
             R = radius_of(cal)
-            self._cal_ref = _Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
+            self._cal_ref = Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
                                        self.policy.drift_limit(cal.rms, R), self._support,
                                        cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
@@ -429,7 +434,7 @@ class StreamingCalibrator:
             return None                 # a sphere fitted to a cluster of noise, or to a mixture
         if renew or self._coarse_ref is None:
             self.policy.reset_window()
-        return _Reference(c, np.eye(3) / R, R, spread * R,
+        return Reference(c, np.eye(3) / R, R, spread * R,
                           self.policy.drift_limit(spread * R, R), self.buffer.occupied.copy(),
                           None, False)
 
@@ -464,24 +469,8 @@ class StreamingCalibrator:
         return held, d, cell
 
     def _beyond(self, y, ref):
-        """The hold-back criterion, pure: projections ``y`` (n,3) of samples under ``ref``.
-        Returns ``held`` (n,) (relative error ``|‖y‖ − 1|`` beyond ``ref.limit`` on a direction
-        ``ref`` was fitted on, or beyond :data:`GROSS` anywhere when ``ref.hold``), the errors
-        (n,), ``inside`` (n,) (judged by the limit), unit directions (n,3) and cells (n,)."""
-        r = np.sqrt(np.einsum("nk,nk->n", y, y))
-        # Rows the reference cannot project (NaN: a covariate its effect terms need is missing)
-        # are neither judged nor held; they go to the buffer, which projects them itself.
-        fin = np.isfinite(r)
-        if not fin.all():
-            y = np.where(fin[:, None], y, [0.0, 0.0, 1.0])
-            r = np.where(fin, r, 1.0)
-        d = y / np.maximum(r, 1e-300)[:, None]
-        cell = self.buffer.cells.cell_of(d)
-        err = np.abs(r - 1.0)
-        # Only directions the reference was fitted on: elsewhere it extrapolates, and a large
-        # error there asks for a refit on more coverage (new cells), not for holding back.
-        inside = (ref.support[cell] if ref.support is not None else True) & fin
-        return _held(ref, err, fin, inside), err, inside, d, cell
+        """:func:`.reference.beyond` on the buffer's cells."""
+        return beyond(y, ref, self.buffer.cells)
 
     def _observe_y(self, y) -> None:
         """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
@@ -794,40 +783,6 @@ class StreamingCalibrator:
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []
         return out
-
-
-@dataclass(frozen=True)
-class _Reference:
-    """What new samples are judged against: ``y = AT``-projection of ``m − center`` (or the
-    calibration ``cal`` when it has effect terms), its radius and rms (sensor unit), the drift
-    ``limit`` (relative), the cells it was fitted on (``support``, None: all) and whether
-    disagreeing samples are held back from the buffer (``hold``: a calibration; the running
-    sphere estimate only watches, since a sphere misfits an anisotropic sensor's extremes,
-    which are the samples the first fit needs most)."""
-
-    center: np.ndarray
-    AT: np.ndarray
-    radius: float
-    rms: float
-    limit: float
-    support: np.ndarray | None
-    cal: Calibration | None
-    hold: bool
-
-    def project(self, m, t, cov, names) -> np.ndarray:
-        if self.cal is None:
-            return (m - self.center) @ self.AT
-        return apply_finite(self.cal, m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
-
-
-def _held(ref: _Reference, err, fin, inside) -> np.ndarray:
-    """The hold-back criterion (n,) bool from relative errors ``err`` (n,), finite rows ``fin``
-    and ``inside`` (rows on directions ``ref`` was fitted on): beyond the drift limit there,
-    beyond :data:`GROSS` anywhere when ``ref`` holds samples back."""
-    held = (err > ref.limit) & inside
-    if ref.hold:
-        held |= (err > GROSS) & fin
-    return held
 
 
 def _floor_milestone(frac: float) -> float:
