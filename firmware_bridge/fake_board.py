@@ -27,9 +27,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamcal.constants import GRAVITY
+from streamcal.errors import InputError
 
 from . import frames as fr
 from . import registers as R
+from .fake_encoding import ak8963_layout
 
 # Scales the sketch announces (streamcal_bridge.ino; PS-MPU-9250A-01 p8/p9/p12), as float32.
 ACCEL_SCALE = float(np.float32(GRAVITY) / np.float32(8192.0))      # m/s² per count (±4 g)
@@ -147,11 +149,33 @@ class FakeBoard:
 
     @classmethod
     def from_track(cls, track, **options) -> "FakeBoard":
-        """A board replaying a recording (``t``, ``columns``: a Track); mag must be in µT."""
+        """A board replaying a recording (``t``, ``columns``, ``metadata``: a Track).
+
+        The magnetometer is a µT track, or a raw-counts MPU-9250/AK8963 log served as the sketch
+        reads such a chip: its counts (chip axes remapped to body axes, 14-bit ×4 to the 16-bit
+        output) sent unchanged, with the log's fuse-ROM ASA bytes (the metadata rules of
+        :meth:`~.fake_mpu9250.FakeMPU9250Bus.from_track`, so ``fake:`` boards and buses accept
+        the same logs).
+
+        Raises:
+            InputError: a magnetometer unit other than µT, or counts whose metadata do not say
+                they are MPU-9250/AK8963 counts (the message names the file).
+        """
         cols = track.columns
         nan = np.full(len(track), np.nan)
         triple = lambda names: np.stack([cols.get(c, nan) for c in names], axis=1)  # noqa: E731
-        return cls(track.t, triple(("mx", "my", "mz")), triple(("ax", "ay", "az")),
+        mag = triple(("mx", "my", "mz"))
+        unit = getattr(track, "mag_unit", "uT")
+        if unit == "counts":
+            counts, asa = _ak8963_counts(track, mag)
+            options.setdefault("asa", asa)
+            mag = counts * np.array(mag_scale_from_asa(options["asa"]))   # rounds back to counts
+        elif unit not in ("uT", "µT"):
+            where = getattr(track, "path", None) or "track"
+            raise InputError(f"{where}: mag_unit {unit!r}: the fake board replays µT tracks, or "
+                             "raw AK8963 counts of an MPU-9250 log (# mag_unit: counts with "
+                             "# sensor: mpu9250 … and # mag_axes: AK8963 chip axes)")
+        return cls(track.t, mag, triple(("ax", "ay", "az")),
                    triple(("gx", "gy", "gz")), cols.get("temp"), **options)
 
     # -- counts as the sketch reads them ------------------------------------------------------
@@ -375,6 +399,17 @@ class FakeBoard:
             self._ack(frame, reason)
         else:
             self._ack(frame, fr.NakReason.UNKNOWN_TYPE)
+
+
+def _ak8963_counts(track, mag):
+    """(N,3) body-axis 16-bit counts and the ASA bytes of a raw-counts track's magnetometer
+    ``mag`` (N,3), by the track's AK8963 metadata (InputError when it has none)."""
+    where = str(getattr(track, "path", None) or "track")
+    layout = ak8963_layout(dict(getattr(track, "metadata", None) or {}), where)
+    counts = mag if layout.body_axes else mag @ R.AK_TO_BODY.T
+    if layout.bits == 14:
+        counts = 4.0 * counts
+    return counts, layout.asa
 
 
 def _cal_reason(cal: fr.SetCalibration) -> int:

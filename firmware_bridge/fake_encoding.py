@@ -89,7 +89,7 @@ class AkLayout:
                 f"served into HXL..HZH {served}, fuse-ROM ASA {asa}")
 
 
-def _ak8963_layout(metadata: dict, where: str) -> AkLayout:
+def ak8963_layout(metadata: dict, where: str) -> AkLayout:
     """Read the AK8963 layout of a ``mag_unit: counts`` track from its metadata.
 
     Keys: ``sensor`` (or ``mag_axes``) must name an MPU-9250/9255 or AK8963; ``mag_axes`` must
@@ -231,7 +231,7 @@ def replay_arguments(track, where: str) -> tuple[dict, list[str], str | None, tu
     if unit in ("uT", "µT"):
         channels = {"mag": mag}
     elif unit == "counts":
-        layout = _ak8963_layout(metadata, where)
+        layout = ak8963_layout(metadata, where)
         counts = mag @ R.AK_TO_BODY.T if layout.body_axes else mag   # remap is self-inverse
         channels = {"mag_counts": counts, "mag_counts_bits": layout.bits}
         asa = layout.asa

@@ -162,14 +162,12 @@ def test_memory_constant_after_many_samples():
     sc = StreamingCalibrator(fitter=sphere_fitter, synchronous=True)
     t, m = spiral_track(100.0)
     feed(sc, t, m)
-    arrays = lambda: [a.nbytes for a in (sc.buffer._m, sc.buffer._d, sc.buffer._t, sc.buffer._cov,
-                                        sc.buffer._used, sc._stage.m, sc._stage.cov,
-                                        sc._recent_m, sc.policy._err, sc.stats.s22)]
+    arrays = lambda: sc.nbytes
     before = arrays()
     t2, m2 = spiral_track(600.0, seed=1)
     feed(sc, t2 + 100.0, m2, block=500)
     assert arrays() == before and sc.buffer.n_samples <= sc.buffer.capacity
-    assert len(sc._remembered) <= sc._remembered.maxlen
+    assert len(sc.recaller.remembered) <= sc.recaller.capacity
 
 
 def test_nan_rows_and_covariates():

@@ -85,7 +85,7 @@ def test_restart_inside_one_large_block_and_twice():
     third = np.isin(rows, _rows(m[6000:])) & ~np.isin(rows, _rows(m[:6000]))
     assert first.any() and snap.t[first].max() < 30.0
     assert third.any() and snap.t[third].min() > 60.0
-    assert sc._t_last == pytest.approx(t[-1] + resets[1].data["shift"])
+    assert sc.clock.t_last == pytest.approx(t[-1] + resets[1].data["shift"])
 
 
 def _rows(a):
@@ -111,4 +111,4 @@ def test_a_replacement_calibrator_continues_the_clock_of_the_buffer_it_takes_ove
     assert not of_kind(events, "clock_reset")        # the board clock did not go back again
     assert new.buffer.snapshot().t.max() > stored_max
     newest = new.buffer.snapshot().t.max()           # on the continued clock
-    assert t[rest][0] + old._t_shift < newest <= t[rest][-1] + old._t_shift + 1e-9
+    assert t[rest][0] + old.clock.shift < newest <= t[rest][-1] + old.clock.shift + 1e-9

@@ -56,15 +56,14 @@ def test_equatorial_band():
 
 def test_memory_is_fixed_and_spacing_kept():
     buf = CoverageBuffer(n_cells=200, slots=3, min_spacing_deg=6.3)
-    arrays = [buf._m, buf._d, buf._t, buf._cov, buf._used]
-    before = [(a.shape, a.nbytes) for a in arrays]
+    before = buf.nbytes
     rng = np.random.default_rng(0)
     for k in range(50):
         m = rng.normal(size=(2000, 3))
         buf.insert(m, k * 2000 + np.arange(2000.0))
-    assert [(a.shape, a.nbytes) for a in arrays] == before
+    assert buf.nbytes == before
     assert buf.n_samples <= buf.capacity
-    d = buf._d[buf._used]
+    d = buf.stored_directions()
     cells = buf.cells.cell_of(d)
     for c in np.unique(cells):                      # stored samples of a cell are spaced apart
         dc = d[cells == c]

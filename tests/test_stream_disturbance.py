@@ -249,7 +249,7 @@ def test_small_permanent_change_is_no_transient(seed, scale):
     before = t < 120.0
     feed(sc, t[before], m[before])
     assert sc.calibration is not None and not sc.stale
-    limit = sc._cal_ref.limit
+    limit = sc.drift_limit
     c = np.array([1.0, 0.5, -0.3])
     delta = K_TRUE @ (scale * limit * c / np.linalg.norm(c))      # µT
     events = feed(sc, t[~before], m[~before] + delta)

@@ -16,7 +16,6 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
-from ..constants import MAD_TO_SIGMA
 from ._common import RECORDING_HELP, add_input_options, read_track
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
@@ -41,9 +40,14 @@ def register(sub) -> None:
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects fitted by the background fits "
                         "(default: %(default)s)")
+    p.add_argument("--async-fits", action="store_true",
+                   help="run fits on a worker thread while samples keep coming, as the daemon "
+                        "does (the output then depends on how fast the fits run); default "
+                        "without --realtime: each fit runs when it is due, so a replay is "
+                        "reproducible")
     p.add_argument("--sync-fits", action="store_true",
-                   help="wait for each fit before feeding more samples (reproducible output; "
-                        "as if the fit took no time)")
+                   help="run each fit when it is due, also with --realtime (the default "
+                        "without --realtime)")
     p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.set_defaults(func=run)
 
@@ -64,7 +68,7 @@ def run(args) -> int:
     store = CalibrationStore(args.state_dir) if args.state_dir else None
     calibrator = StreamingCalibrator(store=store, model=model, unit=track.mag_unit,
                                      buffer=CoverageBuffer(covariates=covariates),
-                                     synchronous=args.sync_fits)
+                                     synchronous=_synchronous(args))
     emit = _printer(args.json)
     counts: dict[str, int] = {}
     refusals: dict[str, int] = {}        # why fits failed or candidates were rejected
@@ -82,7 +86,7 @@ def run(args) -> int:
                 _note_refusal(event, refusals)
                 emit(event, bar)
                 if event.kind == "coverage" and not args.json:
-                    _show_coverage(calibrator, bar)
+                    _show_coverage(calibrator, event, bar)
             bar.update(len(block))
         for event in calibrator.close():
             counts[event.kind] = counts.get(event.kind, 0) + 1
@@ -104,6 +108,16 @@ def run(args) -> int:
     return 0
 
 
+def _synchronous(args) -> bool:
+    """Fits run when they are due (reproducible) unless the replay follows the track's pace
+    (``--realtime``) or ``--async-fits`` asks for the daemon's worker thread."""
+    if args.sync_fits and args.async_fits:
+        from ..errors import InputError
+
+        raise InputError("--sync-fits and --async-fits: choose one")
+    return args.sync_fits or not (args.realtime or args.async_fits)
+
+
 def _printer(as_json: bool):
     def emit(event, bar):
         if as_json:
@@ -118,11 +132,15 @@ def _printer(as_json: bool):
     return emit
 
 
-def _show_coverage(calibrator, bar) -> None:
-    """The terminal map of the sphere (which parts are still empty) at a coverage milestone."""
+def _show_coverage(calibrator, event, bar) -> None:
+    """The terminal map of the sphere (which parts are still empty) at a coverage milestone:
+    the coverage ``event``'s own figures and cells (a fit accepted in the same stage reframes
+    the buffer, and its coverage then differs)."""
     from ..report.terminal import coverage_view
 
-    view = coverage_view(calibrator.buffer)
+    report = event.detail
+    view = coverage_view(calibrator.buffer, report,
+                         occupied=None if report is None else report.occupied)
     if bar.disable:
         print(view, flush=True)
     else:
@@ -188,7 +206,9 @@ def _why_none(calibrator, refusals: dict, m) -> str:
     else:
         parts.append(f"the stored samples cover {100 * envs[-1]['coverage']:.0f}% of the "
                      f"sphere ({100 * calibrator.policy.min_coverage:.0f}% needed)")
-    spread = _sphere_spread(m)
+    from ..fitting.sphere_stream import sphere_spread
+
+    spread = sphere_spread(m)
     if spread is not None and spread > _ONE_SPHERE:
         parts.append(f"the samples lie on no one sphere (spread {100 * spread:.0f}% of the "
                      "field): the field probably changed during the recording (a magnet "
@@ -196,25 +216,6 @@ def _why_none(calibrator, refusals: dict, m) -> str:
                      "too little to tell the environments apart, and no one environment has "
                      "the coverage a calibration needs")
     return "; ".join(parts)
-
-
-def _sphere_spread(m) -> float | None:
-    """1.4826 × median ``|‖m − c‖/R − 1|`` for the least-squares (Kåsa) sphere through all
-    samples ``m`` (N,3) (relative), or None when no sphere can be fitted."""
-    m = np.asarray(m, dtype=float)
-    m = m[np.isfinite(m).all(axis=1)]
-    if len(m) < 10:
-        return None
-    origin = m.mean(axis=0)
-    u = m - origin
-    # |u|² = 2 c·u + d with d = R² − |c|²: linear in (c, d).
-    A = np.column_stack([2.0 * u, np.ones(len(u))])
-    sol, *_ = np.linalg.lstsq(A, np.einsum("nk,nk->n", u, u), rcond=None)
-    c, R2 = sol[:3], sol[3] + sol[:3] @ sol[:3]
-    if not (np.all(np.isfinite(sol)) and R2 > 0):
-        return None
-    R = float(np.sqrt(R2))
-    return MAD_TO_SIGMA * float(np.median(np.abs(np.linalg.norm(u - c, axis=1) / R - 1.0)))
 
 
 def _jsonable(value):

@@ -237,3 +237,22 @@ def fit_sphere_stream(m) -> tuple[np.ndarray, np.ndarray]:
     stats.update(m)
     center, radius = stats.fit()
     return radius * np.eye(3), center
+
+
+def sphere_spread(m) -> float | None:
+    """How far samples ``m`` (N,3, sensor unit; non-finite rows skipped) lie from one sphere:
+    ``1.4826 × median |‖m − c‖/R − 1|`` (relative, a robust σ) about the one-pass sphere fit
+    ``(c, R)`` of :class:`SphereStats`; None when fewer than 10 samples or no sphere fits."""
+    m = np.asarray(m, dtype=float)
+    m = m[np.isfinite(m).all(axis=1)]
+    if len(m) < 10:
+        return None
+    stats = SphereStats()
+    stats.update(m)
+    try:
+        c, R = stats.fit()
+    except (InsufficientDataError, np.linalg.LinAlgError, ValueError):
+        return None
+    if not (np.all(np.isfinite(c)) and np.isfinite(R) and R > 0):
+        return None
+    return 1.4826 * float(np.median(np.abs(np.linalg.norm(m - c, axis=1) / R - 1.0)))

@@ -85,13 +85,15 @@ def coverage_map(cells, occupied, rows: int = 7, ascii: bool = False, gap=None) 
 
 
 def coverage_view(buffer, report=None, rows: int = 7, ascii: bool = False,
-                  width: int = 96) -> str:
+                  width: int = 96, occupied=None) -> str:
     """Coverage percentage, the two-hemisphere map and the hint, for a
     :class:`~streamcal.stream.coverage.CoverageBuffer` (``report``: its
-    :meth:`~streamcal.stream.coverage.CoverageBuffer.report`, computed when None); the hint is
-    wrapped to ``width`` columns."""
+    :meth:`~streamcal.stream.coverage.CoverageBuffer.report`, computed when None; ``occupied``
+    (n_cells,) bool: the cells to draw, the buffer's current ones when None — pass the report's
+    when it was taken earlier, so that map and figures agree); the hint is wrapped to ``width``
+    columns."""
     report = report if report is not None else buffer.report()
-    occupied = buffer.occupied
+    occupied = buffer.occupied if occupied is None else occupied
     gap = report.empty_cap_center if report.empty_cap_deg >= 20.0 else None
     head = (f"coverage {100 * report.fraction:.0f}% of the sphere "
             f"({int(occupied.sum())}/{buffer.cells.n_cells} cells, {report.n_samples} samples)")

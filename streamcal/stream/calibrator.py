@@ -15,7 +15,11 @@ Per stage of samples (DESIGN §1)::
                   ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
 
 Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at most one at a
-time, and its result is picked up by a later ``ingest`` or ``poll``. Rows are staged ``stage`` at
+time, and its result is picked up by a later ``ingest`` or ``poll`` (``synchronous=True``, for
+reproducible replays: the fit runs when it is due and is picked up at once). The parts live in
+their own modules: the monotone clock (:mod:`.clock`), the fit worker (:mod:`.fitworker`), the
+hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.disturbance`) and the
+recall of remembered calibrations (:mod:`.recall`). Rows are staged ``stage`` at
 a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
 up and drift is judged at most one stage late; a block larger than the free room is processed
 at once, with what was staged. ``poll()`` processes what is staged (call it when the source is
@@ -39,18 +43,22 @@ samples, so a worse calibration is never accepted.
 from __future__ import annotations
 
 import math
-import threading
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
 from ..fitting.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
-from .disturbance import GROSS, Disturbance, DisturbanceRule, Quarantine
-from .guard import AcceptanceGuard, Decision, apply_finite, radius_of
+from .clock import MonotoneClock
+from .disturbance import Disturbance, DisturbanceRule, Quarantine
+from .events import Event
+from .fitworker import FitJob, FitWorker
+from .guard import AcceptanceGuard, Decision, radius_of
 from .policy import RecalPolicy
+from .recall import Recaller
+from .reference import Reference, beyond, held_mask
 from .staging import Stage, block_covariates
 
 #: Coverage milestones reported as events (fractions of the sphere).
@@ -62,30 +70,6 @@ _COARSE_TOL, _COARSE_ITER = 1e-6, 8
 #: relative spread (1.4826 × median |‖m − c‖/R − 1|): soft iron leaves a few percent; a sphere
 #: through a noise cluster (a board at rest) or through two environments leaves far more.
 _COARSE_MAX_SPREAD = 0.05
-
-
-@dataclass(frozen=True)
-class Event:
-    """Something the calibrator did or noticed.
-
-    ``kind``: ``loaded``, ``load_problem``, ``coverage``, ``fit_started``, ``fit_failed``,
-    ``accepted``, ``rejected``, ``discarded``, ``disturbance`` (a disagreement ended:
-    ``outcome`` ``transient``, or undecided: ``reference_replaced``, ``undecided`` (not
-    judgeable within the persistence time while a finished fit waited), ``open`` at the end of
-    the stream; ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back),
-    ``drift`` (an environment change), ``forgot``, ``recalled``, ``clock_reset`` (sample times
-    went back; later ones are shifted by ``shift`` s), ``stored``, ``store_error``. ``t`` is
-    the sample time (s) at which it happened, ``data`` its figures
-    (JSON-ready).
-    """
-
-    kind: str
-    message: str
-    data: dict = field(default_factory=dict)
-    t: float | None = None
-
-    def to_dict(self) -> dict:
-        return {"event": self.kind, "t": self.t, "message": self.message, **self.data}
 
 
 def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
@@ -100,25 +84,6 @@ def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
         return fit(snap.to_track(), model=tuple(model), kernel=kernel)
 
     return fit_snapshot
-
-
-class _Job:
-    def __init__(self, fit_set: Snapshot, holdout: Snapshot, coverage: float, t: float,
-                 support: np.ndarray):
-        self.fit_set, self.holdout, self.coverage, self.t = fit_set, holdout, coverage, t
-        self.support = support
-        self.done = threading.Event()
-        self.result: Calibration | None = None
-        self.error: BaseException | None = None
-        self.obsolete = False
-
-    def run(self, fitter) -> None:
-        try:
-            self.result = fitter(self.fit_set)
-        except BaseException as exc:  # reported as a fit_failed event, never lost
-            self.error = exc
-        finally:
-            self.done.set()
 
 
 class StreamingCalibrator:
@@ -172,6 +137,7 @@ class StreamingCalibrator:
         self.coarse_min = int(coarse_min)
         self.recall_checks = max(1, int(recall_checks))
         self.synchronous = synchronous
+        self._worker = FitWorker(self.fitter, synchronous)
         self.stats = SphereStats()
         self.coarse: tuple[np.ndarray, float] | None = None
         self.stale = False
@@ -179,28 +145,22 @@ class StreamingCalibrator:
         self._n_done = 0
         self._cal: Calibration | None = None
         self._support: np.ndarray | None = None      # (C,) cells the calibration was fitted on
-        self._remembered: deque = deque(maxlen=max(1, int(remember)))
-        self._job: _Job | None = None
+        self._job: FitJob | None = None
         self._since_coarse = 0
         self._milestone = 0.0
-        self._t_last = float("nan")
-        self._t_shift = 0.0         # s added to sample times since the clock went back
-        self._dt = 0.0              # typical sample interval (s) of the last stage
+        self.clock = MonotoneClock()
         self._frame_is_cal = False
         self._stage = Stage(stage, self.buffer.covariate_names)
         W = self.policy.window
-        self._recent_m = np.empty((W, 3))
-        self._recent_t = np.empty(W)
-        self._recent_n = 0
+        self.recaller = Recaller(W, remember, self.recall_checks, self.policy.drift_limit,
+                                 radius_of)
         self._window_y = np.zeros((W, 3))      # the drift window's samples, projected
         self._window_n = 0
-        self._recall_at = 0
-        self._recall_streak: tuple = (None, 0)
         self._pending: list[Event] = []
         self.disturbance_rule = disturbance if disturbance is not None else DisturbanceRule()
         self.coarse_judge_coverage = float(coarse_judge_coverage)
-        self._cal_ref: _Reference | None = None
-        self._coarse_ref: _Reference | None = None
+        self._cal_ref: Reference | None = None
+        self._coarse_ref: Reference | None = None
         #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
         self._environments: deque = deque(maxlen=16)
         self._env_start = float("nan")
@@ -223,19 +183,34 @@ class StreamingCalibrator:
         return self._quarantine.n_held
 
     @property
+    def drift_limit(self) -> float | None:
+        """Relative error (|calibrated field| / radius − 1) beyond which samples disagree with
+        the calibration in use; None before one."""
+        return self._cal_ref.limit if self._cal is not None and self._cal_ref is not None else None
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the preallocated arrays (buffer, stage, drift, recall and hold-back
+        windows, running sums): fixed whatever the samples ingested."""
+        q, st = self._quarantine, self._stage
+        return (self.buffer.nbytes + self.policy.nbytes + self.recaller.nbytes
+                + self._window_y.nbytes + st.m.nbytes + st.t.nbytes + st.cov.nbytes
+                + q.m.nbytes + q.y.nbytes + q.t.nbytes + q.cov.nbytes + self.stats.s22.nbytes)
+
+    @property
     def coverage(self) -> CoverageReport:
         return self.buffer.report()
 
     @property
     def fit_in_flight(self) -> bool:
         """A fit is running (a finished one waiting for a disturbance's decision is not)."""
-        return self._job is not None and not self._job.done.is_set()
+        return self._job is not None and not self._job.done
 
     def adopt_clock(self, other: "StreamingCalibrator") -> None:
         """Continue ``other``'s monotone clock (its shift after board restarts): a calibrator
         built to replace another (a daemon's reload) that takes over its buffer must stamp new
         samples on the clock the buffered ones carry."""
-        self._t_shift, self._t_last, self._dt = other._t_shift, other._t_last, other._dt
+        self.clock.adopt(other.clock)
 
     @property
     def n_ingested(self) -> int:
@@ -274,7 +249,7 @@ class StreamingCalibrator:
         """:meth:`poll`, then wait (up to ``timeout`` s) for the fit in flight and pick it up."""
         events = self.poll()
         job = self._job
-        if job is not None and job.done.wait(timeout):
+        if job is not None and job.wait(timeout):
             events += self._collect()
         return events
 
@@ -288,8 +263,8 @@ class StreamingCalibrator:
         cal = self._cal
         if cal is not None:
             cov = block_covariates(block) if cal.effects else None
-            if cov and self._t_shift:           # the clock the calibration was fitted on
-                cov["t"] = cov["t"] + self._t_shift
+            if cov and self.clock.shift:           # the clock the calibration was fitted on
+                cov["t"] = cov["t"] + self.clock.shift
             x = cal.apply(m[ok], {k: v[ok] for k, v in cov.items()} if cov else None)
             out[ok] = x if unit_vectors else x * (cal.field or radius_of(cal))
         elif self.coarse is not None:
@@ -320,7 +295,7 @@ class StreamingCalibrator:
             stage = Stage(1, self._stage.names)
             stage.held = self._stage.held.copy()
             m_ok, t, cov = stage.rows_of(block)
-            y = ref.project(m_ok, t + self._t_shift, cov, self.buffer.covariate_names)
+            y = ref.project(m_ok, t + self.clock.shift, cov, self.buffer.covariate_names)
         r = np.sqrt(np.einsum("nk,nk->n", y, y))
         fin = np.isfinite(r)
         err = np.where(fin, np.abs(r - 1.0), 0.0)
@@ -328,7 +303,7 @@ class StreamingCalibrator:
         if inside.any() and ref.support is not None:
             k = np.flatnonzero(inside)
             inside[k] = ref.support[self.buffer.cells.cell_of(y[k] / np.maximum(r[k], 1e-300)[:, None])]
-        out[ok] = _held(ref, err, fin, inside)
+        out[ok] = held_mask(ref, err, fin, inside)
         return out
 
     def close(self, timeout: float | None = None) -> list:
@@ -339,11 +314,11 @@ class StreamingCalibrator:
         if self._disturbance is not None:
             self._end_disturbance(events, "open")
             job = self._job
-            if job is not None and job.done.is_set():
+            if job is not None and job.done:
                 self._job = None
                 events.append(Event("discarded", "fit result discarded: it finished during a "
                                     "disturbance still undecided when the stream ended",
-                                    {"reason": "disturbance_open"}, self._t_last))
+                                    {"reason": "disturbance_open"}, self.clock.t_last))
         return events
 
     # -- the per-stage path -------------------------------------------------------------------
@@ -352,9 +327,9 @@ class StreamingCalibrator:
         if n == 0:
             return self._collect()
         events: list[Event] = []
-        t = self._monotone(t, events)
+        t = self.clock.stamp(t, events)
         self._n_done += n
-        self._t_last = t_now = float(t[-1])
+        t_now = self.clock.t_last
         if math.isnan(self._env_start):                 # the first samples
             self._env_start = float(t[0])
         calibrated = self._cal is not None and not self.stale
@@ -381,7 +356,7 @@ class StreamingCalibrator:
             self.policy.note(stored, new_cells)
             if ref is not None:
                 self._check(ref, events)
-            if self._remembered and self.stale:
+            if self.recaller.remembered and self.stale:
                 self._check_recall(m, t, events)
         self._milestones(events)
         events += self._collect()
@@ -394,39 +369,6 @@ class StreamingCalibrator:
                 self.policy.requested(t_now)
                 events += self._submit(request, t_now)
         return events
-
-    def _monotone(self, t: np.ndarray, events) -> np.ndarray:
-        """Sample times ``t`` (n,) s made monotone. A board's clock restarts when it resets (a
-        USB reconnect pulls DTR, a brown-out reboots it): a time earlier than the one before it
-        continues from there instead (one typical interval later), this and every later time
-        shifted by the same offset, and a ``clock_reset`` event says by how much. Everything
-        downstream (forgetting by onset, held samples since a start, the persist test) assumes
-        time never goes back."""
-        t = np.asarray(t, dtype=float) + self._t_shift if self._t_shift else \
-            np.asarray(t, dtype=float)
-        prev = np.empty_like(t)
-        prev[0] = self._t_last                      # NaN before the first stage: no jump
-        prev[1:] = t[:-1]
-        back = t < prev
-        if not back.any():
-            if len(t) > 1:
-                self._dt = float(t[-1] - t[0]) / (len(t) - 1)
-            return t
-        steps = np.diff(t)
-        ahead = steps[steps > 0]
-        dt = float(np.median(ahead)) if len(ahead) else self._dt
-        jump = np.where(back, prev - t + dt, 0.0)    # per row, the offset added from there on
-        before = np.cumsum(jump) - jump                # offset of earlier jumps in this stage
-        for k in np.flatnonzero(back):
-            self._t_shift += float(jump[k])
-            at = float(prev[k] + before[k])
-            events.append(Event(
-                "clock_reset", f"sample clock went back {prev[k] - t[k]:.3f} s after "
-                f"t={at:.3f} s (the board reset or reconnected?): later sample times are "
-                f"shifted by +{self._t_shift:.3f} s to keep time monotone",
-                {"back_by": float(prev[k] - t[k]), "at": at, "shift": self._t_shift}, at + dt))
-        t = t + before + jump
-        return t
 
     def _fit_coarse(self):
         """Running sphere estimate ``(centre (3,), radius)`` or None when undetermined."""
@@ -473,7 +415,7 @@ class StreamingCalibrator:
         if from_cal:
             cal = self._cal
             R = radius_of(cal)
-            self._cal_ref = _Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
+            self._cal_ref = Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
                                        self.policy.drift_limit(cal.rms, R), self._support,
                                        cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
@@ -492,7 +434,7 @@ class StreamingCalibrator:
             return None                 # a sphere fitted to a cluster of noise, or to a mixture
         if renew or self._coarse_ref is None:
             self.policy.reset_window()
-        return _Reference(c, np.eye(3) / R, R, spread * R,
+        return Reference(c, np.eye(3) / R, R, spread * R,
                           self.policy.drift_limit(spread * R, R), self.buffer.occupied.copy(),
                           None, False)
 
@@ -527,24 +469,8 @@ class StreamingCalibrator:
         return held, d, cell
 
     def _beyond(self, y, ref):
-        """The hold-back criterion, pure: projections ``y`` (n,3) of samples under ``ref``.
-        Returns ``held`` (n,) (relative error ``|‖y‖ − 1|`` beyond ``ref.limit`` on a direction
-        ``ref`` was fitted on, or beyond :data:`GROSS` anywhere when ``ref.hold``), the errors
-        (n,), ``inside`` (n,) (judged by the limit), unit directions (n,3) and cells (n,)."""
-        r = np.sqrt(np.einsum("nk,nk->n", y, y))
-        # Rows the reference cannot project (NaN: a covariate its effect terms need is missing)
-        # are neither judged nor held; they go to the buffer, which projects them itself.
-        fin = np.isfinite(r)
-        if not fin.all():
-            y = np.where(fin[:, None], y, [0.0, 0.0, 1.0])
-            r = np.where(fin, r, 1.0)
-        d = y / np.maximum(r, 1e-300)[:, None]
-        cell = self.buffer.cells.cell_of(d)
-        err = np.abs(r - 1.0)
-        # Only directions the reference was fitted on: elsewhere it extrapolates, and a large
-        # error there asks for a refit on more coverage (new cells), not for holding back.
-        inside = (ref.support[cell] if ref.support is not None else True) & fin
-        return _held(ref, err, fin, inside), err, inside, d, cell
+        """:func:`.reference.beyond` on the buffer's cells."""
+        return beyond(y, ref, self.buffer.cells)
 
     def _observe_y(self, y) -> None:
         """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
@@ -561,7 +487,7 @@ class StreamingCalibrator:
             return False
         q = self._quarantine
         ok, center, _ = self.disturbance_rule.new_shell(dist, q.y[q.since(dist.start)], limit,
-                                                        self._t_last)
+                                                        self.clock.t_last)
         if not ok:
             return False
         v = self._window_y - center
@@ -593,12 +519,12 @@ class StreamingCalibrator:
         # limit) and the new shell or the duration; against a calibration, whose acceptances
         # wait for the decision, the duration alone: a change of one or two drift limits moves
         # the median little but keeps a disturbance open for good.
-        age = self._t_last - dist.start
+        age = self.clock.t_last - dist.start
         if not (check.disagrees or dist.hold and age >= rule.persist_s):
             return
         idx = self._quarantine.since(dist.start)
         ok, center, shell = rule.new_shell(dist, self._quarantine.y[idx], check.limit,
-                                           self._t_last)
+                                           self.clock.t_last)
         dist.shell = shell
         if ok and check.disagrees:
             why = (f"the disagreeing samples lie on one shell (median residual {shell:.3f} "
@@ -625,7 +551,7 @@ class StreamingCalibrator:
         if dist is None:
             return
         R = dist.radius
-        end = self._t_last
+        end = self.clock.t_last
         what = {"transient": f"transient disturbance from t={dist.start:.2f} to {end:.2f} s",
                 "reference_replaced": f"disturbance from t={dist.start:.2f} to {end:.2f} s "
                 f"left undecided: the running estimate it was judged against was replaced by "
@@ -664,7 +590,7 @@ class StreamingCalibrator:
                              "reason": reason, "shell_residual": _finite(dist.shell),
                              "hard_iron_shift": None if shift is None else
                              np.round(shift, 6).tolist(),
-                             "held": dist.n_held, "calibrated": in_force}, self._t_last))
+                             "held": dist.n_held, "calibrated": in_force}, self.clock.t_last))
         self._close_environment(onset)
         q = self._quarantine
         self._disturbance = None
@@ -675,8 +601,7 @@ class StreamingCalibrator:
         q.clear()
         self.stale = self._cal is not None
         if in_force:        # the recall window watches the new field from here on
-            self._recent_n = self._recall_at = 0
-            self._recall_streak = (None, 0)
+            self.recaller.restart()
         if self._job is not None:
             self._job.obsolete = True
 
@@ -718,41 +643,16 @@ class StreamingCalibrator:
                             + (f" (with {n_held} held-back samples of the new field)"
                                if n_held else "") + f"; {why}",
                             {"dropped": dropped, "kept": len(kept), "onset": onset,
-                             "held_added": n_held}, self._t_last))
+                             "held_added": n_held}, self.clock.t_last))
 
     def _check_recall(self, m, t, events) -> None:
-        """While stale: a full window of new samples that a remembered calibration (K, b only)
-        fits within its drift limit brings that calibration back."""
-        W = len(self._recent_t)
-        m, t = m[-W:], t[-W:]
-        k = len(m)
-        pos = (self._recent_n + np.arange(k)) % W
-        self._recent_m[pos] = m
-        self._recent_t[pos] = t
-        self._recent_n += k
-        if self._recent_n < W or self._recent_n - self._recall_at < W // 4:
+        """While stale: a remembered calibration that fits the new samples ``m`` (n,3) at ``t``
+        (n,) s again (module :mod:`.recall`) is back in use."""
+        found = self.recaller.observe(m, t)
+        if found is None:
             return
-        self._recall_at = self._recent_n
-        for cal, support in reversed(self._remembered):
-            if cal.effects:
-                continue
-            x = np.linalg.solve(cal.K, (self._recent_m - cal.b).T).T
-            stat = float(np.median(np.abs(np.linalg.norm(x, axis=1) - 1.0)))
-            limit = self.policy.drift_limit(cal.rms, radius_of(cal))
-            if stat <= limit:
-                break
-        else:
-            self._recall_streak = (None, 0)
-            return
-        # The same calibration must fit over consecutive checks (a window and then
-        # ``recall_checks − 1`` quarter windows): a new environment's field can cross the old
-        # sphere for a moment.
-        streak = self._recall_streak[1] + 1 if self._recall_streak[0] is cal else 1
-        self._recall_streak = (cal, streak)
-        if streak < self.recall_checks:
-            return
-        self._recall_streak = (None, 0)
-        start = float(self._recent_t.min())
+        cal, support, stat, limit, start = (found.calibration, found.support, found.stat,
+                                            found.limit, found.start)
         self._cal, self._support, self.stale = cal, support, False
         if self._job is not None:
             self._job.obsolete = True
@@ -761,13 +661,13 @@ class StreamingCalibrator:
                             f"s): back in use, b = {np.round(cal.b, 2).tolist()}",
                             {"value": stat, "limit": limit, "onset": start,
                              "K": cal.K.round(6).tolist(), "b": cal.b.round(6).tolist()},
-                            self._t_last))
+                            self.clock.t_last))
         self._close_environment(start)
         self._env_calibrated = True
         self._disturbance = None            # what it was judged against is gone
         self._quarantine.clear()
         self._forget(start, events, "samples of the other environment")
-        self.policy.last_request_t = self._t_last   # coverage decides the next fit, as a refit
+        self.policy.last_request_t = self.clock.t_last   # coverage decides the next fit, as a refit
         self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
         self._save(cal, events)
 
@@ -779,13 +679,13 @@ class StreamingCalibrator:
             report = self.buffer.report()
             events.append(Event("coverage", f"coverage {100 * frac:.0f}% of the sphere; "
                                 f"largest gap {report.empty_cap_deg:.0f}°: {report.hint}",
-                                report.to_dict(), self._t_last))
+                                report.to_dict(), self.clock.t_last, report))
 
     # -- fitting ------------------------------------------------------------------------------
     def _submit(self, request, t_now) -> list:
         snap = self.buffer.snapshot()
         held = (np.arange(len(snap)) + self.n_fits) % self.holdout_every == 0
-        job = _Job(snap.subset(~held), snap.subset(held), self.buffer.fraction, t_now,
+        job = FitJob(snap.subset(~held), snap.subset(held), self.buffer.fraction, t_now,
                    self.buffer.occupied)
         self.n_fits += 1
         self._job = job
@@ -794,16 +694,14 @@ class StreamingCalibrator:
                       f"{100 * job.coverage:.0f}%",
                       {"reason": request.reason, "fit": self.n_fits, "n_fit": len(job.fit_set),
                        "n_holdout": len(job.holdout), **request.data}, t_now)
-        if self.synchronous:
-            job.run(self.fitter)
+        self._worker.submit(job)
+        if self._worker.synchronous:
             return [event] + self._collect()
-        threading.Thread(target=job.run, args=(self.fitter,), name="streamcal-fit",
-                         daemon=True).start()
         return [event]
 
     def _collect(self) -> list:
         job = self._job
-        if job is None or not job.done.is_set():
+        if job is None or not job.done:
             return []
         dist = self._disturbance
         if dist is not None and dist.hold and not job.obsolete and job.error is None:
@@ -811,13 +709,13 @@ class StreamingCalibrator:
             # decision (transient: judged then; environment change: obsolete) — but not for
             # good: the drift window only fills with samples in directions the calibration was
             # fitted on, and a board that stays elsewhere would block every later fit.
-            if self._t_last - dist.start < self.disturbance_rule.persist_s:
+            if self.clock.t_last - dist.start < self.disturbance_rule.persist_s:
                 return []
             events = []
             self._end_disturbance(events, "undecided")
             return events + self._collect()
         self._job = None
-        t = self._t_last
+        t = self.clock.t_last
         if job.obsolete:
             return [Event("discarded", "fit result discarded: the environment changed while it "
                           "ran", {"reason": "environment_changed"}, t)]
@@ -840,7 +738,7 @@ class StreamingCalibrator:
         self._end_disturbance(events, "reference_replaced")     # the running estimate's
         self._cal = cand
         self._support = job.support
-        self._remembered.append((cand, job.support))
+        self.recaller.remember(cand, job.support)
         self.stale = False
         self._env_calibrated = True
         self.policy.reset_window()
@@ -854,7 +752,7 @@ class StreamingCalibrator:
     def _save(self, cal, events) -> None:
         if self.store is None:
             return
-        t = self._t_last
+        t = self.clock.t_last
         try:
             path = self.store.save(cal)
             events.append(Event("stored", f"saved {self.store.current_path} ({path.name})",
@@ -876,7 +774,7 @@ class StreamingCalibrator:
                 self._pending.append(Event("load_problem", problem, {}))
         if result.calibration is not None:
             self._cal = result.calibration
-            self._remembered.append((self._cal, None))     # fitted on directions unknown: all
+            self.recaller.remember(self._cal, None)     # fitted on directions unknown: all
             self._set_frame(self._cal.b, np.linalg.inv(self._cal.K), from_cal=True)
             how = " (fallback: the current file was missing or damaged)" if result.fell_back else ""
             self._pending.append(Event("loaded", f"calibration in use loaded from {result.path}{how}",
@@ -885,40 +783,6 @@ class StreamingCalibrator:
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []
         return out
-
-
-@dataclass(frozen=True)
-class _Reference:
-    """What new samples are judged against: ``y = AT``-projection of ``m − center`` (or the
-    calibration ``cal`` when it has effect terms), its radius and rms (sensor unit), the drift
-    ``limit`` (relative), the cells it was fitted on (``support``, None: all) and whether
-    disagreeing samples are held back from the buffer (``hold``: a calibration; the running
-    sphere estimate only watches, since a sphere misfits an anisotropic sensor's extremes,
-    which are the samples the first fit needs most)."""
-
-    center: np.ndarray
-    AT: np.ndarray
-    radius: float
-    rms: float
-    limit: float
-    support: np.ndarray | None
-    cal: Calibration | None
-    hold: bool
-
-    def project(self, m, t, cov, names) -> np.ndarray:
-        if self.cal is None:
-            return (m - self.center) @ self.AT
-        return apply_finite(self.cal, m, {"t": t, **{k: cov[:, j] for j, k in enumerate(names)}})
-
-
-def _held(ref: _Reference, err, fin, inside) -> np.ndarray:
-    """The hold-back criterion (n,) bool from relative errors ``err`` (n,), finite rows ``fin``
-    and ``inside`` (rows on directions ``ref`` was fitted on): beyond the drift limit there,
-    beyond :data:`GROSS` anywhere when ``ref`` holds samples back."""
-    held = (err > ref.limit) & inside
-    if ref.hold:
-        held |= (err > GROSS) & fin
-    return held
 
 
 def _floor_milestone(frac: float) -> float:

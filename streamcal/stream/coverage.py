@@ -71,6 +71,8 @@ class CoverageReport:
         empty_cap_deg: angular radius (degrees) of the largest cap holding no stored sample.
         empty_cap_center: (3,) unit centre of that cap, body axes of the current frame.
         hint: what to do, in plain language.
+        occupied: (n_cells,) bool, the cells holding a stored sample when the figures were
+            taken (for a map that agrees with them), or None.
     """
 
     fraction: float
@@ -79,6 +81,7 @@ class CoverageReport:
     empty_cap_deg: float
     empty_cap_center: np.ndarray = field(repr=False)
     hint: str = ""
+    occupied: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {"coverage": round(self.fraction, 4), "n_samples": self.n_samples,
@@ -180,6 +183,15 @@ class CoverageBuffer:
             self.insert(snap.m, snap.t, snap.covariates)
 
     # -- contents -------------------------------------------------------------------------------
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the preallocated arrays (fixed whatever the samples inserted)."""
+        return sum(a.nbytes for a in (self._m, self._d, self._t, self._cov, self._used))
+
+    def stored_directions(self) -> np.ndarray:
+        """(n,3) unit directions of the stored samples in the current frame."""
+        return self._d[self._used]
+
     @property
     def capacity(self) -> int:
         return self._used.size
@@ -324,7 +336,7 @@ class CoverageBuffer:
         d = self._d[self._used]
         center, radius = largest_empty_cap(d, n_probe)
         return CoverageReport(self.fraction, len(d), self.cells.n_cells, radius, center,
-                              hint(center, radius, self.fraction))
+                              hint(center, radius, self.fraction), self.occupied.copy())
 
 
 def _newest_per_key(idx: np.ndarray, key: np.ndarray, n_keys: int) -> np.ndarray:

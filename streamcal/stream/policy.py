@@ -61,6 +61,11 @@ class RecalPolicy:
         """Samples in the drift window."""
         return len(self._err)
 
+    @property
+    def nbytes(self) -> int:
+        """Bytes held by the drift window (fixed)."""
+        return self._err.nbytes
+
     # -- new information ----------------------------------------------------------------------
     def reset_counts(self) -> None:
         self.cells_since = 0
