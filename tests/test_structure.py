@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import importlib
 import pkgutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -47,9 +49,11 @@ def test_public_api_stays_callable_after_every_module_is_imported():
 
 
 def test_layers_contract_holds():
-    from importlinter.cli import lint_imports
-
-    assert lint_imports(config_filename=str(REPO / "pyproject.toml")) == 0
+    # In a subprocess: import-linter configures logging in the process that runs it.
+    proc = subprocess.run([sys.executable, "-c", "import sys; from importlinter.cli import "
+                           "lint_imports; sys.exit(lint_imports(config_filename=sys.argv[1]))",
+                           str(REPO / "pyproject.toml")], capture_output=True, text=True, cwd=REPO)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
 
 
 def _strongly_connected(graph: dict[str, set[str]]) -> list[list[str]]:
