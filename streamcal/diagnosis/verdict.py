@@ -19,6 +19,9 @@ from . import candidates as cand
 #: ``at_noise_floor`` only while rms ≤ FLOOR_FACTOR × the floor. Clean simulated tracks give
 #: 0.9–1.3 (tests/test_diagnose.py), the real tiva MPU-9250 recordings 2.2–3.9.
 FLOOR_FACTOR = 1.5
+#: A noise estimate more than this many times the fit's sensor-residual rms is not the noise (a
+#: fit keeps about the noise in its residual; clean tracks give floor/rms 0.8–1.3).
+FLOOR_OVER_RMS_MAX = 1.5
 
 
 def floor_rule(factor: float = FLOOR_FACTOR) -> str:
@@ -38,14 +41,14 @@ def significance_rule() -> str:
 
 def floor_reliable(floor: float, reliable: bool, reason: str, rms: float, residual: str
                    ) -> tuple[bool, str]:
-    """``(reliable, reason)`` of a noise floor once the fit's rms is known: a floor above the
-    sensor-residual rms cannot be the noise (a fit keeps at least the noise in its residual)."""
+    """``(reliable, reason)`` of a noise floor once the fit's rms is known: a floor well above
+    the sensor-residual rms cannot be the noise (:data:`FLOOR_OVER_RMS_MAX`)."""
     if not reliable or not np.isfinite(floor):
         return False, reason or "the noise floor could not be estimated"
-    if residual == "sensor" and np.isfinite(rms) and floor > rms:
-        return False, (f"the noise estimate ({floor:.3g}) is above the fit's rms ({rms:.3g}): "
-                       f"a fit keeps at least the noise in its residual, so the estimate holds "
-                       f"motion between samples, not only noise")
+    if residual == "sensor" and np.isfinite(rms) and floor > FLOOR_OVER_RMS_MAX * rms:
+        return False, (f"the noise estimate ({floor:.3g}) is more than {FLOOR_OVER_RMS_MAX:g}× "
+                       f"the fit's rms ({rms:.3g}): a fit keeps about the noise in its "
+                       f"residual, so the estimate holds motion between samples, not only noise")
     return True, ""
 
 
