@@ -18,7 +18,7 @@ from . import misfit as misfit_mod
 from . import verdict as verdict_mod
 from .noise import noise_floor
 from .residuals import families, rms, sensor_residual
-from .spans import outlier_spans
+from .spans import outlier_spans, widen_outliers
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
 OUTLIER_SIGMAS = 5.0
@@ -158,6 +158,7 @@ class _Evaluated:
     given) and inlier set."""
 
     def __init__(self, cal, m, cov, floor, reg=None):
+        t = cov.get("t") if cov is not None else None
         self.cal, self.tied = cal, reg is not None
         #: which residual: None (eq. 41), "gravity" or "gyro" (the tied residuals).
         self.kind = None if reg is None else (
@@ -178,7 +179,9 @@ class _Evaluated:
             elif inl is None or np.shape(inl) != (len(m),):
                 scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
                 inl = norm <= OUTLIER_SIGMAS * scale
-            self.inliers = np.asarray(inl, bool)
+            # the ramps of a disturbance are outliers too (spans.widen_outliers)
+            self.inliers = ~widen_outliers(t, norm, ~np.asarray(inl, bool)) if t is not None \
+                else np.asarray(inl, bool)
             self.p = cand.n_global_params(cal)
         self.rms = rms(self.r, self.inliers)
         self.rss = np.sum(self.r ** 2, axis=1)

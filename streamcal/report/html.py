@@ -57,6 +57,9 @@ _PARAM_UNITS = {
     ("time_drift", "t0"): "s", ("time_drift", "d"): "{u}/s",
     ("axis_nonlinearity", "R"): "{u}", ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
     ("aux_interference", "a0"): "channel unit", ("aux_interference", "g"): "{u} per channel unit",
+    ("time_lag", "tau"): "s",
+    ("mag_accel_misalignment", "rotation"): "rad (rotation vector, mag frame to accel frame)",
+    ("mag_accel_misalignment", "dip"): "rad (angle between the field and down)",
 }
 
 
@@ -208,7 +211,9 @@ def _ladder(d, unit: str) -> str:
                     *(("× floor",) if d.floor_known else ()), "p-value"), rows,
                    numeric=tuple(range(2, 7 if d.floor_known else 6)))
     mixed = any(s["residual"] != "sensor" for s in steps)
-    return table + (_SCALES_NOTE if mixed else "")
+    # the note is given once: under the candidates when they already mix residuals
+    said = any(d.baseline(c)[0] != "sensor" for c in d.candidates)
+    return table + (_SCALES_NOTE if mixed and not said else "")
 
 
 def _parameters(cal, unit: str) -> str:
