@@ -112,12 +112,25 @@ def noise_floor(m: np.ndarray, t: np.ndarray | None = None,
         hz = f" at {rate:.3g} Hz" if rate == rate else ""
         reason = (f"consecutive second differences of the readings{hz} correlate at {corr:.2f} "
                   f"where independent noise gives {WHITE_D2_CORR:.2f} (measurable only below "
-                  f"{WHITE_D2_MAX:.2f}): the sensor moves between samples and no still segment "
-                  f"was found, or the readings are filtered or interpolated, so the {floor:.3g} "
-                  f"they give is not the noise")
+                  f"{WHITE_D2_MAX:.2f}): {_why_not_white(m)}, so the {floor:.3g} they give is "
+                  f"not the noise")
         return NoiseFloor(sigma, float("nan"), lsb, method, len(d2), reliable=False,
                           reason=reason, measured=floor, d2_corr=corr)
     return NoiseFloor(sigma, floor, lsb, method, len(d2), measured=floor, d2_corr=corr)
+
+
+#: More repeated readings than this share means the log is faster than the sensor updates.
+REPEAT_SHARE = 0.1
+
+
+def _why_not_white(m: np.ndarray) -> str:
+    """Why consecutive readings (N,3) are not independent noise, in words."""
+    repeats = float(np.mean(np.all(m[1:] == m[:-1], axis=1))) if len(m) > 1 else 0.0
+    if repeats > REPEAT_SHARE:
+        return (f"{100 * repeats:.0f}% of the readings repeat the previous one exactly (logged "
+                f"faster than the sensor updates)")
+    return ("the sensor moves between samples and no still segment was found, or the readings "
+            "are filtered or interpolated")
 
 
 def _lag1_corr(d: np.ndarray, ok: np.ndarray) -> float:
