@@ -179,9 +179,15 @@ class _Evaluated:
             elif inl is None or np.shape(inl) != (len(m),):
                 scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
                 inl = norm <= OUTLIER_SIGMAS * scale
-            # the ramps of a disturbance are outliers too (spans.widen_outliers)
-            self.inliers = ~widen_outliers(t, norm, ~np.asarray(inl, bool)) if t is not None \
-                else np.asarray(inl, bool)
+            inl = np.asarray(inl, bool)
+            # the ramps of a disturbance are outliers too (spans.widen_outliers); the
+            # calibration then carries the same inliers, so its rms, outlier count and mask are
+            # the diagnosis' (one model, one sample set)
+            self.inliers = ~widen_outliers(t, norm, ~inl) if t is not None else inl
+            if not np.array_equal(self.inliers, inl) and hasattr(cal, "replace"):
+                self.cal = cal = cal.replace(inliers=self.inliers,
+                                             n_outliers=int((~self.inliers).sum()),
+                                             rms=rms(self.r, self.inliers))
             self.p = cand.n_global_params(cal)
         self.rms = rms(self.r, self.inliers)
         self.rss = np.sum(self.r ** 2, axis=1)
