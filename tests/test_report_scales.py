@@ -18,7 +18,8 @@ from streamcal.report.figures import (RESIDUAL_FAMILIES, candidate_groups, ladde
 from streamcal.sim import simulate
 
 MISALIGNED = "mag_accel_misalignment"
-SPEC_CANDIDATE_KEYS = {"effect", "rms_after", "p_value", "evidence"}
+SPEC_CANDIDATE_KEYS = {"effect", "rms_after", "p_value", "evidence", "residual", "rms_before",
+                       "significant", "material"}
 
 
 @pytest.fixture(scope="module")

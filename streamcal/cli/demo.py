@@ -153,8 +153,10 @@ def _unit(unit: str) -> str:
 
 def _verdict(d) -> str:
     u = _unit(d.calibration.unit if d.calibration is not None else "uT")
-    head = (f"\nverdict: {d.verdict} — rms {d.rms:.3f} {u} with {', '.join(d.model)}, noise "
-            f"floor {d.noise_floor:.3f} {u} ({d.rms / d.noise_floor:.2f}× the floor); "
+    floor = (f"noise floor {d.noise_floor:.3f} {u} ({d.rms / d.noise_floor:.2f}× the floor)"
+             if d.floor_known else f"noise floor not measurable ({d.noise_floor_reason})")
+    head = (f"\nverdict: {d.verdict} — rms {d.rms:.3f} {u} on the "
+            f"{residual_name(d.residual)} residual with {', '.join(d.model)}, {floor}; "
             f"{d.n_outliers} of {d.n} samples are outliers")
     if d.verdict == "effect_missing" and d.candidates:
         top = d.candidates[0]
@@ -175,7 +177,8 @@ def _candidates(d) -> str:
 
 def _ladder(d) -> str:
     steps = d.ladder or [{"model": list(d.model), "rms": d.rms}]
-    top = max([s["rms"] for s in steps] + [d.noise_floor])
+    known = d.floor_known
+    top = max([s["rms"] for s in steps] + ([d.noise_floor] if known else []))
     lines = ["", "model ladder: rms after adding each effect"]
 
     def row(name, value, ratio):
@@ -186,10 +189,11 @@ def _ladder(d) -> str:
         name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
         residual = step.get("residual", "sensor")
         # the floor is the sensor residual's: a tied step says which residual it is on instead
-        ratio = f"{step['rms'] / d.noise_floor:.2f}× floor" if residual == "sensor" \
+        ratio = f"{step['rms'] / d.noise_floor:.2f}× floor" if residual == "sensor" and known \
             else residual_name(residual)
         lines.append(row(name, step["rms"], ratio))
-    lines.append(row("noise floor", d.noise_floor, ""))
+    if known:
+        lines.append(row("noise floor", d.noise_floor, ""))
     return "\n".join(lines)
 
 

@@ -89,17 +89,20 @@ def residual_name(residual: str) -> str:
 def candidate_table(d, numbered: bool = False) -> list[str]:
     """The ranked candidates of a :class:`~streamcal.diagnose.Diagnosis`, one line each (with a
     rank column if ``numbered``), every ``rms_after`` beside the rms of the model without it on
-    the same residual."""
+    the same residual, with the significance and materiality tests apart and the rule that
+    decides them printed below."""
     def rank(k):
         return f"{k:<5}" if numbered else ""
     lines = [f"{rank('rank')}{'candidate':<24}{'residual':>13}{'before':>9}{'after':>9}{'change':>8}"
-             f"{'p-value':>11}  evidence"]
+             f"{'p-value':>11}{'signif.':>8}{'material':>9}  evidence"]
     for k, c in enumerate(d.candidates, 1):
-        residual, before = d.baseline(c)
-        lines.append(f"{rank(k)}{c.effect:<24}{residual_name(residual):>13}{before:>9.4g}"
+        row = d.candidate_dict(c)
+        before = row["rms_before"]
+        lines.append(f"{rank(k)}{c.effect:<24}{residual_name(row['residual']):>13}{before:>9.4g}"
                      f"{c.rms_after:>9.4g}{_change(before, c.rms_after):>8}"
-                     f"{c.p_value:>11.2e}  {c.evidence}"
-                     + ("" if c.significant else "  (not significant)"))
+                     f"{c.p_value:>11.2e}{'yes' if row['significant'] else 'no':>8}"
+                     f"{'yes' if row['material'] else 'no':>9}  {c.evidence}")
+    lines.append(f"(rule: {d.significance_rule}; an effect is missing only when both hold)")
     if any(d.baseline(c)[0] != "sensor" for c in d.candidates):
         lines.append("(each candidate against the model without it on the same residual; "
                      "the tied residuals include the gravity reference's or the gyro's error "
@@ -108,32 +111,44 @@ def candidate_table(d, numbered: bool = False) -> list[str]:
 
 
 def _text(d) -> str:
-    """Every rms beside the rms it is compared with on the same residual (see
-    :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual."""
+    """Every rms beside the rms it is compared with on the same residual, each named (see
+    :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual and only
+    when the recording measured the floor."""
+    from ..diagnosis.misfit import summary
+
     out_by = tuple(d.outliers_model or d.model)
+    known = d.floor_known
+    floor = f"noise floor {d.noise_floor:.4g}" if known else "noise floor not measurable"
     lines = [f"model      {', '.join(d.model)}",
              f"samples    {d.n} ({d.n_outliers} outliers"
              + ("" if out_by == tuple(d.model) else
                 f"; {d.n_outliers_model} of {', '.join(out_by)}, from which the spans come") + ")",
-             f"rms        {d.rms:.4g}   noise floor {d.noise_floor:.4g}"
-             + ("" if d.residual == "sensor" else f"   ({residual_name(d.residual)} residual)"),
-             f"verdict    {d.verdict}"]
+             f"rms        {d.rms:.4g} ({residual_name(d.residual)} residual)   {floor}"]
+    if not known:
+        lines.append(f"           why: {d.noise_floor_reason}")
+    lines += [f"verdict    {d.verdict}   ({d.noise_floor_rule})"]
+    if d.verdict == "unexplained" and d.misfit:
+        lines += ["", "where the misfit sits (share of the residual energy vs share of samples)"]
+        lines += ["  " + line for line in summary(d.misfit)]
     if d.candidates:
         lines += [""] + candidate_table(d)
     if d.ladder:
+        ratio_head = f"{'× floor':>9}" if known else ""
         lines += ["", "model ladder", f"{'step':<34}{'residual':>13}{'before':>9}{'rms':>9}"
-                                      f"{'× floor':>9}"]
+                                      + ratio_head]
         for step in d.ladder:
             name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
             residual = step.get("residual", "sensor")
             before = f"{step['rms_before']:>9.4g}" if "rms_before" in step else " " * 9
-            # × floor only where the rms is on the residual the floor is for
-            ratio = step["rms"] / d.noise_floor if d.noise_floor and residual == "sensor" \
-                else float("nan")
-            ratio = f"{ratio:>9.2f}" if ratio == ratio else f"{'–':>9}"
+            ratio = ""
+            if known:   # × floor only where the rms is on the residual the floor is for
+                ratio = f"{step['rms'] / d.noise_floor:>9.2f}" if residual == "sensor" \
+                    else f"{'–':>9}"
             lines.append(f"{name:<34}{residual_name(residual):>13}{before}"
                          f"{step['rms']:>9.4g}{ratio}")
-        lines.append(f"{'noise floor':<34}{'sensor':>13}{'':>9}{d.noise_floor:>9.4g}{1.0:>9.2f}")
+        if known:
+            lines.append(f"{'noise floor':<34}{'sensor':>13}{'':>9}{d.noise_floor:>9.4g}"
+                         f"{1.0:>9.2f}")
     if d.outlier_spans:
         lines += ["", "outlier spans (s): " + ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in d.outlier_spans)]
     return "\n".join(lines)

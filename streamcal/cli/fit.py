@@ -63,17 +63,31 @@ def run(args) -> int:
               method=args.method, tau=_tau(args.tau), check_coverage=not args.no_coverage_check, initial=initial)
     if args.output:
         cal.save(args.output)
+    residual, sensor = "sensor", None
+    if args.sensor == "mag":
+        from ..diagnosis.scales import calibration_residual, sensor_rms
+
+        residual = calibration_residual(cal)
+        if residual != "sensor":   # the tied fit's rms is not on the sensor residual
+            sensor = sensor_rms(cal, track)
     if args.json:
-        print(json.dumps(cal.to_dict()))
+        out = {**cal.to_dict(), "residual": residual}
+        if sensor is not None:
+            out["rms_sensor"] = sensor
+        print(json.dumps(out))
     else:
-        print(format_calibration(cal, args.track))
+        print(format_calibration(cal, args.track, residual, sensor))
         if args.output:
             print(f"written: {args.output}")
     return 0
 
 
-def format_calibration(cal, source: str = "") -> str:
-    """A human-readable summary of a calibration (units named)."""
+def format_calibration(cal, source: str = "", residual: str = "sensor",
+                       sensor_rms: float | None = None) -> str:
+    """A human-readable summary of a calibration (units named; the rms names its residual, and
+    a tied fit also gives its rms on the sensor residual, ``sensor_rms``)."""
+    from ..diagnosis.diagnosis import RESIDUAL_LABELS
+
     u = cal.unit
     rows = [f"calibration of {cal.sensor} from {source} ({cal.method}"
             + (f", {cal.kernel} kernel" if cal.kernel else "") + ")",
@@ -82,8 +96,13 @@ def format_calibration(cal, source: str = "") -> str:
             f"  b [{u}]  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
     for name, params in cal.effects.items():
         rows.append(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in params.items()))
-    rows.append(f"  rms       {cal.rms:.4g} {u} over {cal.n - cal.n_outliers} inliers "
+    rows.append(f"  rms       {cal.rms:.4g} {u} on the {RESIDUAL_LABELS.get(residual, residual)} "
+                f"residual over {cal.n - cal.n_outliers} inliers "
                 f"({cal.n_outliers} outliers of {cal.n})")
+    if sensor_rms is not None:
+        rows.append(f"  rms       {sensor_rms:.4g} {u} on the sensor residual (every direction "
+                    f"free; the {RESIDUAL_LABELS.get(residual, residual)} one includes the "
+                    f"reference's own error)")
     if cal.coverage is not None:
         rows.append(f"  coverage  {cal.coverage:.0%} of the sphere")
     if cal.field:

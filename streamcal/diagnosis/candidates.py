@@ -104,9 +104,17 @@ def f_test(rss0: float, rss1: float, p_added: int, n: float, p1: int) -> float:
     return float(np.exp(scipy.stats.f.logsf(F, p_added, dof)))
 
 
-def is_significant(rms: float, rms_after: float, p_value: float, floor: float) -> bool:
+def tests(rms: float, rms_after: float, p_value: float, floor: float) -> tuple[bool, bool]:
+    """``(significant, material)``: p < :data:`P_VALUE`; the rms drops by at least
+    :data:`MIN_DROP` and (with a measured ``floor``, NaN when not) is above
+    :data:`ABOVE_FLOOR` × the floor."""
     above = not np.isfinite(floor) or rms > ABOVE_FLOOR * floor
-    return bool(p_value < P_VALUE and rms_after <= (1 - MIN_DROP) * rms and above)
+    return bool(p_value < P_VALUE), bool(rms_after <= (1 - MIN_DROP) * rms and above)
+
+
+def is_significant(rms: float, rms_after: float, p_value: float, floor: float) -> bool:
+    """Both :func:`tests` pass (the effect is called missing)."""
+    return all(tests(rms, rms_after, p_value, floor))
 
 
 _SUBJECT = {"temperature_offset": "temp", "temperature_scale": "temp × reading",

@@ -14,9 +14,11 @@ from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, mis
 from ..model.build import check_known
 from ..fitting.registration import gravity_reference, registration_fit
 from . import candidates as cand
+from . import misfit as misfit_mod
+from . import verdict as verdict_mod
 from .noise import noise_floor
 from .residuals import families, rms, sensor_residual
-from .spans import outlier_spans
+from .spans import outlier_spans, widen_outliers
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
 OUTLIER_SIGMAS = 5.0
@@ -72,6 +74,19 @@ class Diagnosis:
     outliers_model: tuple[str, ...] = ()
     outliers: np.ndarray | None = field(default=None, repr=False)
     n_outliers_model: int | None = None
+    #: False when the recording cannot measure the floor (``noise_floor`` is then NaN, null in
+    #: the JSON); ``noise_floor_reason`` says why.
+    noise_floor_reliable: bool = True
+    noise_floor_reason: str = ""
+    noise_floor_rule: str = field(default_factory=verdict_mod.floor_rule)
+    significance_rule: str = field(default_factory=verdict_mod.significance_rule)
+    #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
+    misfit: dict | None = None
+
+    @property
+    def floor_known(self) -> bool:
+        """A noise floor this recording measured (ratios to it may be shown)."""
+        return bool(self.noise_floor_reliable and np.isfinite(self.noise_floor))
 
     def baseline(self, candidate) -> tuple[str, float]:
         """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
@@ -87,10 +102,23 @@ class Diagnosis:
             out[c.effect] = {"residual": residual, "rms_before": before}
         return out
 
+    def candidate_dict(self, c) -> dict:
+        """A candidate's JSON: its residual, ``rms_before`` on it, and the two tests apart."""
+        residual, before = self.baseline(c)
+        significant, material = cand.tests(before, c.rms_after, c.p_value,
+                                           self.noise_floor if self.floor_known else np.nan)
+        return {**c.to_dict(), "residual": residual, "rms_before": before,
+                "significant": significant, "material": material}
+
     def to_dict(self) -> dict:
         return {"model": list(self.model), "n": self.n, "n_outliers": self.n_outliers,
-                "rms": self.rms, "noise_floor": self.noise_floor, "verdict": self.verdict,
-                "candidates": [c.to_dict() for c in self.candidates],
+                "rms": self.rms,
+                "noise_floor": float(self.noise_floor) if self.floor_known else None,
+                "noise_floor_reliable": self.floor_known,
+                "noise_floor_reason": self.noise_floor_reason,
+                "noise_floor_rule": self.noise_floor_rule, "verdict": self.verdict,
+                "significance_rule": self.significance_rule, "misfit": self.misfit,
+                "candidates": [self.candidate_dict(c) for c in self.candidates],
                 "outlier_spans": self.outlier_spans, "residual": self.residual,
                 "candidate_baselines": self.candidate_baselines(),
                 "outliers_model": list(self.outliers_model or self.model),
@@ -130,6 +158,7 @@ class _Evaluated:
     given) and inlier set."""
 
     def __init__(self, cal, m, cov, floor, reg=None):
+        t = cov.get("t") if cov is not None else None
         self.cal, self.tied = cal, reg is not None
         #: which residual: None (eq. 41), "gravity" or "gyro" (the tied residuals).
         self.kind = None if reg is None else (
@@ -150,7 +179,15 @@ class _Evaluated:
             elif inl is None or np.shape(inl) != (len(m),):
                 scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
                 inl = norm <= OUTLIER_SIGMAS * scale
-            self.inliers = np.asarray(inl, bool)
+            inl = np.asarray(inl, bool)
+            # the ramps of a disturbance are outliers too (spans.widen_outliers); the
+            # calibration then carries the same inliers, so its rms, outlier count and mask are
+            # the diagnosis' (one model, one sample set)
+            self.inliers = ~widen_outliers(t, norm, ~inl) if t is not None else inl
+            if not np.array_equal(self.inliers, inl) and hasattr(cal, "replace"):
+                self.cal = cal = cal.replace(inliers=self.inliers,
+                                             n_outliers=int((~self.inliers).sum()),
+                                             rms=rms(self.r, self.inliers))
             self.p = cand.n_global_params(cal)
         self.rms = rms(self.r, self.inliers)
         self.rss = np.sum(self.r ** 2, axis=1)
@@ -408,7 +445,12 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         # Effects that explained nothing significant alone are not retried (saves refits).
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
-    verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
+    residual = RESIDUALS[base.kind]
+    reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
+                                                  residual)
+    verdict = verdict_mod.decide(base.rms, residual, nf.floor, reliable, ranked)
+    misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float),
+                                 ctx.cov, gyro)
     # Spans and mask from the last magnetometer-only model of the ladder: a missing effect
     # makes the base model's residual large wherever the effect is (e.g. far from T0) — not
     # outliers.
@@ -416,10 +458,12 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     return Diagnosis(
         model=tuple(model), n=len(m), n_outliers=int((~np.asarray(base.inliers, bool)).sum()),
         n_outliers_model=int(outliers.sum()), rms=base.rms,
-        noise_floor=nf.floor, verdict=verdict, candidates=ranked,
+        noise_floor=nf.floor if reliable else float("nan"), verdict=verdict, candidates=ranked,
+        noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
         outlier_spans=outlier_spans(t, outliers), ladder=steps,
         residual=RESIDUALS[base.kind], outliers_model=spans_model, outliers=outliers,
         residual_families=_families(ctx, base, model),
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
-               "method": nf.method, "n_used": nf.n_used},
+               "method": nf.method, "n_used": nf.n_used, "measured": nf.measured,
+               "second_difference_corr": nf.d2_corr},
         calibration=base.cal)

@@ -15,6 +15,13 @@ The floor reported is ``sqrt(mean_i σ_i²)``: the residual of the calibration (
 reading to the fitted ellipsoid, paper eq. 41) keeps one of the three noise components — the one
 along the ellipsoid normal — whose variance, averaged over directions, is ``trace(Σ)/3``. So a
 model that explains everything has ``rms ≈ noise_floor``: like is compared with like.
+
+Whether the recording can measure it: white noise makes the second differences of consecutive
+triplets correlated at lag 1 by exactly −2/3; motion between samples (a hand-turned sensor read
+a few times a second) makes them smooth, with a lag-1 correlation near 0 or above. When the
+mean correlation is above :data:`WHITE_D2_MAX` the second differences measure the motion, not
+the noise: the floor is then not reliable (``floor`` NaN, ``measured`` keeps the number, and
+``reason`` says why in words).
 """
 from __future__ import annotations
 
@@ -27,6 +34,10 @@ MAD_TO_SIGMA = 1.482602218505602
 STILL_RATE = 0.05
 #: Fewest still triplets to prefer the still-only estimate.
 MIN_STILL = 50
+#: Lag-1 correlation of the second differences of white noise.
+WHITE_D2_CORR = -2.0 / 3.0
+#: Above this mean lag-1 correlation the second differences hold motion, not only noise.
+WHITE_D2_MAX = -0.45
 
 
 @dataclass(frozen=True)
@@ -38,6 +49,12 @@ class NoiseFloor:
     lsb: np.ndarray
     method: str
     n_used: int
+    #: False when the recording cannot measure the floor (``floor`` is then NaN); ``reason``
+    #: says why, ``measured`` is the (motion-contaminated) number the estimate gave.
+    reliable: bool = True
+    reason: str = ""
+    measured: float = float("nan")
+    d2_corr: float = float("nan")
 
 
 def estimate_lsb(values: np.ndarray) -> float:
@@ -75,7 +92,9 @@ def noise_floor(m: np.ndarray, t: np.ndarray | None = None,
     d2 = (m[2:] - 2 * m[1:-1] + m[:-2])[ok]
     if len(d2) < 3:
         nan = np.full(3, np.nan)
-        return NoiseFloor(nan, float("nan"), np.zeros(3), "too few samples", len(d2))
+        return NoiseFloor(nan, float("nan"), np.zeros(3), "too few samples", len(d2),
+                          reliable=False, reason=f"only {len(d2)} usable triplets of "
+                          "consecutive samples: too few to measure the noise")
     lsb = np.array([estimate_lsb(m[:, i]) for i in range(3)])
     med = np.median(d2, axis=0)
     dev = np.abs(d2 - med)
@@ -86,4 +105,46 @@ def noise_floor(m: np.ndarray, t: np.ndarray | None = None,
     sigma = np.sqrt(np.sum(np.where(inside, dev, 0.0) ** 2, axis=0)
                     / np.maximum(inside.sum(axis=0), 1)) / np.sqrt(6.0)
     sigma = np.sqrt(np.maximum(sigma ** 2, lsb ** 2 / 12.0))
-    return NoiseFloor(sigma, float(np.sqrt(np.mean(sigma ** 2))), lsb, method, len(d2))
+    floor = float(np.sqrt(np.mean(sigma ** 2)))
+    corr = _lag1_corr(np.where(inside, d2 - med, 0.0), ok)
+    if np.isfinite(corr) and corr > WHITE_D2_MAX:
+        rate = 1.0 / float(np.median(np.diff(t))) if t is not None and len(t) > 1 else float("nan")
+        hz = f" at {rate:.3g} Hz" if rate == rate else ""
+        reason = (f"consecutive second differences of the readings{hz} correlate at {corr:.2f} "
+                  f"where independent noise gives {WHITE_D2_CORR:.2f} (measurable only below "
+                  f"{WHITE_D2_MAX:.2f}): {_why_not_white(m)}, so the {floor:.3g} they give is "
+                  f"not the noise")
+        return NoiseFloor(sigma, float("nan"), lsb, method, len(d2), reliable=False,
+                          reason=reason, measured=floor, d2_corr=corr)
+    return NoiseFloor(sigma, floor, lsb, method, len(d2), measured=floor, d2_corr=corr)
+
+
+#: More repeated readings than this share means the log is faster than the sensor updates.
+REPEAT_SHARE = 0.1
+
+
+def _why_not_white(m: np.ndarray) -> str:
+    """Why consecutive readings (N,3) are not independent noise, in words."""
+    repeats = float(np.mean(np.all(m[1:] == m[:-1], axis=1))) if len(m) > 1 else 0.0
+    if repeats > REPEAT_SHARE:
+        return (f"{100 * repeats:.0f}% of the readings repeat the previous one exactly (logged "
+                f"faster than the sensor updates)")
+    return ("the sensor moves between samples and no still segment was found, or the readings "
+            "are filtered or interpolated")
+
+
+def _lag1_corr(d: np.ndarray, ok: np.ndarray) -> float:
+    """Mean over the axes of the lag-1 correlation of the second differences ``d`` (n,3, the
+    triplets kept by ``ok`` (n,)), over pairs of triplets that are neighbours in time."""
+    pos = np.flatnonzero(ok)
+    if len(pos) < 3:
+        return float("nan")
+    adjacent = np.diff(pos) == 1
+    if adjacent.sum() < 2:
+        return float("nan")
+    a, b = d[:-1][adjacent], d[1:][adjacent]
+    den = np.sqrt(np.sum(a * a, axis=0) * np.sum(b * b, axis=0))
+    good = den > 0
+    if not good.any():
+        return float("nan")
+    return float(np.mean(np.sum(a * b, axis=0)[good] / den[good]))

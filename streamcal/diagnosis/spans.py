@@ -22,3 +22,49 @@ def outlier_spans(t: np.ndarray, outlier: np.ndarray, max_gap: float = MAX_GAP_S
     ends = np.concatenate([breaks, [ts.size - 1]])
     keep = (ends - starts + 1) >= min_count
     return [[float(ts[s]), float(ts[e])] for s, e in zip(starts[keep], ends[keep])]
+
+
+#: A sample's residual counts as raised above this many times the inliers' median norm (the
+#: running median over :data:`RAMP_WINDOW_S`; for noise alone that median stays near 1×).
+RAMP_LEVEL = 1.5
+#: Window (s) of the running median that follows a disturbance's ramp.
+RAMP_WINDOW_S = 0.2
+
+
+def widen_outliers(t: np.ndarray, norm: np.ndarray, outlier: np.ndarray,
+                   max_gap: float = MAX_GAP_S, min_count: int = MIN_COUNT) -> np.ndarray:
+    """The ``outlier`` (N,) mask widened over the ramps of each disturbance.
+
+    A disturbance (a magnet carried past) rises and falls smoothly: the fit's rule marks its
+    peak but leaves the ramps, whose residual is raised yet below the cut, among the inliers,
+    inflating the rms. Around each cluster of outliers (as :func:`outlier_spans`, times ``t``
+    (N,) s in order), the samples whose running median of the residual norm ``norm`` (N,)
+    stays above :data:`RAMP_LEVEL` × the inliers' median norm, continuously from the cluster
+    and at most the cluster's own duration (or ``max_gap``) from it, become outliers too.
+    A sample whose neighbourhood looks like noise is never added."""
+    from scipy.ndimage import median_filter
+
+    t = np.asarray(t, dtype=float)
+    norm = np.asarray(norm, dtype=float)
+    out = np.asarray(outlier, bool).copy()
+    n = len(t)
+    if n < 3 or not out.any() or out.all() or np.any(np.diff(t) < 0):
+        return out
+    dt = float(np.median(np.diff(t)))
+    w = max(3, int(round(RAMP_WINDOW_S / dt)) if dt > 0 else 3) | 1
+    level = RAMP_LEVEL * float(np.median(norm[~out]))
+    raised = median_filter(np.where(np.isfinite(norm), norm, np.inf), size=w,
+                           mode="nearest") > level
+    for a, b in outlier_spans(t, out, max_gap, min_count):
+        reach = max(b - a, max_gap)
+        i0 = int(np.searchsorted(t, a, side="left"))
+        i1 = int(np.searchsorted(t, b, side="right")) - 1
+        lo = int(np.searchsorted(t, a - reach, side="left"))
+        hi = int(np.searchsorted(t, b + reach, side="right")) - 1
+        # extend left from i0 while raised, right from i1 while raised
+        left = raised[lo:i0][::-1]
+        k = int(np.argmin(left)) if left.size and not left.all() else left.size
+        right = raised[i1 + 1:hi + 1]
+        j = int(np.argmin(right)) if right.size and not right.all() else right.size
+        out[i0 - k:i1 + 1 + j] = True
+    return out

@@ -57,6 +57,9 @@ _PARAM_UNITS = {
     ("time_drift", "t0"): "s", ("time_drift", "d"): "{u}/s",
     ("axis_nonlinearity", "R"): "{u}", ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
     ("aux_interference", "a0"): "channel unit", ("aux_interference", "g"): "{u} per channel unit",
+    ("time_lag", "tau"): "s",
+    ("mag_accel_misalignment", "rotation"): "rad (rotation vector, mag frame to accel frame)",
+    ("mag_accel_misalignment", "dip"): "rad (angle between the field and down)",
 }
 
 
@@ -96,34 +99,65 @@ def _residual_name(residual: str) -> str:
     return f"{label} ({what})"
 
 
+def _floor_text(d, unit: str) -> str:
+    """"x× the noise floor (f unit)", or why there is no floor to compare with."""
+    if not d.floor_known:
+        return (f"the noise floor cannot be measured from this recording "
+                f"({_e(d.noise_floor_reason)})")
+    return (f"{_num(d.rms / d.noise_floor, '.2f')}× the noise floor "
+            f"({_num(d.noise_floor)} {unit})")
+
+
+def _misfit(d) -> str:
+    from ..diagnosis.misfit import summary
+
+    lines = summary(d.misfit or {})
+    if not lines:
+        return ""
+    return ("<p>Where the misfit sits (share of the residual energy against share of the "
+            "samples):</p><ul>" + "".join(f"<li>{_e(' '.join(line.split()))}</li>"
+                                          for line in lines) + "</ul>")
+
+
 def _summary(d, track_name: str, unit: str) -> str:
+    rule = f'<br><span class="sub">{_e(d.noise_floor_rule)}.</span>'
     if d.verdict == "effect_missing" and d.candidates:
         top = d.candidates[0]
         residual, before = d.baseline(top)
         cmd = f"streamcal fit {track_name} --add {top.effect}"
         if residual == "sensor":
-            gives = (f"<b>{_num(top.rms_after)} {unit}</b> "
-                     f"({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)")
+            ratio = (f" ({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)"
+                     if d.floor_known else "")
+            gives = f"<b>{_num(top.rms_after)} {unit}</b> on the sensor residual{ratio}"
         else:   # another residual: compare with the model on that residual, not with d.rms
+            floor = (f"; that residual cannot go below about "
+                     f"{_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, noise alone"
+                     if d.floor_known else "")
             gives = (f"<b>{_num(top.rms_after)} {unit}</b> on the {_e(_residual_name(residual))}, "
                      f"where the model without it gives {_num(before)} {unit} "
-                     f"({_e(relative_change(before, top.rms_after))}; that residual cannot go "
-                     f"below about {_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, "
-                     f"noise alone)")
+                     f"({_e(relative_change(before, top.rms_after))}{floor})")
         return (f'<div class="box missing"><b>An effect is missing.</b> The model '
                 f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
-                f"<b>{_num(d.rms)} {unit}</b>, {_num(d.rms / d.noise_floor, '.2f')}× the noise "
-                f"floor ({_num(d.noise_floor)} {unit}). The best candidate is "
+                f"<b>{_num(d.rms)} {unit}</b> on the {_e(_residual_name(d.residual))}, "
+                f"{_floor_text(d, unit)}. The best candidate is "
                 f"<b>{_e(top.effect)}</b> ({_e(top.evidence)}): adding it gives {gives}. Try "
-                f"<code>{_e(cmd)}</code>.</div>")
+                f"<code>{_e(cmd)}</code>.{rule}</div>")
+    if d.verdict == "unexplained":
+        return (f'<div class="box missing"><b>The misfit is not explained.</b> The model '
+                f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
+                f"<b>{_num(d.rms)} {unit}</b> on the {_e(_residual_name(d.residual))}, "
+                f"{_floor_text(d, unit)}, and no candidate effect is both significant and "
+                f"material.{rule}{_misfit(d)}</div>")
     return (f'<div class="box floor"><b>The model is at the noise floor.</b> rms residual '
-            f"{_num(d.rms)} {unit} against a noise floor of {_num(d.noise_floor)} {unit}; no "
-            f"candidate effect lowers it materially.</div>")
+            f"{_num(d.rms)} {unit} on the {_e(_residual_name(d.residual))} against a noise "
+            f"floor of {_num(d.noise_floor)} {unit}; no candidate effect lowers it "
+            f"materially.{rule}</div>")
 
 
 def _floor_ratio(rms: float, residual: str, floor: float) -> str:
-    """× the noise floor, only where the rms is on the residual the floor is for."""
-    return _num(rms / floor, ".2f") if residual == "sensor" else "–"
+    """× the noise floor, only where the rms is on the residual the floor is for and the
+    floor was measured."""
+    return _num(rms / floor, ".2f") if residual == "sensor" and np.isfinite(floor) else "–"
 
 
 _SCALES_NOTE = ("<p class=\"sub\">Each rms is on the residual named in its row, and is compared "
@@ -142,16 +176,20 @@ def _candidates(d, unit: str) -> str:
                "the model already holds them.</p>"
     rows = []
     for c in d.candidates:
-        residual, before = d.baseline(c)
+        row = d.candidate_dict(c)
+        residual, before = row["residual"], row["rms_before"]
+        ratio = (_floor_ratio(c.rms_after, residual, d.noise_floor),) if d.floor_known else ()
         rows.append((_e(c.effect), _e(RESIDUAL_FAMILIES.get(residual, ("?",))[0]), _num(before),
-                     _num(c.rms_after), _e(relative_change(before, c.rms_after)),
-                     _floor_ratio(c.rms_after, residual, d.noise_floor),
-                     _num(c.p_value, ".2e"), "yes" if c.significant else "no", _e(c.evidence)))
-    table = _table(("effect", "residual", f"rms before ({unit})", f"rms after ({unit})",
-                    "change", "× floor", "p-value", "significant", "evidence"), rows,
-                   numeric=(2, 3, 4, 5, 6))
+                     _num(c.rms_after), _e(relative_change(before, c.rms_after)), *ratio,
+                     _num(c.p_value, ".2e"), "yes" if row["significant"] else "no",
+                     "yes" if row["material"] else "no", _e(c.evidence)))
+    head = ("effect", "residual", f"rms before ({unit})", f"rms after ({unit})", "change",
+            *(("× floor",) if d.floor_known else ()), "p-value", "significant", "material",
+            "evidence")
+    table = _table(head, rows, numeric=tuple(range(2, 7 if d.floor_known else 6)))
     mixed = any(d.baseline(c)[0] != "sensor" for c in d.candidates)
-    return table + (_SCALES_NOTE if mixed else "")
+    rule = f'<p class="sub">Rule: {_e(d.significance_rule)}; an effect is missing only when both hold.</p>'
+    return table + rule + (_SCALES_NOTE if mixed else "")
 
 
 def _ladder(d, unit: str) -> str:
@@ -164,13 +202,18 @@ def _ladder(d, unit: str) -> str:
                      _num(before) if before is not None else "",
                      _num(step["rms"]),
                      _e(relative_change(before, step["rms"])) if before is not None else "",
-                     _floor_ratio(step["rms"], step["residual"], d.noise_floor),
+                     *((_floor_ratio(step["rms"], step["residual"], d.noise_floor),)
+                       if d.floor_known else ()),
                      _num(step.get("p_value"), ".2e") if "p_value" in step else ""))
-    rows.append(("noise floor", "sensor residual", "", _num(d.noise_floor), "", "1.00", ""))
+    if d.floor_known:
+        rows.append(("noise floor", "sensor residual", "", _num(d.noise_floor), "", "1.00", ""))
     table = _table(("step", "residual", f"rms before ({unit})", f"rms ({unit})", "change",
-                    "× floor", "p-value"), rows, numeric=(2, 3, 4, 5, 6))
+                    *(("× floor",) if d.floor_known else ()), "p-value"), rows,
+                   numeric=tuple(range(2, 7 if d.floor_known else 6)))
     mixed = any(s["residual"] != "sensor" for s in steps)
-    return table + (_SCALES_NOTE if mixed else "")
+    # the note is given once: under the candidates when they already mix residuals
+    said = any(d.baseline(c)[0] != "sensor" for c in d.candidates)
+    return table + (_SCALES_NOTE if mixed and not said else "")
 
 
 def _parameters(cal, unit: str) -> str:
@@ -191,14 +234,20 @@ def _parameters(cal, unit: str) -> str:
             u = _PARAM_UNITS.get((effect, key), "").format(u=unit)
             rows.append((_e(f"{effect}: {key}"), _vec(value) if np.ndim(value) else _num(value),
                          _e(u)))
-    rows += [("field strength", _num(cal.field), unit), ("rms (inliers)", _num(cal.rms), unit),
+    from ..diagnosis.scales import calibration_residual
+
+    label = RESIDUAL_FAMILIES[calibration_residual(cal)][0]
+    rows += [("field strength", _num(cal.field), unit),
+             (_e(f"rms on the {label} (inliers)"), _num(cal.rms), unit),
              ("samples / outliers of this fit", f"{cal.n} / {cal.n_outliers}", "")]
     return _table(("parameter", "value", "unit"), rows)
 
 
 def _noise(d, unit: str) -> str:
     n = d.noise or {}
-    rows = [("noise floor", _num(d.noise_floor), unit),
+    floor = (_num(d.noise_floor) if d.floor_known
+             else "not measurable: " + _e(d.noise_floor_reason))
+    rows = [("noise floor", floor, unit if d.floor_known else ""),
             ("σ per axis", _vec(n.get("sigma_axes", [])), unit),
             ("quantization step (LSB) per axis", _vec(n.get("lsb", [])), unit),
             ("estimated by", _e(n.get("method", "")), ""), ("samples used", _e(n.get("n_used", "")), "")]
