@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from streamcal.samples import SampleBlock
-from streamcal import trackio
+from streamcal.inputs import trackio
 from streamcal.errors import InputError, TrackError
 from streamcal.inputs.track import Track
 

@@ -17,7 +17,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from tests._corruption import corrupt
-from streamcal import trackio
+from streamcal.inputs import trackio
 from streamcal.errors import TrackError
 from streamcal.inputs.track import Track
 from streamcal.inputs.trackio import NUMBER
