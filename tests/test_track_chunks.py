@@ -82,3 +82,28 @@ def test_time_going_backwards_across_a_chunk_boundary_is_located(tmp_path):
 def test_real_gzip_track_in_chunks_equals_the_whole(real_tracks_dir):
     path = real_tracks_dir / "sunsided_set2_fullsphere.csv.gz"
     _assert_same(_chunked(path, False, 1000), _whole(path, False))
+
+
+def test_blocks_across_chunks_are_the_whole_tracks_blocks(real_tracks_dir):
+    from streamcal.inputs.chunks import iter_track_blocks
+
+    path = real_tracks_dir / "tiva_mpu9250_mag_03.csv"
+    whole = list(Track.read(path).blocks(50))
+    cut = list(iter_track_blocks(iter_track_chunks(path, rows=37), 50))
+    assert [len(b.t) for b in cut] == [len(b.t) for b in whole]
+    for a, b in zip(cut, whole):
+        np.testing.assert_array_equal(a.t, b.t)
+        np.testing.assert_array_equal(a.mag, b.mag)
+        assert a.source == b.source
+
+
+def test_replay_output_does_not_depend_on_the_chunk_size(real_tracks_dir, monkeypatch, capsys):
+    from streamcal.cli import main, replay
+
+    path = str(real_tracks_dir / "tiva_mpu9250_mag_03.csv")
+    outputs = []
+    for rows in (50_000, 23):
+        monkeypatch.setattr(replay, "_CHUNK_ROWS", rows)
+        assert main(["replay", path, "--sync-fits", "--json"]) == 0
+        outputs.append(capsys.readouterr().out)
+    assert outputs[0] == outputs[1] and '"event": "summary"' in outputs[0]

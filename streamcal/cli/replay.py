@@ -7,6 +7,7 @@ directory as the daemon would.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import re
@@ -21,6 +22,8 @@ from ..calibration import DEFAULT_MODEL
 #: environment's: soft iron leaves 1.7–6.4 % on the real one-environment tracks, BROAD 32 (a
 #: magnet on the board for half of it) 9 %.
 _ONE_SPHERE = 0.08
+#: Rows per chunk read from the track file (a few MB in memory).
+_CHUNK_ROWS = 50_000
 
 
 def register(sub) -> None:
@@ -50,14 +53,14 @@ def run(args) -> int:
 
     from ..errors import InputError
     from ..stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
-    from ..inputs.track import Track
+    from ..inputs.chunks import iter_track_blocks, iter_track_chunks
 
     if args.block < 1:
         raise InputError(f"--block: must be a positive number of rows, got {args.block}")
     model = tuple(m.strip() for m in args.model.split(",") if m.strip())
-    track = Track.read(args.track, skip_bad_rows=args.skip_bad_rows)
-    if not track.mag_rows.any():
-        raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
+    # read in chunks: memory bounded by a chunk, not by the recording's length
+    chunks = iter_track_chunks(args.track, rows=_CHUNK_ROWS, skip_bad_rows=args.skip_bad_rows)
+    track = next(chunks)       # the first chunk: the file's columns and metadata
     covariates = tuple(n for n in ("temp", *track.aux_names) if track.has(n))
     store = CalibrationStore(args.state_dir) if args.state_dir else None
     calibrator = StreamingCalibrator(store=store, model=model, unit=track.mag_unit,
@@ -66,11 +69,12 @@ def run(args) -> int:
     emit = _printer(args.json)
     counts: dict[str, int] = {}
     refusals: dict[str, int] = {}        # why fits failed or candidates were rejected
-    bar = tqdm(total=len(track), unit="row", file=sys.stderr, dynamic_ncols=True,
+    bar = tqdm(total=None, unit="row", file=sys.stderr, dynamic_ncols=True,
                disable=args.json or not sys.stderr.isatty(), desc="replay")
-    start_wall, start_t = time.monotonic(), float(track.t[0]) if len(track) else 0.0
+    start_wall, start_t = time.monotonic(), None
     try:
-        for block in track.blocks(args.block):
+        for block in iter_track_blocks(itertools.chain([track], chunks), args.block):
+            start_t = float(block.t[0]) if start_t is None else start_t
             if args.realtime:
                 delay = start_wall + (float(block.t[-1]) - start_t) - time.monotonic()
                 if delay > 0:
@@ -88,9 +92,11 @@ def run(args) -> int:
             emit(event, bar)
     finally:
         bar.close()
+    if not calibrator.n_ingested:
+        raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
     summary = _summary(calibrator, counts, track, args)
     if calibrator.calibration is None:
-        summary["why"] = _why_none(calibrator, refusals, track.mag)
+        summary["why"] = _why_none(calibrator, refusals, _mag_sample(args, calibrator.n_ingested))
     if args.json:
         print(json.dumps(summary, default=_jsonable))
     else:
@@ -100,6 +106,19 @@ def run(args) -> int:
               file=sys.stderr)
         return 1
     return 0
+
+
+def _mag_sample(args, n: int, most: int = 200_000):
+    """The track's ``n`` magnetometer samples (n,3), or every k-th (k = ⌈n / most⌉) — read in
+    a second pass over the file so that memory stays bounded."""
+    from ..inputs.chunks import iter_track_chunks
+
+    step, seen, parts = max(1, -(-n // most)), 0, []
+    for chunk in iter_track_chunks(args.track, rows=_CHUNK_ROWS, skip_bad_rows=args.skip_bad_rows):
+        m = chunk.mag
+        parts.append(m[(-seen) % step::step])
+        seen += len(m)
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
 def _printer(as_json: bool):

@@ -125,3 +125,21 @@ def iter_track_chunks(path: str | os.PathLike, rows: int = 100_000,
     if not n_rows:
         raise TrackError(f"no valid data rows: all {n_skipped} rows are bad; first: "
                          f"{first_reason}", where)
+
+
+def iter_track_blocks(chunks: Iterator[Track], n: int) -> Iterator:
+    """Re-cut the chunks of :func:`iter_track_chunks` into
+    :class:`streamcal.samples.SampleBlock` s of exactly ``n`` rows (the last may be shorter):
+    the blocks ``Track.read(path).blocks(n)`` gives, with one chunk (plus < ``n`` rows) in memory."""
+    left: Track | None = None
+    for chunk in chunks:
+        if left is not None and len(left):
+            chunk = Track({name: np.concatenate([left.columns[name], col])
+                           for name, col in chunk.columns.items()}, chunk.metadata, chunk.path,
+                          np.concatenate([left.lines, chunk.lines]))
+        whole = len(chunk) - len(chunk) % n
+        if whole:
+            yield from chunk.select(slice(0, whole)).blocks(n)
+        left = chunk.select(slice(whole, len(chunk)))
+    if left is not None and len(left):
+        yield from left.blocks(n)
