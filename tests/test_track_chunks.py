@@ -61,7 +61,12 @@ def test_chunks_match_the_whole_file_reader(tmp_path, monkeypatch, track, ops, d
     meta, names, cells, _ = track
     path = tmp_path / "chunky.csv"
     path.write_bytes(corrupt(render(meta, names, cells), ops, data))
-    _assert_same(_outcome(lambda: _chunked(path, skip, rows)), _outcome(lambda: _whole(path, skip)))
+    chunked, whole = _outcome(lambda: _chunked(path, skip, rows)), _outcome(lambda: _whole(path, skip))
+    if whole[0] == "error" and "gzip" in whole[1] and chunked != whole:
+        # a stream meets the damage only at its end: a bad cell or line before it comes first
+        assert chunked[0] == "error" and chunked[2] is not None, chunked
+        return
+    _assert_same(chunked, whole)
 
 
 def test_time_going_backwards_across_a_chunk_boundary_is_located(tmp_path):

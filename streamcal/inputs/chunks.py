@@ -6,6 +6,8 @@ It applies the same rules, through the same functions, as :func:`streamcal.input
 (metadata, header, cells, partial triples, time going backwards — also across chunk boundaries)
 and raises the same :class:`~streamcal.errors.TrackError` naming file, physical line and column;
 an error is raised when the chunk holding it is reached, after the chunks before it were yielded.
+One difference follows: a truncated or damaged gzip stream is found where it ends, so a bad line
+before the damage is reported first (the whole-file reader reports the damage).
 """
 from __future__ import annotations
 
