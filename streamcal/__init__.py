@@ -15,14 +15,15 @@ from .errors import (CalibrationFileError, InputError, InsufficientDataError, St
 __version__ = "0.1.0"
 
 __all__ = ["Calibration", "CalibrationFileError", "InputError", "InsufficientDataError",
-           "StreamcalError", "Track", "TrackError", "diagnose", "fit"]
+           "StreamcalError", "Track", "TrackError", "batch", "diagnose", "fit"]
 
 # The public functions are bound on first use so that ``import streamcal`` stays light for the
 # command line and the daemon. No subpackage carries one of these names, so importing a
 # submodule can never rebind them.
 _LAZY = {"Track": ("streamcal.inputs.track", "Track"),
          "fit": ("streamcal.fitting", "fit"),
-         "diagnose": ("streamcal.diagnosis", "diagnose")}
+         "diagnose": ("streamcal.diagnosis", "diagnose"),
+         "batch": ("streamcal.batching", "batch")}
 
 
 def __getattr__(name):

@@ -7,7 +7,7 @@ import pytest
 from streamcal.cli import main
 
 track_mod = pytest.importorskip("streamcal.inputs.track")
-pytest.importorskip("streamcal.fit")
+pytest.importorskip("streamcal.fitting")
 
 
 def _write_track(path, duration, seed=0, cap=None):

@@ -41,11 +41,16 @@ def test_public_api_stays_callable_after_every_module_is_imported():
     track = _small_track()
     for _ in range(2):
         assert callable(streamcal.fit) and callable(streamcal.diagnose)
+        assert callable(streamcal.batch)
         cal = streamcal.fit(track)
         assert np.isfinite(cal.rms) and cal.K.shape == (3, 3)
         d = streamcal.diagnose(track, model=cal.model)
         assert d.verdict in ("at_noise_floor", "effect_missing", "unexplained")
     assert fit is streamcal.fit and diagnose is streamcal.diagnose
+    from streamcal import batch
+    from streamcal.batching import batch as batch_function
+
+    assert batch is streamcal.batch is batch_function
 
 
 def test_layers_contract_holds():

@@ -24,3 +24,16 @@ def read_track(args, path=None):
     return read_recording(args.track if path is None else path,
                           columns=getattr(args, "columns", None), unit=getattr(args, "unit", None),
                           skip_bad_rows=getattr(args, "skip_bad_rows", False))
+
+
+def recording_chunks(args, rows: int):
+    """The recording named by ``args.track`` as consecutive Tracks of at most ``rows`` rows when
+    it is a section-1 track (read incrementally), else as one Track (autopilot logs, captures
+    and mapped CSV files are read whole by their readers)."""
+    from ..inputs.chunks import iter_track_chunks
+    from ..inputs.detect import detect
+
+    if getattr(args, "columns", None) is None and detect(args.track) == "track":
+        return iter_track_chunks(args.track, rows=rows,
+                                 skip_bad_rows=getattr(args, "skip_bad_rows", False))
+    return iter([read_track(args)])

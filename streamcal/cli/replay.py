@@ -7,6 +7,7 @@ directory as the daemon would.
 """
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import re
@@ -16,12 +17,14 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import RECORDING_HELP, add_input_options, recording_chunks
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
 #: environment's: soft iron leaves 1.7–6.4 % on the real one-environment tracks, BROAD 32 (a
 #: magnet on the board for half of it) 9 %.
 _ONE_SPHERE = 0.08
+#: Rows per chunk read from the track file (about 1 MB of text; 50 000 rows peaked 60 MiB higher).
+_CHUNK_ROWS = 10_000
 
 
 def register(sub) -> None:
@@ -57,13 +60,15 @@ def run(args) -> int:
 
     from ..errors import InputError
     from ..stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
+    from ..inputs.chunks import iter_track_blocks
 
     if args.block < 1:
         raise InputError(f"--block: must be a positive number of rows, got {args.block}")
     model = tuple(m.strip() for m in args.model.split(",") if m.strip())
-    track = read_track(args)
-    if not track.mag_rows.any():
-        raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
+    # section-1 tracks are read in chunks (memory bounded by a chunk, not the recording's
+    # length); other formats are read whole by their libraries
+    chunks = recording_chunks(args, rows=_CHUNK_ROWS)
+    track = next(chunks)       # the first chunk: the file's columns and metadata
     covariates = tuple(n for n in ("temp", *track.aux_names) if track.has(n))
     store = CalibrationStore(args.state_dir) if args.state_dir else None
     calibrator = StreamingCalibrator(store=store, model=model, unit=track.mag_unit,
@@ -72,11 +77,12 @@ def run(args) -> int:
     emit = _printer(args.json)
     counts: dict[str, int] = {}
     refusals: dict[str, int] = {}        # why fits failed or candidates were rejected
-    bar = tqdm(total=len(track), unit="row", file=sys.stderr, dynamic_ncols=True,
+    bar = tqdm(total=None, unit="row", file=sys.stderr, dynamic_ncols=True,
                disable=args.json or not sys.stderr.isatty(), desc="replay")
-    start_wall, start_t = time.monotonic(), float(track.t[0]) if len(track) else 0.0
+    start_wall, start_t = time.monotonic(), None
     try:
-        for block in track.blocks(args.block):
+        for block in iter_track_blocks(itertools.chain([track], chunks), args.block):
+            start_t = float(block.t[0]) if start_t is None else start_t
             if args.realtime:
                 delay = start_wall + (float(block.t[-1]) - start_t) - time.monotonic()
                 if delay > 0:
@@ -94,9 +100,11 @@ def run(args) -> int:
             emit(event, bar)
     finally:
         bar.close()
+    if not calibrator.n_ingested:
+        raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
     summary = _summary(calibrator, counts, track, args)
     if calibrator.calibration is None:
-        summary["why"] = _why_none(calibrator, refusals, track.mag)
+        summary["why"] = _why_none(calibrator, refusals, _mag_sample(args, calibrator.n_ingested))
     if args.json:
         print(json.dumps(summary, default=_jsonable))
     else:
@@ -116,6 +124,17 @@ def _synchronous(args) -> bool:
 
         raise InputError("--sync-fits and --async-fits: choose one")
     return args.sync_fits or not (args.realtime or args.async_fits)
+
+
+def _mag_sample(args, n: int, most: int = 200_000):
+    """The track's ``n`` magnetometer samples (n,3), or every k-th (k = ⌈n / most⌉) — read in
+    a second pass over the file so that memory stays bounded."""
+    step, seen, parts = max(1, -(-n // most)), 0, []
+    for chunk in recording_chunks(args, rows=_CHUNK_ROWS):
+        m = chunk.mag
+        parts.append(m[(-seen) % step::step])
+        seen += len(m)
+    return np.concatenate(parts) if parts else np.zeros((0, 3))
 
 
 def _printer(as_json: bool):

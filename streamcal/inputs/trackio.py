@@ -306,20 +306,53 @@ def read(path: str | os.PathLike, skip_bad_rows: bool = False) -> Parsed:
     """Parse the track file at ``path``; raise :class:`TrackError` naming file, line and column."""
     where = os.fspath(path)
     text = _decode(_load_bytes(where))
+    metadata, header_index, names, body = parse_preamble(text, where)
+    values, numbers, skipped, reasons = parse_rows(body, header_index + 2, names, where,
+                                                   skip_bad_rows)
+    if not len(numbers) and not skipped:
+        raise TrackError("no data rows after the header", where, header_index + 1)
+    if not len(values):
+        raise TrackError(f"no valid data rows: all {skipped} rows are bad; first: "
+                         f"{reasons[0]}", where)
+    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
+    return Parsed(columns, metadata, numbers, skipped, reasons)
+
+
+def parse_preamble(text: str, where: str):
+    """Metadata, header and the text after it: ``(metadata, header index (0-based), column
+    names, body text)``; raises :class:`TrackError` as :func:`read` does."""
     metadata, header_index, header, body = _split_preamble(text, where)
     version = metadata.get(VERSION_KEY)
     if version is not None and version != VERSION:
         raise TrackError(f"unsupported track format version {version!r} (this reader knows "
                          f"{VERSION})", where, None, None)
-    names = _parse_header(header, header_index + 1, where)
-    body, numbers, lines = _body_lines(body, header_index + 2)
+    return metadata, header_index, _parse_header(header, header_index + 1, where), body
+
+
+def parse_rows(body: str, first_line: int, names: list[str], where: str, skip_bad_rows: bool,
+               t_before: float | None = None):
+    """Parse data lines (``body``, its first line being physical line ``first_line``).
+
+    Returns ``(values (R,C), line numbers (R,), rows skipped, first few skip reasons)``; raises
+    :class:`TrackError` at the first bad row unless ``skip_bad_rows``. ``t_before``: the largest
+    time of the valid rows before ``body`` in the same file (a chunk's predecessors), so that
+    time going backwards across chunks is found and worded as for the whole file.
+    """
+    body, numbers, lines = _body_lines(body, first_line)
     if not len(numbers):
-        raise TrackError("no data rows after the header", where, header_index + 1)
+        return np.zeros((0, len(names))), numbers, 0, []
     values = _parse_fast(body, len(numbers), len(names))
     problems: dict[int, tuple[str | None, str]] = {}
     if values is None:
         values, problems = _parse_slow(body.split("\n") if lines is None else lines, names)
-    _semantic_problems(values, names, problems)
+    if t_before is not None:   # a valid first row carrying the earlier rows' largest time
+        before = np.full((1, len(names)), np.nan)
+        before[0, names.index(TIME)] = t_before
+        shifted = {r + 1: v for r, v in problems.items()}
+        _semantic_problems(np.vstack([before, values]), names, shifted)
+        problems = {r - 1: v for r, v in shifted.items()}
+    else:
+        _semantic_problems(values, names, problems)
     reasons: list[str] = []
     if problems:
         bad = np.array(sorted(problems), dtype=np.int64)
@@ -333,11 +366,7 @@ def read(path: str | os.PathLike, skip_bad_rows: bool = False) -> Parsed:
         keep = np.ones(len(values), dtype=bool)
         keep[bad] = False
         values, numbers = values[keep], numbers[keep]
-        if not len(values):
-            raise TrackError(f"no valid data rows: all {len(bad)} rows are bad; first: "
-                             f"{reasons[0]}", where)
-    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
-    return Parsed(columns, metadata, numbers, len(problems), reasons)
+    return values, numbers, len(problems), reasons
 
 
 def check_metadata(metadata) -> dict[str, str]:
