@@ -6,7 +6,7 @@
 fails gives a row with ``status="error"`` and its error (exception type and message), never the
 end of the run.
 
-Tasks are top-level functions ``(path) -> dict`` so that every executor can pickle them by
+Tasks are top-level functions ``(path) -> dict`` so that every executor can serialize them by
 reference; :data:`TASKS` names the built-in ones.
 """
 from __future__ import annotations
