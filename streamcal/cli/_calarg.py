@@ -1,4 +1,4 @@
-"""``--cal CAL`` / ``--initial CAL``: a calibration JSON file (SPEC §2) or a daemon/replay state
+"""``--cal CAL`` / ``--initial CAL``: a calibration JSON file (docs/calibration_file.md) or a daemon/replay state
 directory (its ``calibration.json``, else the newest good ``history/NNNN.json``, as
 :class:`streamcal.stream.store.CalibrationStore` keeps them). Read only: the directory is not
 created, pruned or re-permissioned."""
