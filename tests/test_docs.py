@@ -127,3 +127,17 @@ def test_every_diagnose_json_key_is_documented(tmp_path, capsys):
     text = (DOCS / "diagnosis.md").read_text(encoding="utf-8")
     undocumented = sorted(k for k in keys if f"`{k}`" not in text)
     assert not undocumented, f"docs/diagnosis.md does not mention {undocumented}"
+
+
+@pytest.mark.parametrize("path", _markdown_files(), ids=lambda p: p.name)
+def test_table_rows_have_as_many_cells_as_the_header(path):
+    """A '|' inside a cell (e.g. |B| in code) splits it and breaks the rendered table."""
+    rows = None
+    for number, line in enumerate(path.read_text(encoding="utf-8").splitlines(), 1):
+        if not line.startswith("|"):
+            rows = None
+            continue
+        cells = len(re.findall(r"(?<!\\)\|", line)) - 1
+        if rows is None:
+            rows = cells
+        assert cells == rows, f"{path.name}:{number}: {cells} cells, the header has {rows}"
