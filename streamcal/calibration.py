@@ -1,9 +1,9 @@
 """The calibration result: a versioned value with units that applies itself to (N,3) arrays.
 
-Model (docs/calibration_file.md): ``m = K x + b + Σ effect terms + noise``, ``x`` the unit field direction in the
-sensor (body) frame, ``K`` upper triangular with a positive diagonal (the canonical form), ``b``
-the offset, both in the sensor's unit (µT for ``sensor: mag``, m/s² for ``sensor: accel`` unless
-the track declares another unit).
+Model (docs/calibration_file.md): ``m = K x + b + Σ effect terms + noise``, ``x`` the unit field
+direction in the sensor (body) frame, ``K`` upper triangular with a positive diagonal (the
+canonical form), ``b`` the offset, both in the sensor's unit (µT for ``sensor: mag``, m/s² for
+``sensor: accel`` unless the track declares another unit).
 """
 from __future__ import annotations
 

@@ -32,7 +32,8 @@ class TrackError(InputError):
 
 
 class CalibrationFileError(InputError):
-    """A calibration JSON file that is damaged, foreign or fails validation (docs/calibration_file.md)."""
+    """A calibration JSON file that is damaged, foreign or fails validation
+    (docs/calibration_file.md)."""
 
 
 class UnknownEffectError(InputError):

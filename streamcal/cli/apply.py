@@ -14,7 +14,8 @@ def register(sub) -> None:
                        description="Write the calibrated field (µT), the unit direction and, with an "
                        "accelerometer, the tilt-compensated heading of every magnetometer sample "
                        "of a recording to a CSV file (see docs/cli.md).")
-    p.add_argument("calibration", metavar="CAL.json", help="calibration file (docs/calibration_file.md)")
+    p.add_argument("calibration", metavar="CAL.json",
+                   help="calibration file (docs/calibration_file.md)")
     p.add_argument("track", metavar="LOG", help=RECORDING_HELP)
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="file to write (atomic)")
     add_input_options(p, skip_bad_rows=True)

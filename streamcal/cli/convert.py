@@ -1,4 +1,5 @@
-"""``streamcal convert LOG -o TRACK.csv``: any supported recording → a track (docs/tracks_and_inputs.md)."""
+"""``streamcal convert LOG -o TRACK.csv``: any supported recording → a track
+(docs/tracks_and_inputs.md)."""
 from __future__ import annotations
 
 import sys

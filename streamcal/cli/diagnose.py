@@ -21,7 +21,8 @@ def register(subparsers) -> None:
     add_input_options(p, skip_bad_rows=True)
     p.add_argument("--model", default="hard_iron,soft_iron",
                    help="comma-separated effects (docs/effects.md; default: hard_iron,soft_iron)")
-    p.add_argument("--json", action="store_true", help="print one JSON object (keys in docs/diagnosis.md)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (keys in docs/diagnosis.md)")
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "daemon/replay state dir; its model replaces --model): re-estimate only what "

@@ -1,4 +1,5 @@
-"""``streamcal record (--bus N | --port DEV) -o TRACK.csv``: record a track (docs/tracks_and_inputs.md).
+"""``streamcal record (--bus N | --port DEV) -o TRACK.csv``: record a track
+(docs/tracks_and_inputs.md).
 
 Rows are written as sampled (``t,ax,ay,az,gx,gy,gz,mx,my,mz,temp``, empty cells where a sensor
 had no new value), ``t`` in seconds from the first sample, with metadata naming the sensor and
