@@ -11,9 +11,10 @@ from ._common import RECORDING_HELP, add_input_options, read_track
 
 def register(sub) -> None:
     p = sub.add_parser("apply", help="apply a calibration to a recording",
-                       description="Write the calibrated field (µT), the unit direction and, with an "
-                       "accelerometer, the tilt-compensated heading of every magnetometer sample "
-                       "of a recording to a CSV file (see docs/cli.md).")
+                       description="Write the calibrated field (µT), the unit direction and, "
+                                   "with an accelerometer, the tilt-compensated heading of every "
+                                   "magnetometer sample of a recording to a CSV file (see "
+                                   "docs/cli.md).")
     p.add_argument("calibration", metavar="CAL.json",
                    help="calibration file (docs/calibration_file.md)")
     p.add_argument("track", metavar="LOG", help=RECORDING_HELP)

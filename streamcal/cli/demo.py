@@ -33,9 +33,10 @@ BAR_WIDTH = 30
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="replay the bundled track through the fake-bus driver "
                               "and the streaming calibrator, diagnose it, write a report",
-                              description="The out-of-the-box main job, no hardware and no network needed: "
-                              "replay the bundled track through the fake-bus MPU-9250 driver "
-                              "and the streaming calibrator, diagnose it, write a report.")
+                              description="The out-of-the-box main job, no hardware and no "
+                                          "network needed: replay the bundled track through the "
+                                          "fake-bus MPU-9250 driver and the streaming "
+                                          "calibrator, diagnose it, write a report.")
     p.add_argument("--track", metavar="PATH", help="demo another track instead of the bundled one")
     p.add_argument("-o", "--output", metavar="HTML", default=DEFAULT_REPORT,
                    help="report file (default: %(default)s; relative to --out-dir when given)")

@@ -15,9 +15,11 @@ from ._common import RECORDING_HELP, add_input_options, read_track
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("report", help="diagnose a track and write a self-contained HTML "
-                              "report of figures", description="Diagnose a recording and write the residuals, the "
-                              "candidate effects and the model ladder as figures into one "
-                              "self-contained HTML page (see docs/diagnosis.md).")
+                              "report of figures",
+                              description="Diagnose a recording and write the residuals, the "
+                                          "candidate effects and the model ladder as figures "
+                                          "into one self-contained HTML page (see "
+                                          "docs/diagnosis.md).")
     p.add_argument("track", help=RECORDING_HELP)
     add_input_options(p)
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
