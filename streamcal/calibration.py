@@ -1,9 +1,9 @@
 """The calibration result: a versioned value with units that applies itself to (N,3) arrays.
 
-Model (SPEC §2): ``m = K x + b + Σ effect terms + noise``, ``x`` the unit field direction in the
-sensor (body) frame, ``K`` upper triangular with a positive diagonal (the canonical form), ``b``
-the offset, both in the sensor's unit (µT for ``sensor: mag``, m/s² for ``sensor: accel`` unless
-the track declares another unit).
+Model (docs/calibration_file.md): ``m = K x + b + Σ effect terms + noise``, ``x`` the unit field
+direction in the sensor (body) frame, ``K`` upper triangular with a positive diagonal (the
+canonical form), ``b`` the offset, both in the sensor's unit (µT for ``sensor: mag``, m/s² for
+``sensor: accel`` unless the track declares another unit).
 """
 from __future__ import annotations
 
@@ -79,7 +79,7 @@ class Calibration:
         K: (3,3) upper triangular, positive diagonal, sensor unit per unit direction.
         b: (3,) offset in the sensor unit.
         sensor: ``"mag"`` or ``"accel"``.
-        model: effect names of SPEC §3 that the model contains.
+        model: effect names of docs/effects.md that the model contains.
         effects: parameters of the effects beyond K and b, ``{name: {param: value}}``.
         rms: sensor estimation error over inliers (paper eq. 41), sensor unit.
         n, n_outliers: samples used and samples classified as outliers.
@@ -161,7 +161,7 @@ class Calibration:
 
     # -- JSON -------------------------------------------------------------------------------
     def to_dict(self) -> dict:
-        """The calibration file's keys (SPEC §2)."""
+        """The calibration file's keys (docs/calibration_file.md)."""
         out = {
             "format": FORMAT,
             "sensor": self.sensor,

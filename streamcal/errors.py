@@ -19,7 +19,8 @@ class InputError(StreamcalError):
 
 
 class TrackError(InputError):
-    """A track file that violates SPEC §1, located by file, line (1-based) and column name."""
+    """A track file that violates the track format (docs/tracks_and_inputs.md), located by file,
+    line (1-based) and column name."""
 
     def __init__(self, message: str, path: str | None = None, line: int | None = None,
                  column: str | None = None):
@@ -31,11 +32,12 @@ class TrackError(InputError):
 
 
 class CalibrationFileError(InputError):
-    """A calibration JSON file that is damaged, foreign or fails validation (SPEC §2)."""
+    """A calibration JSON file that is damaged, foreign or fails validation
+    (docs/calibration_file.md)."""
 
 
 class UnknownEffectError(InputError):
-    """An effect name that is not in the catalog (SPEC §3)."""
+    """An effect name that is not in the catalog (docs/effects.md)."""
 
 
 class MissingColumnsError(InputError):

@@ -1,4 +1,4 @@
-"""``streamcal`` command line: thin — parse, call the library, print (SPEC §4).
+"""``streamcal`` command line: thin — parse, call the library, print (docs/cli.md).
 
 Each command lives in its own module of this package and provides ``register(subparsers)``,
 which adds its parser and sets ``func`` to a callable ``(args) -> int`` (the exit code).

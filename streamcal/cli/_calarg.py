@@ -1,7 +1,7 @@
-"""``--cal CAL`` / ``--initial CAL``: a calibration JSON file (SPEC §2) or a daemon/replay state
-directory (its ``calibration.json``, else the newest good ``history/NNNN.json``, as
-:class:`streamcal.stream.store.CalibrationStore` keeps them). Read only: the directory is not
-created, pruned or re-permissioned."""
+"""``--cal CAL`` / ``--initial CAL``: a calibration JSON file (docs/calibration_file.md) or a
+daemon/replay state directory (its ``calibration.json``, else the newest good
+``history/NNNN.json``, as :class:`streamcal.stream.store.CalibrationStore` keeps them). Read
+only: the directory is not created, pruned or re-permissioned."""
 from __future__ import annotations
 
 import os

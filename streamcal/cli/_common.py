@@ -1,4 +1,5 @@
-"""Options and reading shared by every command that reads a recording (SPEC §4 "Inputs")."""
+"""Options and reading shared by every command that reads a recording
+(docs/tracks_and_inputs.md)."""
 from __future__ import annotations
 
 RECORDING_HELP = ("recording: track (.csv/.csv.gz), ArduPilot DataFlash .bin, PX4 .ulg, "

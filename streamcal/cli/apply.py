@@ -11,8 +11,12 @@ from ._common import RECORDING_HELP, add_input_options, read_track
 
 def register(sub) -> None:
     p = sub.add_parser("apply", help="apply a calibration to a recording",
-                       description=__doc__.splitlines()[0])
-    p.add_argument("calibration", metavar="CAL.json", help="calibration file (SPEC §2)")
+                       description="Write the calibrated field (µT), the unit direction and, "
+                                   "with an accelerometer, the tilt-compensated heading of every "
+                                   "magnetometer sample of a recording to a CSV file (see "
+                                   "docs/cli.md).")
+    p.add_argument("calibration", metavar="CAL.json",
+                   help="calibration file (docs/calibration_file.md)")
     p.add_argument("track", metavar="LOG", help=RECORDING_HELP)
     p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="file to write (atomic)")
     add_input_options(p, skip_bad_rows=True)

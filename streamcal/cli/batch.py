@@ -1,4 +1,4 @@
-"""``streamcal batch fit|diagnose FILES… [--jobs N] -o SUMMARY.csv`` (SPEC §4)."""
+"""``streamcal batch fit|diagnose FILES… [--jobs N] -o SUMMARY.csv`` (docs/cli.md)."""
 from __future__ import annotations
 
 import sys

@@ -1,4 +1,5 @@
-"""``streamcal convert LOG -o TRACK.csv``: any supported recording → a SPEC §1 track."""
+"""``streamcal convert LOG -o TRACK.csv``: any supported recording → a track
+(docs/tracks_and_inputs.md)."""
 from __future__ import annotations
 
 import sys
@@ -8,7 +9,10 @@ from ._common import RECORDING_HELP, add_input_options, read_track
 
 def register(sub) -> None:
     p = sub.add_parser("convert", help="convert a recording (autopilot log, Raw: capture, CSV) "
-                       "to a track", description=__doc__.splitlines()[0])
+                       "to a track",
+                       description="Convert any supported recording to a track file (units, axes "
+                                   "and provenance in its metadata; see "
+                                   "docs/tracks_and_inputs.md).")
     p.add_argument("track", metavar="LOG", help=RECORDING_HELP)
     p.add_argument("-o", "--output", required=True, metavar="TRACK.csv",
                    help="track to write (atomic; .csv.gz compresses)")

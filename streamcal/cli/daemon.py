@@ -1,11 +1,11 @@
-"""``streamcal daemon --bus N``: the Raspberry Pi service over I²C (SPEC §4).
+"""``streamcal daemon --bus N``: the Raspberry Pi service over I²C (docs/cli.md).
 
 MPU-9250 on ``/dev/i2c-N`` (smbus2) → streaming calibrator (fits off the ingest path) →
-``STATE_DIR/calibration.json`` (SPEC §2, atomic, with history) and calibrated samples as JSON
-lines on a UNIX socket and/or stdout (format: :mod:`streamcal.service.output`). Runs under
-systemd with ``Type=notify`` (``tools/streamcal-daemon.service``); SIGTERM/SIGINT stop it
-cleanly (exit 0), SIGHUP re-reads the calibration file. Events go to stderr (the journal),
-with the terminal coverage map at each coverage milestone unless ``--json-lines``.
+``STATE_DIR/calibration.json`` (docs/calibration_file.md; atomic, with history) and calibrated
+samples as JSON lines on a UNIX socket and/or stdout (format: :mod:`streamcal.service.output`).
+Runs under systemd with ``Type=notify`` (``tools/streamcal-daemon.service``); SIGTERM/SIGINT
+stop it cleanly (exit 0), SIGHUP re-reads the calibration file. Events go to stderr (the
+journal), with the terminal coverage map at each coverage milestone unless ``--json-lines``.
 ``--bus fake:TRACK.csv`` runs the same code against a simulated MPU-9250 replaying a track.
 """
 from __future__ import annotations

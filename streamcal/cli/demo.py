@@ -1,4 +1,4 @@
-"""``streamcal demo``: the out-of-the-box main job (SPEC §4), no hardware and no network needed.
+"""``streamcal demo``: the out-of-the-box main job (docs/cli.md), no hardware and no network needed.
 
 1. Replays the bundled recorded track (``streamcal/data/demo_track.csv.gz``, or ``--track``)
    through the real MPU-9250 I²C driver on the register-level fake bus into the streaming
@@ -33,7 +33,10 @@ BAR_WIDTH = 30
 def register(subparsers) -> None:
     p = subparsers.add_parser("demo", help="replay the bundled track through the fake-bus driver "
                               "and the streaming calibrator, diagnose it, write a report",
-                              description=__doc__.splitlines()[0])
+                              description="The out-of-the-box main job, no hardware and no "
+                                          "network needed: replay the bundled track through the "
+                                          "fake-bus MPU-9250 driver and the streaming "
+                                          "calibrator, diagnose it, write a report.")
     p.add_argument("--track", metavar="PATH", help="demo another track instead of the bundled one")
     p.add_argument("-o", "--output", metavar="HTML", default=DEFAULT_REPORT,
                    help="report file (default: %(default)s; relative to --out-dir when given)")

@@ -1,4 +1,4 @@
-"""``streamcal diagnose TRACK [--model a,b] [--json] [--plots DIR]`` (SPEC §4)."""
+"""``streamcal diagnose TRACK [--model a,b] [--json] [--plots DIR]`` (docs/cli.md)."""
 from __future__ import annotations
 
 import argparse
@@ -11,12 +11,18 @@ from ._common import RECORDING_HELP, add_input_options, read_track
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("diagnose", help="compare the model with the measurements and name "
-                              "the missing effect")
+                              "the missing effect",
+                              description="Fit the model to a recording, compare it with the "
+                                          "measurements and the noise floor, say where it fails "
+                                          "and which catalog effect is missing (verdict "
+                                          "at_noise_floor, effect_missing or unexplained; see "
+                                          "docs/diagnosis.md).")
     p.add_argument("track", help=RECORDING_HELP)
     add_input_options(p, skip_bad_rows=True)
     p.add_argument("--model", default="hard_iron,soft_iron",
-                   help="comma-separated effects of SPEC §3 (default: hard_iron,soft_iron)")
-    p.add_argument("--json", action="store_true", help="print one JSON object (SPEC §4)")
+                   help="comma-separated effects (docs/effects.md; default: hard_iron,soft_iron)")
+    p.add_argument("--json", action="store_true",
+                   help="print one JSON object (keys in docs/diagnosis.md)")
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "daemon/replay state dir; its model replaces --model): re-estimate only what "

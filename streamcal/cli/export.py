@@ -10,8 +10,12 @@ from ..export import FORMATS
 
 def register(sub) -> None:
     p = sub.add_parser("export", help="write a calibration as autopilot parameters, a C header "
-                       "or JSON", description=__doc__.splitlines()[0])
-    p.add_argument("calibration", metavar="CAL.json", help="calibration file (SPEC §2)")
+                       "or JSON",
+                       description="Write a calibration in the form its destination loads: "
+                                   "ArduPilot parameters, PX4 parameters, a C header for the "
+                                   "Arduino sketch, or the calibration JSON (see docs/cli.md).")
+    p.add_argument("calibration", metavar="CAL.json",
+                   help="calibration file (docs/calibration_file.md)")
     p.add_argument("--format", required=True, choices=FORMATS)
     p.add_argument("-o", "--output", metavar="FILE", help="file to write (atomic); default stdout")
     p.set_defaults(func=run)

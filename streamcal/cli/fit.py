@@ -1,4 +1,4 @@
-"""``streamcal fit TRACK``: batch calibration (SPEC §4)."""
+"""``streamcal fit TRACK``: batch calibration (docs/cli.md)."""
 from __future__ import annotations
 
 import json
@@ -6,20 +6,24 @@ import json
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ..model.catalog import EFFECT_NAMES
 from ._common import RECORDING_HELP, add_input_options, read_track
 
 
 def register(sub) -> None:
     p = sub.add_parser("fit", help="calibrate from a recorded track",
                        description="Fit the sensor model to a recorded track (two-stage robust "
-                                   "autocalibration by default) and print or save the calibration.")
+                                   "autocalibration by default) and print or save the calibration "
+                                   "(docs/calibration_file.md). Exit code 1 when the directions "
+                                   "seen leave the model undetermined.")
     p.add_argument("track", help=RECORDING_HELP)
     add_input_options(p)
     p.add_argument("--sensor", choices=("mag", "accel"), default="mag")
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
-                   help="comma-separated effects (default: %(default)s)")
+                   help="comma-separated effects (default: %(default)s); known: "
+                        + ", ".join(EFFECT_NAMES) + " (docs/effects.md)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
-                   help="add an effect to the model (repeatable)")
+                   help="add an effect to the model (repeatable; same names as --model)")
     p.add_argument("--kernel", choices=("auto", "cauchy", "huber", "l1", "gm", "l2"), default="auto",
                    help="robust kernel (default: auto = Cauchy, then a Geman–McClure polish)")
     p.add_argument("--method", default="autocal",

@@ -1,4 +1,5 @@
-"""``streamcal record (--bus N | --port DEV) -o TRACK.csv``: record a track (SPEC §1).
+"""``streamcal record (--bus N | --port DEV) -o TRACK.csv``: record a track
+(docs/tracks_and_inputs.md).
 
 Rows are written as sampled (``t,ax,ay,az,gx,gy,gz,mx,my,mz,temp``, empty cells where a sensor
 had no new value), ``t`` in seconds from the first sample, with metadata naming the sensor and
@@ -28,7 +29,7 @@ FSYNC_EVERY_S = 5.0
 def register(sub) -> None:
     p = sub.add_parser("record", help="record a track from the sensor",
                        description="Record samples from the I2C sensor or the serial board into "
-                                   "a track file (SPEC §1).")
+                                   "a track file (docs/tracks_and_inputs.md).")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--bus", metavar="N|fake:TRACK.csv", help="I2C bus number or fake:TRACK.csv")
     src.add_argument("--port", metavar="DEV|fake:TRACK.csv|simavr:TRACK.csv",

@@ -1,4 +1,4 @@
-"""``streamcal replay TRACK``: run the streaming pipeline over a recorded track (SPEC §4).
+"""``streamcal replay TRACK``: run the streaming pipeline over a recorded track (docs/cli.md).
 
 Feeds the track to :class:`~streamcal.stream.StreamingCalibrator` block by block, as a device
 would (``--realtime`` keeps the track's pace), prints the events — coverage milestones, fits,

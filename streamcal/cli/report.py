@@ -1,4 +1,4 @@
-"""``streamcal report TRACK [--model a,b] [--add EFFECT] -o report.html`` (SPEC §4).
+"""``streamcal report TRACK [--model a,b] [--add EFFECT] -o report.html`` (docs/cli.md).
 
 Diagnoses the track and writes one self-contained HTML page of figures and tables. When the fit
 refuses the track (too little coverage…), the page shows what needs no calibration and says why;
@@ -15,11 +15,15 @@ from ._common import RECORDING_HELP, add_input_options, read_track
 
 def register(subparsers) -> None:
     p = subparsers.add_parser("report", help="diagnose a track and write a self-contained HTML "
-                              "report of figures", description=__doc__.splitlines()[0])
+                              "report of figures",
+                              description="Diagnose a recording and write the residuals, the "
+                                          "candidate effects and the model ladder as figures "
+                                          "into one self-contained HTML page (see "
+                                          "docs/diagnosis.md).")
     p.add_argument("track", help=RECORDING_HELP)
     add_input_options(p)
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
-                   help="comma-separated effects of SPEC §3 (default: %(default)s)")
+                   help="comma-separated effects (docs/effects.md; default: %(default)s)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
                    help="add an effect to the model (repeatable, or comma-separated)")
     p.add_argument("-o", "--output", metavar="HTML",

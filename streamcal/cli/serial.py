@@ -1,4 +1,4 @@
-"""``streamcal serial --port DEV``: host side of the Arduino sketch (SPEC §4).
+"""``streamcal serial --port DEV``: host side of the Arduino sketch (docs/cli.md).
 
 Frames from the ``streamcal_bridge`` sketch (or the ``Raw:`` lines of MotionCal-style sketches,
 detected automatically) → streaming calibrator → ``STATE_DIR/calibration.json``. Each accepted

@@ -96,10 +96,11 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
     Args:
         data: :class:`streamcal.Track` or (N,3) measurements in the sensor unit.
         sensor: ``"mag"`` or ``"accel"`` (gravity 9.80665 m/s² as the known field).
-        model: effect names (SPEC §3); default ``hard_iron, soft_iron``. ``add`` appends more.
+        model: effect names (docs/effects.md); default ``hard_iron, soft_iron``. ``add``
+            appends more.
         kernel: ``auto`` (default: Cauchy, then a Geman–McClure polish), ``cauchy``,
             ``huber``, ``gm``, ``l1`` or ``l2`` (autocal only).
-        method: ``autocal`` or a reference method (SPEC §5).
+        method: ``autocal`` or a reference method (docs/python_api.md).
         tau: kernel width; None derives it from the data, ``"paper"`` uses √3, a number is
             taken in sensor units.
         covariates: per-sample columns for effects when ``data`` is an array.

@@ -1,4 +1,4 @@
-"""Track: a recorded log as columns of float64 samples (SPEC §1).
+"""Track: a recorded log as columns of float64 samples (docs/tracks_and_inputs.md).
 
     track = Track.read("log.csv.gz")            # TrackError names file, line and column
     track.mag, track.t_mag                        # (M,3) in track.mag_unit, (M,) s
@@ -72,7 +72,8 @@ class Track:
     def read(cls, path: str | os.PathLike, skip_bad_rows: bool = False) -> "Track":
         """Read a ``.csv`` or ``.csv.gz`` track (gzip recognised by its magic bytes).
 
-        Raises :class:`TrackError` (file, 1-based line, column) on any violation of SPEC §1.
+        Raises :class:`TrackError` (file, 1-based line, column) on any violation of the track format
+        (docs/tracks_and_inputs.md).
         With ``skip_bad_rows`` rows with bad cells, partial samples or backwards time are
         dropped and counted instead; structural problems (no header, missing columns, damaged
         gzip) still raise.
