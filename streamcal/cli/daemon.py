@@ -63,6 +63,9 @@ def add_service_options(p) -> None:
                         "is given; see docs/live_page.md)")
     p.add_argument("--http-token", metavar="TOKEN",
                    help="with --http: require ?token=TOKEN (or an X-Streamcal-Token header)")
+    from ._location import add_location_options
+
+    add_location_options(p)
 
 
 def _address(text: str) -> int:
@@ -150,7 +153,9 @@ def live_page(args, name: str):
               + ("requests must carry the --http-token" if args.http_token else
                  "anyone who can reach it sees the calibration (add --http-token, or use an "
                  "SSH tunnel: docs/live_page.md)"), file=sys.stderr, flush=True)
-    state = LiveState()
+    from ._location import location_reference
+
+    state = LiveState(reference=location_reference(args))
     page = LivePage(state, host, port, token=args.http_token).start()
     print(f"streamcal {name}: live page at {page.url}", file=sys.stderr, flush=True)
     return _PageObserver(state, page)
