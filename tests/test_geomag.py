@@ -117,7 +117,7 @@ def test_live_page_compares_with_the_local_field(tmp_path):
         while time.monotonic() < deadline:
             events = sse_events(url, seconds=1.5)
             if events and events[-1]["calibration"] and events[-1]["reference"]["fitted_dip_deg"]:
-                ref = events[-1]["reference"]
+                ref, ring = events[-1]["reference"], events[-1]["ring"]
                 break
     finally:
         proc.terminate()
@@ -126,3 +126,8 @@ def test_live_page_compares_with_the_local_field(tmp_path):
     assert ref["source"] == "WMM2025" and ref["intensity_uT"] == pytest.approx(47.97, abs=0.01)
     assert abs(ref["dip_difference_deg"]) < 3.0, ref            # block medians under hand motion
     assert abs(ref["field_ratio"] - 1.0) < 0.05, ref
+    # the ring the field must lie on at the current roll and pitch, and the field on it
+    print("ring:", ring)
+    assert ring["source"] == "WMM2025 inclination" and ring["dip_deg"] == pytest.approx(60.26)
+    assert math.hypot(*ring["down"]) == pytest.approx(1.0, abs=1e-3)
+    assert ring["off_deg"] is not None and ring["off_deg"] < 5.0, ring
