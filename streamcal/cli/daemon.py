@@ -58,11 +58,19 @@ def add_service_options(p) -> None:
                    help="fit inline instead of on a worker thread (reproducible replays)")
     p.add_argument("--grace", type=float, default=10.0, metavar="S",
                    help="on stop, wait this long for the fit in flight (default: %(default)s)")
+    add_http_options(p)
+
+
+def add_http_options(p, when: str = "") -> None:
+    """``--http``, ``--http-token`` and the place of the page's local field (``--lat``…)."""
+    from ._location import add_location_options
+
     p.add_argument("--http", metavar="[HOST:]PORT",
-                   help="serve a read-only live page of the calibration (127.0.0.1 unless HOST "
-                        "is given; see docs/live_page.md)")
+                   help=when + "serve a read-only live page of the calibration (127.0.0.1 "
+                        "unless HOST is given; see docs/live_page.md)")
     p.add_argument("--http-token", metavar="TOKEN",
                    help="with --http: require ?token=TOKEN (or an X-Streamcal-Token header)")
+    add_location_options(p)
 
 
 def _address(text: str) -> int:
@@ -150,10 +158,27 @@ def live_page(args, name: str):
               + ("requests must carry the --http-token" if args.http_token else
                  "anyone who can reach it sees the calibration (add --http-token, or use an "
                  "SSH tunnel: docs/live_page.md)"), file=sys.stderr, flush=True)
-    state = LiveState()
+    from ._location import location_reference
+
+    state = LiveState(reference=location_reference(args))
     page = LivePage(state, host, port, token=args.http_token).start()
     print(f"streamcal {name}: live page at {page.url}", file=sys.stderr, flush=True)
     return _PageObserver(state, page)
+
+
+def replay_page(args, calibrator):
+    """``replay --realtime --http``: the page fed from the replay loop (a
+    :class:`~streamcal.service.replay_feed.ReplayFeed` to call per block), or None without
+    ``--http``."""
+    from ..errors import InputError
+    from ..service.replay_feed import ReplayFeed
+
+    if not getattr(args, "http", None):
+        return None
+    if not args.realtime:
+        raise InputError("--http needs --realtime (a replay at full speed is over before a "
+                         "page could follow it)")
+    return ReplayFeed(calibrator, [live_page(args, "replay")])
 
 
 class _PageObserver:

@@ -7,6 +7,7 @@ import json
 
 from ..errors import InputError
 from ._common import RECORDING_HELP, add_input_options, read_track
+from ._location import add_location_options, location_reference
 
 
 def register(subparsers) -> None:
@@ -27,6 +28,7 @@ def register(subparsers) -> None:
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "daemon/replay state dir; its model replaces --model): re-estimate only what "
                    "the track determines, hold the rest")
+    add_location_options(p)
     p.set_defaults(func=run)
 
 
@@ -43,7 +45,11 @@ def run(args: argparse.Namespace) -> int:
     from ..diagnosis import diagnose
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
+    from ..diagnosis.reference_field import reference_field
+    from ..geomag import text_lines
+
     report = _report_module() if args.plots else None
+    ref = location_reference(args)
     track = read_track(args)
     if getattr(args, "cal", None):
         from ._calarg import load_calibration_arg
@@ -54,10 +60,13 @@ def run(args: argparse.Namespace) -> int:
         result = diagnose(track, model=model)
     if report is not None:
         report.write_diagnosis_plots(result, track, args.plots)
+    local = reference_field(track, result.calibration, ref)
     if args.json:
-        print(json.dumps(result.to_dict(), allow_nan=False, default=lambda v: None))
+        out = result.to_dict()
+        out["reference_field"] = local
+        print(json.dumps(out, allow_nan=False, default=lambda v: None))
         return 0
-    print(_text(result) + held_text(result))
+    print(_text(result) + held_text(result) + "\n\n" + "\n".join(text_lines(local)))
     return 0
 
 

@@ -52,6 +52,9 @@ def register(sub) -> None:
                    help="run each fit when it is due, also with --realtime (the default "
                         "without --realtime)")
     p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
+    from .daemon import add_http_options
+
+    add_http_options(p, "with --realtime: ")
     p.set_defaults(func=run)
 
 
@@ -80,6 +83,9 @@ def run(args) -> int:
     bar = tqdm(total=None, unit="row", file=sys.stderr, dynamic_ncols=True,
                disable=args.json or not sys.stderr.isatty(), desc="replay")
     start_wall, start_t = time.monotonic(), None
+    from .daemon import replay_page
+
+    page = replay_page(args, calibrator)
     try:
         for block in iter_track_blocks(itertools.chain([track], chunks), args.block):
             start_t = float(block.t[0]) if start_t is None else start_t
@@ -87,7 +93,10 @@ def run(args) -> int:
                 delay = start_wall + (float(block.t[-1]) - start_t) - time.monotonic()
                 if delay > 0:
                     time.sleep(delay)
-            for event in calibrator.ingest(block):
+            events = calibrator.ingest(block)
+            if page is not None:
+                page.observe(block, events)
+            for event in events:
                 counts[event.kind] = counts.get(event.kind, 0) + 1
                 _note_refusal(event, refusals)
                 emit(event, bar)
@@ -100,6 +109,8 @@ def run(args) -> int:
             emit(event, bar)
     finally:
         bar.close()
+        if page is not None:
+            page.close()
     if not calibrator.n_ingested:
         raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
     summary = _summary(calibrator, counts, track, args)

@@ -11,6 +11,7 @@ from pathlib import Path
 
 from ..calibration import DEFAULT_MODEL
 from ._common import RECORDING_HELP, add_input_options, read_track
+from ._location import add_location_options, location_reference
 
 
 def register(subparsers) -> None:
@@ -31,6 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "state dir), holding what the track does not determine")
+    add_location_options(p)
     p.set_defaults(func=run)
 
 
@@ -52,7 +54,11 @@ def default_output(track_path: str) -> Path:
 def run(args) -> int:
     from ..report import diagnose_or_reason, write_report
 
+    from ..diagnosis.reference_field import reference_field
+    from ..geomag import text_lines
+
     model = model_from_args(args.model, args.add)
+    ref = location_reference(args)
     track = read_track(args)
     kwargs = {}
     if getattr(args, "cal", None):
@@ -63,11 +69,23 @@ def run(args) -> int:
     diagnosis, reason = diagnose_or_reason(track, model, **kwargs)
     out = Path(args.output) if args.output else default_output(args.track)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out = write_report(out, track, diagnosis,
-                       reason=reason, name=Path(args.track).name)
+    local = reference_field(track, getattr(diagnosis, "calibration", None), ref)
+    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name,
+                       intro=_reference_html(text_lines(local)))
+    print("\n".join(text_lines(local)))
     print(f"report written to {out}")
     if diagnosis is None:
         print(f"streamcal report: no calibration: {reason} (the report shows the raw data)",
               file=sys.stderr)
         return 1
     return 0
+
+
+def _reference_html(lines: list[str]) -> str:
+    """The local-field comparison as a small HTML section for the report's intro."""
+    from html import escape
+
+    items = "".join(f"<li>{escape(line.strip())}</li>" for line in lines[1:])
+    head = escape(lines[0].split("  ", 1)[-1].strip())
+    return (f'<section id="reference-field"><h2>Local field</h2><p>{head}</p>'
+            + (f"<ul>{items}</ul>" if items else "") + "</section>")

@@ -31,6 +31,16 @@ Snapshot keys (JSON, what ``/events`` sends and ``/state.json`` returns):
   "message"}]}`` (``reason``: the guard's named rule).
 - ``disturbance``: ``{"held_total", "held_recent", "open", "recent": [...]}`` — samples held
   back so far and in the last ``period_s``·8 s; ``open`` is true while samples are being held.
+- ``reference``: the local field from ``--lat/--lon`` beside the calibration's field and the
+  median dip of the calibrated field below the plane normal to the accelerometer's gravity over
+  the last ``window_s`` (block medians; hand motion tilts single blocks by degrees): the
+  ``reference_field`` object of ``diagnose --json`` (:func:`streamcal.geomag.compare`), or
+  ``{"source": null, "reason"}`` without a location.
+- ``ring``: null, or ``{"down", "dip_deg", "source", "field", "off_deg"}``: at the newest
+  block's roll and pitch (``down``: unit gravity, body axes) the field must lie on the circle
+  of directions ``dip_deg`` below the plane normal to ``down`` (the model's inclination with a
+  location, else the fitted dip); ``field`` the newest block's calibrated direction and
+  ``off_deg`` its angle off the circle (null before a calibration).
 - ``device``: ``{"state", "samples", "samples_per_s", "bus_errors", "restarts", "counters"}``
   (``bus_errors``: I²C failures, or frames lost on serial; ``restarts``: board restarts seen).
 """
@@ -43,6 +53,7 @@ from collections import deque
 
 import numpy as np
 
+from ..geomag import NO_LOCATION, compare, dip_deg
 from ..stream.coverage import hint, largest_empty_cap
 
 #: The residual the calibration's ``rms`` is computed on.
@@ -58,10 +69,13 @@ class LiveState:
         period_s: least interval between two captures on the loop (s).
         window_s: how much of the field magnitude history is kept (s).
         clock: wall clock (s), monotonic.
+        reference: the local field (:func:`streamcal.geomag.wmm_field`), None without a location.
     """
 
-    def __init__(self, period_s: float = 0.25, window_s: float = 60.0, clock=time.monotonic):
+    def __init__(self, period_s: float = 0.25, window_s: float = 60.0, clock=time.monotonic,
+                 reference: dict | None = None):
         self.period_s, self.window_s, self.clock = float(period_s), float(window_s), clock
+        self.reference = reference
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
         self._captured: dict | None = None
@@ -72,6 +86,8 @@ class LiveState:
         self._mag = deque(maxlen=n)                       # (wall s, raw, calibrated)
         self._rate = deque(maxlen=16)                     # (wall s, samples ingested)
         self._held = deque(maxlen=9)                      # (wall s, n_held)
+        self._dips = deque(maxlen=n)                      # (wall s, median dip of a block, °)
+        self._ring = None                                 # (down, field direction) latest block
         self._fit_events = deque(maxlen=12)
         self._disturb_events = deque(maxlen=8)
         self.closed = False
@@ -105,6 +121,17 @@ class LiveState:
             self._seq += 1
             self._changed.notify_all()
 
+    def _ring_inputs(self, now: float, field, accel) -> None:
+        """The block's dip, its median down direction and median calibrated field direction."""
+        dip, _ = dip_deg(field, -accel)
+        if dip is None:
+            return
+        self._dips.append((now, dip))
+        down = -np.median(accel / np.linalg.norm(accel, axis=1, keepdims=True), axis=0)
+        f = field[np.isfinite(field).all(axis=1)]
+        f = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
+        self._ring = (down / np.linalg.norm(down), f / np.linalg.norm(f))
+
     def close(self) -> None:
         with self._changed:
             self.closed = True
@@ -120,9 +147,12 @@ class LiveState:
             ok = np.isfinite(norm)
             if ok.any():
                 raw = float(np.median(norm[ok]))
-                f = np.linalg.norm(cal.apply(block), axis=1)
+                vec = cal.apply(block)
+                f = np.linalg.norm(vec, axis=1)
                 f = f[np.isfinite(f)]
                 calibrated = float(np.median(f)) if len(f) else None
+                if block.accel is not None and len(f):
+                    self._ring_inputs(now, vec, np.asarray(block.accel, dtype=float))
         if raw is not None:
             self._mag.append((now, raw, calibrated))
         self._rate.append((now, service.stats.samples))
@@ -137,7 +167,9 @@ class LiveState:
             "device_state": service.device_state, "counters": dict(service.source.counters()),
             "mag": list(self._mag), "rate": list(self._rate), "held": list(self._held),
             "fit_events": list(self._fit_events), "disturb_events": list(self._disturb_events),
-            "unit": getattr(cal, "unit", "uT"),
+            "unit": getattr(cal, "unit", "uT"), "reference": self.reference,
+            "dips": [d for t, d in self._dips if now - t <= self.window_s],
+            "ring": self._ring,
         }
 
     # -- reader side (any thread) ----------------------------------------------------------------
@@ -219,6 +251,8 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
         "disturbance": {"held_total": held[-1][1] if held else 0, "held_recent": held_recent,
                         "open": held_recent > 0, "drifts": counts.get("drift", 0),
                         "recent": cap["disturb_events"]},
+        "reference": _reference(cap, c),
+        "ring": _ring(cap, c),
         "device": {"state": cap["device_state"], "samples": cap["samples"],
                    "samples_per_s": round(sps, 1),
                    "bus_errors": counters.get("bus_errors", counters.get("lost", 0)),
@@ -227,6 +261,41 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
                    "counters": {k: v for k, v in counters.items()
                                 if isinstance(v, (int, float))}},
     }
+
+
+def _reference(cap: dict, c) -> dict:
+    ref = cap["reference"]
+    if ref is None:
+        return compare(None, None, "", reason=NO_LOCATION)
+    dips = cap["dips"]
+    dip = spread = None
+    if dips:
+        dip = float(np.median(dips))
+        spread = float(1.4826 * np.median(np.abs(np.asarray(dips) - dip)))
+    field = None if c is None else (c.field or c.radius)
+    return compare(ref, field, c.unit if c is not None else cap["unit"], dip, spread)
+
+
+def _ring(cap: dict, c) -> dict | None:
+    """Where the field must point at the current roll and pitch: the circle of directions at
+    ``dip_deg`` below the plane normal to ``down`` (both body axes), and how far the newest
+    block's calibrated direction lies off it (°)."""
+    if cap["ring"] is None:
+        return None
+    down, f = cap["ring"]
+    ref = cap["reference"]
+    if ref is not None:
+        dip, source = ref["inclination_deg"], f"{ref['source']} inclination"
+    elif cap["dips"]:
+        dip, source = float(np.median(cap["dips"])), "fitted dip (median, last minute)"
+    else:
+        return None
+    off = None
+    if c is not None:
+        off = abs(math.degrees(math.asin(float(np.clip(f @ down, -1, 1)))) - dip)
+    return {"down": [round(float(v), 4) for v in down], "dip_deg": round(dip, 2),
+            "source": source, "field": None if c is None else [round(float(v), 4) for v in f],
+            "off_deg": _num(off)}
 
 
 def _num(v):

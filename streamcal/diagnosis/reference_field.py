@@ -1,0 +1,40 @@
+"""A diagnosis's fitted field set beside the local geomagnetic field (``--lat/--lon``).
+
+The fitted strength is the calibration's ``field`` (else its radius, sensor unit); the fitted
+dip is the median angle of the calibrated field below the plane normal to gravity, gravity from
+the accelerometer (:func:`streamcal.fitting.gravity.gravity_reference`), over the calibration's
+inliers. Words and JSON keys: :func:`streamcal.geomag.compare`.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..geomag import NO_LOCATION, compare
+
+
+def fitted_dip(track, calibration) -> tuple[float | None, float | None]:
+    """(median, robust spread) of the calibrated field's dip over the inliers, degrees; (None,
+    None) without accelerometer columns."""
+    from ..fitting.gravity import gravity_reference
+    from ..geomag import dip_deg
+
+    if not track.has("accel") or not len(track.t_mag):
+        return None, None
+    down, _ = gravity_reference(track).at(np.asarray(track.t_mag, dtype=float))
+    field = calibration.apply_field(track.mag, track.covariates_at_mag())
+    inl = calibration.inliers
+    if inl is not None and len(inl) == len(field):
+        field, down = field[inl], down[inl]
+    return dip_deg(field, down)
+
+
+def reference_field(track, calibration, ref: dict | None, reason: str = NO_LOCATION) -> dict:
+    """The ``"reference_field"`` object of ``diagnose --json`` for ``calibration`` fitted to
+    ``track`` against ``ref`` (:func:`streamcal.geomag.wmm_field`, or None: ``reason`` says
+    why)."""
+    if ref is None or calibration is None:
+        return compare(None, None, "", reason=reason if ref is None
+                       else "no calibration to compare")
+    dip, spread = fitted_dip(track, calibration)
+    return compare(ref, calibration.field or calibration.radius,
+                   calibration.unit or track.mag_unit, dip, spread)
