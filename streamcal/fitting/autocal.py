@@ -114,12 +114,28 @@ def _looks_contaminated(r: np.ndarray, relative: np.ndarray) -> bool:
                 or np.quantile(relative, KEEP) > RELATIVE_LIMIT)
 
 
+def _clean_l2_start(subset: np.ndarray):
+    """(K, b) of the algebraic L2 ellipsoid fit of ``subset`` when its residuals show no
+    outliers (:func:`_looks_contaminated`), else None. On clean data the L1 fit (a conic
+    program, ~50× the cost) only gives the LM another start near the same optimum."""
+    try:
+        K, b = ellipsoid_to_model(*fit_l2_ellipsoid(subset))
+    except InsufficientDataError:
+        return None
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(b))):
+        return None
+    x = directions_from_model(K, b, subset)
+    r = np.linalg.norm(x @ K.T + b - subset, axis=1)
+    return None if _looks_contaminated(r, radial_error(K, b, subset)) else (K, b)
+
+
 def stage1(m_n: np.ndarray, structure: str = "full", fit_b: bool = True, method: str = "l1",
            stage1_max: int = 300):
     """Initial (K, b) in normalized units from an ellipsoid fit on a well-spread subset."""
     subset = m_n[spread_subset(m_n, stage1_max)]
+    start = _clean_l2_start(subset) if method == "l1" else None
     try:
-        K, b = ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
+        K, b = start or ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
     except InsufficientDataError:
         if method != "l1":
             raise

@@ -395,6 +395,11 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
                 K, b, thetas, x, f, r, u, s = K_new, b_new, th_new, x_new, f_new, r_new, u_new, s_new
                 lam = max(lam / 10, LAMBDA_MIN)
                 break
+            if np.isfinite(f_new) and f_new - f <= rtol * f:
+                # the step changes the cost by less than the tolerance: at the optimum (more
+                # damping would only shorten the step); stop instead of trying max_trials λ
+                rel, improved = 0.0, True
+                break
             lam = min(10 * lam, LAMBDA_MAX)
             if lam >= LAMBDA_MAX:
                 break
