@@ -50,7 +50,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, triggs_weights
+from .kernels import L1, L2, triggs_weights
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
 #: Entries of K (row, column) for each structure of the sensor matrix.
@@ -351,6 +351,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         return float(np.sum(rho(s_))), r_, u_, s_
 
     f, r, u, s = cost_of(K, b, thetas, x)
+    smooth = not isinstance(kernel, L1)
     lam = lam0
     history = [f]
     converged = False
@@ -395,9 +396,10 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
                 K, b, thetas, x, f, r, u, s = K_new, b_new, th_new, x_new, f_new, r_new, u_new, s_new
                 lam = max(lam / 10, LAMBDA_MIN)
                 break
-            if np.isfinite(f_new) and f_new - f <= rtol * f:
-                # the step changes the cost by less than the tolerance: at the optimum (more
-                # damping would only shorten the step); stop instead of trying max_trials λ
+            if smooth and np.isfinite(f_new) and f_new - f <= rtol * f:
+                # the step changes the cost by less than the tolerance: at the optimum (for a
+                # smooth kernel more damping only shortens the step); stop instead of trying
+                # max_trials λ (L1's kink can hide a decrease behind a damped step)
                 rel, improved = 0.0, True
                 break
             lam = min(10 * lam, LAMBDA_MAX)
