@@ -74,3 +74,21 @@ def test_file_path_spans_over_the_whole_recording_and_json_says_so(tmp_path):
     small = diagnose(res.track.select(slice(0, 6000)), fitter=fitter, ladder=False).to_dict()
     assert small["samples_used"] == small["samples_total"] == small["n"]
     assert small["subsample_rule"] == "every sample"
+
+
+def test_cli_takes_the_chunked_path_above_the_size_and_full_says_every_sample(
+        tmp_path, monkeypatch, capsys):
+    from streamcal.cli import main
+    from streamcal.diagnosis import subsample
+
+    path = tmp_path / "track.csv"
+    simulate(120.0, 7, noise_uT=0.4).track.write(path)
+    monkeypatch.setattr(subsample, "LONG_FILE_BYTES", 1000)
+    assert main(["diagnose", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["samples_used"] < out["samples_total"] and "stratified" in out["subsample_rule"]
+    assert main(["diagnose", str(path), "--json", "--full"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["samples_used"] == out["samples_total"] == out["n"]
+    assert main(["diagnose", str(path)]) == 0
+    assert "magnetometer samples (stratified" in capsys.readouterr().out
