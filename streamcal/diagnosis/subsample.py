@@ -18,7 +18,7 @@ inside a block; the fits drop pairs across gaps). Two strata decide which blocks
 Priorities are uniform random numbers from a fixed seed, so a subsample is reproducible. The
 diagnosis then runs on the subsample; the outlier spans are computed over the whole recording
 from a compact copy of every magnetometer sample (time float64, field and covariates float32:
-28 bytes per magnetometer sample plus 4 per covariate).
+20 bytes per magnetometer sample plus 4 per covariate, IMU columns left out).
 """
 from __future__ import annotations
 
@@ -47,7 +47,7 @@ LONG_FILE_BYTES = 30_000_000
 #: Rows per chunk read from the file.
 CHUNK_ROWS = 100_000
 #: Samples per piece when the whole-recording residual is evaluated.
-PIECE = 200_000
+PIECE = 50_000
 #: A sample is an outlier beyond this many kernel widths / noise σ (as diagnosis.diagnosis).
 OUTLIER_WIDTHS, OUTLIER_SIGMAS = 2.0, 5.0
 
@@ -219,11 +219,10 @@ class StratifiedSampler:
                      self.metadata, self.path)
 
     def recording(self):
-        """``(t (N,), mag (N,3) float32, cov {name: (N,) float32})`` of every magnetometer sample."""
-        t = np.concatenate(self.store["t"])
-        m = np.concatenate(self.store["mag"])
-        c = np.concatenate(self.store["cov"])
-        return t, m, {k: c[:, j] for j, k in enumerate(self.cov_names or [])}
+        """The compact copy of every magnetometer sample, one piece per chunk read: yields
+        ``(t (n,), mag (n,3) float32, cov {name: (n,) float32})``."""
+        for t, m, c in zip(self.store["t"], self.store["mag"], self.store["cov"]):
+            yield t, m, {k: c[:, j] for j, k in enumerate(self.cov_names or [])}
 
     def rule(self) -> str:
         return (f"stratified subsample: blocks of {self.block_s:g} s of consecutive rows; "
@@ -233,15 +232,19 @@ class StratifiedSampler:
                 f"random priorities, seed fixed")
 
 
-def _whole_spans(cal, floor: float, t, m, cov):
+def _whole_spans(cal, floor: float, pieces):
     """Outlier spans of calibration ``cal`` over every magnetometer sample (the fit's own
-    inlier rule: 2 kernel widths, else 5 noise σ), evaluated in pieces of :data:`PIECE`."""
-    norm = np.empty(len(t), np.float32)
-    for a in range(0, len(t), PIECE):
-        piece = {k: np.asarray(v[a:a + PIECE], float) for k, v in cov.items()}
-        piece["t"] = t[a:a + PIECE]
-        r = sensor_residual(cal, np.asarray(m[a:a + PIECE], float), piece)[0]
-        norm[a:a + PIECE] = np.linalg.norm(r, axis=1)
+    inlier rule: 2 kernel widths, else 5 noise σ), evaluated piece by piece (``pieces`` from
+    :meth:`StratifiedSampler.recording`; at most :data:`PIECE` samples at a time)."""
+    ts, norms = [], []
+    for t_all, m_all, cov_all in pieces:
+        for a in range(0, len(t_all), PIECE):
+            piece = {k: np.asarray(v[a:a + PIECE], float) for k, v in cov_all.items()}
+            piece["t"] = t_all[a:a + PIECE]
+            r = sensor_residual(cal, np.asarray(m_all[a:a + PIECE], float), piece)[0]
+            norms.append(np.linalg.norm(r, axis=1).astype(np.float32))
+        ts.append(t_all)
+    t, norm = np.concatenate(ts), np.concatenate(norms)
     width = (getattr(cal, "extra", None) or {}).get("tau")
     if width:
         limit = OUTLIER_WIDTHS * float(width)
@@ -271,8 +274,8 @@ def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODE
                 "subsample_rule": sampler.rule(), "outlier_spans_over": "subsample"}
     spans_cal = _spans_calibration(d)
     if whole_spans and spans_cal is not None:
-        t, m, cov = sampler.recording()
-        d.outlier_spans, n_out = _whole_spans(spans_cal, float(d.noise_floor), t, m, cov)
+        d.outlier_spans, n_out = _whole_spans(spans_cal, float(d.noise_floor),
+                                              sampler.recording())
         sampling.update(outlier_spans_over="recording", n_outliers_recording=n_out)
     d.sampling, d.subsample = sampling, sub
     return d
