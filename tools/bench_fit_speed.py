@@ -15,6 +15,10 @@
    generation and one warm-up fit at N = 500 (so lazily imported solvers are in the baseline):
    the extra peak resident memory the fit itself needs.
 
+5. Real data: the first 1,000 rows of ``freeimucal_mag_data.txt`` through ``streamcal.fit``
+   (default autocal) against the algebraic L2 ellipsoid fit of the same rows, same run
+   (target ≤ 3 ms and ≤ 8 × the L2 fit). ``--freeimucal-only`` runs just this row.
+
 Items 2–4 run in subprocesses once with the default BLAS threading and once with
 ``OPENBLAS_NUM_THREADS=1`` (plus OMP/MKL = 1).
 """
@@ -35,7 +39,8 @@ from _bench_common import REPO, median_seconds, run_stamp
 PAPER_TABLE_VI = {"l2_ellipsoid": 0.002, "dorveaux": 0.035, "kok_schon": 3.891, "vasconcelos": 0.014,
                   "magical": 0.032, "l1_ellipsoid": 0.177, "autocal/l1": 1.086, "autocal/cauchy": 0.303,
                   "autocal/gm": 0.353, "autocal/huber": 0.297}
-TARGETS = {"e2e_1000_s": 0.015, "lm_us": 0.5, "e2e_1e5_s": 2.0, "rss_1e5_mb": 250.0}
+FREEIMUCAL = REPO.parent / "shared" / "data" / "real" / "freeimucal_mag_data.txt"
+TARGETS = {"freeimucal_s": 0.003, "freeimucal_vs_l2": 8.0, "e2e_1000_s": 0.015, "lm_us": 0.5, "e2e_1e5_s": 2.0, "rss_1e5_mb": 250.0}
 
 
 def table_vi(n: int, repeats: int, seed: int) -> None:
@@ -134,12 +139,30 @@ def run_child(n: int, repeats: int, seed: int, single_thread: bool) -> dict:
     return json.loads(proc.stdout.strip().splitlines()[-1])
 
 
+def freeimucal_row(repeats: int) -> None:
+    """Item 5: N = 1000 real samples, streamcal.fit against fit_l2_ellipsoid, same run."""
+    from streamcal.fitting import fit
+    from streamcal.fitting.ellipsoid import fit_l2_ellipsoid
+
+    m = np.loadtxt(FREEIMUCAL, max_rows=1000, usecols=(0, 1, 2))
+    l2 = median_seconds(lambda: fit_l2_ellipsoid(m), repeats)
+    ours = median_seconds(lambda: fit(m), repeats)
+    print(f"\n### freeimucal N = {len(m)} (real), median of {repeats}\n")
+    print(f"  algebraic L2 ellipsoid fit (baseline): {l2 * 1e3:.3f} ms")
+    print(f"  streamcal.fit (autocal, default):      {ours * 1e3:.3f} ms = {ours / l2:.1f}x L2 "
+          f"(targets ≤ {TARGETS['freeimucal_s'] * 1e3:.0f} ms: "
+          f"{'PASS' if ours <= TARGETS['freeimucal_s'] else 'FAIL'}; ≤ "
+          f"{TARGETS['freeimucal_vs_l2']:.0f}x: "
+          f"{'PASS' if ours <= TARGETS['freeimucal_vs_l2'] * l2 else 'FAIL'})")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--repeats", type=int, default=21)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--quick", action="store_true", help="fewer repeats")
     p.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    p.add_argument("--freeimucal-only", action="store_true", help="only the real N = 1000 row")
     args = p.parse_args(argv)
     warnings.simplefilter("ignore")
     if args.child:
@@ -147,6 +170,9 @@ def main(argv=None) -> int:
         return 0
     repeats = 5 if args.quick else args.repeats
     print(run_stamp())
+    freeimucal_row(max(repeats, 21))
+    if args.freeimucal_only:
+        return 0
     table_vi(450, repeats, args.seed)
 
     print("\n### Core fit: N = 1000 and N = 1e5 (fresh subprocess per row)\n")

@@ -29,6 +29,9 @@ def register(subparsers) -> None:
                    "daemon/replay state dir; its model replaces --model): re-estimate only what "
                    "the track determines, hold the rest")
     add_location_options(p)
+    p.add_argument("--full", action="store_true", help="diagnose every sample even of a long "
+                   "track file (default: files over 30 MB are diagnosed from a stratified "
+                   "subsample, read in chunks; the output says which samples were used)")
     p.set_defaults(func=run)
 
 
@@ -50,8 +53,15 @@ def run(args: argparse.Namespace) -> int:
 
     report = _report_module() if args.plots else None
     ref = location_reference(args)
-    track = read_track(args)
-    if getattr(args, "cal", None):
+    long_path = _long_file(args)
+    track = None if long_path else read_track(args)
+    if long_path:
+        from ..diagnosis.subsample import diagnose_chunks
+        from ._common import recording_chunks
+
+        result = diagnose_chunks(recording_chunks(args, rows=100_000), model=model)
+        track = result.subsample
+    elif getattr(args, "cal", None):
         from ._calarg import load_calibration_arg
 
         cal, source = load_calibration_arg(args.cal)
@@ -68,6 +78,22 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(_text(result) + held_text(result) + "\n\n" + "\n".join(text_lines(local)))
     return 0
+
+
+def _long_file(args) -> bool:
+    """A section-1 track file above :data:`streamcal.diagnosis.subsample.LONG_FILE_BYTES`,
+    without ``--full`` or ``--cal``."""
+    import os
+
+    from ..diagnosis.subsample import LONG_FILE_BYTES
+    from ..inputs.detect import detect
+
+    if args.full or getattr(args, "cal", None) or getattr(args, "columns", None) is not None:
+        return False
+    try:
+        return os.path.getsize(args.track) > LONG_FILE_BYTES and detect(args.track) == "track"
+    except OSError:
+        return False
 
 
 def held_text(d) -> str:
@@ -139,6 +165,11 @@ def _text(d) -> str:
              + ("" if out_by == tuple(d.model) else
                 f"; {d.n_outliers_model} of {', '.join(out_by)}, from which the spans come") + ")",
              f"rms        {d.rms:.4g} ({residual_name(d.residual)} residual)   {floor}"]
+    if getattr(d, "sampling", None):
+        s = d.sampling
+        lines.insert(2, f"used       {s['samples_used']} of {s['samples_total']} magnetometer "
+                        f"samples ({s['subsample_rule']}); outlier spans over the "
+                        f"{s['outlier_spans_over']}")
     if not known:
         lines.append(f"           why: {d.noise_floor_reason}")
     lines += [f"verdict    {d.verdict}   ({d.noise_floor_rule})"]

@@ -82,6 +82,8 @@ class Diagnosis:
     significance_rule: str = field(default_factory=verdict_mod.significance_rule)
     #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
     misfit: dict | None = None
+    #: Which samples the figures used (:mod:`streamcal.diagnosis.subsample`); None: every one.
+    sampling: dict | None = None
 
     @property
     def floor_known(self) -> bool:
@@ -125,7 +127,9 @@ class Diagnosis:
                 "n_outliers_model": (self.n_outliers if self.n_outliers_model is None
                                      else self.n_outliers_model),
                 "ladder": self.ladder, "noise": self.noise,
-                "residual_families": self.residual_families}
+                "residual_families": self.residual_families,
+                **(self.sampling or {"samples_used": self.n, "samples_total": self.n,
+                                     "subsample_rule": "every sample"})}
 
 
 def _default_fitter(kernel: str) -> Callable:

@@ -114,12 +114,30 @@ def _looks_contaminated(r: np.ndarray, relative: np.ndarray) -> bool:
                 or np.quantile(relative, KEEP) > RELATIVE_LIMIT)
 
 
-def stage1(m_n: np.ndarray, structure: str = "full", fit_b: bool = True, method: str = "l1",
-           stage1_max: int = 300):
-    """Initial (K, b) in normalized units from an ellipsoid fit on a well-spread subset."""
-    subset = m_n[spread_subset(m_n, stage1_max)]
+def _clean_l2_start(subset: np.ndarray):
+    """(K, b) of the algebraic L2 ellipsoid fit of ``subset`` when its residuals show no
+    outliers (:func:`_looks_contaminated`), else None. On clean data the L1 fit (a conic
+    program, ~50× the cost) only gives the LM another start near the same optimum."""
     try:
-        K, b = ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
+        K, b = ellipsoid_to_model(*fit_l2_ellipsoid(subset))
+    except InsufficientDataError:
+        return None
+    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(b))):
+        return None
+    x = directions_from_model(K, b, subset)
+    r = np.linalg.norm(x @ K.T + b - subset, axis=1)
+    return None if _looks_contaminated(r, radial_error(K, b, subset)) else (K, b)
+
+
+def stage1(m_n: np.ndarray, structure: str = "full", fit_b: bool = True, method: str = "l1",
+           stage1_max: int = 300, clean_start: bool = False):
+    """Initial (K, b) in normalized units from an ellipsoid fit on a well-spread subset.
+    ``clean_start``: with ``method="l1"``, the algebraic L2 fit when its residuals show no
+    outliers (:func:`_clean_l2_start`), the L1 fit only when they do."""
+    subset = m_n[spread_subset(m_n, stage1_max)]
+    start = _clean_l2_start(subset) if method == "l1" and clean_start else None
+    try:
+        K, b = start or ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
     except InsufficientDataError:
         if method != "l1":
             raise
@@ -165,7 +183,10 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         if initial is not None:
             K0, b0 = np.asarray(initial[0]) / scale, (np.asarray(initial[1]) - center) / scale
         else:
-            K0, b0 = stage1(m_n, structure, fit_b, stage1_method, stage1_max)
+            # the default fit's kernels (Cauchy, GM) start from a clean algebraic fit: same
+            # optimum, ~50x cheaper than the L1 conic program
+            K0, b0 = stage1(m_n, structure, fit_b, stage1_method, stage1_max,
+                            clean_start=kernel in ("cauchy", "gm"))
     except InsufficientDataError:
         if check_coverage:  # a degenerate ellipsoid is most often a coverage problem: say which
             seen = assess(m_n / np.linalg.norm(m_n, axis=1, keepdims=True), structure, fit_b, m=m_n)

@@ -50,7 +50,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, triggs_weights
+from .kernels import L2, Cauchy, GemanMcClure, triggs_weights
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
 #: Entries of K (row, column) for each structure of the sensor matrix.
@@ -308,6 +308,10 @@ class _Block:
         return dx
 
 
+#: A failed step that raises the cost by at most this fraction is rounding at the optimum.
+FLAT = 1e-9
+
+
 def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel=None,
            structure: str = "full", fit_b: bool = True, effects: Sequence = (),
            covariates: Mapping[str, np.ndarray] | None = None, thetas: Sequence | None = None,
@@ -351,6 +355,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         return float(np.sum(rho(s_))), r_, u_, s_
 
     f, r, u, s = cost_of(K, b, thetas, x)
+    early = isinstance(kernel, (Cauchy, GemanMcClure))
     lam = lam0
     history = [f]
     converged = False
@@ -394,6 +399,13 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
                 rel = (f - f_new) / max(f, 1e-300)
                 K, b, thetas, x, f, r, u, s = K_new, b_new, th_new, x_new, f_new, r_new, u_new, s_new
                 lam = max(lam / 10, LAMBDA_MIN)
+                break
+            if early and np.isfinite(f_new) and f_new - f <= FLAT * f:
+                # the step leaves the cost unchanged to rounding: at the optimum, stop instead
+                # of trying max_trials λ. Only for the default fit's kernels (Cauchy,
+                # Geman–McClure); L1's kink can hide a decrease behind a damped step, and L2 /
+                # Huber keep the exhaustive search (their reference rows stay bit-for-bit).
+                rel, improved = 0.0, True
                 break
             lam = min(10 * lam, LAMBDA_MAX)
             if lam >= LAMBDA_MAX:

@@ -1,0 +1,302 @@
+"""Diagnosis of long recordings from a stratified subsample read on the fly (issue #13 item 2).
+
+A long track is never held whole. :class:`StratifiedSampler` reads it chunk by chunk and keeps
+short contiguous *blocks* of rows (:data:`BLOCK_S` seconds: magnetometer rows and the IMU rows
+between them, so interpolated covariates, gyro pairs and noise second-differences stay valid
+inside a block; the fits drop pairs across gaps). Two strata decide which blocks stay:
+
+- **time**: the span is cut into between :data:`TIME_BINS` and 2·:data:`TIME_BINS` equal bins
+  (the bin width doubles, merging neighbours, as the recording grows — its length need not be
+  known); each bin keeps :data:`PER_BIN` blocks spread round-robin over the sphere cells it
+  visits, the lowest random priority first in each cell. Every part of the time span keeps its
+  samples, so drift, temperature and motor channels keep their leverage.
+- **direction**: every equal-area sphere cell (:class:`streamcal.stream.coverage`-style
+  partition, :data:`N_CELLS` cells) the recording visits keeps its lowest-priority block, so no
+  visited direction is lost. Cells are of the block's mean field direction about the centre of
+  the algebraic ellipsoid fit of every sample read so far (running sufficient statistics).
+
+Priorities are uniform random numbers from a fixed seed, so a subsample is reproducible. The
+diagnosis then runs on the subsample; the outlier spans are computed over the whole recording
+from a compact copy of every magnetometer sample (time float64, field and covariates float32:
+20 bytes per magnetometer sample plus 4 per covariate, IMU columns left out).
+"""
+from __future__ import annotations
+
+import os
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from ..calibration import DEFAULT_MODEL
+from ..fitting.ellipsoid import design_matrix
+from ..inputs.track import Track
+from .entry import diagnose as _diagnose
+from .residuals import sensor_residual
+from .spans import outlier_spans, widen_outliers
+
+#: Length of one kept block of consecutive rows, s.
+BLOCK_S = 0.2
+#: The time span is cut into between TIME_BINS and 2·TIME_BINS bins.
+TIME_BINS = 32
+#: Blocks kept per time bin (round-robin over its sphere cells).
+PER_BIN = 10
+#: Equal-area sphere cells for the direction stratum.
+N_CELLS = 100
+#: Tracks files larger than this (bytes) are diagnosed from a subsample by ``streamcal diagnose``.
+LONG_FILE_BYTES = 30_000_000
+#: Rows per chunk read from the file.
+CHUNK_ROWS = 100_000
+#: Samples per piece when the whole-recording residual is evaluated.
+PIECE = 50_000
+#: A sample is an outlier beyond this many kernel widths / noise σ (as diagnosis.diagnosis).
+OUTLIER_WIDTHS, OUTLIER_SIGMAS = 2.0, 5.0
+
+
+class _SphereCells:
+    """Equal-area sphere cells (the same partition as the coverage report's), built here because
+    :mod:`streamcal.stream` sits above the diagnosis layer."""
+
+    def __init__(self, n_cells: int):
+        side = np.sqrt(4.0 * np.pi / n_cells)
+        n_bands = max(2, 2 * int(round(np.pi / side / 2.0)))
+        theta_mid = (np.arange(n_bands) + 0.5) * np.pi / n_bands
+        counts = np.maximum(1, np.round(2.0 * np.pi * np.sin(theta_mid) / side)).astype(int)
+        self.counts = np.maximum(counts, counts[::-1])
+        self.offsets = np.concatenate([[0], np.cumsum(self.counts)[:-1]])
+        self.z_edges = 1.0 - 2.0 * np.concatenate([[0], np.cumsum(self.counts)]) / self.counts.sum()
+        self.z_edges[-1] = -1.0
+
+    def cell_of(self, d: np.ndarray) -> np.ndarray:
+        """Cell index (n,) of unit directions ``d`` (n,3)."""
+        band = np.searchsorted(-self.z_edges[1:-1], -d[:, 2], side="right")
+        n = self.counts[band]
+        phi = np.arctan2(d[:, 1], d[:, 0])
+        return self.offsets[band] + np.minimum((phi + np.pi) * (n / (2.0 * np.pi)), n - 1).astype(int)
+
+
+def _round_robin(cell: np.ndarray, u: np.ndarray, q: int) -> np.ndarray:
+    """Indices of the ``q`` blocks a round-robin over cells picks (lowest ``u`` first in each
+    cell, cells in order of their next-lowest ``u``): water-filling the cells to one level."""
+    if len(u) <= q:
+        return np.arange(len(u))
+    order = np.lexsort((u, cell))
+    c = cell[order]
+    start = np.r_[0, np.flatnonzero(np.diff(c)) + 1]
+    rank = np.arange(len(c)) - np.repeat(start, np.diff(np.r_[start, len(c)]))
+    pick = np.lexsort((u[order], rank))[:q]
+    return order[pick]
+
+
+class StratifiedSampler:
+    """Feed :meth:`add` consecutive chunks (Tracks, time order); :meth:`track` gives the
+    subsample, :meth:`recording` the compact copy of every magnetometer sample."""
+
+    def __init__(self, block_s: float = BLOCK_S, time_bins: int = TIME_BINS,
+                 per_bin: int = PER_BIN, n_cells: int = N_CELLS, seed: int = 0):
+        self.block_s, self.time_bins, self.per_bin = float(block_s), int(time_bins), int(per_bin)
+        self.cells = _SphereCells(n_cells)
+        self.rng = np.random.default_rng(seed)
+        self.width = 4.0 * self.block_s          # time-bin width, s (doubles as needed)
+        self.t0 = None
+        self.names = None
+        self.metadata, self.path = {}, None
+        self.scatter = np.zeros((10, 10))        # Σ DᵀD of the algebraic ellipsoid fit
+        self.left = None                         # rows of the last, unfinished block
+        # kept blocks: id → rows (R, C); their meta arrays
+        self.rows: dict[int, np.ndarray] = {}
+        self.meta = np.zeros((0, 4))             # (block id, time bin, cell, priority)
+        self.best = np.zeros((0, 3))             # per visited cell: (cell, priority, block id)
+        self.store = {"t": [], "mag": [], "cov": []}
+        self.cov_names = None
+        self.samples_total = 0
+
+    # -- reading ---------------------------------------------------------------------------
+    def add(self, chunk: Track) -> None:
+        """Take one chunk of the recording (a :class:`Track`)."""
+        if self.names is None:
+            self.names = list(chunk.columns)
+            self.metadata, self.path = dict(chunk.metadata), chunk.path
+        if not len(chunk):
+            return
+        self._keep_mag(chunk)
+        data = np.column_stack([chunk.columns[n] for n in self.names])
+        if self.left is not None:
+            data = np.concatenate([self.left, data])
+        t = data[:, self.names.index("t")]
+        if self.t0 is None:
+            self.t0 = float(t[0])
+        block = np.floor((t - self.t0) / self.block_s).astype(np.int64)
+        last = block[-1]
+        self.left = data[block == last]
+        self._blocks(data[block < last], block[block < last])
+
+    def _keep_mag(self, chunk: Track) -> None:
+        m = np.asarray(chunk.mag, float)
+        self.samples_total += len(m)
+        if not len(m):
+            return
+        cov = chunk.covariates_at_mag()
+        names = sorted(k for k in cov if k != "t" and k not in ("ax", "ay", "az", "gx", "gy", "gz"))
+        if self.cov_names is None:
+            self.cov_names = names
+        self.store["t"].append(np.asarray(cov["t"], float))
+        self.store["mag"].append(m.astype(np.float32))
+        self.store["cov"].append(np.column_stack(
+            [cov[k] if k in cov else np.full(len(m), np.nan) for k in self.cov_names]
+        ).astype(np.float32) if self.cov_names else np.zeros((len(m), 0), np.float32))
+        D = design_matrix(m)
+        self.scatter += D.T @ D
+
+    def _centre(self, m: np.ndarray) -> np.ndarray:
+        """Centre of the algebraic ellipsoid fit of every sample so far (bounding-box middle of
+        ``m`` when that fit is not an ellipsoid)."""
+        w, v = np.linalg.eigh(self.scatter)
+        x = v[:, 0]
+        A = np.array([[x[0], x[3], x[4]], [x[3], x[1], x[5]], [x[4], x[5], x[2]]])
+        if np.all(np.linalg.eigvalsh(A * np.sign(np.trace(A))) > 0):
+            return -np.linalg.solve(A, x[6:9])
+        return 0.5 * (np.nanmin(m, 0) + np.nanmax(m, 0))
+
+    def _blocks(self, data: np.ndarray, block: np.ndarray) -> None:
+        if not len(data):
+            return
+        mcols = [self.names.index(k) for k in ("mx", "my", "mz")]
+        m = data[:, mcols]
+        has = ~np.isnan(m).any(axis=1)
+        ids, start = np.unique(block, return_index=True)
+        bounds = np.r_[start, len(block)]
+        sums = np.add.reduceat(np.where(has[:, None], m, 0.0), start)
+        counts = np.add.reduceat(has.astype(int), start)
+        ok = counts > 0                          # blocks without a magnetometer row are dropped
+        mean = sums[ok] / counts[ok, None]
+        d = mean - self._centre(m[has])
+        d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+        cell = self.cells.cell_of(d)
+        tb = np.floor(ids[ok] * self.block_s / self.width).astype(np.int64)
+        u = self.rng.random(int(ok.sum()))
+        new = np.column_stack([ids[ok], tb, cell, u])
+        self.meta = self._select(np.concatenate([self.meta, new]))
+        self.best = self._best(np.column_stack([cell, u, ids[ok]]))
+        keep = set(self.meta[:, 0].astype(np.int64)) | set(self.best[:, 2].astype(np.int64))
+        for j, bid in enumerate(ids):
+            if ok[j] and bid in keep and bid not in self.rows:
+                self.rows[int(bid)] = data[bounds[j]:bounds[j + 1]].copy()
+        for bid in list(self.rows):
+            if bid not in keep:
+                del self.rows[bid]
+
+    def _best(self, new: np.ndarray) -> np.ndarray:
+        allb = np.concatenate([self.best, new])
+        order = np.lexsort((allb[:, 1], allb[:, 0]))
+        allb = allb[order]
+        first = np.r_[True, np.diff(allb[:, 0]) != 0]
+        return allb[first]
+
+    def _select(self, meta: np.ndarray) -> np.ndarray:
+        """Each time bin's round-robin pick; the bins merge pairwise while there are more than
+        2·time_bins."""
+        while meta[:, 1].max() - meta[:, 1].min() + 1 > 2 * self.time_bins:
+            self.width *= 2.0
+            meta[:, 1] = np.floor(meta[:, 0] * self.block_s / self.width)
+        out = []
+        for b in np.unique(meta[:, 1]):
+            sel = meta[meta[:, 1] == b]
+            out.append(sel[_round_robin(sel[:, 2].astype(int), sel[:, 3], self.per_bin)])
+        return np.concatenate(out) if out else meta[:0]
+
+    def finish(self) -> None:
+        """Take the last, unfinished block."""
+        if self.left is not None and len(self.left):
+            t = self.left[:, self.names.index("t")]
+            self._blocks(self.left, np.floor((t - self.t0) / self.block_s).astype(np.int64))
+        self.left = None
+
+    # -- results ---------------------------------------------------------------------------
+    def track(self) -> Track:
+        """The kept blocks, in time order, as one Track."""
+        data = np.concatenate([self.rows[k] for k in sorted(self.rows)])
+        return Track({n: np.ascontiguousarray(data[:, j]) for j, n in enumerate(self.names)},
+                     self.metadata, self.path)
+
+    def recording(self):
+        """The compact copy of every magnetometer sample, one piece per chunk read: yields
+        ``(t (n,), mag (n,3) float32, cov {name: (n,) float32})``."""
+        for t, m, c in zip(self.store["t"], self.store["mag"], self.store["cov"]):
+            yield t, m, {k: c[:, j] for j, k in enumerate(self.cov_names or [])}
+
+    def rule(self) -> str:
+        return (f"stratified subsample: blocks of {self.block_s:g} s of consecutive rows; "
+                f"{self.per_bin} blocks per time bin of {self.width:g} s (round-robin over "
+                f"{self.cells.counts.sum()} equal-area sphere cells of the field direction, about "
+                f"the running algebraic ellipsoid centre) plus one block in every visited cell; "
+                f"random priorities, seed fixed")
+
+
+def _whole_spans(cal, floor: float, pieces):
+    """Outlier spans of calibration ``cal`` over every magnetometer sample (the fit's own
+    inlier rule: 2 kernel widths, else 5 noise σ), evaluated piece by piece (``pieces`` from
+    :meth:`StratifiedSampler.recording`; at most :data:`PIECE` samples at a time)."""
+    ts, norms = [], []
+    for t_all, m_all, cov_all in pieces:
+        for a in range(0, len(t_all), PIECE):
+            piece = {k: np.asarray(v[a:a + PIECE], float) for k, v in cov_all.items()}
+            piece["t"] = t_all[a:a + PIECE]
+            r = sensor_residual(cal, np.asarray(m_all[a:a + PIECE], float), piece)[0]
+            norms.append(np.linalg.norm(r, axis=1).astype(np.float32))
+        ts.append(t_all)
+    t, norm = np.concatenate(ts), np.concatenate(norms)
+    width = (getattr(cal, "extra", None) or {}).get("tau")
+    if width:
+        limit = OUTLIER_WIDTHS * float(width)
+    else:
+        limit = OUTLIER_SIGMAS * (floor if np.isfinite(floor) else np.median(norm) / 0.6745)
+    out = widen_outliers(t, norm, norm > limit)
+    return outlier_spans(t, out), int(out.sum())
+
+
+def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODEL, *,
+                    diagnose=_diagnose, sampler: StratifiedSampler | None = None,
+                    whole_spans: bool = True, **kwargs):
+    """Diagnose a recording given as consecutive chunks (e.g.
+    :func:`streamcal.inputs.chunks.iter_track_chunks`) from a :class:`StratifiedSampler`
+    subsample; ``diagnose(track, model, **kwargs)`` is the diagnosis to run on it
+    (:func:`streamcal.diagnosis.diagnose`). The result carries ``sampling``: ``samples_used``,
+    ``samples_total`` (magnetometer samples), ``subsample_rule`` and ``outlier_spans_over``
+    (``"recording"`` when the spans were recomputed over every sample with the spans model,
+    ``"subsample"`` otherwise); ``subsample`` is the Track used."""
+    sampler = sampler or StratifiedSampler()
+    for chunk in chunks:
+        sampler.add(chunk)
+    sampler.finish()
+    sub = sampler.track()
+    d = diagnose(sub, model, **kwargs)
+    sampling = {"samples_used": int(len(sub.mag)), "samples_total": int(sampler.samples_total),
+                "subsample_rule": sampler.rule(), "outlier_spans_over": "subsample"}
+    spans_cal = _spans_calibration(d)
+    if whole_spans and spans_cal is not None:
+        d.outlier_spans, n_out = _whole_spans(spans_cal, float(d.noise_floor),
+                                              sampler.recording())
+        sampling.update(outlier_spans_over="recording", n_outliers_recording=n_out)
+    d.sampling, d.subsample = sampling, sub
+    return d
+
+
+def _spans_calibration(d):
+    """The calibration of the model the spans come from (``outliers_model``), or None."""
+    want = tuple(d.outliers_model or d.model)
+    if tuple(d.model) == want:
+        return d.calibration
+    for c in d.candidates:
+        cal = getattr(c, "calibration", None)
+        if cal is not None and tuple(cal.model) == want:
+            return cal
+    return None
+
+
+def diagnose_file(path: str | os.PathLike, model: Sequence[str] = DEFAULT_MODEL, *, diagnose=_diagnose,
+                  rows: int = CHUNK_ROWS, skip_bad_rows: bool = False, **kwargs):
+    """:func:`diagnose_chunks` of the section-1 track file at ``path``, read in chunks."""
+    from ..inputs.chunks import iter_track_chunks
+
+    return diagnose_chunks(iter_track_chunks(path, rows=rows, skip_bad_rows=skip_bad_rows),
+                           model, diagnose=diagnose, **kwargs)

@@ -1,0 +1,122 @@
+"""Time and peak RSS of ``streamcal diagnose`` on long tracks: the subsampled path against the
+full computation, same run (issue #13 item 2).
+
+    python tools/bench_long_diagnose.py [--keep DIR] [--hours 1,4] [--full-long]
+
+Simulates 5-minute, 1-hour and 4-hour 100 Hz tracks with ``streamcal.sim.simulate`` (hourly
+segments of one sensor model and one hidden ``temperature_offset`` placed end to end, two outlier
+bursts per segment), writes them once (``--keep`` reuses them), then runs each diagnosis in its
+own subprocess (``python -m streamcal diagnose TRACK --json``, peak RSS from
+``RUSAGE_CHILDREN`` of a small fresh parent). Baselines in the same run: the full diagnosis
+(``--full``) of the 5-minute track, and of the 1-hour track with ``--full-long``. Targets:
+1-hour ≤ 10 s and ≤ 400 MB; 4-hour peak RSS ≤ 1.3 × the 1-hour's; verdict and top candidate as
+the full computation's.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+from _bench_common import REPO
+
+EFFECT = {"temperature_offset": [0.25, -0.2, -0.5]}
+
+
+def _make(path: Path, seconds: float, seed: int) -> int:
+    import numpy as np
+
+    from streamcal.inputs.track import Track
+    from streamcal.sim import simulate
+
+    seg_s = min(seconds, 3600.0)
+    first = simulate(seg_s, seed=seed, effects=EFFECT, outlier_bursts=2, noise_uT=0.4)
+    parts, done = [first.track.columns], seg_s
+    while done < seconds:
+        seg = simulate(seg_s, seed=seed + len(parts), effects=EFFECT, outlier_bursts=2,
+                       noise_uT=0.4, K=first.truth.K, b=first.truth.b)
+        cols = dict(seg.track.columns)
+        cols["t"] = cols["t"] + done
+        parts.append(cols)
+        done += seg_s
+    track = Track({n: np.concatenate([p[n] for p in parts]) for n in parts[0]},
+                  first.track.metadata)
+    track.write(path)
+    return len(track)
+
+
+_MEASURE = """
+import resource, subprocess, sys, json
+proc = subprocess.run([sys.executable, "-m", "streamcal", "diagnose", *sys.argv[1:], "--json"],
+                      capture_output=True, text=True)
+print(json.dumps({"rc": proc.returncode, "maxrss_kib":
+                  resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss,
+                  "out": proc.stdout, "stderr": proc.stderr[-2000:]}))
+"""
+
+
+def _run(path: Path, full: bool) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", _MEASURE, str(path), *(["--full"] if full else [])],
+                          capture_output=True, text=True, env=env, check=True)
+    elapsed = time.perf_counter() - start
+    out = json.loads(proc.stdout)
+    if out["rc"] != 0:
+        sys.exit(f"diagnose of {path} failed ({out['rc']}): {out['stderr']}")
+    d = json.loads(out["out"])
+    top = d["candidates"][0]["effect"] if d["candidates"] else None
+    row = {"track": path.name, "mode": "full" if full else "auto", "s": elapsed,
+           "rss_mb": out["maxrss_kib"] / 1024, "verdict": d["verdict"], "top": top,
+           "used": d["samples_used"], "total": d["samples_total"],
+           "spans": len(d["outlier_spans"]), "spans_over": d.get("outlier_spans_over", "all")}
+    print(f"{row['track']:<8}{row['mode']:<6}{row['s']:>8.1f} s{row['rss_mb']:>9.0f} MiB  "
+          f"{row['verdict']:<15}{str(top):<22}{row['used']:>9}/{row['total']:<9}"
+          f"{row['spans']:>4} spans over {row['spans_over']}", flush=True)
+    return row
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--keep", metavar="DIR", help="write the tracks here and reuse them")
+    ap.add_argument("--full-long", action="store_true", help="also the full 1-hour diagnosis")
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory(prefix="bench_long_diag_") as tmp:
+        where = Path(args.keep or tmp)
+        where.mkdir(parents=True, exist_ok=True)
+        tracks = {"5min": 300.0, "1h": 3600.0, "4h": 4 * 3600.0}
+        paths = {}
+        for name, seconds in tracks.items():
+            paths[name] = where / f"{name}.csv"
+            if not paths[name].exists():
+                start = time.perf_counter()
+                rows = _make(paths[name], seconds, seed=3)
+                print(f"simulated {name}: {rows} rows, {paths[name].stat().st_size / 1e6:.0f} MB "
+                      f"in {time.perf_counter() - start:.0f} s", flush=True)
+        print(f"{'track':<8}{'mode':<6}{'time':>10}{'peak RSS':>13}  {'verdict':<15}"
+              f"{'top candidate':<22}{'used/total mag samples':>19}")
+        rows = {("5min", "full"): _run(paths["5min"], True)}
+        rows[("5min", "sub")] = _run(paths["5min"], False)   # below the size: full as well
+        if args.full_long:
+            rows[("1h", "full")] = _run(paths["1h"], True)
+        rows[("1h", "sub")] = _run(paths["1h"], False)
+        rows[("4h", "sub")] = _run(paths["4h"], False)
+        one, four, base = rows[("1h", "sub")], rows[("4h", "sub")], rows[("5min", "full")]
+        print(f"1 h subsampled: {one['s']:.1f} s (target <= 10), {one['rss_mb']:.0f} MiB (<= 400); "
+              f"= {one['s'] / base['s']:.2f}x time, {one['rss_mb'] / base['rss_mb']:.2f}x RSS of "
+              f"the full 5-min diagnosis")
+        print(f"4 h / 1 h peak RSS: {four['rss_mb'] / one['rss_mb']:.3f} (target <= 1.3)")
+        ref = rows.get(("1h", "full"), base)
+        same = all((r["verdict"], r["top"]) == (ref["verdict"], ref["top"]) for r in rows.values())
+        print(f"verdict and top candidate equal to the full {ref['track']} diagnosis on every "
+              f"track: {same}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
