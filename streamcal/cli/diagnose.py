@@ -19,7 +19,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object (SPEC §4)")
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
-                   "daemon/replay state dir; its model replaces --model): re-estimate only what "
+                   "daemon/replay state dir; its model replaces --model; 'autopilot' or 'log': "
+                   "the one in the log's own COMPASS_* parameters): re-estimate only what "
                    "the track determines, hold the rest")
     p.set_defaults(func=run)
 
@@ -40,9 +41,9 @@ def run(args: argparse.Namespace) -> int:
     report = _report_module() if args.plots else None
     track = read_track(args)
     if getattr(args, "cal", None):
-        from ._calarg import load_calibration_arg
+        from ._calarg import calibration_for
 
-        cal, source = load_calibration_arg(args.cal)
+        cal, source = calibration_for(args.cal, track)
         result = diagnose(track, model=model, calibration=cal, calibration_source=source)
     else:
         result = diagnose(track, model=model)

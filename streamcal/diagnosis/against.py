@@ -185,7 +185,8 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                              "calibration cannot diagnose magnetometer readings")
         base_cal = calibration
         model = tuple(n_ for n_ in calibration.model if n_ not in REGISTRATION_EFFECTS)
-        source = calibration_source or "given calibration"
+        source = (calibration_source or dict(calibration.extra or {}).get("source")
+                  or "given calibration")
     else:
         model = tuple(check_known(model))
         base_cal = default_calibration(m, model)
@@ -270,7 +271,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
         top = cur_ranked[0]
         added, current = (*added, top.effect), top._evaluated
-        steps.append({"model": [*model, *added], "added": top.effect, "rms": current.rms,
+        steps.append({"model": [*model, *added], "added": top.effect, "rms": top.rms_after,
                       "rms_before": top.rms_before, "residual": "sensor",
                       "p_value": top.p_value, "gravity_tied": False, "gyro_tied": False,
                       "n": n_r})
