@@ -75,7 +75,7 @@ def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
         JB = J @ B
         A = np.einsum("nki,nkj->nij", JB, JB)
         rhs = np.einsum("nki,nk->ni", JB, g - m)
-        x = x - np.einsum("nij,nj->ni", B, np.linalg.solve(A, rhs[..., None])[..., 0])
+        x = x - np.einsum("nij,nj->ni", B, _solve2(A, rhs))
         x /= np.linalg.norm(x, axis=1, keepdims=True)
     g, J = _model(cal, terms, x, cov)
     normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
@@ -83,6 +83,16 @@ def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
     r = g - m
     D = J @ np.linalg.inv(cal.K)
     return r, x, -np.einsum("ni,ni->n", r, normal), normal, D
+
+
+def _solve2(A: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the (N,2,2) systems A z = rhs (N,2) in closed form (Cramer's rule): batched
+    ``np.linalg.solve`` spends most of its time on per-call overhead at this size."""
+    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    det = a * d - b * c
+    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    return np.stack([(d * rhs[:, 0] - b * rhs[:, 1]) / det,
+                     (a * rhs[:, 1] - c * rhs[:, 0]) / det], axis=1)
 
 
 def jacobian(free: Sequence[str], terms, x, normal, D, cov, u) -> np.ndarray:
