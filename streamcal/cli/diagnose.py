@@ -64,6 +64,14 @@ def held_text(d) -> str:
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
              f"{d.tolerance:.3g} {unit}, or not in the model)"]
+    n_r = getattr(d, "n_ranked", 0) or d.n
+    if n_r < d.n:
+        lines.append(f"ranked     candidates refitted on {n_r} of {d.n} samples (every cell of "
+                     "direction × stretch of time kept); their before/after are on those")
+    scores = list(getattr(d, "aux_channels", {}).items())[:4]
+    if scores:
+        lines.append("channels   residual follows, each alone: "
+                     + ", ".join(f"{k} r={v:.2f}" for k, v in scores))
     if d.estimated:
         lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
         lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]

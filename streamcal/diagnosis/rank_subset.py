@@ -12,19 +12,20 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Candidate refits use all samples up to this many, else a subsample of about this many.
+#: Candidate refits use a subsample of about this many samples when the recording has more
+#: than twice as many (below that the saving would not pay for the extra base refit).
 RANK_MAX = 1500
 AZIMUTHS, BANDS, TIME_BINS = 12, 6, 24
 
 
 def rank_subset(m: np.ndarray, b: np.ndarray, t: np.ndarray,
                 n_max: int = RANK_MAX) -> np.ndarray | None:
-    """Sorted indices (K,) of the subsample, or None when ``len(m) <= n_max`` (use all).
+    """Sorted indices (K,) of the subsample, or None when ``len(m) <= 2 n_max`` (use all).
 
     ``m`` (N,3) readings and ``b`` (3,) the offset the directions are seen from (sensor unit),
     ``t`` (N,) time (s). K is about ``n_max``, more when there are more occupied groups."""
     n = len(m)
-    if n <= n_max:
+    if n <= 2 * n_max:
         return None
     d = np.asarray(m, float) - np.asarray(b, float)
     d /= np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-300)
