@@ -69,8 +69,9 @@ def test_hidden_effect_report_names_the_effect_and_inlines_every_figure(hidden):
     page = render_html(track, d)
     _assert_self_contained(page)
     images = _images(page)
-    assert len(images) == len(ALL_FIGURES)
-    for name in ALL_FIGURES:
+    # plus the residual against the aux channels / temperature (report/figures_aux.py)
+    assert len(images) == len(ALL_FIGURES) + 1
+    for name in (*ALL_FIGURES, "aux_residuals"):
         assert f'id="fig-{name}"' in page
     for png in images:
         _assert_not_blank(png)

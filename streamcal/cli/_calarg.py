@@ -1,14 +1,18 @@
-"""``--cal CAL`` / ``--initial CAL``: a calibration JSON file (docs/calibration_file.md) or a
-daemon/replay state directory (its ``calibration.json``, else the newest good
-``history/NNNN.json``, as :class:`streamcal.stream.store.CalibrationStore` keeps them). Read
-only: the directory is not created, pruned or re-permissioned."""
+"""``--cal CAL`` / ``--initial CAL``: a calibration JSON file (docs/calibration_file.md) or a daemon/replay state
+directory (its ``calibration.json``, else the newest good ``history/NNNN.json``, as
+:class:`streamcal.stream.store.CalibrationStore` keeps them). Read only: the directory is not
+created, pruned or re-permissioned.
+
+``--cal autopilot`` (or ``--cal log``): the calibration the autopilot had in force, rebuilt from
+the recording's own parameters (ArduPilot COMPASS_*, :func:`streamcal.inputs.autopilot_calibration`)
+— unless a file or directory of that name exists, which is then read as above."""
 from __future__ import annotations
 
 import os
 from pathlib import Path
 
 from ..calibration import Calibration
-from ..errors import CalibrationFileError
+from ..errors import CalibrationFileError, InputError
 from ..stream.store import CURRENT, HISTORY, _HISTORY_NAME
 
 
@@ -34,3 +38,25 @@ def load_calibration_arg(path: str, option: str = "--cal") -> tuple[Calibration,
             problems.append(str(exc))
     raise CalibrationFileError(f"{option} {path}: state directory holds no usable calibration ("
                                + "; ".join(problems) + ")")
+
+
+#: ``--cal`` values that mean "the calibration in the recording's own parameters".
+FROM_RECORDING = ("autopilot", "log")
+
+
+def calibration_for(path: str, track, option: str = "--cal") -> tuple[Calibration, str]:
+    """:func:`load_calibration_arg`, or for ``autopilot``/``log`` (no file of that name) the
+    autopilot's calibration from ``track``'s parameters; CalibrationFileError (exit 2) saying
+    the log carries none."""
+    if path in FROM_RECORDING and not Path(path).exists():
+        from ..inputs import autopilot_calibration
+
+        try:
+            cal = autopilot_calibration(track)
+        except InputError as exc:
+            raise CalibrationFileError(
+                f"{option} {path}: the recording carries no autopilot compass calibration "
+                f"({exc}); give a calibration file or state directory instead") from None
+        where = dict(cal.extra or {}).get("source") or "the recording's parameters"
+        return cal, f"autopilot calibration in force ({where})"
+    return load_calibration_arg(path, option)

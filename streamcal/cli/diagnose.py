@@ -26,7 +26,8 @@ def register(subparsers) -> None:
                    help="print one JSON object (keys in docs/diagnosis.md)")
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
-                   "daemon/replay state dir; its model replaces --model): re-estimate only what "
+                   "daemon/replay state dir; its model replaces --model; 'autopilot' or 'log': "
+                   "the one in the log's own COMPASS_* parameters): re-estimate only what "
                    "the track determines, hold the rest")
     add_location_options(p)
     p.add_argument("--full", action="store_true", help="diagnose every sample even of a long "
@@ -62,9 +63,9 @@ def run(args: argparse.Namespace) -> int:
         result = diagnose_chunks(recording_chunks(args, rows=100_000), model=model)
         track = result.subsample
     elif getattr(args, "cal", None):
-        from ._calarg import load_calibration_arg
+        from ._calarg import calibration_for
 
-        cal, source = load_calibration_arg(args.cal)
+        cal, source = calibration_for(args.cal, track)
         result = diagnose(track, model=model, calibration=cal, calibration_source=source)
     else:
         result = diagnose(track, model=model)
@@ -104,6 +105,14 @@ def held_text(d) -> str:
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
              f"{d.tolerance:.3g} {unit}, or not in the model)"]
+    n_r = getattr(d, "n_ranked", 0) or d.n
+    if n_r < d.n:
+        lines.append(f"ranked     candidates refitted on {n_r} of {d.n} samples (every cell of "
+                     "direction × stretch of time kept); their before/after are on those")
+    scores = list(getattr(d, "aux_channels", {}).items())[:4]
+    if scores:
+        lines.append("channels   residual follows, each alone: "
+                     + ", ".join(f"{k} r={v:.2f}" for k, v in scores))
     if d.estimated:
         lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
         lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]

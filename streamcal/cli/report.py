@@ -31,7 +31,8 @@ def register(subparsers) -> None:
                    help="report file (default: <track name>-report.html in the current directory)")
     p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
-                   "state dir), holding what the track does not determine")
+                   "state dir; 'autopilot' or 'log': the one in the log's own COMPASS_* "
+                   "parameters), holding what the track does not determine")
     add_location_options(p)
     p.set_defaults(func=run)
 
@@ -62,9 +63,9 @@ def run(args) -> int:
     track = read_track(args)
     kwargs = {}
     if getattr(args, "cal", None):
-        from ._calarg import load_calibration_arg
+        from ._calarg import calibration_for
 
-        cal, source = load_calibration_arg(args.cal)
+        cal, source = calibration_for(args.cal, track)
         kwargs = {"calibration": cal, "calibration_source": source}
     diagnosis, reason = diagnose_or_reason(track, model, **kwargs)
     out = Path(args.output) if args.output else default_output(args.track)

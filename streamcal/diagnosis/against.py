@@ -24,10 +24,12 @@ from ..model import (REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns
                      terms_from_params)
 from ..model.build import check_known
 from . import candidates as cand
+from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
-from .held import (B_PARAMS, TOLERANCE, HeldFit, choose_free, core_params, field_radius,
-                   held_fit)
+from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
+                   field_radius, held_fit, project)
 from .noise import noise_floor
+from .rank_subset import RANK_MAX, rank_subset
 from .residuals import families
 from .spans import outlier_spans
 
@@ -51,8 +53,19 @@ class HeldDiagnosis(Diagnosis):
     tolerance: float = float("nan")
     calibration_source: str = ""
     unit: str = ""
+    #: Samples the candidate refits (and ladder steps after the first) used; ``n`` when all.
+    n_ranked: int = 0
+    #: ``{channel: r}``: how closely the base model's residual (every sample) follows each
+    #: auxiliary channel alone (:func:`streamcal.diagnosis.aux_channels.channel_scores`), largest first.
+    aux_channels: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
+        out = self._held_dict()
+        out["n_ranked"] = int(self.n_ranked or self.n)
+        out["aux_channels"] = dict(self.aux_channels)
+        return out
+
+    def _held_dict(self) -> dict:
         out = super().to_dict()
         out.update(held=list(self.held), estimated=self.estimated,
                    predicted_sigma=self.predicted_sigma, tolerance=self.tolerance, unit=self.unit,
@@ -63,8 +76,8 @@ class HeldDiagnosis(Diagnosis):
 class _Eval:
     """One held fit evaluated like :class:`streamcal.diagnosis.diagnosis._Evaluated`."""
 
-    def __init__(self, fit: HeldFit, cal: Calibration, p: int):
-        self.fit, self.cal, self.p = fit, cal, p
+    def __init__(self, fit: HeldFit, cal: Calibration, p: int, terms=()):
+        self.fit, self.cal, self.p, self.terms = fit, cal, p, list(terms)
         self.r, self.x, self.s, self.normal = fit.r, fit.x, fit.s, fit.normal
         self.inliers = fit.inliers
         self.rss = np.sum(fit.r ** 2, axis=1)
@@ -91,6 +104,36 @@ def _calibration(K, b, base: Calibration, terms, fit: HeldFit, model) -> Calibra
                         extra={**dict(base.extra or {}), "tau": fit.tau})
 
 
+#: Ridge of :func:`linear_start`, relative to each column's sum of squares.
+RIDGE = 1e-2
+
+
+def linear_start(term, s: np.ndarray, normal: np.ndarray, u: np.ndarray, cov,
+                 tau: float) -> np.ndarray:
+    """Starting θ for a candidate: least squares of the signed normal residual ``s`` (N,) on a
+    constant and the columns nᵀ ∂f/∂θ (the effect's first-order change of s is −nᵀ ∂f/∂θ δθ),
+    kept only when it lowers the linearised Cauchy cost (width ``tau``); else ``term.initial()``.
+
+    Why: an effect of a few µT against a noise of 0.1 µT puts the samples it moves (the flight
+    against the ground run, full throttle) beyond the Cauchy width, where their weight is
+    ~(τ/s)²; a robust fit started at θ = 0 then calls them outliers and never explains them."""
+    theta0 = np.asarray(term.initial(), float)
+    Z = np.einsum("ni,nip->np", normal, term.jac_theta(theta0, u, cov))
+    ok = np.all(np.isfinite(Z), axis=1) & np.isfinite(s)
+    if ok.sum() <= Z.shape[1] + 1:
+        return theta0
+    A = np.column_stack([np.ones(int(ok.sum())), Z[ok]])
+    # a light ridge: channels that move together (throttle, motor outputs) would otherwise get
+    # large cancelling coefficients, far outside where the linearisation holds
+    H = A.T @ A
+    H[1:, 1:] += RIDGE * np.diag(np.diag(H[1:, 1:]) + 1e-300)
+    coef = np.linalg.solve(H, A.T @ s[ok])
+    after = s[ok] - coef[0] - Z[ok] @ coef[1:]
+    if np.sum(np.log1p((after / tau) ** 2)) < np.sum(np.log1p((s[ok] / tau) ** 2)):
+        return theta0 + coef[1:]
+    return theta0
+
+
 def _refuse_b(n: int, errors: dict, tol: float, unit: str, sigma: float) -> None:
     worst = max(errors.get(name, np.inf) for name, _ in B_PARAMS)
     if worst <= tol:
@@ -108,14 +151,19 @@ def _refuse_b(n: int, errors: dict, tol: float, unit: str, sigma: float) -> None
 def diagnose_against(track, calibration: Calibration | None = None, *,
                      model: Sequence[str] = DEFAULT_MODEL, candidates: Sequence[str] | None = None,
                      ladder: bool = True, calibration_source: str | None = None,
-                     tolerance: float = TOLERANCE) -> HeldDiagnosis:
+                     tolerance: float = TOLERANCE, rank_max: int = RANK_MAX) -> HeldDiagnosis:
     """Diagnose ``track`` relative to ``calibration`` (None: the default of
     :func:`default_calibration`), holding what the recording does not determine.
 
     ``tolerance``: a parameter is re-estimated when its predicted error is below ``tolerance``
     × the field radius. Refuses (InsufficientDataError) with fewer than :data:`MIN_SAMPLES`
     samples, or, without a calibration, when b cannot be determined to that tolerance.
-    Registration effects (gravity- and gyro-tied) are not ranked here."""
+    Registration effects (gravity- and gyro-tied) are not ranked here.
+
+    With more than ``rank_max`` samples the candidates are ranked on the subsample of
+    :func:`streamcal.diagnosis.rank_subset.rank_subset` (every direction cell and stretch of
+    time kept): each candidate's ``rms_before``/``rms_after`` and the ladder steps after the
+    first are on it (``n_ranked`` samples); ``rms``, ``held``, ``estimated`` are on all."""
     m = np.asarray(track.mag, dtype=float)
     n = len(m)
     unit = track.mag_unit
@@ -137,7 +185,8 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                              "calibration cannot diagnose magnetometer readings")
         base_cal = calibration
         model = tuple(n_ for n_ in calibration.model if n_ not in REGISTRATION_EFFECTS)
-        source = calibration_source or "given calibration"
+        source = (calibration_source or dict(calibration.extra or {}).get("source")
+                  or "given calibration")
     else:
         model = tuple(check_known(model))
         base_cal = default_calibration(m, model)
@@ -163,16 +212,20 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
         _refuse_b(n, errors, tol, unit, sigma)
 
-    def evaluate(new_terms, start=None):
+    def evaluate(new_terms, start=None, m_=m, cov_=cov):
         # candidates start from the model they extend (same held values, a lower cost)
         K_s, b_s = (K0, b0) if start is None else (start.fit.K, start.fit.b)
-        fit = held_fit(m, cov, K_s, b_s, free, held_terms, new_terms, sigma)
+        fit = held_fit(m_, cov_, K_s, b_s, free, held_terms, new_terms, sigma)
         cal = _calibration(fit.K, fit.b, base_cal, list(zip([t for t, _ in new_terms],
                                                             fit.thetas)),
                            fit, (*model, *(t.name for t, _ in new_terms)))
-        return _Eval(fit, cal, len(free) + sum(len(th) for th in fit.thetas))
+        return _Eval(fit, cal, len(free) + sum(len(th) for th in fit.thetas),
+                     [t for t, _ in new_terms])
 
     base = evaluate([])
+    idx = rank_subset(m, base.fit.b, t, rank_max)
+    m_r, cov_r = (m, cov) if idx is None else (m[idx], {k: v[idx] for k, v in cov.items()})
+    base_r = base if idx is None else evaluate([], base, m_r, cov_r)
     if candidates is None:
         names_c = [c for c in TERMS if c not in model and c not in base_cal.effects]
         absent = missing_columns(names_c, track)
@@ -184,37 +237,55 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         out = []
         for name in pool:
             try:
-                term = build_effects([name], cov)[0]
-                prior = [(t, th) for t, th in zip(
-                    [build_effects([a], cov)[0] for a in added], ref.fit.thetas)]
-                ev = evaluate([*prior, (term, term.initial())], ref)
+                term = build_effects([name], cov_r)[0]
+                prior = list(zip(ref.terms, ref.fit.thetas))
+                start = linear_start(term, ref.s, ref.normal, ref.x @ ref.fit.K.T, cov_r,
+                                     ref.fit.tau)
+                ev = evaluate([*prior, (term, start)], ref, m_r, cov_r)
+                if np.any(start != term.initial()) and not ev.rms <= ref.rms * 10:
+                    ev = evaluate([*prior, (term, term.initial())], ref, m_r, cov_r)
             except (StreamcalError, ValueError, np.linalg.LinAlgError):
                 continue   # the data cannot support this effect (e.g. a constant channel)
-            common = ref.inliers & ev.inliers
-            p_value = cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
-                                  max(ev.p - ref.p, 1), cand.effective_n(ev.r[common]), ev.p)
-            text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov,
+            # over the samples either model counts as inliers: an effect of a few µT moves
+            # whole segments (motors off on the ground) beyond the base model's Cauchy width,
+            # and what it explains there would not show on the base model's inliers alone
+            both = ref.inliers | ev.inliers
+            before = float(np.sqrt(np.mean(ref.rss[both])))
+            after = float(np.sqrt(np.mean(ev.rss[both])))
+            p_value = cand.f_test(float(ref.rss[both].sum()), float(ev.rss[both].sum()),
+                                  max(ev.p - ref.p, 1), cand.effective_n(ev.r[both]), ev.p)
+            text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov_r,
                                  ref.inliers)
-            c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
-                               cand.is_significant(ref.rms, ev.rms, p_value, nf.floor), ev.cal)
-            c.rms_before, c.residual, c._evaluated = ref.rms, "sensor", ev
+            c = cand.Candidate(name, after, p_value, text, ev.p - ref.p,
+                               cand.is_significant(before, after, p_value, nf.floor), ev.cal)
+            c.rms_before, c.residual, c._evaluated = before, "sensor", ev
+            c.n_compared = int(both.sum())
             out.append(c)
         out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
         return out
 
-    ranked = rank(base, (), names_c)
-    steps = [{"model": list(model), "rms": base.rms, "residual": "sensor"}]
-    current, added, cur_ranked = base, (), ranked
+    ranked = rank(base_r, (), names_c)
+    n_r = len(m_r)
+    steps = [{"model": list(model), "rms": base.rms, "residual": "sensor", "n": n}]
+    current, added, cur_ranked = base_r, (), ranked
     while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
         top = cur_ranked[0]
         added, current = (*added, top.effect), top._evaluated
-        steps.append({"model": [*model, *added], "added": top.effect, "rms": current.rms,
+        steps.append({"model": [*model, *added], "added": top.effect, "rms": top.rms_after,
                       "rms_before": top.rms_before, "residual": "sensor",
-                      "p_value": top.p_value, "gravity_tied": False, "gyro_tied": False})
+                      "p_value": top.p_value, "gravity_tied": False, "gyro_tied": False,
+                      "n": n_r})
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = rank(current, added, rest) if rest else []
     verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
-    outliers = ~np.asarray(current.inliers, bool)
+    if current is base_r:
+        current = base
+    inl = current.inliers
+    if len(inl) != n:   # a ladder model fitted on the subsample, judged on every sample
+        r_all = project(current.fit.K, current.fit.b,
+                        [*held_terms, *zip(current.terms, current.fit.thetas)], m, cov)[0]
+        inl = np.linalg.norm(r_all, axis=1) <= OUTLIER_WIDTHS * current.fit.tau
+    outliers = ~np.asarray(inl, bool)
     held = [p for p in names if p not in free] + [
         p for p in ("K_xx", "K_xy", "K_xz", "K_yy", "K_yz", "K_zz", "b_x", "b_y", "b_z")
         if p not in names] + [f"{t.name}" for t, _ in held_terms]
@@ -229,4 +300,5 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                "method": nf.method, "n_used": nf.n_used},
         calibration=base.cal, held=held, estimated=estimated,
         predicted_sigma={k: errors[k] for k in names if k in errors}, tolerance=tol,
-        calibration_source=source, unit=unit)
+        calibration_source=source, unit=unit, n_ranked=n_r,
+        aux_channels=channel_scores(base.s, base.normal, cov))

@@ -307,7 +307,15 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
             parts.append(f"<p><b>{n_out}</b> of {diagnosis.n} samples are "
                          f"outliers{of}; they cluster in {_e(spans)}.</p>")
     parts += [_img(f) for f in figures]
+    if data is not None and diagnosis is not None:
+        from .figures_aux import aux_residual_figure
+
+        aux = aux_residual_figure(track, diagnosis)
+        parts += [_img(aux)] if aux is not None else []
     if diagnosis is not None:
+        from .held_table import held_section
+
+        parts.append(held_section(diagnosis, unit))
         parts += ["<h2>Candidate effects</h2>", _candidates(diagnosis, unit),
                   "<h2>Model ladder</h2>", _ladder(diagnosis, unit),
                   "<h2>Calibration of the model as given</h2>",

@@ -1,0 +1,55 @@
+"""HTML of a diagnosis against a given calibration (issue #10): where the calibration came from
+and, for each core parameter, whether this recording re-estimated it or held it at the given
+value, with its value, its σ and the Cramér–Rao error that decided (sensor unit)."""
+from __future__ import annotations
+
+import html
+
+import numpy as np
+
+from ..diagnosis.held import B_PARAMS, K_PARAMS
+
+_INDEX = {**dict(K_PARAMS), **dict(B_PARAMS)}
+
+
+def _num(v, fmt: str = ".4g") -> str:
+    try:
+        v = float(v)
+    except (TypeError, ValueError):
+        return "–"
+    return format(v, fmt) if np.isfinite(v) else "–"
+
+
+def _value(cal, name: str):
+    idx = _INDEX[name]
+    return np.asarray(cal.K)[idx] if name.startswith("K_") else np.asarray(cal.b)[idx]
+
+
+def held_section(d, unit: str) -> str:
+    """The section, or "" for a fresh diagnosis (no ``held``)."""
+    if not hasattr(d, "held") or d.calibration is None:
+        return ""
+    e = html.escape
+    rows = []
+    for name, _ in (*K_PARAMS, *B_PARAMS):
+        est = d.estimated.get(name)
+        status = "re-estimated" if est else "held"
+        value = est["value"] if est else _value(d.calibration, name)
+        sigma = _num(est["sigma"]) if est else "–"
+        rows.append((name, status, _num(value), sigma, _num(d.predicted_sigma.get(name)), unit))
+    rows += [(e(n), "held", "as in the calibration", "–", "–", "") for n in d.held
+             if n not in _INDEX]
+    head = "".join(f"<th>{h}</th>" for h in ("parameter", "status", "value", "σ (this recording)",
+                                             "predicted σ (Cramér–Rao)", "unit"))
+    body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
+    n_r = getattr(d, "n_ranked", 0) or d.n
+    ranked = (f" The candidate refits used {n_r} of the {d.n} samples (every cell of direction "
+              f"× stretch of time kept); the model's rms and these parameters use all {d.n}."
+              if n_r < d.n else "")
+    return (f'<h2 id="held">Diagnosed against a given calibration</h2>'
+            f"<p>Calibration: <b>{e(str(d.calibration_source))}</b>. A parameter is re-estimated "
+            f"from this recording when its predicted (Cramér–Rao) error is below "
+            f"{_num(d.tolerance, '.3g')} {e(unit)} (0.5 % of the field radius), else held at the "
+            f"calibration's value.{ranked}</p>"
+            f'<table id="held-parameters"><thead><tr>{head}</tr></thead><tbody>{body}</tbody>'
+            f"</table>")
