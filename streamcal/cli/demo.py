@@ -148,7 +148,9 @@ def _event(event, calibrator, accepted, maps_done, say, coverage_view) -> None:
 
 
 def _unit(unit: str) -> str:
-    return "µT" if unit == "uT" else unit
+    from ..units import display_unit
+
+    return display_unit(unit)
 
 
 def _verdict(d) -> str:

@@ -87,15 +87,16 @@ def format_calibration(cal, source: str = "", residual: str = "sensor",
     """A human-readable summary of a calibration (units named; the rms names its residual, and
     a tied fit also gives its rms on the sensor residual, ``sensor_rms``)."""
     from ..diagnosis.diagnosis import RESIDUAL_LABELS
+    from ..units import display_unit, effect_params
 
-    u = cal.unit
+    u = display_unit(cal.unit)
     rows = [f"calibration of {cal.sensor} from {source} ({cal.method}"
             + (f", {cal.kernel} kernel" if cal.kernel else "") + ")",
             f"  model     {', '.join(cal.model)}",
             "  K [" + u + "]" + "".join(f"\n    {row[0]:10.4f} {row[1]:10.4f} {row[2]:10.4f}" for row in cal.K),
             f"  b [{u}]  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
     for name, params in cal.effects.items():
-        rows.append(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in params.items()))
+        rows.append(f"  {name}: {effect_params(name, params, cal.unit)}")
     rows.append(f"  rms       {cal.rms:.4g} {u} on the {RESIDUAL_LABELS.get(residual, residual)} "
                 f"residual over {cal.n - cal.n_outliers} inliers "
                 f"({cal.n_outliers} outliers of {cal.n})")

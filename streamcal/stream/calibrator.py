@@ -800,8 +800,4 @@ def _finite(v):
 
 
 def _reason_text(decision: Decision) -> str:
-    if decision.value is None:
-        return decision.reason
-    if decision.limit is None:
-        return f"{decision.reason} = {decision.value:.4g}"
-    return f"{decision.reason}: {decision.value:.4g} vs limit {decision.limit:.4g}"
+    return decision.explain()
