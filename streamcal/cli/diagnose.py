@@ -59,7 +59,9 @@ def held_text(d) -> str:
     """The lines of a diagnosis against held parameters (empty for a fresh fit)."""
     if not hasattr(d, "held"):
         return ""
-    unit = d.unit or "sensor unit"
+    from ..units import display_unit
+
+    unit = display_unit(d.unit) or "sensor unit"
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
              f"{d.tolerance:.3g} {unit}, or not in the model)"]
@@ -110,6 +112,13 @@ def candidate_table(d, numbered: bool = False) -> list[str]:
     return lines
 
 
+def _diagnosis_unit(d) -> str:
+    from ..diagnosis.text import diagnosis_unit
+    from ..units import display_unit
+
+    return display_unit(diagnosis_unit(d))
+
+
 def _text(d) -> str:
     """Every rms beside the rms it is compared with on the same residual, each named (see
     :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual and only
@@ -118,12 +127,13 @@ def _text(d) -> str:
 
     out_by = tuple(d.outliers_model or d.model)
     known = d.floor_known
-    floor = f"noise floor {d.noise_floor:.4g}" if known else "noise floor not measurable"
+    u = _diagnosis_unit(d)
+    floor = f"noise floor {d.noise_floor:.4g} {u}" if known else "noise floor not measurable"
     lines = [f"model      {', '.join(d.model)}",
              f"samples    {d.n} ({d.n_outliers} outliers"
              + ("" if out_by == tuple(d.model) else
                 f"; {d.n_outliers_model} of {', '.join(out_by)}, from which the spans come") + ")",
-             f"rms        {d.rms:.4g} ({residual_name(d.residual)} residual)   {floor}"]
+             f"rms        {d.rms:.4g} {u} ({residual_name(d.residual)} residual)   {floor}"]
     if not known:
         lines.append(f"           why: {d.noise_floor_reason}")
     lines += [f"verdict    {d.verdict}   ({d.noise_floor_rule})"]

@@ -37,7 +37,7 @@ MIN_SAMPLES = 30
 DEFAULT_ROUNDS = 3
 
 
-@dataclass
+@dataclass(repr=False)   # the short repr of Diagnosis, not every field
 class HeldDiagnosis(Diagnosis):
     """A :class:`~streamcal.diagnosis.diagnosis.Diagnosis` against a given (or default)
     calibration: ``held`` names the parameters kept at their given values, ``estimated`` maps
@@ -92,6 +92,9 @@ def _calibration(K, b, base: Calibration, terms, fit: HeldFit, model) -> Calibra
 
 
 def _refuse_b(n: int, errors: dict, tol: float, unit: str, sigma: float) -> None:
+    from ..units import display_unit
+
+    unit = display_unit(unit)
     worst = max(errors.get(name, np.inf) for name, _ in B_PARAMS)
     if worst <= tol:
         return

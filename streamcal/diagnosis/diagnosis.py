@@ -83,6 +83,16 @@ class Diagnosis:
     #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
     misfit: dict | None = None
 
+    def __str__(self) -> str:
+        from .text import summary
+
+        return summary(self)
+
+    def __repr__(self) -> str:
+        from .text import short_repr
+
+        return short_repr(self)
+
     @property
     def floor_known(self) -> bool:
         """A noise floor this recording measured (ratios to it may be shown)."""
