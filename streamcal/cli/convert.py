@@ -1,8 +1,6 @@
 """``streamcal convert LOG -o TRACK.csv``: any supported recording → a SPEC §1 track."""
 from __future__ import annotations
 
-import sys
-
 from ._common import RECORDING_HELP, add_input_options, read_track
 
 
@@ -24,6 +22,4 @@ def run(args) -> int:
     for key in ("mag_offsets_undone", "mag_calibration_undone", "read_warnings"):
         if key in track.metadata:
             print(f"  {key}: {track.metadata[key]}")
-    if track.skipped_rows:
-        print(f"streamcal convert: skipped {track.skipped_rows} bad rows", file=sys.stderr)
     return 0

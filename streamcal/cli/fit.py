@@ -14,7 +14,7 @@ def register(sub) -> None:
                        description="Fit the sensor model to a recorded track (two-stage robust "
                                    "autocalibration by default) and print or save the calibration.")
     p.add_argument("track", help=RECORDING_HELP)
-    add_input_options(p)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--sensor", choices=("mag", "accel"), default="mag")
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects (default: %(default)s)")
@@ -29,7 +29,6 @@ def register(sub) -> None:
                    help="kernel width in sensor units, or 'paper' for √3 (default: from the data)")
     p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration file (atomic)")
     p.add_argument("--json", action="store_true", help="print the calibration as one JSON object")
-    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.add_argument("--initial", metavar="CAL", help="warm start from this calibration (JSON "
                    "file or state dir): the LM starts from its K and b")
     p.add_argument("--no-coverage-check", action="store_true",

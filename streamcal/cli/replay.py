@@ -33,7 +33,7 @@ def register(sub) -> None:
                                    "(coverage buffer, recalibration policy, background fits, "
                                    "acceptance guard, calibration store) and print its events.")
     p.add_argument("track", help=RECORDING_HELP)
-    add_input_options(p)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--realtime", action="store_true", help="sleep to follow the track's time")
     p.add_argument("--state-dir", metavar="DIR",
                    help="keep calibration.json and its history here, as the daemon does")
@@ -51,7 +51,6 @@ def register(sub) -> None:
     p.add_argument("--sync-fits", action="store_true",
                    help="run each fit when it is due, also with --realtime (the default "
                         "without --realtime)")
-    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.set_defaults(func=run)
 
 

@@ -17,14 +17,13 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("report", help="diagnose a track and write a self-contained HTML "
                               "report of figures", description=__doc__.splitlines()[0])
     p.add_argument("track", help=RECORDING_HELP)
-    add_input_options(p)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects of SPEC §3 (default: %(default)s)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
                    help="add an effect to the model (repeatable, or comma-separated)")
     p.add_argument("-o", "--output", metavar="HTML",
                    help="report file (default: <track name>-report.html in the current directory)")
-    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "state dir), holding what the track does not determine")
     p.set_defaults(func=run)
