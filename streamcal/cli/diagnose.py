@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import sys
 
 from ..errors import InputError
 from ._common import RECORDING_HELP, add_input_options, read_track
@@ -46,13 +47,28 @@ def run(args: argparse.Namespace) -> int:
         result = diagnose(track, model=model, calibration=cal, calibration_source=source)
     else:
         result = diagnose(track, model=model)
+    plots = ""
     if report is not None:
-        report.write_diagnosis_plots(result, track, args.plots)
+        written = report.write_diagnosis_plots(result, track, args.plots)
+        plots = plots_written(args.plots, written)
     if args.json:
         print(json.dumps(result.to_dict(), allow_nan=False, default=lambda v: None))
+        if plots:   # stdout stays one JSON object
+            print(plots, file=sys.stderr)
         return 0
     print(_text(result) + held_text(result))
+    if plots:
+        print(plots)
     return 0
+
+
+def plots_written(directory, paths) -> str:
+    """``plots: 7 PNG files written to /abs/dir``."""
+    from pathlib import Path
+
+    n = len(paths)
+    return (f"plots: {n} PNG file{'s' if n != 1 else ''} written to "
+            f"{Path(directory).resolve()}")
 
 
 def held_text(d) -> str:

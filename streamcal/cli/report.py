@@ -59,7 +59,7 @@ def run(args) -> int:
     out = Path(args.output) if args.output else default_output(args.track)
     out.parent.mkdir(parents=True, exist_ok=True)
     out = write_report(out, track, diagnosis,
-                       reason=reason, name=Path(args.track).name)
+                       reason=reason, name=Path(args.track).name, command_path=args.track)
     print(f"report written to {out}")
     if diagnosis is None:
         print(f"streamcal report: no calibration: {reason} (the report shows the raw data)",

@@ -119,12 +119,19 @@ def _misfit(d) -> str:
                                           for line in lines) + "</ul>")
 
 
+def fit_command(track_path, effect: str) -> str:
+    """The ``streamcal fit PATH --add EFFECT`` a reader can paste (the path shell-quoted)."""
+    import shlex
+
+    return f"streamcal fit {shlex.quote(str(track_path))} --add {effect}"
+
+
 def _summary(d, track_name: str, unit: str) -> str:
     rule = f'<br><span class="sub">{_e(d.noise_floor_rule)}.</span>'
     if d.verdict == "effect_missing" and d.candidates:
         top = d.candidates[0]
         residual, before = d.baseline(top)
-        cmd = f"streamcal fit {track_name} --add {top.effect}"
+        cmd = fit_command(track_name, top.effect)
         if residual == "sensor":
             ratio = (f" ({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)"
                      if d.floor_known else "")
@@ -264,7 +271,7 @@ _SHOWN_METADATA = ("sensor", "source", "origin", "description")
 
 def render_html(track, diagnosis=None, *, reason: str | None = None, title: str | None = None,
                 figures: list[RenderedFigure] | None = None, intro: str = "",
-                name: str | None = None) -> str:
+                name: str | None = None, command_path: str | os.PathLike | None = None) -> str:
     """The report page as a string.
 
     Args:
@@ -275,6 +282,8 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         figures: already rendered figures (default: rendered here).
         intro: extra HTML placed under the title (e.g. the demo's streaming summary).
         name: how to call the track file in the text (default: its file name).
+        command_path: the track's path in the suggested ``streamcal fit … --add`` command, as
+            it works from the reader's directory (default: the track's own path, else ``name``).
     """
     data = None
     if figures is None:
@@ -294,7 +303,9 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                      f"no calibration: the raw readings, their magnitude and the directions "
                      f"seen from the centre of a one-pass sphere fit.</div>")
     else:
-        parts.append(_summary(diagnosis, name, unit))
+        if command_path is None:
+            command_path = track.path if getattr(track, "path", None) else name
+        parts.append(_summary(diagnosis, command_path, unit))
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
             by = tuple(getattr(diagnosis, "outliers_model", ()) or diagnosis.model)
