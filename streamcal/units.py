@@ -52,8 +52,13 @@ def number(value: float, digits: int = DIGITS) -> str:
     return f"{v:.{digits}g}"
 
 
+def scaled(values, unit: str | None) -> tuple[np.ndarray, str]:
+    """``(values, unit)`` converted to the form a reader expects: rad → °, s → ms or µs when
+    every value is that small, the unit in its display spelling (``uT`` → ``µT``)."""
+    return _scaled(np.asarray(values, dtype=float), display_unit(unit))
+
+
 def _scaled(values: np.ndarray, unit: str) -> tuple[np.ndarray, str]:
-    """Values converted to the form a reader expects: rad → °, s → ms/µs when all are small."""
     if unit == "rad":
         return np.degrees(values), "°"
     if unit == "s":

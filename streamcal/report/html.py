@@ -50,17 +50,26 @@ _SCRIPT = """
 })();
 """
 
-#: Units of effect parameters (``{u}``: the sensor unit).
-_PARAM_UNITS = {
-    ("temperature_offset", "T0"): "°C", ("temperature_offset", "c"): "{u}/°C",
-    ("temperature_scale", "T0"): "°C", ("temperature_scale", "s"): "1/°C",
-    ("time_drift", "t0"): "s", ("time_drift", "d"): "{u}/s",
-    ("axis_nonlinearity", "R"): "{u}", ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
-    ("aux_interference", "a0"): "channel unit", ("aux_interference", "g"): "{u} per channel unit",
-    ("time_lag", "tau"): "s",
-    ("mag_accel_misalignment", "rotation"): "rad (rotation vector, mag frame to accel frame)",
-    ("mag_accel_misalignment", "dip"): "rad (angle between the field and down)",
+#: What a parameter's number means, beside its unit (:func:`streamcal.units.param_unit`).
+_PARAM_NOTES = {
+    ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
+    ("mag_accel_misalignment", "rotation"): "rotation vector, mag frame to accel frame",
+    ("mag_accel_misalignment", "dip"): "angle between the field and down",
 }
+
+
+def _param_cells(effect: str, key: str, value, unit: str) -> tuple[str, str]:
+    """(value, unit) cells of an effect parameter: the units and scaling of
+    :mod:`streamcal.units` (seconds as ms/µs, radians as degrees), 4 significant digits."""
+    from ..units import param_unit, scaled
+
+    try:
+        values, shown = scaled(value, param_unit(effect, key, unit))
+    except (TypeError, ValueError):
+        return _e(value), ""
+    note = _PARAM_NOTES.get((effect, key))
+    shown = f"{shown} ({note})" if note and shown else (note or shown)
+    return (_vec(values) if np.ndim(values) else _num(values)), _e(shown)
 
 
 def _e(value) -> str:
@@ -234,13 +243,10 @@ def _parameters(cal, unit: str) -> str:
             if key == "channels" and isinstance(value, dict):
                 for ch, p in value.items():
                     for k2, v2 in p.items():
-                        u = _PARAM_UNITS.get((effect, k2), "").format(u=unit)
                         rows.append((_e(f"{effect}: {ch}.{k2}"),
-                                     _vec(v2) if np.ndim(v2) else _num(v2), _e(u)))
+                                     *_param_cells(effect, k2, v2, unit)))
                 continue
-            u = _PARAM_UNITS.get((effect, key), "").format(u=unit)
-            rows.append((_e(f"{effect}: {key}"), _vec(value) if np.ndim(value) else _num(value),
-                         _e(u)))
+            rows.append((_e(f"{effect}: {key}"), *_param_cells(effect, key, value, unit)))
     from ..diagnosis.scales import calibration_residual
 
     label = RESIDUAL_FAMILIES[calibration_residual(cal)][0]
