@@ -151,11 +151,14 @@ def _commands(bad: Path, tmp: Path, cal: Path) -> dict[str, list[str]]:
         "convert": ["convert", str(bad), "-o", str(tmp / "c.csv")],
         "apply": ["apply", str(cal), str(bad), "-o", str(tmp / "a.csv")],
         "batch": ["batch", "fit", str(bad), "--jobs", "1", "-o", str(tmp / "s.csv")],
+        "record": ["record", "--bus", f"fake:{bad}", "-o", str(tmp / "rec.csv")],
+        "daemon": ["daemon", "--bus", f"fake:{bad}", "--no-socket", "--sync-fits",
+                   "--state-dir", str(tmp / "state")],
     }
 
 
 @pytest.mark.parametrize("command", ["fit", "diagnose", "report", "replay", "convert", "apply",
-                                     "batch"])
+                                     "batch", "record", "daemon"])
 def test_skip_bad_rows_counts_the_skipped_rows_on_stderr(command, bad_track, sim_cal,
                                                          tmp_path, capsys):
     bad, spoiled = bad_track

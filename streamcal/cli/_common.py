@@ -54,6 +54,20 @@ def read_track(args, path=None):
     return track
 
 
+def fake_track_reader(args):
+    """``(path) -> Track`` for a ``fake:TRACK.csv`` device: honours ``--skip-bad-rows`` and
+    counts the skipped rows on stderr."""
+    def read(path):
+        from ..inputs.track import Track
+
+        skip = getattr(args, "skip_bad_rows", False)
+        track = Track.read(path, skip_bad_rows=skip)
+        say_skipped(path, track.skipped_rows, track.skip_reasons, _command(args))
+        return track
+
+    return read
+
+
 def _command(args) -> str:
     name = getattr(args, "command", None) or getattr(getattr(args, "func", None), "__module__",
                                                        "").rpartition(".")[2]
