@@ -178,8 +178,10 @@ def _summary(calibrator, counts, track, args) -> dict:
     if cal is not None:
         out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
                     "rms": float(cal.rms) if math.isfinite(cal.rms) else None, "unit": cal.unit})
-        result = (f"calibration rms {cal.rms:.3g} {cal.unit}, b = "
-                  f"{np.round(cal.b, 2).tolist()} {cal.unit}")
+        from ..units import display_unit
+
+        u = display_unit(cal.unit)
+        result = f"calibration rms {cal.rms:.3g} {u}, b = {np.round(cal.b, 2).tolist()} {u}"
     else:
         result = "no calibration accepted"
     out["message"] = (f"replayed {calibrator.n_ingested} magnetometer samples of {args.track}: "
