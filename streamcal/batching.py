@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import csv
+import functools
 import io
 import os
 import time
@@ -21,27 +22,40 @@ from typing import Callable, Iterable
 #: Columns of a summary row, in CSV order. ``rms`` is on the residual named in ``residual``
 #: (``sensor``: paper eq. 41 over inliers; the diagnosis may name a tied residual), sensor unit.
 COLUMNS = ("path", "status", "n", "rms", "residual", "unit", "field", "coverage", "verdict",
-           "top_candidate", "seconds", "error")
+           "top_candidate", "seconds", "error", "skipped_rows", "first_skipped")
 
 
-def fit_task(path: str) -> dict:
+def _read(path: str, skip_bad_rows: bool):
+    """The track at ``path`` and its summary cells on skipped rows (``skipped_rows``, the first
+    reason), filled only with ``skip_bad_rows``."""
+    from .inputs.track import Track
+
+    track = Track.read(path, skip_bad_rows=skip_bad_rows)
+    cells = {}
+    if skip_bad_rows:
+        cells = {"skipped_rows": track.skipped_rows,
+                 "first_skipped": track.skip_reasons[0] if track.skip_reasons else None}
+    return track, cells
+
+
+def fit_task(path: str, skip_bad_rows: bool = False) -> dict:
     """Fit the default model to the track at ``path`` (``streamcal fit`` defaults)."""
     from .fitting import fit
-    from .inputs.track import Track
 
-    cal = fit(Track.read(path))
+    track, cells = _read(path, skip_bad_rows)
+    cal = fit(track)
     return {"n": cal.n, "rms": cal.rms, "residual": "sensor", "unit": cal.unit,
-            "field": cal.field, "coverage": cal.coverage}
+            "field": cal.field, "coverage": cal.coverage, **cells}
 
 
-def diagnose_task(path: str) -> dict:
+def diagnose_task(path: str, skip_bad_rows: bool = False) -> dict:
     """Diagnose the track at ``path`` with the default model (``streamcal diagnose`` defaults)."""
     from .diagnosis import diagnose
-    from .inputs.track import Track
 
-    d = diagnose(Track.read(path))
+    track, cells = _read(path, skip_bad_rows)
+    d = diagnose(track)
     cal = d.calibration
-    return {"n": d.n, "rms": d.rms, "residual": d.residual,
+    return {**cells, "n": d.n, "rms": d.rms, "residual": d.residual,
             "unit": getattr(cal, "unit", None), "field": getattr(cal, "field", None),
             "coverage": getattr(cal, "coverage", None), "verdict": d.verdict,
             "top_candidate": d.candidates[0].effect if d.candidates else None}
@@ -63,11 +77,12 @@ def run_one(task: Callable[[str], dict], path: str) -> dict:
     return {key: row.get(key) for key in COLUMNS}
 
 
-def _resolve(task) -> Callable[[str], dict]:
+def _resolve(task, skip_bad_rows: bool = False) -> Callable[[str], dict]:
     if callable(task):
         return task
     try:
-        return TASKS[task]
+        return functools.partial(TASKS[task], skip_bad_rows=True) if skip_bad_rows \
+            else TASKS[task]
     except KeyError:
         from .errors import InputError
 
@@ -75,16 +90,18 @@ def _resolve(task) -> Callable[[str], dict]:
 
 
 def batch(paths: Iterable[str | os.PathLike], task="fit", executor: cf.Executor | None = None,
-          jobs: int | None = None, progress: Callable[[dict], None] | None = None) -> list[dict]:
+          jobs: int | None = None, progress: Callable[[dict], None] | None = None,
+          skip_bad_rows: bool = False) -> list[dict]:
     """Run ``task`` (``"fit"``, ``"diagnose"`` or a picklable top-level ``(path) -> dict``) over
     every file; one row per file in input order (keys :data:`COLUMNS`).
 
     ``executor``: any :class:`concurrent.futures.Executor` (left open; the caller owns it). By
     default a :class:`~concurrent.futures.ProcessPoolExecutor` with ``jobs`` workers (default
     ``os.cpu_count()``), closed on return. ``progress(row)`` is called as each file finishes, in
-    completion order.
+    completion order. ``skip_bad_rows`` (named tasks): malformed rows are skipped and counted in
+    the ``skipped_rows`` and ``first_skipped`` cells instead of failing the file.
     """
-    func = _resolve(task)
+    func = _resolve(task, skip_bad_rows)
     paths = [os.fspath(p) for p in paths]
     own = executor is None
     if own:

@@ -123,6 +123,48 @@ class Calibration:
         return hash(self.to_json(indent=None))
 
     @property
+    def residual(self) -> str:
+        """The residual ``rms`` is on: ``"sensor"`` (eq. 41, every direction free), or
+        ``"gravity_tied"`` / ``"gyro_tied"`` for a fit with a registration effect."""
+        return rms_residual(self)
+
+    def __str__(self) -> str:
+        """A few lines for a reader: sensor and model, K's diagonal and b with units, the rms
+        with its residual, samples, outliers and coverage (the file has everything:
+        :meth:`to_json`)."""
+        from .units import display_unit, effect_params, quantity
+
+        u = self.unit
+        lines = [f"Calibration of {self.sensor} ({self.method}"
+                 + (f", {self.kernel} kernel" if self.kernel else "") + f"): {', '.join(self.model)}",
+                 f"  K diagonal {quantity(np.diag(self.K), u, 4)} per unit direction"
+                 + ("" if not np.any(np.triu(self.K, 1)) else
+                    f" (off-diagonal up to {quantity(np.abs(np.triu(self.K, 1)).max(), u)})"),
+                 f"  b          {quantity(self.b, u, 4)}"]
+        for name, params in self.effects.items():
+            lines.append(f"  {name}: {effect_params(name, params, u)}")
+        rms = (f"{quantity(self.rms, u, 4)} on the {self.residual.replace('_', '-')} residual"
+               if math.isfinite(self.rms) else "unknown")
+        lines.append(f"  rms        {rms} over {self.n - self.n_outliers} inliers "
+                     f"({self.n_outliers} outliers of {self.n} samples)")
+        extra = []
+        if self.coverage is not None:
+            extra.append(f"coverage {self.coverage:.0%} of the sphere")
+        if self.field:
+            extra.append(f"field {quantity(self.field, u, 4)}")
+        else:
+            extra.append(f"radius {quantity(self.radius, u, 4)}")
+        lines.append("  " + ", ".join(extra))
+        return "\n".join(lines)
+
+    def __repr__(self) -> str:
+        from .units import quantity
+
+        return (f"<Calibration {self.sensor} {'+'.join(self.model)}: rms "
+                f"{quantity(self.rms, self.unit, 4)} "
+                f"({self.residual}), n={self.n}, {self.n_outliers} outliers>")
+
+    @property
     def radius(self) -> float:
         """Geometric-mean radius of ``K`` (:func:`field_radius`), sensor unit."""
         return field_radius(self.K)
@@ -225,6 +267,18 @@ class Calibration:
         except UnicodeDecodeError as exc:
             raise CalibrationFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
         return cls.from_json(text, source=path)
+
+
+def rms_residual(cal) -> str:
+    """``"sensor"``, ``"gravity_tied"`` or ``"gyro_tied"``: the residual ``cal.rms`` is on."""
+    from .model import REGISTRATION_EFFECTS
+
+    extra = getattr(cal, "extra", None) or {}
+    if "gyro_tied" in extra:
+        return "gyro_tied"
+    if any(n in REGISTRATION_EFFECTS for n in cal.model) and "gravity" in extra:
+        return "gravity_tied"
+    return "sensor"
 
 
 def _reject_constant(name):

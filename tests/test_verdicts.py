@@ -111,11 +111,11 @@ def test_fit_of_a_tied_effect_names_both_residuals(real_tracks_dir, capsys):
     path = str(real_tracks_dir / "broad_30_stationary_magnet_C.csv.gz")
     assert main(["fit", path, "--add", "time_lag"]) == 0
     text = capsys.readouterr().out
-    tied = re.search(r"rms\s+([\d.]+) uT on the gravity-tied residual", text)
-    sensor = re.search(r"rms\s+([\d.]+) uT on the sensor residual", text)
+    tied = re.search(r"rms\s+([\d.]+) µT on the gravity-tied residual", text)
+    sensor = re.search(r"rms\s+([\d.]+) µT on the sensor residual", text)
     assert tied and sensor, text
     assert float(sensor.group(1)) < float(tied.group(1))    # 0.81 vs 1.22 µT
-    assert not re.search(r"rms\s+[\d.]+ uT over", text)      # no unlabelled rms
+    assert not re.search(r"rms\s+[\d.]+ µT over", text)      # no unlabelled rms
 
 
 def test_fit_json_names_the_residual(real_tracks_dir, capsys):

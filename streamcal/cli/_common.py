@@ -2,6 +2,8 @@
 (docs/tracks_and_inputs.md)."""
 from __future__ import annotations
 
+import sys
+
 RECORDING_HELP = ("recording: track (.csv/.csv.gz), ArduPilot DataFlash .bin, PX4 .ulg, "
                   "MotionCal Raw: capture, or another CSV/TSV with --columns")
 
@@ -14,17 +16,63 @@ def add_input_options(parser, skip_bad_rows: bool = False) -> None:
     parser.add_argument("--unit", choices=("uT", "nT", "mG", "G", "counts"),
                         help="magnetometer unit of a --columns file (default uT)")
     if skip_bad_rows:
-        parser.add_argument("--skip-bad-rows", action="store_true",
-                            help="skip and count malformed rows (or a cut last log message)")
+        add_skip_bad_rows(parser)
+
+
+def add_skip_bad_rows(parser) -> None:
+    """Add ``--skip-bad-rows`` alone (for commands without ``--columns``/``--unit``)."""
+    parser.add_argument("--skip-bad-rows", action="store_true",
+                        help="skip and count malformed rows (or a cut last log message); the "
+                             "count and the first one are printed on stderr")
+
+
+def skipped_text(path, skipped: int, reasons) -> str:
+    """``skipped 3 bad rows of PATH (first: line 12 column 'mx': …)``; "" when none."""
+    if not skipped:
+        return ""
+    first = f" (first: {reasons[0]})" if reasons else ""
+    return f"skipped {skipped} bad row{'s' if skipped != 1 else ''} of {path}{first}"
+
+
+def say_skipped(path, skipped: int, reasons, command: str = "streamcal") -> None:
+    """Print :func:`skipped_text` on stderr when rows were skipped."""
+    text = skipped_text(path, skipped, reasons)
+    if text:
+        print(f"{command}: {text}", file=sys.stderr)
 
 
 def read_track(args, path=None):
-    """The recording named by ``path`` (default ``args.track``) as a Track."""
+    """The recording named by ``path`` (default ``args.track``) as a Track; rows skipped by
+    ``--skip-bad-rows`` are counted on stderr."""
     from ..inputs import read_recording
 
-    return read_recording(args.track if path is None else path,
-                          columns=getattr(args, "columns", None), unit=getattr(args, "unit", None),
-                          skip_bad_rows=getattr(args, "skip_bad_rows", False))
+    path = args.track if path is None else path
+    track = read_recording(path, columns=getattr(args, "columns", None),
+                           unit=getattr(args, "unit", None),
+                           skip_bad_rows=getattr(args, "skip_bad_rows", False))
+    say_skipped(path, getattr(track, "skipped_rows", 0), getattr(track, "skip_reasons", ()),
+                _command(args))
+    return track
+
+
+def fake_track_reader(args):
+    """``(path) -> Track`` for a ``fake:TRACK.csv`` device: honours ``--skip-bad-rows`` and
+    counts the skipped rows on stderr."""
+    def read(path):
+        from ..inputs.track import Track
+
+        skip = getattr(args, "skip_bad_rows", False)
+        track = Track.read(path, skip_bad_rows=skip)
+        say_skipped(path, track.skipped_rows, track.skip_reasons, _command(args))
+        return track
+
+    return read
+
+
+def _command(args) -> str:
+    name = getattr(args, "command", None) or getattr(getattr(args, "func", None), "__module__",
+                                                       "").rpartition(".")[2]
+    return f"streamcal {name}" if name else "streamcal"
 
 
 def recording_chunks(args, rows: int):
@@ -35,6 +83,18 @@ def recording_chunks(args, rows: int):
     from ..inputs.detect import detect
 
     if getattr(args, "columns", None) is None and detect(args.track) == "track":
-        return iter_track_chunks(args.track, rows=rows,
-                                 skip_bad_rows=getattr(args, "skip_bad_rows", False))
+        return _counted(args, iter_track_chunks(args.track, rows=rows,
+                                                skip_bad_rows=getattr(args, "skip_bad_rows",
+                                                                      False)))
     return iter([read_track(args)])
+
+
+def _counted(args, chunks):
+    """The chunks unchanged; once they are exhausted, the rows skipped over all of them are
+    counted on stderr (first reason of the first chunk that skipped any)."""
+    skipped, reasons = 0, []
+    for chunk in chunks:
+        skipped += chunk.skipped_rows
+        reasons = reasons or list(chunk.skip_reasons)
+        yield chunk
+    say_skipped(args.track, skipped, reasons, _command(args))

@@ -49,8 +49,10 @@ def run(args) -> int:
                         "accelerometer" if accel is not None else "none: no accelerometer")}
     write_applied(args.output, applied, meta)
     norm = np.linalg.norm(applied.field, axis=1)
+    from ..units import display_unit
+
     print(f"{args.output}: {len(norm)} samples, |field| {np.mean(norm):.4g} ± {np.std(norm):.2g} "
-          f"{cal.unit}")
+          f"{display_unit(cal.unit)}")
     if not applied.field_known:
         print("streamcal apply: the calibration has no field strength; |field| is in units of "
               "K's mean radius", file=sys.stderr)

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import sys
 
+from ._common import add_skip_bad_rows, say_skipped
+
 
 def register(sub) -> None:
     p = sub.add_parser("batch", help="fit or diagnose many recordings, one summary row each",
@@ -15,6 +17,7 @@ def register(sub) -> None:
                    help="worker processes (default: the number of CPUs)")
     p.add_argument("-o", "--output", required=True, metavar="SUMMARY.csv",
                    help="summary CSV (written atomically)")
+    add_skip_bad_rows(p)
     p.set_defaults(func=run)
 
 
@@ -28,7 +31,11 @@ def run(args) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs: expected a positive number of workers, got {args.jobs}")
     with tqdm(total=len(args.files), file=sys.stderr, unit="file", desc=args.task) as bar:
-        rows = batch(args.files, args.task, jobs=args.jobs, progress=lambda row: bar.update(1))
+        rows = batch(args.files, args.task, jobs=args.jobs, progress=lambda row: bar.update(1),
+                     skip_bad_rows=args.skip_bad_rows)
+    for r in rows:
+        say_skipped(r["path"], r.get("skipped_rows") or 0,
+                    [r["first_skipped"]] if r.get("first_skipped") else [], "streamcal batch")
     write_summary(args.output, rows)
     failed = [r for r in rows if r["status"] != "ok"]
     for r in failed:

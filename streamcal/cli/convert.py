@@ -2,8 +2,6 @@
 (docs/tracks_and_inputs.md)."""
 from __future__ import annotations
 
-import sys
-
 from ._common import RECORDING_HELP, add_input_options, read_track
 
 
@@ -28,6 +26,4 @@ def run(args) -> int:
     for key in ("mag_offsets_undone", "mag_calibration_undone", "read_warnings"):
         if key in track.metadata:
             print(f"  {key}: {track.metadata[key]}")
-    if track.skipped_rows:
-        print(f"streamcal convert: skipped {track.skipped_rows} bad rows", file=sys.stderr)
     return 0

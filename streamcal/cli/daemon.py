@@ -15,6 +15,7 @@ import os
 import sys
 
 from ..calibration import DEFAULT_MODEL
+from ._common import add_skip_bad_rows
 
 DEFAULT_STATE_DIR = "~/.local/state/streamcal"
 SOCKET_NAME = "samples.sock"
@@ -35,6 +36,7 @@ def register(sub) -> None:
     p.add_argument("--speed", type=float, metavar="X",
                    help="with --bus fake:…: replay at X times real time (default: as fast as it "
                         "can be read, in track time)")
+    add_skip_bad_rows(p)   # of a --bus fake: replay's track
     p.set_defaults(func=run)
 
 
@@ -204,7 +206,10 @@ def show_coverage(calibrator) -> None:
 def run(args) -> int:
     from ..service import I2CBlocks
 
-    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=args.speed)
+    from ._common import fake_track_reader
+
+    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=args.speed,
+                       read_track=fake_track_reader(args))
     try:
         service = build(args, source, "daemon")
     except BaseException:

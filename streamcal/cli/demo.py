@@ -6,7 +6,11 @@
    accepted calibration as coverage grows and a map of the sphere at coverage milestones.
 2. Diagnoses the samples the driver produced: verdict, ranked candidate effects, and the model
    ladder falling to the noise floor once the missing effect is added.
-3. Writes the HTML report (``streamcal-demo-report.html`` in the current directory by default).
+3. Writes the HTML report and the track the driver produced (``streamcal-demo-report.html``,
+   ``streamcal-demo-track.csv.gz``) into ``--out-dir``, or a new temporary directory when
+   neither ``--out-dir`` nor ``-o`` is given (so a demo run leaves nothing in the current
+   directory), and says where; the suggested ``streamcal fit … --add`` names that track by its
+   absolute path, so it works when pasted.
 """
 from __future__ import annotations
 
@@ -15,6 +19,7 @@ import html
 import importlib.resources
 import math
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -24,6 +29,8 @@ from ..calibration import DEFAULT_MODEL
 from .diagnose import candidate_table, residual_name
 
 DEFAULT_REPORT = "streamcal-demo-report.html"
+#: The driver's samples as a track, written beside the report.
+TRACK_NAME = "streamcal-demo-track.csv.gz"
 #: Coverage fractions at which the map of the sphere is printed (first crossing of each).
 MAP_AT = (0.35, 0.65)
 BLOCK_SIZE = 50
@@ -38,9 +45,11 @@ def register(subparsers) -> None:
                                           "fake-bus MPU-9250 driver and the streaming "
                                           "calibrator, diagnose it, write a report.")
     p.add_argument("--track", metavar="PATH", help="demo another track instead of the bundled one")
-    p.add_argument("-o", "--output", metavar="HTML", default=DEFAULT_REPORT,
-                   help="report file (default: %(default)s; relative to --out-dir when given)")
-    p.add_argument("--out-dir", metavar="DIR", help="directory for the report (created)")
+    p.add_argument("-o", "--output", metavar="HTML",
+                   help=f"report file (default: {DEFAULT_REPORT}; relative to --out-dir when "
+                        "given, else to the current directory)")
+    p.add_argument("--out-dir", metavar="DIR", help="directory for the report and the track "
+                   "(created; default: a new temporary directory unless -o is given)")
     p.add_argument("--quiet", action="store_true",
                    help="print only the verdict, the top candidate and the report's path")
     p.set_defaults(func=run)
@@ -54,8 +63,12 @@ def bundled_track():
         yield Path(path)
 
 
-def report_path(output: str, out_dir: str | None) -> Path:
-    path = Path(output)
+def report_path(output: str | None, out_dir: str | None) -> Path:
+    """Where the report goes: ``output`` (relative to ``out_dir`` when given, else to the
+    current directory); with neither, ``DEFAULT_REPORT`` in a new temporary directory."""
+    if output is None and out_dir is None:
+        out_dir = tempfile.mkdtemp(prefix="streamcal-demo-")
+    path = Path(output or DEFAULT_REPORT)
     if out_dir and not path.is_absolute():
         path = Path(out_dir) / path
     return path
@@ -96,10 +109,17 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
         say(_candidates(diagnosis))
         say(_ladder(diagnosis))
     out.parent.mkdir(parents=True, exist_ok=True)
+    recorded = (out.parent / TRACK_NAME).resolve()
+    track.write(recorded)
+    if diagnosis is not None and diagnosis.verdict == "effect_missing" and diagnosis.candidates:
+        from ..report.html import fit_command
+
+        print(f"\nto fit with it: {fit_command(recorded, diagnosis.candidates[0].effect)}")
     path = write_report(out, track, diagnosis, reason=reason, name=track_path.name,
                         title=f"streamcal demo: {track_path.name}",
-                        intro=_stream_html(accepted, track.mag_unit))
+                        intro=_stream_html(accepted, track.mag_unit), command_path=recorded)
     print(f"\nreport written to {path.resolve()}")
+    print(f"track the driver produced: {recorded}")
     say(f"(done in {time.monotonic() - start:.0f} s)")
     return 0 if diagnosis is not None else 1
 
@@ -151,7 +171,9 @@ def _event(event, calibrator, accepted, maps_done, say, coverage_view) -> None:
 
 
 def _unit(unit: str) -> str:
-    return "µT" if unit == "uT" else unit
+    from ..units import display_unit
+
+    return display_unit(unit)
 
 
 def _verdict(d) -> str:

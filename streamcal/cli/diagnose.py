@@ -4,6 +4,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import json
+import sys
 
 from ..errors import InputError
 from ._common import RECORDING_HELP, add_input_options, read_track
@@ -69,16 +70,31 @@ def run(args: argparse.Namespace) -> int:
         result = diagnose(track, model=model, calibration=cal, calibration_source=source)
     else:
         result = diagnose(track, model=model)
+    plots = ""
     if report is not None:
-        report.write_diagnosis_plots(result, track, args.plots)
+        written = report.write_diagnosis_plots(result, track, args.plots)
+        plots = plots_written(args.plots, written)
     local = reference_field(track, result.calibration, ref)
     if args.json:
         out = result.to_dict()
         out["reference_field"] = local
         print(json.dumps(out, allow_nan=False, default=lambda v: None))
+        if plots:   # stdout stays one JSON object
+            print(plots, file=sys.stderr)
         return 0
     print(_text(result) + held_text(result) + "\n\n" + "\n".join(text_lines(local)))
+    if plots:
+        print(plots)
     return 0
+
+
+def plots_written(directory, paths) -> str:
+    """``plots: 7 PNG files written to /abs/dir``."""
+    from pathlib import Path
+
+    n = len(paths)
+    return (f"plots: {n} PNG file{'s' if n != 1 else ''} written to "
+            f"{Path(directory).resolve()}")
 
 
 def _long_file(args) -> bool:
@@ -101,7 +117,9 @@ def held_text(d) -> str:
     """The lines of a diagnosis against held parameters (empty for a fresh fit)."""
     if not hasattr(d, "held"):
         return ""
-    unit = d.unit or "sensor unit"
+    from ..units import display_unit
+
+    unit = display_unit(d.unit) or "sensor unit"
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
              f"{d.tolerance:.3g} {unit}, or not in the model)"]
@@ -160,6 +178,13 @@ def candidate_table(d, numbered: bool = False) -> list[str]:
     return lines
 
 
+def _diagnosis_unit(d) -> str:
+    from ..diagnosis.text import diagnosis_unit
+    from ..units import display_unit
+
+    return display_unit(diagnosis_unit(d))
+
+
 def _text(d) -> str:
     """Every rms beside the rms it is compared with on the same residual, each named (see
     :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual and only
@@ -168,12 +193,13 @@ def _text(d) -> str:
 
     out_by = tuple(d.outliers_model or d.model)
     known = d.floor_known
-    floor = f"noise floor {d.noise_floor:.4g}" if known else "noise floor not measurable"
+    u = _diagnosis_unit(d)
+    floor = f"noise floor {d.noise_floor:.4g} {u}" if known else "noise floor not measurable"
     lines = [f"model      {', '.join(d.model)}",
              f"samples    {d.n} ({d.n_outliers} outliers"
              + ("" if out_by == tuple(d.model) else
                 f"; {d.n_outliers_model} of {', '.join(out_by)}, from which the spans come") + ")",
-             f"rms        {d.rms:.4g} ({residual_name(d.residual)} residual)   {floor}"]
+             f"rms        {d.rms:.4g} {u} ({residual_name(d.residual)} residual)   {floor}"]
     if getattr(d, "sampling", None):
         s = d.sampling
         lines.insert(2, f"used       {s['samples_used']} of {s['samples_total']} magnetometer "

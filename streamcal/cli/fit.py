@@ -17,7 +17,7 @@ def register(sub) -> None:
                                    "(docs/calibration_file.md). Exit code 1 when the directions "
                                    "seen leave the model undetermined.")
     p.add_argument("track", help=RECORDING_HELP)
-    add_input_options(p)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--sensor", choices=("mag", "accel"), default="mag")
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects (default: %(default)s); known: "
@@ -33,7 +33,6 @@ def register(sub) -> None:
                    help="kernel width in sensor units, or 'paper' for √3 (default: from the data)")
     p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration file (atomic)")
     p.add_argument("--json", action="store_true", help="print the calibration as one JSON object")
-    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.add_argument("--initial", metavar="CAL", help="warm start from this calibration (JSON "
                    "file or state dir): the LM starts from its K and b")
     p.add_argument("--no-coverage-check", action="store_true",
@@ -91,15 +90,16 @@ def format_calibration(cal, source: str = "", residual: str = "sensor",
     """A human-readable summary of a calibration (units named; the rms names its residual, and
     a tied fit also gives its rms on the sensor residual, ``sensor_rms``)."""
     from ..diagnosis.diagnosis import RESIDUAL_LABELS
+    from ..units import display_unit, effect_params
 
-    u = cal.unit
+    u = display_unit(cal.unit)
     rows = [f"calibration of {cal.sensor} from {source} ({cal.method}"
             + (f", {cal.kernel} kernel" if cal.kernel else "") + ")",
             f"  model     {', '.join(cal.model)}",
             "  K [" + u + "]" + "".join(f"\n    {row[0]:10.4f} {row[1]:10.4f} {row[2]:10.4f}" for row in cal.K),
             f"  b [{u}]  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
     for name, params in cal.effects.items():
-        rows.append(f"  {name}: " + ", ".join(f"{k}={v}" for k, v in params.items()))
+        rows.append(f"  {name}: {effect_params(name, params, cal.unit)}")
     rows.append(f"  rms       {cal.rms:.4g} {u} on the {RESIDUAL_LABELS.get(residual, residual)} "
                 f"residual over {cal.n - cal.n_outliers} inliers "
                 f"({cal.n_outliers} outliers of {cal.n})")

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from ._common import add_skip_bad_rows
+
 COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp")
 FSYNC_EVERY_S = 5.0
 
@@ -40,6 +42,7 @@ def register(sub) -> None:
     p.add_argument("-o", "--output", required=True, metavar="TRACK.csv",
                    help="track file to write (.csv or .csv.gz)")
     p.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds of samples")
+    add_skip_bad_rows(p)   # of a fake:/simavr: replay's track
     p.set_defaults(func=run)
 
 
@@ -128,6 +131,7 @@ class TrackWriter:
 def run(args) -> int:
     from ..errors import InputError
     from ..service import I2CBlocks, SerialBlocks, SourceUnavailable
+    from ._common import fake_track_reader
     from .daemon import _address
 
     if args.seconds is not None and not args.seconds > 0:
@@ -136,9 +140,9 @@ def run(args) -> int:
     if out.is_dir() or not (out.parent if str(out.parent) else Path(".")).is_dir():
         raise InputError(f"-o {out}: not a file in an existing directory")
     if args.bus is not None:
-        source = I2CBlocks(args.bus, _address(args.address))
+        source = I2CBlocks(args.bus, _address(args.address), read_track=fake_track_reader(args))
     else:
-        source = SerialBlocks(args.port, args.baud)
+        source = SerialBlocks(args.port, args.baud, read_track=fake_track_reader(args))
     stop: list[str] = []
     for sig, name in ((signal.SIGTERM, "SIGTERM"), (signal.SIGINT, "SIGINT")):
         signal.signal(sig, lambda s, f, name=name: stop.append(name))

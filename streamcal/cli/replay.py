@@ -33,7 +33,7 @@ def register(sub) -> None:
                                    "(coverage buffer, recalibration policy, background fits, "
                                    "acceptance guard, calibration store) and print its events.")
     p.add_argument("track", help=RECORDING_HELP)
-    add_input_options(p)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--realtime", action="store_true", help="sleep to follow the track's time")
     p.add_argument("--state-dir", metavar="DIR",
                    help="keep calibration.json and its history here, as the daemon does")
@@ -51,7 +51,6 @@ def register(sub) -> None:
     p.add_argument("--sync-fits", action="store_true",
                    help="run each fit when it is due, also with --realtime (the default "
                         "without --realtime)")
-    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     from .daemon import add_http_options
 
     add_http_options(p, "with --realtime: ")
@@ -190,8 +189,10 @@ def _summary(calibrator, counts, track, args) -> dict:
     if cal is not None:
         out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
                     "rms": float(cal.rms) if math.isfinite(cal.rms) else None, "unit": cal.unit})
-        result = (f"calibration rms {cal.rms:.3g} {cal.unit}, b = "
-                  f"{np.round(cal.b, 2).tolist()} {cal.unit}")
+        from ..units import display_unit
+
+        u = display_unit(cal.unit)
+        result = f"calibration rms {cal.rms:.3g} {u}, b = {np.round(cal.b, 2).tolist()} {u}"
     else:
         result = "no calibration accepted"
     out["message"] = (f"replayed {calibrator.n_ingested} magnetometer samples of {args.track}: "

@@ -22,14 +22,13 @@ def register(subparsers) -> None:
                                           "into one self-contained HTML page (see "
                                           "docs/diagnosis.md).")
     p.add_argument("track", help=RECORDING_HELP)
-    add_input_options(p)
+    add_input_options(p, skip_bad_rows=True)
     p.add_argument("--model", default=",".join(DEFAULT_MODEL),
                    help="comma-separated effects (docs/effects.md; default: %(default)s)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
                    help="add an effect to the model (repeatable, or comma-separated)")
     p.add_argument("-o", "--output", metavar="HTML",
                    help="report file (default: <track name>-report.html in the current directory)")
-    p.add_argument("--skip-bad-rows", action="store_true", help="skip and count malformed rows")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "state dir; 'autopilot' or 'log': the one in the log's own COMPASS_* "
                    "parameters), holding what the track does not determine")
@@ -71,7 +70,7 @@ def run(args) -> int:
     out = Path(args.output) if args.output else default_output(args.track)
     out.parent.mkdir(parents=True, exist_ok=True)
     local = reference_field(track, getattr(diagnosis, "calibration", None), ref)
-    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name,
+    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name, command_path=args.track,
                        intro=_reference_html(text_lines(local)))
     print("\n".join(text_lines(local)))
     print(f"report written to {out}")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import sys
 
+from ._common import add_skip_bad_rows
 from .daemon import add_service_options, build
 
 
@@ -28,6 +29,7 @@ def register(sub) -> None:
                         "board) or simavr:TRACK.csv (the compiled sketch in simavr)")
     p.add_argument("--baud", type=int, default=115200, help="baud rate (default: %(default)s)")
     add_service_options(p)
+    add_skip_bad_rows(p)   # of a fake:/simavr: replay's track
     p.set_defaults(func=run)
 
 
@@ -88,7 +90,9 @@ def close_count(source) -> dict:
 def run(args) -> int:
     from ..service import SerialBlocks
 
-    source = SerialBlocks(args.port, args.baud)
+    from ._common import fake_track_reader
+
+    source = SerialBlocks(args.port, args.baud, read_track=fake_track_reader(args))
     try:
         sync = BoardSync(source)
         service = build(args, source, "serial", on_calibration=sync)

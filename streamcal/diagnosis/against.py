@@ -39,7 +39,7 @@ MIN_SAMPLES = 30
 DEFAULT_ROUNDS = 3
 
 
-@dataclass
+@dataclass(repr=False)   # the short repr of Diagnosis, not every field
 class HeldDiagnosis(Diagnosis):
     """A :class:`~streamcal.diagnosis.diagnosis.Diagnosis` against a given (or default)
     calibration: ``held`` names the parameters kept at their given values, ``estimated`` maps
@@ -135,6 +135,9 @@ def linear_start(term, s: np.ndarray, normal: np.ndarray, u: np.ndarray, cov,
 
 
 def _refuse_b(n: int, errors: dict, tol: float, unit: str, sigma: float) -> None:
+    from ..units import display_unit
+
+    unit = display_unit(unit)
     worst = max(errors.get(name, np.inf) for name, _ in B_PARAMS)
     if worst <= tol:
         return

@@ -143,7 +143,9 @@ def registration_evidence(effect: str, rms_before: float, rms_after: float, cal,
                           kind: str = "gravity") -> str:
     """Sentence for a registration candidate: the tied rms (``kind`` "gravity" or "gyro") it is
     compared with (the fit without the effect) and what the refit found."""
-    text = f"{kind}-tied rms {rms_before:.3g} → {rms_after:.3g} {unit}"
+    from ..units import display_unit
+
+    text = f"{kind}-tied rms {rms_before:.3g} → {rms_after:.3g} {display_unit(unit)}"
     params = cal.effects.get(effect, {}) if cal is not None else {}
     if effect == "mag_accel_misalignment" and "rotation" in params:
         angle = np.degrees(np.linalg.norm(params["rotation"]))

@@ -85,6 +85,16 @@ class Diagnosis:
     #: Which samples the figures used (:mod:`streamcal.diagnosis.subsample`); None: every one.
     sampling: dict | None = None
 
+    def __str__(self) -> str:
+        from .text import summary
+
+        return summary(self)
+
+    def __repr__(self) -> str:
+        from .text import short_repr
+
+        return short_repr(self)
+
     @property
     def floor_known(self) -> bool:
         """A noise floor this recording measured (ratios to it may be shown)."""

@@ -11,18 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..model import REGISTRATION_EFFECTS
+from ..calibration import rms_residual
 from .residuals import rms, sensor_residual
 
 
 def calibration_residual(cal) -> str:
-    """``"sensor"``, ``"gravity_tied"`` or ``"gyro_tied"``: the residual ``cal.rms`` is on."""
-    extra = getattr(cal, "extra", None) or {}
-    if "gyro_tied" in extra:
-        return "gyro_tied"
-    if any(n in REGISTRATION_EFFECTS for n in cal.model) and "gravity" in extra:
-        return "gravity_tied"
-    return "sensor"
+    """``"sensor"``, ``"gravity_tied"`` or ``"gyro_tied"``: the residual ``cal.rms`` is on
+    (:func:`streamcal.calibration.rms_residual`)."""
+    return rms_residual(cal)
 
 
 def sensor_rms(cal, track) -> float:

@@ -55,8 +55,10 @@ _AXES = ("x", "y", "z")
 
 
 def unit_label(unit: str) -> str:
-    """Display form of a sensor unit (``uT`` → ``µT``)."""
-    return {"uT": "µT", "m/s2": "m/s²", "m/s^2": "m/s²"}.get(unit, unit)
+    """Display form of a sensor unit (``uT`` → ``µT``): :func:`streamcal.units.display_unit`."""
+    from ..units import display_unit
+
+    return display_unit(unit)
 
 
 @dataclass

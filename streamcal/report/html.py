@@ -50,17 +50,26 @@ _SCRIPT = """
 })();
 """
 
-#: Units of effect parameters (``{u}``: the sensor unit).
-_PARAM_UNITS = {
-    ("temperature_offset", "T0"): "°C", ("temperature_offset", "c"): "{u}/°C",
-    ("temperature_scale", "T0"): "°C", ("temperature_scale", "s"): "1/°C",
-    ("time_drift", "t0"): "s", ("time_drift", "d"): "{u}/s",
-    ("axis_nonlinearity", "R"): "{u}", ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
-    ("aux_interference", "a0"): "channel unit", ("aux_interference", "g"): "{u} per channel unit",
-    ("time_lag", "tau"): "s",
-    ("mag_accel_misalignment", "rotation"): "rad (rotation vector, mag frame to accel frame)",
-    ("mag_accel_misalignment", "dip"): "rad (angle between the field and down)",
+#: What a parameter's number means, beside its unit (:func:`streamcal.units.param_unit`).
+_PARAM_NOTES = {
+    ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
+    ("mag_accel_misalignment", "rotation"): "rotation vector, mag frame to accel frame",
+    ("mag_accel_misalignment", "dip"): "angle between the field and down",
 }
+
+
+def _param_cells(effect: str, key: str, value, unit: str) -> tuple[str, str]:
+    """(value, unit) cells of an effect parameter: the units and scaling of
+    :mod:`streamcal.units` (seconds as ms/µs, radians as degrees), 4 significant digits."""
+    from ..units import param_unit, scaled
+
+    try:
+        values, shown = scaled(value, param_unit(effect, key, unit))
+    except (TypeError, ValueError):
+        return _e(value), ""
+    note = _PARAM_NOTES.get((effect, key))
+    shown = f"{shown} ({note})" if note and shown else (note or shown)
+    return (_vec(values) if np.ndim(values) else _num(values)), _e(shown)
 
 
 def _e(value) -> str:
@@ -119,12 +128,19 @@ def _misfit(d) -> str:
                                           for line in lines) + "</ul>")
 
 
+def fit_command(track_path, effect: str) -> str:
+    """The ``streamcal fit PATH --add EFFECT`` a reader can paste (the path shell-quoted)."""
+    import shlex
+
+    return f"streamcal fit {shlex.quote(str(track_path))} --add {effect}"
+
+
 def _summary(d, track_name: str, unit: str) -> str:
     rule = f'<br><span class="sub">{_e(d.noise_floor_rule)}.</span>'
     if d.verdict == "effect_missing" and d.candidates:
         top = d.candidates[0]
         residual, before = d.baseline(top)
-        cmd = f"streamcal fit {track_name} --add {top.effect}"
+        cmd = fit_command(track_name, top.effect)
         if residual == "sensor":
             ratio = (f" ({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)"
                      if d.floor_known else "")
@@ -227,13 +243,10 @@ def _parameters(cal, unit: str) -> str:
             if key == "channels" and isinstance(value, dict):
                 for ch, p in value.items():
                     for k2, v2 in p.items():
-                        u = _PARAM_UNITS.get((effect, k2), "").format(u=unit)
                         rows.append((_e(f"{effect}: {ch}.{k2}"),
-                                     _vec(v2) if np.ndim(v2) else _num(v2), _e(u)))
+                                     *_param_cells(effect, k2, v2, unit)))
                 continue
-            u = _PARAM_UNITS.get((effect, key), "").format(u=unit)
-            rows.append((_e(f"{effect}: {key}"), _vec(value) if np.ndim(value) else _num(value),
-                         _e(u)))
+            rows.append((_e(f"{effect}: {key}"), *_param_cells(effect, key, value, unit)))
     from ..diagnosis.scales import calibration_residual
 
     label = RESIDUAL_FAMILIES[calibration_residual(cal)][0]
@@ -264,7 +277,7 @@ _SHOWN_METADATA = ("sensor", "source", "origin", "description")
 
 def render_html(track, diagnosis=None, *, reason: str | None = None, title: str | None = None,
                 figures: list[RenderedFigure] | None = None, intro: str = "",
-                name: str | None = None) -> str:
+                name: str | None = None, command_path: str | os.PathLike | None = None) -> str:
     """The report page as a string.
 
     Args:
@@ -275,6 +288,8 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         figures: already rendered figures (default: rendered here).
         intro: extra HTML placed under the title (e.g. the demo's streaming summary).
         name: how to call the track file in the text (default: its file name).
+        command_path: the track's path in the suggested ``streamcal fit … --add`` command, as
+            it works from the reader's directory (default: the track's own path, else ``name``).
     """
     data = None
     if figures is None:
@@ -294,7 +309,9 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                      f"no calibration: the raw readings, their magnitude and the directions "
                      f"seen from the centre of a one-pass sphere fit.</div>")
     else:
-        parts.append(_summary(diagnosis, name, unit))
+        if command_path is None:
+            command_path = track.path if getattr(track, "path", None) else name
+        parts.append(_summary(diagnosis, command_path, unit))
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
             by = tuple(getattr(diagnosis, "outliers_model", ()) or diagnosis.model)

@@ -256,7 +256,9 @@ class Service:
         parts = [f"device {self.device_state}" + (f" ({extra})" if extra else ""),
                  f"coverage {100 * cov:.0f}%"]
         if cal is not None:
-            rms = f"{cal.rms:.3g} {cal.unit}" if math.isfinite(cal.rms) else "n/a"
+            from ..units import display_unit
+
+            rms = f"{cal.rms:.3g} {display_unit(cal.unit)}" if math.isfinite(cal.rms) else "n/a"
             parts.append(f"calibration v{self.cal_version} rms {rms}")
         else:
             parts.append("no calibration yet")

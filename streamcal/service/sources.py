@@ -35,6 +35,9 @@ class I2CBlocks:
         speed: fake bus only: replay at this multiple of real time (None: as fast as read, with
             track time stepped by the reads — deterministic).
         fake_kwargs: passed to :class:`~firmware_bridge.fake_mpu9250.FakeMPU9250Bus` (faults…).
+        read_track: fake bus only: ``(path) -> Track`` reading its track (default
+            :meth:`Track.read <streamcal.inputs.track.Track.read>`; the CLI's skips bad rows
+            with ``--skip-bad-rows``).
 
     A fake track is a µT track or a raw-count MPU-9250/AK8963 log (see
     :meth:`~firmware_bridge.fake_mpu9250.FakeMPU9250Bus.from_track`); anything else, and an
@@ -43,7 +46,8 @@ class I2CBlocks:
 
     def __init__(self, spec: str, address: int = 0x68, *, block_size: int = 50,
                  rate_hz: float | None = None, block_timeout: float = 1.0,
-                 speed: float | None = None, fake_kwargs: dict | None = None):
+                 speed: float | None = None, fake_kwargs: dict | None = None,
+                 read_track=None):
         from firmware_bridge.ports import open_bus
         from firmware_bridge.mpu9250 import MPU9250
 
@@ -57,7 +61,7 @@ class I2CBlocks:
         fake_kwargs = dict(fake_kwargs or {})
         if self.fake and speed is not None:
             fake_kwargs.setdefault("clock", lambda: speed * time.monotonic())
-        self.bus = open_bus(spec, read_track=Track.read, **fake_kwargs)
+        self.bus = open_bus(spec, read_track=read_track or Track.read, **fake_kwargs)
         driver_kwargs = {}
         if self.fake:
             driver_kwargs["clock"] = self.bus.now
@@ -131,12 +135,13 @@ class SerialBlocks:
 
     ``spec``: device path, pyserial URL or ``fake:TRACK.csv``; ``link``: an already open
     :class:`~firmware_bridge.serial_link.SerialLink` (tests). A port that fails (USB unplugged)
-    is closed and reopened on later reads.
+    is closed and reopened on later reads. ``read_track``: as for :class:`I2CBlocks`.
     """
 
     def __init__(self, spec: str | None = None, baud: int = 115200, *, link=None,
-                 block_size: int = 256, timeout: float = 0.2):
+                 block_size: int = 256, timeout: float = 0.2, read_track=None):
         self.spec, self.baud = spec, int(baud)
+        self.read_track = read_track or Track.read
         self.block_size, self.timeout = int(block_size), float(timeout)
         self.link = link
         self.sleep = time.sleep
@@ -150,7 +155,7 @@ class SerialBlocks:
     def _open(self) -> None:
         from firmware_bridge.ports import open_link
 
-        self.link = open_link(self.spec, self.baud, read_track=Track.read)
+        self.link = open_link(self.spec, self.baud, read_track=self.read_track)
         self.reopens += 1
 
     @property

@@ -50,6 +50,7 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
 from ..fitting.sphere_stream import SphereStats
+from ..units import display_unit
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
 from .clock import MonotoneClock
 from .disturbance import Disturbance, DisturbanceRule, Quarantine
@@ -562,7 +563,7 @@ class StreamingCalibrator:
                 f"undecided: too few samples in the directions the calibration covers to judge "
                 f"it within {self.disturbance_rule.persist_s:g} s"}[outcome]
         events.append(Event(
-            "disturbance", f"{what}: peak error {dist.peak * R:.3g} {self.unit} "
+            "disturbance", f"{what}: peak error {dist.peak * R:.3g} {display_unit(self.unit)} "
             f"({100 * dist.peak:.0f}% of the field) at t={dist.peak_t:.2f} s; {dist.n_held} "
             "samples " + ("held back" + (", buffer kept" if outcome == "transient" else "")
                           if dist.hold else "disagreed with the running estimate"),
@@ -581,7 +582,7 @@ class StreamingCalibrator:
         what = ("field no longer fits the calibration" if in_force else
                 "field left the running sphere estimate (no calibration in force)")
         moved = ("" if shift is None else
-                 f"; the shell's centre moved by {np.round(shift, 2).tolist()} {self.unit} "
+                 f"; the shell's centre moved by {np.round(shift, 2).tolist()} {display_unit(self.unit)} "
                  "(the hard-iron change, if the soft iron is unchanged)")
         events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} "
                             f"{'>' if check.disagrees else '≤'} {check.limit:.3f} since "
@@ -744,7 +745,8 @@ class StreamingCalibrator:
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
         events += [Event("accepted", f"calibration accepted ({_reason_text(decision)}): rms "
-                        f"{cand.rms:.3g} {self.unit}, b = {np.round(cand.b, 2).tolist()}",
+                        f"{cand.rms:.3g} {display_unit(self.unit)}, b = "
+                        f"{np.round(cand.b, 2).tolist()}",
                         data, t)]
         self._save(cand, events)
         return events
@@ -800,8 +802,4 @@ def _finite(v):
 
 
 def _reason_text(decision: Decision) -> str:
-    if decision.value is None:
-        return decision.reason
-    if decision.limit is None:
-        return f"{decision.reason} = {decision.value:.4g}"
-    return f"{decision.reason}: {decision.value:.4g} vs limit {decision.limit:.4g}"
+    return decision.explain()

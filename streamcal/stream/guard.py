@@ -39,16 +39,52 @@ class Decision:
     value: float | None = None
     limit: float | None = None
     details: dict = field(default_factory=dict)
+    #: Sensor unit of ``value`` and ``limit`` when they are a field, an offset or an rms.
+    unit: str | None = None
 
     def __str__(self) -> str:
         verdict = "accepted" if self.accepted else "rejected"
+        return f"{verdict}: {self.explain()}"
+
+    def explain(self) -> str:
+        """The rule and how the value compares with its limit, in words and units:
+        ``field_out_of_range: field 1.82 µT is below the lower limit 15 µT``."""
+        from ..units import display_unit, number
+
         if self.value is None:
-            return f"{verdict}: {self.reason}"
-        return f"{verdict}: {self.reason} ({self.value:.4g} vs limit {self.limit:.4g})"
+            return self.reason
+        what, unit = _SUBJECTS.get(self.reason, ("value", False))
+        u = (" " + display_unit(self.unit)) if unit and self.unit else ""
+        value = f"{what} {number(self.value, 4)}{u}"
+        if self.limit is None:
+            return f"{self.reason}: {value}"
+        limit = f"{number(self.limit, 4)}{u}"
+        if self.value < self.limit:
+            side = "below the lower limit" if self.reason == "field_out_of_range" else \
+                "below the limit"
+        elif self.value > self.limit:
+            side = "above the upper limit" if self.reason == "field_out_of_range" else \
+                "above the limit"
+        else:
+            side = "at the limit"
+        return f"{self.reason}: {value} is {side} {limit}"
 
     def to_dict(self) -> dict:
         return {"accepted": self.accepted, "reason": self.reason, "value": _num(self.value),
                 "limit": _num(self.limit), **{k: _num(v) for k, v in self.details.items()}}
+
+
+#: What ``value`` is for each rule, and whether it is in the sensor unit.
+_SUBJECTS = {
+    "field_out_of_range": ("field", True), "offset_too_large": ("offset |b|", True),
+    "ill_conditioned": ("condition number of K", False), "rms_too_large": ("rms", True),
+    "rms_grew": ("rms", True), "too_few_holdout": ("held-out samples", False),
+    "holdout_not_finite": ("finite held-out samples", False),
+    "first_calibration": ("held-out error", True),
+    "current_broken_on_holdout": ("held-out error", True),
+    "better_on_holdout": ("held-out error", True), "worse_on_holdout": ("held-out error", True),
+    "parameters_not_finite": ("field", True), "rms_not_finite": ("rms", True),
+}
 
 
 def _num(v):
@@ -139,20 +175,23 @@ class AcceptanceGuard:
         if cand.unit in self.field_limits:
             lo, hi = self.field_limits[cand.unit]
             if not lo <= R <= hi:
-                return Decision(False, "field_out_of_range", R, lo if R < lo else hi)
+                return Decision(False, "field_out_of_range", R, lo if R < lo else hi,
+                                unit=cand.unit)
         elif reference_radius:
             lo, hi = (f * reference_radius for f in self.field_ratio)
             if not lo <= R <= hi:
-                return Decision(False, "field_out_of_range", R, lo if R < lo else hi)
+                return Decision(False, "field_out_of_range", R, lo if R < lo else hi,
+                                unit=cand.unit)
         offset = float(np.linalg.norm(cand.b))
         limit = self.offset_limits.get(cand.unit, self.offset_ratio * R)
         if offset > limit:
-            return Decision(False, "offset_too_large", offset, limit)
+            return Decision(False, "offset_too_large", offset, limit, unit=cand.unit)
         cond = float(np.linalg.cond(cand.K))
         if cond > self.max_cond:
             return Decision(False, "ill_conditioned", cond, self.max_cond)
         if cand.rms > self.max_rms_ratio * R:
-            return Decision(False, "rms_too_large", cand.rms, self.max_rms_ratio * R)
+            return Decision(False, "rms_too_large", cand.rms, self.max_rms_ratio * R,
+                            unit=cand.unit)
         return None
 
     def check(self, cand, holdout_m: np.ndarray, holdout_cov: dict | None = None,
@@ -171,19 +210,20 @@ class AcceptanceGuard:
                             float(MIN_HOLDOUT))
         if current is None:
             return Decision(True, "first_calibration", holdout_error(cand, holdout_m, holdout_cov),
-                            None, {"n_holdout": n})
+                            None, {"n_holdout": n}, unit=cand.unit)
         c = holdout_errors(current, holdout_m, holdout_cov)
         if np.isfinite(c).sum() < MIN_HOLDOUT:
             return Decision(True, "current_broken_on_holdout", holdout_error(
-                cand, holdout_m, holdout_cov), None, {"n_holdout": n})
+                cand, holdout_m, holdout_cov), None, {"n_holdout": n}, unit=cand.unit)
         cur_rms = float(getattr(current, "rms", float("nan")))
         if math.isfinite(cur_rms) and cur_rms > 0 and cand.rms > self.max_rms_growth * cur_rms:
             # A fit that no longer reaches the noise floor of the one in use was bent by a
             # disturbance or by samples of two environments; held-out samples may be mixed too.
-            return Decision(False, "rms_grew", cand.rms, self.max_rms_growth * cur_rms)
+            return Decision(False, "rms_grew", cand.rms, self.max_rms_growth * cur_rms,
+                            unit=cand.unit)
         err, ref, se, used = _paired(a, c)
         limit = ref + max(self.tolerance * ref, 2.0 * se)
         details = {"n_holdout": used, "current_error": ref}
         if err <= limit:
-            return Decision(True, "better_on_holdout", err, limit, details)
-        return Decision(False, "worse_on_holdout", err, limit, details)
+            return Decision(True, "better_on_holdout", err, limit, details, unit=cand.unit)
+        return Decision(False, "worse_on_holdout", err, limit, details, unit=cand.unit)
