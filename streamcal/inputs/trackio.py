@@ -168,8 +168,11 @@ def _parse_header(line: str, line_no: int, path: str) -> list[str]:
 def _body_lines(body: str, first_line: int):
     """The data section without blank/comment lines: its text, the physical line number of
     each row, and its lines (None when the text needs no filtering: split later if needed)."""
-    body = body.rstrip("\n \t\r")
-    if not body:
+    # drop blank lines at the end, but not the last line's own trailing blanks: a row reads the
+    # same whether it ends the file or a chunk of it
+    end = body.find("\n", len(body.rstrip("\n \t\r")))
+    body = body[:end] if end != -1 else body
+    if not body.strip("\n \t\r"):
         return "", np.zeros(0, dtype=np.int64), []
     if body[0] not in _SUSPECT_START and not _SUSPECT_LINE.search(body):
         count = body.count("\n") + 1
