@@ -63,8 +63,9 @@ def test_chunks_match_the_whole_file_reader(tmp_path, monkeypatch, track, ops, d
     path.write_bytes(corrupt(render(meta, names, cells), ops, data))
     chunked, whole = _outcome(lambda: _chunked(path, skip, rows)), _outcome(lambda: _whole(path, skip))
     if whole[0] == "error" and "gzip" in whole[1] and chunked != whole:
-        # a stream meets the damage only at its end: a bad cell or line before it comes first
-        assert chunked[0] == "error" and chunked[2] is not None, chunked
+        # a stream meets the damage only at its end: a bad cell or line before it comes first,
+        # else the damage itself (worded by the decompressor where the stream broke)
+        assert chunked[0] == "error" and (chunked[2] is not None or "damaged gzip" in chunked[1]), chunked
         return
     _assert_same(chunked, whole)
 
