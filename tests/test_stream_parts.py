@@ -51,8 +51,7 @@ def test_thread_worker_does_not_block_the_caller():
 
 def test_recaller_needs_consecutive_checks_and_restarts():
     cal = Calibration(K=50.0 * np.eye(3), b=np.array([5.0, 0.0, 0.0]), rms=0.5)
-    rec = Recaller(window=40, remember=2, checks=3, drift_limit=lambda rms, R: 0.05,
-                   radius_of=lambda c: 50.0)
+    rec = Recaller(window=40, remember=2, checks=3, drift_limit=lambda rms, R: 0.05)
     rec.remember(cal, None)
     rng = np.random.default_rng(0)
 

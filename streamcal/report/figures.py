@@ -41,6 +41,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
+from ..constants import HALF_NORMAL_MEDIAN
 from ..diagnosis.diagnosis import RESIDUAL_LABELS
 
 #: Most points drawn per scatter series (a fixed stride thins the rest).
@@ -125,11 +126,11 @@ class FigureData:
         if inl is None or np.shape(inl) != (len(self.m),):
             floor = self.diagnosis.noise_floor
             norm = np.linalg.norm(r, axis=1)
-            scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
+            scale = floor if np.isfinite(floor) else np.median(norm) / HALF_NORMAL_MEDIAN
             inl = norm <= OUTLIER_SIGMAS * scale
         self.inliers = np.asarray(inl, bool)
         self.directions, self.residual = x, s
-        self.scale = float(cal.field or np.prod(np.diag(cal.K)) ** (1 / 3))
+        self.scale = float(cal.field or cal.radius)
         self.field_after = np.linalg.norm(cal.apply(self.m, self.cov), axis=1) * self.scale
         self.center = np.asarray(cal.b, dtype=float)
 

@@ -44,32 +44,25 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
-from ..fitting.sphere_stream import SphereStats
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
 from .clock import MonotoneClock
-from .disturbance import Disturbance, DisturbanceRule, Quarantine
+from .disturbance import DisturbanceRule
 from .events import Event
 from .fitworker import FitJob, FitWorker
-from .guard import AcceptanceGuard, Decision, radius_of
+from .guard import AcceptanceGuard, Decision
 from .policy import RecalPolicy
 from .recall import Recaller
-from .reference import Reference, beyond, held_mask
+from .reference import Reference, held_mask
+from .running_sphere import RunningSphere, sphere_of_samples
 from .staging import Stage, block_covariates
+from .tracker import DisturbanceTracker
 
 #: Coverage milestones reported as events (fractions of the sphere).
 MILESTONES = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
-#: The running sphere estimate (framing before the first calibration) stops at this relative
-#: step and after this many Gauss–Newton iterations: it only frames directions.
-_COARSE_TOL, _COARSE_ITER = 1e-6, 8
-#: The running sphere estimate judges new samples only when the stored ones fit it within this
-#: relative spread (1.4826 × median |‖m − c‖/R − 1|): soft iron leaves a few percent; a sphere
-#: through a noise cluster (a board at rest) or through two environments leaves far more.
-_COARSE_MAX_SPREAD = 0.05
 
 
 def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
@@ -133,40 +126,31 @@ class StreamingCalibrator:
         self.guard = guard if guard is not None else AcceptanceGuard()
         self.unit = unit
         self.holdout_every = int(holdout_every)
-        self.coarse_every = int(coarse_every)
-        self.coarse_min = int(coarse_min)
         self.recall_checks = max(1, int(recall_checks))
         self.synchronous = synchronous
         self._worker = FitWorker(self.fitter, synchronous)
-        self.stats = SphereStats()
-        self.coarse: tuple[np.ndarray, float] | None = None
+        self.sphere = RunningSphere(coarse_every, coarse_min)
         self.stale = False
         self.n_fits = 0
         self._n_done = 0
         self._cal: Calibration | None = None
         self._support: np.ndarray | None = None      # (C,) cells the calibration was fitted on
         self._job: FitJob | None = None
-        self._since_coarse = 0
         self._milestone = 0.0
         self.clock = MonotoneClock()
         self._frame_is_cal = False
         self._stage = Stage(stage, self.buffer.covariate_names)
         W = self.policy.window
-        self.recaller = Recaller(W, remember, self.recall_checks, self.policy.drift_limit,
-                                 radius_of)
-        self._window_y = np.zeros((W, 3))      # the drift window's samples, projected
-        self._window_n = 0
+        self.recaller = Recaller(W, remember, self.recall_checks, self.policy.drift_limit)
+        self.tracker = DisturbanceTracker(disturbance, hold, len(self.buffer.covariate_names),
+                                          W, unit)
         self._pending: list[Event] = []
-        self.disturbance_rule = disturbance if disturbance is not None else DisturbanceRule()
         self.coarse_judge_coverage = float(coarse_judge_coverage)
         self._cal_ref: Reference | None = None
-        self._coarse_ref: Reference | None = None
         #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
         self._environments: deque = deque(maxlen=16)
         self._env_start = float("nan")
         self._env_calibrated = False
-        self._quarantine = Quarantine(hold, len(self.buffer.covariate_names))
-        self._disturbance: Disturbance | None = None
         if store is not None:
             self._load()
 
@@ -180,7 +164,16 @@ class StreamingCalibrator:
     def n_held(self) -> int:
         """Samples that disagreed with the reference so far: held back from the buffer against a
         calibration, only watched against the running sphere estimate before one."""
-        return self._quarantine.n_held
+        return self.tracker.n_held
+
+    @property
+    def disturbance_rule(self) -> DisturbanceRule:
+        return self.tracker.rule
+
+    @property
+    def coarse(self) -> tuple[np.ndarray, float] | None:
+        """The running sphere estimate ``(centre (3,), radius)`` (sensor unit) or None."""
+        return self.sphere.estimate
 
     @property
     def drift_limit(self) -> float | None:
@@ -192,10 +185,10 @@ class StreamingCalibrator:
     def nbytes(self) -> int:
         """Bytes held by the preallocated arrays (buffer, stage, drift, recall and hold-back
         windows, running sums): fixed whatever the samples ingested."""
-        q, st = self._quarantine, self._stage
+        st = self._stage
         return (self.buffer.nbytes + self.policy.nbytes + self.recaller.nbytes
-                + self._window_y.nbytes + st.m.nbytes + st.t.nbytes + st.cov.nbytes
-                + q.m.nbytes + q.y.nbytes + q.t.nbytes + q.cov.nbytes + self.stats.s22.nbytes)
+                + self.tracker.nbytes + st.m.nbytes + st.t.nbytes + st.cov.nbytes
+                + self.sphere.nbytes)
 
     @property
     def coverage(self) -> CoverageReport:
@@ -266,7 +259,7 @@ class StreamingCalibrator:
             if cov and self.clock.shift:           # the clock the calibration was fitted on
                 cov["t"] = cov["t"] + self.clock.shift
             x = cal.apply(m[ok], {k: v[ok] for k, v in cov.items()} if cov else None)
-            out[ok] = x if unit_vectors else x * (cal.field or radius_of(cal))
+            out[ok] = x if unit_vectors else x * (cal.field or cal.radius)
         elif self.coarse is not None:
             c, R = self.coarse
             out[ok] = (m[ok] - c) / R if unit_vectors else m[ok] - c
@@ -311,8 +304,8 @@ class StreamingCalibrator:
         disturbance still open is reported as undecided (``open``), and a fit that finished
         during it, waiting for its decision, is discarded."""
         events = self.drain(timeout)
-        if self._disturbance is not None:
-            self._end_disturbance(events, "open")
+        if self.tracker.open is not None:
+            self.tracker.end(events, "open", self.clock.t_last)
             job = self._job
             if job is not None and job.done:
                 self._job = None
@@ -338,19 +331,17 @@ class StreamingCalibrator:
         else:
             # The running sums serve only while no calibration is in force (a drift rebuilds
             # them from the buffer; the guard's reference radius then comes from the buffer).
-            ref = self._coarse_ref
+            ref = self.sphere.reference
             if ref is not None:
                 # The running sphere estimate only watches for an environment change: every
                 # sample goes to the buffer (a sphere misfits an anisotropic sensor's extremes,
                 # the samples a first fit needs most), but the disagreeing ones stay out of the
                 # sums, so that the estimate does not drift into a mixture of two shells.
                 held = self._disagreeing(m, t, cov, ref)[0]
-                self.stats.update(m[~held])
+                due = self.sphere.add(m[~held], counted=n)
             else:
-                self.stats.update(m)
-            # The coarse estimate frames directions until a calibration is in use.
-            self._since_coarse += n
-            if self._since_coarse >= self.coarse_every:
+                due = self.sphere.add(m)
+            if due:         # the estimate frames directions until a calibration is in use
                 self._update_coarse()
             stored, new_cells = self.buffer.insert(m, t, cov)
             self.policy.note(stored, new_cells)
@@ -370,73 +361,35 @@ class StreamingCalibrator:
                 events += self._submit(request, t_now)
         return events
 
-    def _fit_coarse(self):
-        """Running sphere estimate ``(centre (3,), radius)`` or None when undetermined."""
-        if self.stats.n < self.coarse_min:
-            return None
-        try:
-            c, R = self.stats.fit(tol=_COARSE_TOL, max_iter=_COARSE_ITER)
-        except Exception:           # too few directions yet
-            return None
-        if not (np.all(np.isfinite(c)) and np.isfinite(R) and R > 0):
-            return None
-        return c, R
-
-    def _buffer_sphere(self):
-        """Sphere ``(centre, radius)`` of the stored samples, or None when undetermined."""
-        stats = SphereStats()
-        stats.update(self.buffer.stored_mag())
-        if stats.n < self.coarse_min:
-            return None
-        try:
-            c, R = stats.fit(tol=_COARSE_TOL, max_iter=_COARSE_ITER)
-        except Exception:           # too few directions
-            return None
-        return (c, R) if np.all(np.isfinite(c)) and np.isfinite(R) and R > 0 else None
-
     def _update_coarse(self) -> None:
-        self._since_coarse = 0
-        found = self._fit_coarse()
+        found, moved = self.sphere.refit()
         if found is None:
             return
         c, R = found
-        previous, self.coarse = self.coarse, (c, R)
-        moved = previous is None or (np.linalg.norm(c - previous[0]) > 0.05 * R
-                                     or abs(R - previous[1]) > 0.05 * R)
         if moved or self.stale and self._frame_is_cal:
             self._set_frame(c, np.eye(3) / R, from_cal=False)
-        if self._disturbance is None:
-            # A sphere that no longer fits the stored samples (they begin to mix two shells)
+        if self.tracker.open is None and not self._frame_is_cal \
+                and self.buffer.fraction >= self.coarse_judge_coverage:
+            # Before the first calibration, once the buffer covers enough of the sphere. A
+            # sphere that no longer fits the stored samples (they begin to mix two shells)
             # does not replace the reference that may be about to see the change.
-            self._coarse_ref = self._coarse_reference(c, R, renew=moved) or self._coarse_ref
+            ref = self.sphere.judge_reference(self.buffer.stored_mag(), self.buffer.occupied,
+                                              self.policy.drift_limit)
+            if ref is not None:
+                if moved or self.sphere.reference is None:
+                    self.policy.reset_window()
+                self.sphere.reference = ref
 
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
         if from_cal:
             cal = self._cal
-            R = radius_of(cal)
+            R = cal.radius
             self._cal_ref = Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
                                        self.policy.drift_limit(cal.rms, R), self._support,
                                        cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
         self._milestone = _floor_milestone(self.buffer.fraction)
-
-    def _coarse_reference(self, c, R, renew: bool):
-        """The running sphere estimate as a reference for change detection before the first
-        calibration, once the buffer covers ``coarse_judge_coverage`` of the sphere; None
-        before. Its limit comes from how well the stored samples fit it, and it judges only the
-        cells they occupy (elsewhere a sphere fitted on part of the sphere extrapolates)."""
-        if self.buffer.fraction < self.coarse_judge_coverage or self._frame_is_cal:
-            return None
-        stored = self.buffer.stored_mag()
-        spread = 1.4826 * float(np.median(np.abs(np.linalg.norm(stored - c, axis=1) / R - 1.0)))
-        if spread > _COARSE_MAX_SPREAD:
-            return None                 # a sphere fitted to a cluster of noise, or to a mixture
-        if renew or self._coarse_ref is None:
-            self.policy.reset_window()
-        return Reference(c, np.eye(3) / R, R, spread * R,
-                          self.policy.drift_limit(spread * R, R), self.buffer.occupied.copy(),
-                          None, False)
 
     def _hold_back(self, m, t, cov, events) -> None:
         """With a calibration in force: samples that disagree with it are held back (module
@@ -455,150 +408,25 @@ class StreamingCalibrator:
         self._check(ref, events)
 
     def _disagreeing(self, m, t, cov, ref):
-        """Judge samples ``m`` (n,3) against the reference ``ref``: the drift window observes
-        their relative errors, the disagreeing ones are recorded in the quarantine. Returns
-        the mask (n,) of disagreeing samples, their unit directions (n,3) and cells (n,)."""
-        y = ref.project(m, t, cov, self.buffer.covariate_names)
-        held, err, inside, d, cell = self._beyond(y, ref)
+        """The tracker judges ``m`` (n,3) against ``ref``; the drift window observes the
+        errors. Returns the disagreeing mask (n,), unit directions (n,3) and cells (n,)."""
+        held, err, inside, d, cell = self.tracker.disagreeing(
+            m, t, cov, ref, self.buffer.covariate_names, self.buffer.cells)
         self.policy.observe(err[inside], t[inside])
-        self._observe_y(y[inside])
-        if held.any():
-            self._quarantine.push(m[held], y[held], t[held], cov[held])
-            if self._disturbance is not None:
-                self._disturbance.note(err[held], t[held])
         return held, d, cell
-
-    def _beyond(self, y, ref):
-        """:func:`.reference.beyond` on the buffer's cells."""
-        return beyond(y, ref, self.buffer.cells)
-
-    def _observe_y(self, y) -> None:
-        """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
-        W = len(self._window_y)
-        y = y[-W:]
-        self._window_y[(self._window_n + np.arange(len(y))) % W] = y
-        self._window_n += len(y)
-
-    def _shift_persists(self, dist, limit: float) -> bool:
-        """A calm window is no end when the held samples lie on one shifted shell and the
-        window's samples fit that shell too: a small new hard iron (one or two drift limits)
-        leaves the field within the limit on the directions across the shift."""
-        if not dist.hold:
-            return False
-        q = self._quarantine
-        ok, center, _ = self.disturbance_rule.new_shell(dist, q.y[q.since(dist.start)], limit,
-                                                        self.clock.t_last)
-        if not ok:
-            return False
-        v = self._window_y - center
-        err = np.abs(np.sqrt(np.einsum("nk,nk->n", v, v)) - 1.0)
-        return float(np.mean(err > limit)) <= self.disturbance_rule.calm_fraction
 
     def _check(self, ref, events) -> None:
         check = self.policy.check(ref.rms, ref.radius)
-        if check is not None:
-            self._judge(check, ref, events)
-
-    def _judge(self, check, ref, events) -> None:
-        """Open, close or confirm a disturbance from one drift-window judgement."""
-        dist = self._disturbance
-        rule = self.disturbance_rule
-        if dist is None:
-            if check.fraction <= rule.open_fraction:
-                return
-            dist = self._disturbance = Disturbance(check.onset, radius=ref.radius, hold=ref.hold)
-            # Held before the window turned: count them into this disturbance.
-            early = self._quarantine.since(check.onset)
-            dist.note(np.abs(np.linalg.norm(self._quarantine.y[early], axis=1) - 1.0),
-                      self._quarantine.t[early])
-        elif check.fraction <= rule.calm_fraction:
-            if not self._shift_persists(dist, check.limit):
-                self._end_disturbance(events, "transient")
-                return
-        # An environment change needs most of the window to disagree (its median beyond the
-        # limit) and the new shell or the duration; against a calibration, whose acceptances
-        # wait for the decision, the duration alone: a change of one or two drift limits moves
-        # the median little but keeps a disturbance open for good.
-        age = self.clock.t_last - dist.start
-        if not (check.disagrees or dist.hold and age >= rule.persist_s):
+        if check is None:
             return
-        idx = self._quarantine.since(dist.start)
-        ok, center, shell = rule.new_shell(dist, self._quarantine.y[idx], check.limit,
-                                           self.clock.t_last)
-        dist.shell = shell
-        if ok and check.disagrees:
-            why = (f"the disagreeing samples lie on one shell (median residual {shell:.3f} "
-                   f"≤ {rule.shell_k * check.limit:.3f}): a new hard iron?")
-            reason = "new_shell"
-        elif age >= rule.persist_s:
-            why = (f"the disagreement lasted {age:.1f} s ≥ {rule.persist_s:g} s"
-                   + ("" if check.disagrees else f" ({100 * check.fraction:.0f}% of the "
-                      f"window beyond the limit)"))
-            reason = "persisted"
-        else:
+        change = self.tracker.judge(check, ref, self.clock.t_last, events)
+        if change is None:
             return
-        # The new shell's centre in the sensor unit: how far the hard iron moved (m − b = K y).
-        shift = np.linalg.solve(ref.AT.T, center) if ok else None
-        self._environment_changed(check, dist, reason, why, idx, events, shift)
-
-    def _end_disturbance(self, events, outcome: str) -> None:
-        """Report the open disturbance and drop its held samples. ``outcome``: ``transient``
-        (the field agrees again), ``reference_replaced`` (a first calibration replaced the
-        running estimate it was judged against: undecided), ``undecided`` (too few samples in
-        the calibration's directions to judge it within the persistence time, while a finished
-        fit waited) or ``open`` (the stream ended)."""
-        dist, self._disturbance = self._disturbance, None
-        if dist is None:
-            return
-        R = dist.radius
-        end = self.clock.t_last
-        what = {"transient": f"transient disturbance from t={dist.start:.2f} to {end:.2f} s",
-                "reference_replaced": f"disturbance from t={dist.start:.2f} to {end:.2f} s "
-                f"left undecided: the running estimate it was judged against was replaced by "
-                f"the accepted calibration",
-                "open": f"disturbance since t={dist.start:.2f} s still open (undecided) when "
-                f"the stream ended at t={end:.2f} s",
-                "undecided": f"disturbance from t={dist.start:.2f} to {end:.2f} s left "
-                f"undecided: too few samples in the directions the calibration covers to judge "
-                f"it within {self.disturbance_rule.persist_s:g} s"}[outcome]
-        events.append(Event(
-            "disturbance", f"{what}: peak error {dist.peak * R:.3g} {self.unit} "
-            f"({100 * dist.peak:.0f}% of the field) at t={dist.peak_t:.2f} s; {dist.n_held} "
-            "samples " + ("held back" + (", buffer kept" if outcome == "transient" else "")
-                          if dist.hold else "disagreed with the running estimate"),
-            {"start": dist.start, "end": end, "duration": end - dist.start,
-             "peak": dist.peak * R, "peak_relative": dist.peak, "peak_t": dist.peak_t,
-             "held": dist.n_held if dist.hold else 0, "disagreeing": dist.n_held,
-             "shell_residual": _finite(dist.shell), "outcome": outcome,
-             "open": outcome == "open"}, end))
-        self._quarantine.clear()
-
-    def _environment_changed(self, check, dist, reason, why, idx, events, shift=None) -> None:
-        """``shift`` (3,): the new shell's centre in the sensor unit (the hard iron's move), or
-        None when the change was not a new shell."""
-        onset = dist.start
-        in_force = self._cal is not None and not self.stale
-        what = ("field no longer fits the calibration" if in_force else
-                "field left the running sphere estimate (no calibration in force)")
-        moved = ("" if shift is None else
-                 f"; the shell's centre moved by {np.round(shift, 2).tolist()} {self.unit} "
-                 "(the hard-iron change, if the soft iron is unchanged)")
-        events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} "
-                            f"{'>' if check.disagrees else '≤'} {check.limit:.3f} since "
-                            f"t={onset:.2f} s; {why}{moved}",
-                            {"value": check.stat, "limit": check.limit, "onset": onset,
-                             "reason": reason, "shell_residual": _finite(dist.shell),
-                             "hard_iron_shift": None if shift is None else
-                             np.round(shift, 6).tolist(),
-                             "held": dist.n_held, "calibrated": in_force}, self.clock.t_last))
-        self._close_environment(onset)
-        q = self._quarantine
-        self._disturbance = None
-        self._forget(onset, events, "calibration in use is stale until a new one is accepted "
-                     "or a remembered one fits again" if self._cal is not None else
-                     "the samples of the old environment would bend the first fit",
-                     (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()) if in_force else None)
-        q.clear()
+        in_force = change.held is not None
+        self._close_environment(change.onset)
+        self._forget(change.onset, events, "calibration in use is stale until a new one is "
+                     "accepted or a remembered one fits again" if self._cal is not None else
+                     "the samples of the old environment would bend the first fit", change.held)
         self.stale = self._cal is not None
         if in_force:        # the recall window watches the new field from here on
             self.recaller.restart()
@@ -631,11 +459,7 @@ class StreamingCalibrator:
             n_held = len(held[1])
             self.buffer.insert(*held)
         kept = self.buffer.snapshot()
-        self.stats.reset()
-        self.stats.update(kept.m)
-        self.coarse = None
-        self._coarse_ref = None
-        self._since_coarse = 0
+        self.sphere.reset(kept.m)
         self.policy.restart()
         self._milestone = _floor_milestone(self.buffer.fraction)
         events.append(Event("forgot", f"forgot {dropped} stored samples older than "
@@ -664,8 +488,7 @@ class StreamingCalibrator:
                             self.clock.t_last))
         self._close_environment(start)
         self._env_calibrated = True
-        self._disturbance = None            # what it was judged against is gone
-        self._quarantine.clear()
+        self.tracker.clear()            # what it was judged against is gone
         self._forget(start, events, "samples of the other environment")
         self.policy.last_request_t = self.clock.t_last   # coverage decides the next fit, as a refit
         self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
@@ -703,16 +526,16 @@ class StreamingCalibrator:
         job = self._job
         if job is None or not job.done:
             return []
-        dist = self._disturbance
+        dist = self.tracker.open
         if dist is not None and dist.hold and not job.obsolete and job.error is None:
             # Its held-out samples are all from before the disturbance: it waits for the
             # decision (transient: judged then; environment change: obsolete) — but not for
             # good: the drift window only fills with samples in directions the calibration was
             # fitted on, and a board that stays elsewhere would block every later fit.
-            if self.clock.t_last - dist.start < self.disturbance_rule.persist_s:
+            if self.tracker.waits(self.clock.t_last):
                 return []
             events = []
-            self._end_disturbance(events, "undecided")
+            self.tracker.end(events, "undecided", self.clock.t_last)
             return events + self._collect()
         self._job = None
         t = self.clock.t_last
@@ -724,10 +547,11 @@ class StreamingCalibrator:
                           {"error": type(job.error).__name__}, t)]
         cand = job.result.replace(unit=self.unit, coverage=round(float(job.coverage), 4))
         if self.coarse is None or self._frame_is_cal:
-            found = self._buffer_sphere()       # the guard's reference radius, on demand
+            # the guard's reference radius, on demand
+            found = sphere_of_samples(self.buffer.stored_mag(), self.sphere.min_n)
             if found is not None:
-                self.coarse = found
-        current = self._cal if self._cal is not None else self._coarse_calibration()
+                self.sphere.estimate = found
+        current = self._cal if self._cal is not None else self.sphere.calibration(self.unit)
         ref_R = self.coarse[1] if self.coarse is not None else None
         decision = self.guard.check(cand, job.holdout.m, _cov_with_t(job.holdout), current, ref_R)
         data = {**decision.to_dict(), "K": cand.K.round(6).tolist(), "b": cand.b.round(6).tolist(),
@@ -735,7 +559,7 @@ class StreamingCalibrator:
         if not decision.accepted:
             return [Event("rejected", f"candidate rejected: {_reason_text(decision)}", data, t)]
         events = []
-        self._end_disturbance(events, "reference_replaced")     # the running estimate's
+        self.tracker.end(events, "reference_replaced", t)     # the running estimate's
         self._cal = cand
         self._support = job.support
         self.recaller.remember(cand, job.support)
@@ -759,13 +583,6 @@ class StreamingCalibrator:
                                 {"path": str(self.store.current_path)}, t))
         except Exception as exc:    # keep calibrating; the old file stays valid
             events.append(Event("store_error", f"could not save the calibration: {exc}", {}, t))
-
-    def _coarse_calibration(self) -> Calibration | None:
-        if self.coarse is None:
-            return None
-        c, R = self.coarse
-        return Calibration(K=R * np.eye(3), b=c, model=("hard_iron",), method="sphere_stream",
-                           unit=self.unit, n=self.stats.n)
 
     def _load(self) -> None:
         result = self.store.load()
