@@ -18,65 +18,40 @@ Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at
 time, and its result is picked up by a later ``ingest`` or ``poll`` (``synchronous=True``, for
 reproducible replays: the fit runs when it is due and is picked up at once). The parts live in
 their own modules: the monotone clock (:mod:`.clock`), the fit worker (:mod:`.fitworker`), the
-hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.disturbance`) and the
-recall of remembered calibrations (:mod:`.recall`). Rows are staged ``stage`` at
+hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.tracker`, rules in
+:mod:`.disturbance`), the running sphere estimate (:mod:`.running_sphere`), the recall of
+remembered calibrations (:mod:`.recall`) and the environment log (:mod:`.environments`). Rows are staged ``stage`` at
 a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
 up and drift is judged at most one stage late; a block larger than the free room is processed
 at once, with what was staged. ``poll()`` processes what is staged (call it when the source is
 idle).
 
-Disturbances and environment changes (module :mod:`.disturbance`). Samples that disagree with
-the calibration in force are held back from the buffer and the fits. A passing phone is a
-transient: when the field agrees again, one ``disturbance`` event reports it and the buffer is
-untouched. When the disagreement persists on one shifted shell (a new hard iron), or lasts
-``DisturbanceRule.persist_s`` whatever its shape (``drift``), the buffer forgets the samples taken
-before the change began, the held ones join it, the calibration in use is marked stale (it is
-kept and applied: a stale calibration is better than none) and the next fit is a first one.
-Before the first calibration the running sphere estimate, once it fits the stored samples,
-watches the same way, so that a first fit is not bent by two environments. The last
-``remember`` accepted calibrations are remembered (with the cells they were fitted on): while
-stale, a full window of new samples that fits one of them again (the magnet was removed, the
-board is back in its old place) brings it back at once (``recalled``), without waiting for the
-coverage a refit needs. A candidate always has to beat the calibration in use on held-out
-samples, so a worse calibration is never accepted.
+Disturbances and environment changes: module :mod:`.tracker`. A candidate always has to beat
+the calibration in use on held-out samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
-
-import math
-from collections import deque
 
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
+from .blocks import apply_block, disagreement
 from .clock import MonotoneClock
 from .disturbance import DisturbanceRule
+from . import events as ev
 from .events import Event
-from .fitworker import FitJob, FitWorker
-from .guard import AcceptanceGuard, Decision
+from .fitworker import FitJob, FitWorker, default_fitter
+from .environments import EnvironmentLog
+from .guard import AcceptanceGuard
 from .policy import RecalPolicy
 from .recall import Recaller
-from .reference import Reference, held_mask
+from .reference import Reference
 from .running_sphere import RunningSphere, sphere_of_samples
-from .staging import Stage, block_covariates
+from .staging import Stage
 from .tracker import DisturbanceTracker
 
 #: Coverage milestones reported as events (fractions of the sphere).
 MILESTONES = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
-
-
-def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
-    """``fitter(snapshot) -> Calibration`` running :func:`streamcal.fitting.fit` on the stored
-    samples (with their covariates when the model has effects beyond K and b)."""
-
-    def fit_snapshot(snap: Snapshot) -> Calibration:
-        from ..fitting import fit
-
-        if set(model) <= {"hard_iron", "soft_iron", "scale"}:
-            return fit(snap.m, model=tuple(model), kernel=kernel)
-        return fit(snap.to_track(), model=tuple(model), kernel=kernel)
-
-    return fit_snapshot
 
 
 class StreamingCalibrator:
@@ -147,10 +122,7 @@ class StreamingCalibrator:
         self._pending: list[Event] = []
         self.coarse_judge_coverage = float(coarse_judge_coverage)
         self._cal_ref: Reference | None = None
-        #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
-        self._environments: deque = deque(maxlen=16)
-        self._env_start = float("nan")
-        self._env_calibrated = False
+        self.environments = EnvironmentLog()
         if store is not None:
             self._load()
 
@@ -250,20 +222,7 @@ class StreamingCalibrator:
         """Calibrated samples of ``block`` (n,3): the field in the sensor unit (``|B| x``), or unit
         directions ``x`` with ``unit_vectors``. Uses the running sphere estimate before the first
         calibration; NaN rows where there is no magnetometer sample or no estimate yet."""
-        m = np.asarray(block.mag, dtype=float)
-        out = np.full(m.shape, np.nan)
-        ok = block.mag_valid
-        cal = self._cal
-        if cal is not None:
-            cov = block_covariates(block) if cal.effects else None
-            if cov and self.clock.shift:           # the clock the calibration was fitted on
-                cov["t"] = cov["t"] + self.clock.shift
-            x = cal.apply(m[ok], {k: v[ok] for k, v in cov.items()} if cov else None)
-            out[ok] = x if unit_vectors else x * (cal.field or cal.radius)
-        elif self.coarse is not None:
-            c, R = self.coarse
-            out[ok] = (m[ok] - c) / R if unit_vectors else m[ok] - c
-        return out
+        return apply_block(block, self._cal, self.coarse, self.clock.shift, unit_vectors)
 
     def disagreement(self, block) -> np.ndarray:
         """Which samples of ``block`` disagree with the calibration in use (n,) bool: by the
@@ -274,30 +233,9 @@ class StreamingCalibrator:
         magnetometer sample or whose covariates the calibration's effect terms lack. Pure: the
         quarantine, the drift window and the disturbance state are untouched, so it may be
         called on a block whether or not it has been processed yet."""
-        m = np.asarray(block.mag, dtype=float)
-        out = np.zeros(len(m), dtype=bool)
         ref = self._cal_ref if self._cal is not None else None
-        if ref is None or not len(m):
-            return out
-        ok = np.isfinite(m).all(axis=1)
-        if not ok.any():
-            return out
-        if ref.cal is None:
-            y = ref.project(m[ok], None, None, ())
-        else:       # covariates held as the stage holds them, on the calibration's clock
-            stage = Stage(1, self._stage.names)
-            stage.held = self._stage.held.copy()
-            m_ok, t, cov = stage.rows_of(block)
-            y = ref.project(m_ok, t + self.clock.shift, cov, self.buffer.covariate_names)
-        r = np.sqrt(np.einsum("nk,nk->n", y, y))
-        fin = np.isfinite(r)
-        err = np.where(fin, np.abs(r - 1.0), 0.0)
-        inside = err > ref.limit                # a cell only where the limit matters
-        if inside.any() and ref.support is not None:
-            k = np.flatnonzero(inside)
-            inside[k] = ref.support[self.buffer.cells.cell_of(y[k] / np.maximum(r[k], 1e-300)[:, None])]
-        out[ok] = held_mask(ref, err, fin, inside)
-        return out
+        return disagreement(block, ref, self._stage, self.clock.shift, self.buffer.cells,
+                            self.buffer.covariate_names)
 
     def close(self, timeout: float | None = None) -> list:
         """Process what is staged and wait for a fit in flight; returns the last events. A
@@ -323,8 +261,7 @@ class StreamingCalibrator:
         t = self.clock.stamp(t, events)
         self._n_done += n
         t_now = self.clock.t_last
-        if math.isnan(self._env_start):                 # the first samples
-            self._env_start = float(t[0])
+        self.environments.begin(t[0])
         calibrated = self._cal is not None and not self.stale
         if calibrated:
             self._hold_back(m, t, cov, events)
@@ -434,21 +371,12 @@ class StreamingCalibrator:
             self._job.obsolete = True
 
     def _close_environment(self, end: float) -> None:
-        """Record the environment that ends at ``end`` (s) with the coverage it reached."""
-        self._environments.append({"start": _finite(self._env_start), "end": end,
-                                  "coverage": round(self.buffer.fraction, 4),
-                                  "n_samples": self.buffer.n_samples,
-                                  "calibrated": self._env_calibrated})
-        self._env_start, self._env_calibrated = end, False
+        self.environments.close(end, self.buffer.fraction, self.buffer.n_samples)
 
     def environment_summary(self) -> list:
-        """The environments seen, oldest first, the current one last (``end`` None): start and
-        end (s), the sphere coverage its samples reached, whether it was calibrated."""
-        current = {"start": _finite(self._env_start), "end": None,
-                   "coverage": round(self.buffer.fraction, 4),
-                   "n_samples": self.buffer.n_samples,
-                   "calibrated": self._env_calibrated or (self._cal is not None and not self.stale)}
-        return [*self._environments, current]
+        """The environments seen (:meth:`.environments.EnvironmentLog.summary`)."""
+        return self.environments.summary(self.buffer.fraction, self.buffer.n_samples,
+                                         self._cal is not None and not self.stale)
 
     def _forget(self, onset: float, events, why: str, held=None) -> None:
         """Drop the buffer's samples older than ``onset``; ``held`` (m, t, cov): samples held back
@@ -462,12 +390,7 @@ class StreamingCalibrator:
         self.sphere.reset(kept.m)
         self.policy.restart()
         self._milestone = _floor_milestone(self.buffer.fraction)
-        events.append(Event("forgot", f"forgot {dropped} stored samples older than "
-                            f"t={onset:.2f} s; kept {len(kept)}"
-                            + (f" (with {n_held} held-back samples of the new field)"
-                               if n_held else "") + f"; {why}",
-                            {"dropped": dropped, "kept": len(kept), "onset": onset,
-                             "held_added": n_held}, self.clock.t_last))
+        events.append(ev.forgot(dropped, len(kept), n_held, onset, why, self.clock.t_last))
 
     def _check_recall(self, m, t, events) -> None:
         """While stale: a remembered calibration that fits the new samples ``m`` (n,3) at ``t``
@@ -475,19 +398,13 @@ class StreamingCalibrator:
         found = self.recaller.observe(m, t)
         if found is None:
             return
-        cal, support, stat, limit, start = (found.calibration, found.support, found.stat,
-                                            found.limit, found.start)
-        self._cal, self._support, self.stale = cal, support, False
+        cal, start = found.calibration, found.start
+        self._cal, self._support, self.stale = cal, found.support, False
         if self._job is not None:
             self._job.obsolete = True
-        events.append(Event("recalled", f"the field fits a remembered calibration again "
-                            f"(median relative error {stat:.3f} ≤ {limit:.3f} since t={start:.2f} "
-                            f"s): back in use, b = {np.round(cal.b, 2).tolist()}",
-                            {"value": stat, "limit": limit, "onset": start,
-                             "K": cal.K.round(6).tolist(), "b": cal.b.round(6).tolist()},
-                            self.clock.t_last))
+        events.append(ev.recalled(found, self.clock.t_last))
         self._close_environment(start)
-        self._env_calibrated = True
+        self.environments.calibrated = True
         self.tracker.clear()            # what it was judged against is gone
         self._forget(start, events, "samples of the other environment")
         self.policy.last_request_t = self.clock.t_last   # coverage decides the next fit, as a refit
@@ -499,10 +416,7 @@ class StreamingCalibrator:
         reached = _floor_milestone(frac)
         if reached > self._milestone:
             self._milestone = reached
-            report = self.buffer.report()
-            events.append(Event("coverage", f"coverage {100 * frac:.0f}% of the sphere; "
-                                f"largest gap {report.empty_cap_deg:.0f}°: {report.hint}",
-                                report.to_dict(), self.clock.t_last, report))
+            events.append(ev.coverage(self.buffer.report(), self.clock.t_last))
 
     # -- fitting ------------------------------------------------------------------------------
     def _submit(self, request, t_now) -> list:
@@ -512,11 +426,7 @@ class StreamingCalibrator:
                    self.buffer.occupied)
         self.n_fits += 1
         self._job = job
-        event = Event("fit_started", f"fit #{self.n_fits} started ({request.reason}): "
-                      f"{len(job.fit_set)} samples, {len(job.holdout)} held out, coverage "
-                      f"{100 * job.coverage:.0f}%",
-                      {"reason": request.reason, "fit": self.n_fits, "n_fit": len(job.fit_set),
-                       "n_holdout": len(job.holdout), **request.data}, t_now)
+        event = ev.fit_started(self.n_fits, request, job, t_now)
         self._worker.submit(job)
         if self._worker.synchronous:
             return [event] + self._collect()
@@ -554,22 +464,18 @@ class StreamingCalibrator:
         current = self._cal if self._cal is not None else self.sphere.calibration(self.unit)
         ref_R = self.coarse[1] if self.coarse is not None else None
         decision = self.guard.check(cand, job.holdout.m, _cov_with_t(job.holdout), current, ref_R)
-        data = {**decision.to_dict(), "K": cand.K.round(6).tolist(), "b": cand.b.round(6).tolist(),
-                "rms": _finite(cand.rms), "coverage_at_fit": cand.coverage}
         if not decision.accepted:
-            return [Event("rejected", f"candidate rejected: {_reason_text(decision)}", data, t)]
+            return [ev.verdict(cand, decision, self.unit, t)]
         events = []
         self.tracker.end(events, "reference_replaced", t)     # the running estimate's
         self._cal = cand
         self._support = job.support
         self.recaller.remember(cand, job.support)
         self.stale = False
-        self._env_calibrated = True
+        self.environments.calibrated = True
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
-        events += [Event("accepted", f"calibration accepted ({_reason_text(decision)}): rms "
-                        f"{cand.rms:.3g} {self.unit}, b = {np.round(cand.b, 2).tolist()}",
-                        data, t)]
+        events.append(ev.verdict(cand, decision, self.unit, t))
         self._save(cand, events)
         return events
 
@@ -609,16 +515,3 @@ def _floor_milestone(frac: float) -> float:
 
 def _cov_with_t(snap: Snapshot) -> dict:
     return {"t": snap.t, **snap.covariates}
-
-
-def _finite(v):
-    v = float(v)
-    return v if np.isfinite(v) else None
-
-
-def _reason_text(decision: Decision) -> str:
-    if decision.value is None:
-        return decision.reason
-    if decision.limit is None:
-        return f"{decision.reason} = {decision.value:.4g}"
-    return f"{decision.reason}: {decision.value:.4g} vs limit {decision.limit:.4g}"

@@ -3,6 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import numpy as np
+
 
 @dataclass(frozen=True)
 class Event:
@@ -28,3 +30,48 @@ class Event:
 
     def to_dict(self) -> dict:
         return {"event": self.kind, "t": self.t, "message": self.message, **self.data}
+
+
+# -- the calibrator's events, worded once -----------------------------------------------------
+def forgot(dropped: int, kept: int, n_held: int, onset: float, why: str, t: float) -> Event:
+    """The buffer forgot ``dropped`` samples older than ``onset`` (s), kept ``kept`` (with
+    ``n_held`` held-back samples of the new field)."""
+    return Event("forgot", f"forgot {dropped} stored samples older than t={onset:.2f} s; kept "
+                 f"{kept}" + (f" (with {n_held} held-back samples of the new field)"
+                              if n_held else "") + f"; {why}",
+                 {"dropped": dropped, "kept": kept, "onset": onset, "held_added": n_held}, t)
+
+
+def recalled(found, t: float) -> Event:
+    """A remembered calibration is back (``found``: a :class:`~.recall.Recall`)."""
+    cal = found.calibration
+    return Event("recalled", f"the field fits a remembered calibration again (median relative "
+                 f"error {found.stat:.3f} ≤ {found.limit:.3f} since t={found.start:.2f} s): "
+                 f"back in use, b = {np.round(cal.b, 2).tolist()}",
+                 {"value": found.stat, "limit": found.limit, "onset": found.start,
+                  "K": cal.K.round(6).tolist(), "b": cal.b.round(6).tolist()}, t)
+
+
+def fit_started(number: int, request, job, t: float) -> Event:
+    """Fit ``number`` started for ``request`` (a :class:`~.policy.FitRequest`) on ``job``."""
+    return Event("fit_started", f"fit #{number} started ({request.reason}): {len(job.fit_set)} "
+                 f"samples, {len(job.holdout)} held out, coverage {100 * job.coverage:.0f}%",
+                 {"reason": request.reason, "fit": number, "n_fit": len(job.fit_set),
+                  "n_holdout": len(job.holdout), **request.data}, t)
+
+
+def verdict(cand, decision, unit: str, t: float) -> Event:
+    """The guard's ``decision`` (a :class:`~.guard.Decision`) on the candidate ``cand``."""
+    rms = float(cand.rms)
+    data = {**decision.to_dict(), "K": cand.K.round(6).tolist(), "b": cand.b.round(6).tolist(),
+            "rms": rms if np.isfinite(rms) else None, "coverage_at_fit": cand.coverage}
+    if not decision.accepted:
+        return Event("rejected", f"candidate rejected: {decision.text()}", data, t)
+    return Event("accepted", f"calibration accepted ({decision.text()}): rms {cand.rms:.3g} "
+                 f"{unit}, b = {np.round(cand.b, 2).tolist()}", data, t)
+
+
+def coverage(report, t: float) -> Event:
+    """A coverage milestone (``report``: a :class:`~.coverage.CoverageReport`)."""
+    return Event("coverage", f"coverage {100 * report.fraction:.0f}% of the sphere; largest gap "
+                 f"{report.empty_cap_deg:.0f}°: {report.hint}", report.to_dict(), t, report)

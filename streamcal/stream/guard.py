@@ -46,6 +46,14 @@ class Decision:
             return f"{verdict}: {self.reason}"
         return f"{verdict}: {self.reason} ({self.value:.4g} vs limit {self.limit:.4g})"
 
+    def text(self) -> str:
+        """The rule and its figures in words (no verdict)."""
+        if self.value is None:
+            return self.reason
+        if self.limit is None:
+            return f"{self.reason} = {self.value:.4g}"
+        return f"{self.reason}: {self.value:.4g} vs limit {self.limit:.4g}"
+
     def to_dict(self) -> dict:
         return {"accepted": self.accepted, "reason": self.reason, "value": _num(self.value),
                 "limit": _num(self.limit), **{k: _num(v) for k, v in self.details.items()}}

@@ -7,6 +7,21 @@ whether a disturbance opens, ends (a transient) or is an environment change (mod
 :mod:`.disturbance` says how). It only reports: the calibrator, told of a change by the
 :class:`Change` :meth:`DisturbanceTracker.judge` returns, forgets its buffer and marks its
 calibration stale.
+
+Samples that disagree with
+the calibration in force are held back from the buffer and the fits. A passing phone is a
+transient: when the field agrees again, one ``disturbance`` event reports it and the buffer is
+untouched. When the disagreement persists on one shifted shell (a new hard iron), or lasts
+``DisturbanceRule.persist_s`` whatever its shape (``drift``), the buffer forgets the samples taken
+before the change began, the held ones join it, the calibration in use is marked stale (it is
+kept and applied: a stale calibration is better than none) and the next fit is a first one.
+Before the first calibration the running sphere estimate, once it fits the stored samples,
+watches the same way, so that a first fit is not bent by two environments. The last
+``remember`` accepted calibrations are remembered (with the cells they were fitted on): while
+stale, a full window of new samples that fits one of them again (the magnet was removed, the
+board is back in its old place) brings it back at once (``recalled``), without waiting for the
+coverage a refit needs. A candidate always has to beat the calibration in use on held-out
+samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
 
