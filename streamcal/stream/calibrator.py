@@ -190,16 +190,8 @@ class StreamingCalibrator:
             if stage.push(block, n):
                 return self._drain_pending() + self._process(*stage.take())
             return self._drain_pending() if self._pending else []
-        # Larger than the free room: what is staged and the whole block in one pass (the staged
-        # rows first: taking them fills their missing covariates from what came before, and
-        # rows_of then carries the covariates forward from them).
-        staged = stage.take() if stage.n else None
-        m, t, cov = stage.rows_of(block)
-        if staged is not None:
-            m0, t0, cov0 = staged
-            m, t, cov = np.concatenate([m0, m]), np.concatenate([t0, t]), \
-                np.concatenate([cov0, cov])
-        return self._drain_pending() + self._process(m, t, cov)
+        # Larger than the free room: what is staged and the whole block in one pass.
+        return self._drain_pending() + self._process(*stage.take_with(block))
 
     def poll(self) -> list:
         """Process staged samples and pick up a finished fit; returns the events."""
@@ -247,9 +239,7 @@ class StreamingCalibrator:
             job = self._job
             if job is not None and job.done:
                 self._job = None
-                events.append(Event("discarded", "fit result discarded: it finished during a "
-                                    "disturbance still undecided when the stream ended",
-                                    {"reason": "disturbance_open"}, self.clock.t_last))
+                events.append(ev.discarded("disturbance_open", self.clock.t_last))
         return events
 
     # -- the per-stage path -------------------------------------------------------------------
@@ -450,11 +440,9 @@ class StreamingCalibrator:
         self._job = None
         t = self.clock.t_last
         if job.obsolete:
-            return [Event("discarded", "fit result discarded: the environment changed while it "
-                          "ran", {"reason": "environment_changed"}, t)]
+            return [ev.discarded("environment_changed", t)]
         if job.error is not None:
-            return [Event("fit_failed", f"fit failed: {job.error}",
-                          {"error": type(job.error).__name__}, t)]
+            return [ev.fit_failed(job.error, t)]
         cand = job.result.replace(unit=self.unit, coverage=round(float(job.coverage), 4))
         if self.coarse is None or self._frame_is_cal:
             # the guard's reference radius, on demand
@@ -492,16 +480,11 @@ class StreamingCalibrator:
 
     def _load(self) -> None:
         result = self.store.load()
-        for problem in result.problems:
-            if not problem.endswith(": missing") or result.fell_back:
-                self._pending.append(Event("load_problem", problem, {}))
+        self._pending += ev.loaded(result)
         if result.calibration is not None:
             self._cal = result.calibration
             self.recaller.remember(self._cal, None)     # fitted on directions unknown: all
             self._set_frame(self._cal.b, np.linalg.inv(self._cal.K), from_cal=True)
-            how = " (fallback: the current file was missing or damaged)" if result.fell_back else ""
-            self._pending.append(Event("loaded", f"calibration in use loaded from {result.path}{how}",
-                                       {"path": str(result.path), "fell_back": result.fell_back}))
 
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []

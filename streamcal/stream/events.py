@@ -75,3 +75,31 @@ def coverage(report, t: float) -> Event:
     """A coverage milestone (``report``: a :class:`~.coverage.CoverageReport`)."""
     return Event("coverage", f"coverage {100 * report.fraction:.0f}% of the sphere; largest gap "
                  f"{report.empty_cap_deg:.0f}°: {report.hint}", report.to_dict(), t, report)
+
+
+def loaded(result) -> list:
+    """What loading the state directory found (``result``: a :class:`~.store.LoadResult`):
+    ``load_problem`` per rejected file (a missing current file only when it fell back) and
+    ``loaded``."""
+    out = [Event("load_problem", problem, {}) for problem in result.problems
+           if not problem.endswith(": missing") or result.fell_back]
+    if result.calibration is not None:
+        how = " (fallback: the current file was missing or damaged)" if result.fell_back else ""
+        out.append(Event("loaded", f"calibration in use loaded from {result.path}{how}",
+                         {"path": str(result.path), "fell_back": result.fell_back}))
+    return out
+
+
+#: Why a finished fit's result was discarded, in words.
+DISCARDED = {"environment_changed": "the environment changed while it ran",
+             "disturbance_open": "it finished during a disturbance still undecided when the "
+                                 "stream ended"}
+
+
+def discarded(reason: str, t: float) -> Event:
+    """A finished fit's result was discarded for ``reason`` (a key of :data:`DISCARDED`)."""
+    return Event("discarded", f"fit result discarded: {DISCARDED[reason]}", {"reason": reason}, t)
+
+
+def fit_failed(error: BaseException, t: float) -> Event:
+    return Event("fit_failed", f"fit failed: {error}", {"error": type(error).__name__}, t)
