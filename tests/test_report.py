@@ -19,7 +19,7 @@ from streamcal.report.figures import FIGURES, cell_polygons, lambert
 from streamcal.report.terminal import EMPTY, FILLED
 from streamcal.sim import simulate
 from streamcal.stream import CoverageBuffer
-from streamcal.stream.coverage import SphereCells, fibonacci_sphere
+from streamcal.stream.sphere_cells import SphereCells, fibonacci_sphere
 
 HIDDEN = "temperature_offset"
 TRIED = [HIDDEN, "time_drift", "aux_interference"]

@@ -15,7 +15,7 @@ The figures (names are the PNG file names without ``.png``):
   bottom).
 - ``coverage``: the sphere of field directions on two Lambert azimuthal equal-area discs (the
   hemispheres around +Z and −Z), cut into the equal-area cells of
-  :class:`streamcal.stream.coverage.SphereCells`; each seen cell coloured by the rms residual of
+  :class:`streamcal.stream.sphere_cells.SphereCells`; each seen cell coloured by the rms residual of
   its samples, empty cells grey, the largest empty cap marked.
 - ``residuals``: the signed residual (distance to the fitted surface along its normal) against
   time, temperature and each auxiliary channel, with the binned rms of the diagnosis and the
@@ -321,7 +321,7 @@ def lambert(d: np.ndarray, north: bool) -> np.ndarray:
 def coverage_cells(data: FigureData, n_cells: int = COVERAGE_CELLS):
     """Cells, per-cell sample count (C,), per-cell rms residual over inliers (C,) (NaN: no
     inlier), the covered fraction, and the largest empty cap (centre (3,), radius °)."""
-    from ..stream.coverage import SphereCells, largest_empty_cap
+    from ..stream.sphere_cells import SphereCells, largest_empty_cap
 
     cells = SphereCells(n_cells)
     ok = np.isfinite(data.directions).all(axis=1)
@@ -343,7 +343,7 @@ def coverage_figure(data: FigureData) -> Figure:
     import matplotlib
     from matplotlib import cm, colors
 
-    from ..stream.coverage import hint
+    from ..stream.sphere_cells import hint
 
     cells, count, rms, fraction, gap_c, gap_r = coverage_cells(data)
     fig = Figure(figsize=(12, 5.4))
