@@ -50,8 +50,6 @@ from .running_sphere import RunningSphere, sphere_of_samples
 from .staging import Stage
 from .tracker import DisturbanceTracker
 
-#: Coverage milestones reported as events (fractions of the sphere).
-MILESTONES = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
 
 
 class StreamingCalibrator:
@@ -111,7 +109,7 @@ class StreamingCalibrator:
         self._cal: Calibration | None = None
         self._support: np.ndarray | None = None      # (C,) cells the calibration was fitted on
         self._job: FitJob | None = None
-        self._milestone = 0.0
+        self.milestones = ev.Milestones()
         self.clock = MonotoneClock()
         self._frame_is_cal = False
         self._stage = Stage(stage, self.buffer.covariate_names)
@@ -276,7 +274,8 @@ class StreamingCalibrator:
                 self._check(ref, events)
             if self.recaller.remembered and self.stale:
                 self._check_recall(m, t, events)
-        self._milestones(events)
+        if self.milestones.passed(self.buffer.fraction):
+            events.append(ev.coverage(self.buffer.report(), self.clock.t_last))
         events += self._collect()
         if self._job is None:
             request = self.policy.want_fit(
@@ -316,7 +315,7 @@ class StreamingCalibrator:
                                        self.policy.drift_limit(cal.rms, R), self._support,
                                        cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
-        self._milestone = _floor_milestone(self.buffer.fraction)
+        self.milestones.rebase(self.buffer.fraction)
 
     def _hold_back(self, m, t, cov, events) -> None:
         """With a calibration in force: samples that disagree with it are held back (module
@@ -379,7 +378,7 @@ class StreamingCalibrator:
         kept = self.buffer.snapshot()
         self.sphere.reset(kept.m)
         self.policy.restart()
-        self._milestone = _floor_milestone(self.buffer.fraction)
+        self.milestones.rebase(self.buffer.fraction)
         events.append(ev.forgot(dropped, len(kept), n_held, onset, why, self.clock.t_last))
 
     def _check_recall(self, m, t, events) -> None:
@@ -400,13 +399,6 @@ class StreamingCalibrator:
         self.policy.last_request_t = self.clock.t_last   # coverage decides the next fit, as a refit
         self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
         self._save(cal, events)
-
-    def _milestones(self, events) -> None:
-        frac = self.buffer.fraction
-        reached = _floor_milestone(frac)
-        if reached > self._milestone:
-            self._milestone = reached
-            events.append(ev.coverage(self.buffer.report(), self.clock.t_last))
 
     # -- fitting ------------------------------------------------------------------------------
     def _submit(self, request, t_now) -> list:
@@ -489,11 +481,6 @@ class StreamingCalibrator:
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []
         return out
-
-
-def _floor_milestone(frac: float) -> float:
-    passed = [m for m in MILESTONES if frac >= m]
-    return passed[-1] if passed else 0.0
 
 
 def _cov_with_t(snap: Snapshot) -> dict:

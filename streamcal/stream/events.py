@@ -103,3 +103,30 @@ def discarded(reason: str, t: float) -> Event:
 
 def fit_failed(error: BaseException, t: float) -> Event:
     return Event("fit_failed", f"fit failed: {error}", {"error": type(error).__name__}, t)
+
+
+class Milestones:
+    """Coverage milestones (fractions of the sphere, :data:`STEPS`) reported once each as the
+    coverage grows; after the buffer forgot or changed frame, from where the coverage is then."""
+
+    STEPS = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
+
+    def __init__(self):
+        self.reached = 0.0
+
+    def floor(self, fraction: float) -> float:
+        """The highest milestone at or below ``fraction`` (0 below the first)."""
+        passed = [m for m in self.STEPS if fraction >= m]
+        return passed[-1] if passed else 0.0
+
+    def rebase(self, fraction: float) -> None:
+        self.reached = self.floor(fraction)
+
+    def passed(self, fraction: float) -> bool:
+        """True when ``fraction`` passed a milestone above the last reported one (it is then
+        the last reported)."""
+        now = self.floor(fraction)
+        if now > self.reached:
+            self.reached = now
+            return True
+        return False
