@@ -7,5 +7,7 @@ GRAVITY = 9.80665
 HALF_NORMAL_MEDIAN = 0.6744897501960817
 #: σ = MAD_TO_SIGMA × median |r| for Gaussian r (1 / HALF_NORMAL_MEDIAN ≈ 1.4826).
 MAD_TO_SIGMA = 1.0 / HALF_NORMAL_MEDIAN
+#: ‖gyro‖ below this (rad/s) counts as still.
+STILL_RATE = 0.05
 #: A residual farther than this many kernel widths is reported an outlier.
 OUTLIER_WIDTHS = 2.0

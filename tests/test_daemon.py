@@ -34,6 +34,9 @@ from streamcal.inputs.track import Track
 REPO = Path(__file__).resolve().parent.parent
 DEMO = REPO / "streamcal" / "data" / "demo_track.csv.gz"
 MODEL_ERROR_BOUND = 0.01
+#: Waits on a condition give up after this long (s): generous, so that a loaded or slow machine
+#: only makes the test slower, never makes it fail; no test compares a wall-clock time.
+WAIT_S = 120.0
 
 
 @pytest.fixture(scope="module")
@@ -165,7 +168,7 @@ def test_json_lines_and_socket_output_are_unit_directions(tmp_path):
     # after the last calibration: the field is that calibration applied, |B| = K's radius
     cal = service.calibrator.calibration
     last = versions == versions[-1]
-    assert np.median(np.abs(np.linalg.norm(f[last], axis=1) / np.prod(np.diag(cal.K)) ** (1 / 3) - 1)) < 0.05
+    assert np.median(np.abs(np.linalg.norm(f[last], axis=1) / cal.radius - 1)) < 0.05
     # the socket client got the same lines, byte for byte
     assert sock.clients_served == 1 and sock.dropped_lines == 0
     assert received.decode() == stream.getvalue()
@@ -339,34 +342,36 @@ def start_daemon(state: Path, notify: Path, *extra) -> subprocess.Popen:
                             env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
+@pytest.mark.slow
 def test_process_notifies_systemd_and_stops_cleanly_on_sigterm():
     d = short_dir()
     notify = NotifySocket(d / "notify")
     daemon = Daemon(d / "state", d / "notify", "--json-lines")
     proc = daemon.proc
     try:
-        notify.wait_for("READY", "1", timeout=30)
-        notify.wait_for("WATCHDOG", "1", timeout=10)
-        status = notify.wait_for("STATUS", timeout=10)["STATUS"]
+        notify.wait_for("READY", "1", timeout=WAIT_S)
+        notify.wait_for("WATCHDOG", "1", timeout=WAIT_S)
+        status = notify.wait_for("STATUS", timeout=WAIT_S)["STATUS"]
         assert "coverage" in status and "device" in status
         # wait until a calibration was accepted and stored, then stop in the middle of the run
-        end = time.monotonic() + 60
+        end = time.monotonic() + WAIT_S
         while not (d / "state" / "calibration.json").exists() and time.monotonic() < end:
             time.sleep(0.2)
         assert (d / "state" / "calibration.json").exists()
         seen = len(notify.messages)
-        assert "rms" in notify.wait_for("STATUS", timeout=10, start=seen)["STATUS"]
-        out, err = daemon.stop(signal.SIGTERM)
+        assert "rms" in notify.wait_for("STATUS", timeout=WAIT_S, start=seen)["STATUS"]
+        out, err = daemon.stop(signal.SIGTERM, timeout=WAIT_S)
     finally:
         daemon.kill()
     assert proc.returncode == 0, err
     assert "stopped (SIGTERM)" in err
-    notify.wait_for("STOPPING", "1", timeout=5)
+    notify.wait_for("STOPPING", "1", timeout=WAIT_S)
     cal = Calibration.load(d / "state" / "calibration.json")
     assert cal.sensor == "mag" and np.all(np.diag(cal.K) > 0)
     rows = [json.loads(line) for line in out.splitlines()]
     assert rows and all(abs(np.linalg.norm(r["direction"]) - 1) < 2e-6 for r in rows)
-    assert rows[-1]["t"] < 170.0          # stopped well before the end of the 180 s track
+    # Stopped by the signal (not by the end of the track), whatever the machine's speed.
+    assert json.loads(err.strip().splitlines()[-1])["stop_reason"] == "SIGTERM"
 
 
 def test_process_reloads_on_sighup():
@@ -376,12 +381,12 @@ def test_process_reloads_on_sighup():
     daemon = Daemon(state, d / "notify", "--no-socket")
     proc = daemon.proc
     try:
-        notify.wait_for("READY", "1", timeout=30)
+        notify.wait_for("READY", "1", timeout=WAIT_S)
         seen = len(notify.messages)
         proc.send_signal(signal.SIGHUP)
-        notify.wait_for("RELOADING", "1", timeout=10, start=seen)
-        notify.wait_for("READY", "1", timeout=10, start=seen)   # ready again after the reload
-        out, err = daemon.stop(signal.SIGINT)
+        notify.wait_for("RELOADING", "1", timeout=WAIT_S, start=seen)
+        notify.wait_for("READY", "1", timeout=WAIT_S, start=seen)   # ready again after the reload
+        out, err = daemon.stop(signal.SIGINT, timeout=WAIT_S)
     finally:
         daemon.kill()
     assert proc.returncode == 0, err

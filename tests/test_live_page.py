@@ -252,6 +252,7 @@ def test_non_loopback_warns_on_stderr(tmp_path):
     assert "--http-token" in done.stderr
 
 
+@pytest.mark.slow
 def test_serial_host_serves_the_page(tmp_path):
     proc, url = start_daemon(tmp_path, device=["serial", "--port", f"fake:{TRACK}"], seconds="30")
     try:

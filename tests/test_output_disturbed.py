@@ -21,7 +21,6 @@ from streamcal.service import Notifier, Outputs, Service, StreamOutput
 from streamcal.service.output import format_lines
 from streamcal.sim import simulate
 from streamcal.stream import CalibrationStore, StreamingCalibrator
-from streamcal.stream.guard import radius_of
 from streamcal.inputs.track import Track
 from streamcal.stream.disturbance import GROSS
 from tests.test_stream_disturbance import B_TRUE, K_TRUE, clean, phone, truth
@@ -98,7 +97,7 @@ def test_disagreement_follows_the_hold_back_criterion_and_has_no_side_effects(tm
     sc = StreamingCalibrator(store=CalibrationStore(tmp_path), synchronous=True)
     sc.poll()
     assert sc.calibration is not None
-    limit = sc.policy.drift_limit(cal.rms, radius_of(cal))
+    limit = sc.policy.drift_limit(cal.rms, cal.radius)
     block = SampleBlock(t=t, mag=np.where(np.arange(len(t))[:, None] % 9 == 0, np.nan, m))
     held_before = sc.n_held
     flags = sc.disagreement(block)
@@ -145,7 +144,7 @@ def test_service_lines_flag_the_phone_burst(tmp_path, seed):
     assert len(by_t) == len(t)                                        # one line per sample
     flags = np.array([by_t[round(x, 6)] for x in t])
     err = relative_error(m, cal)
-    limit = made[-1].policy.drift_limit(cal.rms, radius_of(cal))
+    limit = made[-1].policy.drift_limit(cal.rms, cal.radius)
     burst = np.any(d != 0, axis=1)
     clear = burst & (err > 1.2 * limit)
     assert clear.sum() > 20 and flags[clear].all(), "a clearly disturbed sample is not flagged"

@@ -76,6 +76,7 @@ def _temps(directory) -> list[str]:
     return [e.name for e in os.scandir(directory) if e.name.startswith(".") and e.name.endswith(".tmp")]
 
 
+@pytest.mark.slow
 def test_calibration_save_killed_at_random_instants(tmp_path):
     path = tmp_path / "cal.json"
     _cal(1).save(path)
@@ -116,6 +117,7 @@ def test_calibration_save_killed_at_random_instants(tmp_path):
           f"swept by the next save once stale")
 
 
+@pytest.mark.slow
 def test_calibration_store_killed_at_random_instants_then_restarts(tmp_path):
     state = tmp_path / "state"
     keep = 5

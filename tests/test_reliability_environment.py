@@ -135,6 +135,7 @@ def _check_soak(report, hours):
     assert all(p["buffer_samples"] <= p["buffer_capacity"] for p in report["curve"])
 
 
+@pytest.mark.slow
 def test_soak_ten_simulated_minutes():
     """The soak tool end to end on a short run (bounded: about 5 s)."""
     report = _soak(1 / 6)

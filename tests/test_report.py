@@ -19,7 +19,7 @@ from streamcal.report.figures import FIGURES, cell_polygons, lambert
 from streamcal.report.terminal import EMPTY, FILLED
 from streamcal.sim import simulate
 from streamcal.stream import CoverageBuffer
-from streamcal.stream.coverage import SphereCells, fibonacci_sphere
+from streamcal.stream.sphere_cells import SphereCells, fibonacci_sphere
 
 HIDDEN = "temperature_offset"
 TRIED = [HIDDEN, "time_drift", "aux_interference"]
@@ -103,6 +103,7 @@ def test_clean_report_says_at_noise_floor(clean):
         _assert_not_blank(png)
 
 
+@pytest.mark.slow
 def test_renders_are_byte_identical(hidden, tmp_path):
     track, d = hidden
     assert render_html(track, d) == render_html(track, d)
@@ -135,6 +136,7 @@ def test_diagnose_plots_writes_the_pngs(tmp_path, capsys):
         _assert_not_blank(p.read_bytes())
 
 
+@pytest.mark.slow
 def test_report_cli_with_added_effect(tmp_path, capsys):
     path = tmp_path / "t.csv.gz"
     simulate(30.0, 8, effects={HIDDEN: 0.6}).track.write(path)

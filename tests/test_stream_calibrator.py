@@ -150,12 +150,12 @@ def test_single_sample_blocks_are_staged():
     sc = StreamingCalibrator(fitter=sphere_fitter, synchronous=True, stage=64)
     for k in range(63):
         sc.ingest(SampleBlock(t=t[k:k + 1], mag=m[k:k + 1]))
-    assert sc.buffer.n_samples == 0 and sc.stats.n == 0
+    assert sc.buffer.n_samples == 0 and sc.sphere.n == 0
     sc.ingest(SampleBlock(t=t[63:64], mag=m[63:64]))
-    assert sc.stats.n == 64
+    assert sc.sphere.n == 64
     sc.ingest(SampleBlock(t=t[64:65], mag=m[64:65]))
     sc.poll()
-    assert sc.stats.n == 65
+    assert sc.sphere.n == 65
 
 
 def test_memory_constant_after_many_samples():

@@ -2,8 +2,9 @@
 import numpy as np
 import pytest
 
-from streamcal.stream.coverage import (CoverageBuffer, SphereCells, describe_direction,
-                                       fibonacci_sphere, largest_empty_cap)
+from streamcal.stream.coverage import CoverageBuffer
+from streamcal.stream.sphere_cells import (SphereCells, describe_direction, fibonacci_sphere,
+                                           largest_empty_cap)
 
 
 @pytest.mark.parametrize("n_cells", [100, 300, 500])

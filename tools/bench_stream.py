@@ -43,7 +43,7 @@ def synthetic(duration_s: float, rate: float = 100.0, seed: int = 0, start_s: fl
 
 
 def _fitter(name):
-    from streamcal.stream.calibrator import default_fitter
+    from streamcal.stream.fitworker import default_fitter
 
     if name == "sphere":
         from streamcal.calibration import Calibration

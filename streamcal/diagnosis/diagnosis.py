@@ -9,6 +9,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import StreamcalError
 from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
 from ..model.build import check_known
@@ -22,8 +23,6 @@ from .spans import outlier_spans, widen_outliers
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
 OUTLIER_SIGMAS = 5.0
-#: A fit's inliers: residual within this many kernel widths (as streamcal.fitting.autocal).
-OUTLIER_WIDTHS = 2.0
 #: Candidate refits for the ranking use at most this many well-spread samples.
 SUBSET_MAX = 6000
 #: Most effects the ladder adds.
@@ -191,7 +190,7 @@ class _Evaluated:
             if (inl is None or np.shape(inl) != (len(m),)) and width:
                 inl = norm <= OUTLIER_WIDTHS * float(width)   # the fit's own inlier rule
             elif inl is None or np.shape(inl) != (len(m),):
-                scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
+                scale = floor if np.isfinite(floor) else np.median(norm) / HALF_NORMAL_MEDIAN
                 inl = norm <= OUTLIER_SIGMAS * scale
             inl = np.asarray(inl, bool)
             # the ramps of a disturbance are outliers too (spans.widen_outliers); the

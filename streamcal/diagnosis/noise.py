@@ -29,9 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAD_TO_SIGMA = 1.482602218505602
-#: ‖gyro‖ below this (rad/s) counts as still.
-STILL_RATE = 0.05
+from ..constants import MAD_TO_SIGMA, STILL_RATE
 #: Fewest still triplets to prefer the still-only estimate.
 MIN_STILL = 50
 #: Lag-1 correlation of the second differences of white noise.

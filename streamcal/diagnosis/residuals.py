@@ -78,7 +78,7 @@ def rms(r: np.ndarray, mask: np.ndarray | None = None) -> float:
 
 
 def magnitude_error(cal, m, cov) -> np.ndarray:
-    scale = cal.field or float(np.prod(np.diag(cal.K)) ** (1 / 3))
+    scale = cal.field or cal.radius
     return (np.linalg.norm(cal.apply(m, cov), axis=1) - 1.0) * scale
 
 

@@ -15,7 +15,6 @@ from ..calibration import DEFAULT_MODEL, Calibration
 from ..errors import InputError
 from .core import GRAVITY, METHODS, REGISTRATION_EFFECTS, fit_core, parse_model
 from .lm import estimation_error, optimal_directions
-from .registration import fit_with_registration
 from .result import FitResult
 
 __all__ = ["fit", "fit_core", "FitResult", "METHODS", "GRAVITY", "estimation_error", "optimal_directions",
@@ -38,6 +37,10 @@ def fit(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_MODEL
     """
     names = parse_model(model, add)
     if any(n in REGISTRATION_EFFECTS for n in names):
+        # Imported here: it loads scipy.signal/stats (the gravity reference), which the
+        # services that only fit K and b never need (startup on a Raspberry Pi, issue #12).
+        from .registration import fit_with_registration
+
         if method != "autocal":
             raise InputError(f"method {method!r} fits only hard_iron, scale, soft_iron; use "
                              f"method 'autocal' for the registration effects")

@@ -12,9 +12,20 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from .figures import FigureData, RenderedFigure, render_figures
-from .html import render_html, write_report
+import importlib
+
 from .terminal import coverage_map, coverage_view
+
+# The figures and the page load matplotlib: imported on first use, so that the terminal view
+# (drawn by the services at coverage milestones) does not load it (startup, issue #12).
+_LAZY = {"FigureData": "figures", "RenderedFigure": "figures", "render_figures": "figures",
+         "render_html": "html", "write_report": "html"}
+
+
+def __getattr__(name):
+    if name in _LAZY:
+        return getattr(importlib.import_module(f".{_LAZY[name]}", __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = ["FigureData", "RenderedFigure", "coverage_map", "coverage_view", "diagnose_or_reason",
            "render_figures", "render_html", "write_diagnosis_plots", "write_report"]
@@ -26,6 +37,7 @@ def write_diagnosis_plots(diagnosis, track, directory: str | os.PathLike,
     on ``track`` as ``DIRECTORY/<name>.png`` (atomically; the directory is created). Returns the
     paths written."""
     from ..atomic import atomic_write_bytes
+    from .figures import FigureData, render_figures
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -15,7 +15,7 @@ The figures (names are the PNG file names without ``.png``):
   bottom).
 - ``coverage``: the sphere of field directions on two Lambert azimuthal equal-area discs (the
   hemispheres around +Z and −Z), cut into the equal-area cells of
-  :class:`streamcal.stream.coverage.SphereCells`; each seen cell coloured by the rms residual of
+  :class:`streamcal.stream.sphere_cells.SphereCells`; each seen cell coloured by the rms residual of
   its samples, empty cells grey, the largest empty cap marked.
 - ``residuals``: the signed residual (distance to the fitted surface along its normal) against
   time, temperature and each auxiliary channel, with the binned rms of the diagnosis and the
@@ -41,6 +41,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
+from ..constants import HALF_NORMAL_MEDIAN
 from ..diagnosis.diagnosis import RESIDUAL_LABELS
 
 #: Most points drawn per scatter series (a fixed stride thins the rest).
@@ -127,11 +128,11 @@ class FigureData:
         if inl is None or np.shape(inl) != (len(self.m),):
             floor = self.diagnosis.noise_floor
             norm = np.linalg.norm(r, axis=1)
-            scale = floor if np.isfinite(floor) else np.median(norm) / 0.6745
+            scale = floor if np.isfinite(floor) else np.median(norm) / HALF_NORMAL_MEDIAN
             inl = norm <= OUTLIER_SIGMAS * scale
         self.inliers = np.asarray(inl, bool)
         self.directions, self.residual = x, s
-        self.scale = float(cal.field or np.prod(np.diag(cal.K)) ** (1 / 3))
+        self.scale = float(cal.field or cal.radius)
         self.field_after = np.linalg.norm(cal.apply(self.m, self.cov), axis=1) * self.scale
         self.center = np.asarray(cal.b, dtype=float)
 
@@ -322,7 +323,7 @@ def lambert(d: np.ndarray, north: bool) -> np.ndarray:
 def coverage_cells(data: FigureData, n_cells: int = COVERAGE_CELLS):
     """Cells, per-cell sample count (C,), per-cell rms residual over inliers (C,) (NaN: no
     inlier), the covered fraction, and the largest empty cap (centre (3,), radius °)."""
-    from ..stream.coverage import SphereCells, largest_empty_cap
+    from ..stream.sphere_cells import SphereCells, largest_empty_cap
 
     cells = SphereCells(n_cells)
     ok = np.isfinite(data.directions).all(axis=1)
@@ -344,7 +345,7 @@ def coverage_figure(data: FigureData) -> Figure:
     import matplotlib
     from matplotlib import cm, colors
 
-    from ..stream.coverage import hint
+    from ..stream.sphere_cells import hint
 
     cells, count, rms, fraction, gap_c, gap_r = coverage_cells(data)
     fig = Figure(figsize=(12, 5.4))

@@ -12,9 +12,9 @@ from __future__ import annotations
 import importlib
 
 _WHERE = {
-    "StreamingCalibrator": "calibrator", "Event": "events", "default_fitter": "calibrator",
+    "StreamingCalibrator": "calibrator", "Event": "events", "default_fitter": "fitworker",
     "CoverageBuffer": "coverage", "CoverageReport": "coverage", "Snapshot": "coverage",
-    "SphereCells": "coverage", "AcceptanceGuard": "guard", "Decision": "guard",
+    "SphereCells": "sphere_cells", "AcceptanceGuard": "guard", "Decision": "guard",
     "RecalPolicy": "policy", "CalibrationStore": "store", "LoadResult": "store",
 }
 

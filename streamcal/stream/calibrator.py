@@ -18,73 +18,38 @@ Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at
 time, and its result is picked up by a later ``ingest`` or ``poll`` (``synchronous=True``, for
 reproducible replays: the fit runs when it is due and is picked up at once). The parts live in
 their own modules: the monotone clock (:mod:`.clock`), the fit worker (:mod:`.fitworker`), the
-hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.disturbance`) and the
-recall of remembered calibrations (:mod:`.recall`). Rows are staged ``stage`` at
+hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.tracker`, rules in
+:mod:`.disturbance`), the running sphere estimate (:mod:`.running_sphere`), the recall of
+remembered calibrations (:mod:`.recall`) and the environment log (:mod:`.environments`). Rows are staged ``stage`` at
 a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
 up and drift is judged at most one stage late; a block larger than the free room is processed
 at once, with what was staged. ``poll()`` processes what is staged (call it when the source is
 idle).
 
-Disturbances and environment changes (module :mod:`.disturbance`). Samples that disagree with
-the calibration in force are held back from the buffer and the fits. A passing phone is a
-transient: when the field agrees again, one ``disturbance`` event reports it and the buffer is
-untouched. When the disagreement persists on one shifted shell (a new hard iron), or lasts
-``DisturbanceRule.persist_s`` whatever its shape (``drift``), the buffer forgets the samples taken
-before the change began, the held ones join it, the calibration in use is marked stale (it is
-kept and applied: a stale calibration is better than none) and the next fit is a first one.
-Before the first calibration the running sphere estimate, once it fits the stored samples,
-watches the same way, so that a first fit is not bent by two environments. The last
-``remember`` accepted calibrations are remembered (with the cells they were fitted on): while
-stale, a full window of new samples that fits one of them again (the magnet was removed, the
-board is back in its old place) brings it back at once (``recalled``), without waiting for the
-coverage a refit needs. A candidate always has to beat the calibration in use on held-out
-samples, so a worse calibration is never accepted.
+Disturbances and environment changes: module :mod:`.tracker`. A candidate always has to beat
+the calibration in use on held-out samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
-
-import math
-from collections import deque
-from dataclasses import dataclass
 
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
-from ..fitting.sphere_stream import SphereStats
-from ..units import display_unit
 from .coverage import CoverageBuffer, CoverageReport, Snapshot
+from .blocks import apply_block, disagreement
 from .clock import MonotoneClock
-from .disturbance import Disturbance, DisturbanceRule, Quarantine
+from .disturbance import DisturbanceRule
+from . import events as ev
 from .events import Event
-from .fitworker import FitJob, FitWorker
-from .guard import AcceptanceGuard, Decision, radius_of
+from .fitworker import FitJob, FitWorker, default_fitter
+from .environments import EnvironmentLog
+from .guard import AcceptanceGuard
 from .policy import RecalPolicy
 from .recall import Recaller
-from .reference import Reference, beyond, held_mask
-from .staging import Stage, block_covariates
+from .reference import Reference
+from .running_sphere import RunningSphere, sphere_of_samples
+from .staging import Stage
+from .tracker import DisturbanceTracker
 
-#: Coverage milestones reported as events (fractions of the sphere).
-MILESTONES = (0.1, 0.2, 0.35, 0.5, 0.65, 0.8, 0.9, 0.95)
-#: The running sphere estimate (framing before the first calibration) stops at this relative
-#: step and after this many Gauss–Newton iterations: it only frames directions.
-_COARSE_TOL, _COARSE_ITER = 1e-6, 8
-#: The running sphere estimate judges new samples only when the stored ones fit it within this
-#: relative spread (1.4826 × median |‖m − c‖/R − 1|): soft iron leaves a few percent; a sphere
-#: through a noise cluster (a board at rest) or through two environments leaves far more.
-_COARSE_MAX_SPREAD = 0.05
-
-
-def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
-    """``fitter(snapshot) -> Calibration`` running :func:`streamcal.fitting.fit` on the stored
-    samples (with their covariates when the model has effects beyond K and b)."""
-
-    def fit_snapshot(snap: Snapshot) -> Calibration:
-        from ..fitting import fit
-
-        if set(model) <= {"hard_iron", "soft_iron", "scale"}:
-            return fit(snap.m, model=tuple(model), kernel=kernel)
-        return fit(snap.to_track(), model=tuple(model), kernel=kernel)
-
-    return fit_snapshot
 
 
 class StreamingCalibrator:
@@ -134,40 +99,28 @@ class StreamingCalibrator:
         self.guard = guard if guard is not None else AcceptanceGuard()
         self.unit = unit
         self.holdout_every = int(holdout_every)
-        self.coarse_every = int(coarse_every)
-        self.coarse_min = int(coarse_min)
         self.recall_checks = max(1, int(recall_checks))
         self.synchronous = synchronous
         self._worker = FitWorker(self.fitter, synchronous)
-        self.stats = SphereStats()
-        self.coarse: tuple[np.ndarray, float] | None = None
+        self.sphere = RunningSphere(coarse_every, coarse_min)
         self.stale = False
         self.n_fits = 0
         self._n_done = 0
         self._cal: Calibration | None = None
         self._support: np.ndarray | None = None      # (C,) cells the calibration was fitted on
         self._job: FitJob | None = None
-        self._since_coarse = 0
-        self._milestone = 0.0
+        self.milestones = ev.Milestones()
         self.clock = MonotoneClock()
         self._frame_is_cal = False
         self._stage = Stage(stage, self.buffer.covariate_names)
         W = self.policy.window
-        self.recaller = Recaller(W, remember, self.recall_checks, self.policy.drift_limit,
-                                 radius_of)
-        self._window_y = np.zeros((W, 3))      # the drift window's samples, projected
-        self._window_n = 0
+        self.recaller = Recaller(W, remember, self.recall_checks, self.policy.drift_limit)
+        self.tracker = DisturbanceTracker(disturbance, hold, len(self.buffer.covariate_names),
+                                          W, unit)
         self._pending: list[Event] = []
-        self.disturbance_rule = disturbance if disturbance is not None else DisturbanceRule()
         self.coarse_judge_coverage = float(coarse_judge_coverage)
         self._cal_ref: Reference | None = None
-        self._coarse_ref: Reference | None = None
-        #: Environments seen (bounded): start, end (s), coverage reached, calibrated in it.
-        self._environments: deque = deque(maxlen=16)
-        self._env_start = float("nan")
-        self._env_calibrated = False
-        self._quarantine = Quarantine(hold, len(self.buffer.covariate_names))
-        self._disturbance: Disturbance | None = None
+        self.environments = EnvironmentLog()
         if store is not None:
             self._load()
 
@@ -181,7 +134,16 @@ class StreamingCalibrator:
     def n_held(self) -> int:
         """Samples that disagreed with the reference so far: held back from the buffer against a
         calibration, only watched against the running sphere estimate before one."""
-        return self._quarantine.n_held
+        return self.tracker.n_held
+
+    @property
+    def disturbance_rule(self) -> DisturbanceRule:
+        return self.tracker.rule
+
+    @property
+    def coarse(self) -> tuple[np.ndarray, float] | None:
+        """The running sphere estimate ``(centre (3,), radius)`` (sensor unit) or None."""
+        return self.sphere.estimate
 
     @property
     def drift_limit(self) -> float | None:
@@ -193,10 +155,10 @@ class StreamingCalibrator:
     def nbytes(self) -> int:
         """Bytes held by the preallocated arrays (buffer, stage, drift, recall and hold-back
         windows, running sums): fixed whatever the samples ingested."""
-        q, st = self._quarantine, self._stage
+        st = self._stage
         return (self.buffer.nbytes + self.policy.nbytes + self.recaller.nbytes
-                + self._window_y.nbytes + st.m.nbytes + st.t.nbytes + st.cov.nbytes
-                + q.m.nbytes + q.y.nbytes + q.t.nbytes + q.cov.nbytes + self.stats.s22.nbytes)
+                + self.tracker.nbytes + st.m.nbytes + st.t.nbytes + st.cov.nbytes
+                + self.sphere.nbytes)
 
     @property
     def coverage(self) -> CoverageReport:
@@ -226,16 +188,8 @@ class StreamingCalibrator:
             if stage.push(block, n):
                 return self._drain_pending() + self._process(*stage.take())
             return self._drain_pending() if self._pending else []
-        # Larger than the free room: what is staged and the whole block in one pass (the staged
-        # rows first: taking them fills their missing covariates from what came before, and
-        # rows_of then carries the covariates forward from them).
-        staged = stage.take() if stage.n else None
-        m, t, cov = stage.rows_of(block)
-        if staged is not None:
-            m0, t0, cov0 = staged
-            m, t, cov = np.concatenate([m0, m]), np.concatenate([t0, t]), \
-                np.concatenate([cov0, cov])
-        return self._drain_pending() + self._process(m, t, cov)
+        # Larger than the free room: what is staged and the whole block in one pass.
+        return self._drain_pending() + self._process(*stage.take_with(block))
 
     def poll(self) -> list:
         """Process staged samples and pick up a finished fit; returns the events."""
@@ -258,20 +212,7 @@ class StreamingCalibrator:
         """Calibrated samples of ``block`` (n,3): the field in the sensor unit (``|B| x``), or unit
         directions ``x`` with ``unit_vectors``. Uses the running sphere estimate before the first
         calibration; NaN rows where there is no magnetometer sample or no estimate yet."""
-        m = np.asarray(block.mag, dtype=float)
-        out = np.full(m.shape, np.nan)
-        ok = block.mag_valid
-        cal = self._cal
-        if cal is not None:
-            cov = block_covariates(block) if cal.effects else None
-            if cov and self.clock.shift:           # the clock the calibration was fitted on
-                cov["t"] = cov["t"] + self.clock.shift
-            x = cal.apply(m[ok], {k: v[ok] for k, v in cov.items()} if cov else None)
-            out[ok] = x if unit_vectors else x * (cal.field or radius_of(cal))
-        elif self.coarse is not None:
-            c, R = self.coarse
-            out[ok] = (m[ok] - c) / R if unit_vectors else m[ok] - c
-        return out
+        return apply_block(block, self._cal, self.coarse, self.clock.shift, unit_vectors)
 
     def disagreement(self, block) -> np.ndarray:
         """Which samples of ``block`` disagree with the calibration in use (n,) bool: by the
@@ -282,44 +223,21 @@ class StreamingCalibrator:
         magnetometer sample or whose covariates the calibration's effect terms lack. Pure: the
         quarantine, the drift window and the disturbance state are untouched, so it may be
         called on a block whether or not it has been processed yet."""
-        m = np.asarray(block.mag, dtype=float)
-        out = np.zeros(len(m), dtype=bool)
         ref = self._cal_ref if self._cal is not None else None
-        if ref is None or not len(m):
-            return out
-        ok = np.isfinite(m).all(axis=1)
-        if not ok.any():
-            return out
-        if ref.cal is None:
-            y = ref.project(m[ok], None, None, ())
-        else:       # covariates held as the stage holds them, on the calibration's clock
-            stage = Stage(1, self._stage.names)
-            stage.held = self._stage.held.copy()
-            m_ok, t, cov = stage.rows_of(block)
-            y = ref.project(m_ok, t + self.clock.shift, cov, self.buffer.covariate_names)
-        r = np.sqrt(np.einsum("nk,nk->n", y, y))
-        fin = np.isfinite(r)
-        err = np.where(fin, np.abs(r - 1.0), 0.0)
-        inside = err > ref.limit                # a cell only where the limit matters
-        if inside.any() and ref.support is not None:
-            k = np.flatnonzero(inside)
-            inside[k] = ref.support[self.buffer.cells.cell_of(y[k] / np.maximum(r[k], 1e-300)[:, None])]
-        out[ok] = held_mask(ref, err, fin, inside)
-        return out
+        return disagreement(block, ref, self._stage, self.clock.shift, self.buffer.cells,
+                            self.buffer.covariate_names)
 
     def close(self, timeout: float | None = None) -> list:
         """Process what is staged and wait for a fit in flight; returns the last events. A
         disturbance still open is reported as undecided (``open``), and a fit that finished
         during it, waiting for its decision, is discarded."""
         events = self.drain(timeout)
-        if self._disturbance is not None:
-            self._end_disturbance(events, "open")
+        if self.tracker.open is not None:
+            self.tracker.end(events, "open", self.clock.t_last)
             job = self._job
             if job is not None and job.done:
                 self._job = None
-                events.append(Event("discarded", "fit result discarded: it finished during a "
-                                    "disturbance still undecided when the stream ended",
-                                    {"reason": "disturbance_open"}, self.clock.t_last))
+                events.append(ev.discarded("disturbance_open", self.clock.t_last))
         return events
 
     # -- the per-stage path -------------------------------------------------------------------
@@ -331,27 +249,24 @@ class StreamingCalibrator:
         t = self.clock.stamp(t, events)
         self._n_done += n
         t_now = self.clock.t_last
-        if math.isnan(self._env_start):                 # the first samples
-            self._env_start = float(t[0])
+        self.environments.begin(t[0])
         calibrated = self._cal is not None and not self.stale
         if calibrated:
             self._hold_back(m, t, cov, events)
         else:
             # The running sums serve only while no calibration is in force (a drift rebuilds
             # them from the buffer; the guard's reference radius then comes from the buffer).
-            ref = self._coarse_ref
+            ref = self.sphere.reference
             if ref is not None:
                 # The running sphere estimate only watches for an environment change: every
                 # sample goes to the buffer (a sphere misfits an anisotropic sensor's extremes,
                 # the samples a first fit needs most), but the disagreeing ones stay out of the
                 # sums, so that the estimate does not drift into a mixture of two shells.
                 held = self._disagreeing(m, t, cov, ref)[0]
-                self.stats.update(m[~held])
+                due = self.sphere.add(m[~held], counted=n)
             else:
-                self.stats.update(m)
-            # The coarse estimate frames directions until a calibration is in use.
-            self._since_coarse += n
-            if self._since_coarse >= self.coarse_every:
+                due = self.sphere.add(m)
+            if due:         # the estimate frames directions until a calibration is in use
                 self._update_coarse()
             stored, new_cells = self.buffer.insert(m, t, cov)
             self.policy.note(stored, new_cells)
@@ -359,7 +274,8 @@ class StreamingCalibrator:
                 self._check(ref, events)
             if self.recaller.remembered and self.stale:
                 self._check_recall(m, t, events)
-        self._milestones(events)
+        if self.milestones.passed(self.buffer.fraction):
+            events.append(ev.coverage(self.buffer.report(), self.clock.t_last))
         events += self._collect()
         if self._job is None:
             request = self.policy.want_fit(
@@ -371,73 +287,35 @@ class StreamingCalibrator:
                 events += self._submit(request, t_now)
         return events
 
-    def _fit_coarse(self):
-        """Running sphere estimate ``(centre (3,), radius)`` or None when undetermined."""
-        if self.stats.n < self.coarse_min:
-            return None
-        try:
-            c, R = self.stats.fit(tol=_COARSE_TOL, max_iter=_COARSE_ITER)
-        except Exception:           # too few directions yet
-            return None
-        if not (np.all(np.isfinite(c)) and np.isfinite(R) and R > 0):
-            return None
-        return c, R
-
-    def _buffer_sphere(self):
-        """Sphere ``(centre, radius)`` of the stored samples, or None when undetermined."""
-        stats = SphereStats()
-        stats.update(self.buffer.stored_mag())
-        if stats.n < self.coarse_min:
-            return None
-        try:
-            c, R = stats.fit(tol=_COARSE_TOL, max_iter=_COARSE_ITER)
-        except Exception:           # too few directions
-            return None
-        return (c, R) if np.all(np.isfinite(c)) and np.isfinite(R) and R > 0 else None
-
     def _update_coarse(self) -> None:
-        self._since_coarse = 0
-        found = self._fit_coarse()
+        found, moved = self.sphere.refit()
         if found is None:
             return
         c, R = found
-        previous, self.coarse = self.coarse, (c, R)
-        moved = previous is None or (np.linalg.norm(c - previous[0]) > 0.05 * R
-                                     or abs(R - previous[1]) > 0.05 * R)
         if moved or self.stale and self._frame_is_cal:
             self._set_frame(c, np.eye(3) / R, from_cal=False)
-        if self._disturbance is None:
-            # A sphere that no longer fits the stored samples (they begin to mix two shells)
+        if self.tracker.open is None and not self._frame_is_cal \
+                and self.buffer.fraction >= self.coarse_judge_coverage:
+            # Before the first calibration, once the buffer covers enough of the sphere. A
+            # sphere that no longer fits the stored samples (they begin to mix two shells)
             # does not replace the reference that may be about to see the change.
-            self._coarse_ref = self._coarse_reference(c, R, renew=moved) or self._coarse_ref
+            ref = self.sphere.judge_reference(self.buffer.stored_mag(), self.buffer.occupied,
+                                              self.policy.drift_limit)
+            if ref is not None:
+                if moved or self.sphere.reference is None:
+                    self.policy.reset_window()
+                self.sphere.reference = ref
 
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
         if from_cal:
             cal = self._cal
-            R = radius_of(cal)
+            R = cal.radius
             self._cal_ref = Reference(cal.b, np.asarray(A).T.copy(), R, float(cal.rms),
                                        self.policy.drift_limit(cal.rms, R), self._support,
                                        cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
-        self._milestone = _floor_milestone(self.buffer.fraction)
-
-    def _coarse_reference(self, c, R, renew: bool):
-        """The running sphere estimate as a reference for change detection before the first
-        calibration, once the buffer covers ``coarse_judge_coverage`` of the sphere; None
-        before. Its limit comes from how well the stored samples fit it, and it judges only the
-        cells they occupy (elsewhere a sphere fitted on part of the sphere extrapolates)."""
-        if self.buffer.fraction < self.coarse_judge_coverage or self._frame_is_cal:
-            return None
-        stored = self.buffer.stored_mag()
-        spread = 1.4826 * float(np.median(np.abs(np.linalg.norm(stored - c, axis=1) / R - 1.0)))
-        if spread > _COARSE_MAX_SPREAD:
-            return None                 # a sphere fitted to a cluster of noise, or to a mixture
-        if renew or self._coarse_ref is None:
-            self.policy.reset_window()
-        return Reference(c, np.eye(3) / R, R, spread * R,
-                          self.policy.drift_limit(spread * R, R), self.buffer.occupied.copy(),
-                          None, False)
+        self.milestones.rebase(self.buffer.fraction)
 
     def _hold_back(self, m, t, cov, events) -> None:
         """With a calibration in force: samples that disagree with it are held back (module
@@ -456,150 +334,25 @@ class StreamingCalibrator:
         self._check(ref, events)
 
     def _disagreeing(self, m, t, cov, ref):
-        """Judge samples ``m`` (n,3) against the reference ``ref``: the drift window observes
-        their relative errors, the disagreeing ones are recorded in the quarantine. Returns
-        the mask (n,) of disagreeing samples, their unit directions (n,3) and cells (n,)."""
-        y = ref.project(m, t, cov, self.buffer.covariate_names)
-        held, err, inside, d, cell = self._beyond(y, ref)
+        """The tracker judges ``m`` (n,3) against ``ref``; the drift window observes the
+        errors. Returns the disagreeing mask (n,), unit directions (n,3) and cells (n,)."""
+        held, err, inside, d, cell = self.tracker.disagreeing(
+            m, t, cov, ref, self.buffer.covariate_names, self.buffer.cells)
         self.policy.observe(err[inside], t[inside])
-        self._observe_y(y[inside])
-        if held.any():
-            self._quarantine.push(m[held], y[held], t[held], cov[held])
-            if self._disturbance is not None:
-                self._disturbance.note(err[held], t[held])
         return held, d, cell
-
-    def _beyond(self, y, ref):
-        """:func:`.reference.beyond` on the buffer's cells."""
-        return beyond(y, ref, self.buffer.cells)
-
-    def _observe_y(self, y) -> None:
-        """Keep the projections (n,3) of the samples the drift window observed (the last W)."""
-        W = len(self._window_y)
-        y = y[-W:]
-        self._window_y[(self._window_n + np.arange(len(y))) % W] = y
-        self._window_n += len(y)
-
-    def _shift_persists(self, dist, limit: float) -> bool:
-        """A calm window is no end when the held samples lie on one shifted shell and the
-        window's samples fit that shell too: a small new hard iron (one or two drift limits)
-        leaves the field within the limit on the directions across the shift."""
-        if not dist.hold:
-            return False
-        q = self._quarantine
-        ok, center, _ = self.disturbance_rule.new_shell(dist, q.y[q.since(dist.start)], limit,
-                                                        self.clock.t_last)
-        if not ok:
-            return False
-        v = self._window_y - center
-        err = np.abs(np.sqrt(np.einsum("nk,nk->n", v, v)) - 1.0)
-        return float(np.mean(err > limit)) <= self.disturbance_rule.calm_fraction
 
     def _check(self, ref, events) -> None:
         check = self.policy.check(ref.rms, ref.radius)
-        if check is not None:
-            self._judge(check, ref, events)
-
-    def _judge(self, check, ref, events) -> None:
-        """Open, close or confirm a disturbance from one drift-window judgement."""
-        dist = self._disturbance
-        rule = self.disturbance_rule
-        if dist is None:
-            if check.fraction <= rule.open_fraction:
-                return
-            dist = self._disturbance = Disturbance(check.onset, radius=ref.radius, hold=ref.hold)
-            # Held before the window turned: count them into this disturbance.
-            early = self._quarantine.since(check.onset)
-            dist.note(np.abs(np.linalg.norm(self._quarantine.y[early], axis=1) - 1.0),
-                      self._quarantine.t[early])
-        elif check.fraction <= rule.calm_fraction:
-            if not self._shift_persists(dist, check.limit):
-                self._end_disturbance(events, "transient")
-                return
-        # An environment change needs most of the window to disagree (its median beyond the
-        # limit) and the new shell or the duration; against a calibration, whose acceptances
-        # wait for the decision, the duration alone: a change of one or two drift limits moves
-        # the median little but keeps a disturbance open for good.
-        age = self.clock.t_last - dist.start
-        if not (check.disagrees or dist.hold and age >= rule.persist_s):
+        if check is None:
             return
-        idx = self._quarantine.since(dist.start)
-        ok, center, shell = rule.new_shell(dist, self._quarantine.y[idx], check.limit,
-                                           self.clock.t_last)
-        dist.shell = shell
-        if ok and check.disagrees:
-            why = (f"the disagreeing samples lie on one shell (median residual {shell:.3f} "
-                   f"≤ {rule.shell_k * check.limit:.3f}): a new hard iron?")
-            reason = "new_shell"
-        elif age >= rule.persist_s:
-            why = (f"the disagreement lasted {age:.1f} s ≥ {rule.persist_s:g} s"
-                   + ("" if check.disagrees else f" ({100 * check.fraction:.0f}% of the "
-                      f"window beyond the limit)"))
-            reason = "persisted"
-        else:
+        change = self.tracker.judge(check, ref, self.clock.t_last, events)
+        if change is None:
             return
-        # The new shell's centre in the sensor unit: how far the hard iron moved (m − b = K y).
-        shift = np.linalg.solve(ref.AT.T, center) if ok else None
-        self._environment_changed(check, dist, reason, why, idx, events, shift)
-
-    def _end_disturbance(self, events, outcome: str) -> None:
-        """Report the open disturbance and drop its held samples. ``outcome``: ``transient``
-        (the field agrees again), ``reference_replaced`` (a first calibration replaced the
-        running estimate it was judged against: undecided), ``undecided`` (too few samples in
-        the calibration's directions to judge it within the persistence time, while a finished
-        fit waited) or ``open`` (the stream ended)."""
-        dist, self._disturbance = self._disturbance, None
-        if dist is None:
-            return
-        R = dist.radius
-        end = self.clock.t_last
-        what = {"transient": f"transient disturbance from t={dist.start:.2f} to {end:.2f} s",
-                "reference_replaced": f"disturbance from t={dist.start:.2f} to {end:.2f} s "
-                f"left undecided: the running estimate it was judged against was replaced by "
-                f"the accepted calibration",
-                "open": f"disturbance since t={dist.start:.2f} s still open (undecided) when "
-                f"the stream ended at t={end:.2f} s",
-                "undecided": f"disturbance from t={dist.start:.2f} to {end:.2f} s left "
-                f"undecided: too few samples in the directions the calibration covers to judge "
-                f"it within {self.disturbance_rule.persist_s:g} s"}[outcome]
-        events.append(Event(
-            "disturbance", f"{what}: peak error {dist.peak * R:.3g} {display_unit(self.unit)} "
-            f"({100 * dist.peak:.0f}% of the field) at t={dist.peak_t:.2f} s; {dist.n_held} "
-            "samples " + ("held back" + (", buffer kept" if outcome == "transient" else "")
-                          if dist.hold else "disagreed with the running estimate"),
-            {"start": dist.start, "end": end, "duration": end - dist.start,
-             "peak": dist.peak * R, "peak_relative": dist.peak, "peak_t": dist.peak_t,
-             "held": dist.n_held if dist.hold else 0, "disagreeing": dist.n_held,
-             "shell_residual": _finite(dist.shell), "outcome": outcome,
-             "open": outcome == "open"}, end))
-        self._quarantine.clear()
-
-    def _environment_changed(self, check, dist, reason, why, idx, events, shift=None) -> None:
-        """``shift`` (3,): the new shell's centre in the sensor unit (the hard iron's move), or
-        None when the change was not a new shell."""
-        onset = dist.start
-        in_force = self._cal is not None and not self.stale
-        what = ("field no longer fits the calibration" if in_force else
-                "field left the running sphere estimate (no calibration in force)")
-        moved = ("" if shift is None else
-                 f"; the shell's centre moved by {np.round(shift, 2).tolist()} {display_unit(self.unit)} "
-                 "(the hard-iron change, if the soft iron is unchanged)")
-        events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} "
-                            f"{'>' if check.disagrees else '≤'} {check.limit:.3f} since "
-                            f"t={onset:.2f} s; {why}{moved}",
-                            {"value": check.stat, "limit": check.limit, "onset": onset,
-                             "reason": reason, "shell_residual": _finite(dist.shell),
-                             "hard_iron_shift": None if shift is None else
-                             np.round(shift, 6).tolist(),
-                             "held": dist.n_held, "calibrated": in_force}, self.clock.t_last))
-        self._close_environment(onset)
-        q = self._quarantine
-        self._disturbance = None
-        self._forget(onset, events, "calibration in use is stale until a new one is accepted "
-                     "or a remembered one fits again" if self._cal is not None else
-                     "the samples of the old environment would bend the first fit",
-                     (q.m[idx].copy(), q.t[idx].copy(), q.cov[idx].copy()) if in_force else None)
-        q.clear()
+        in_force = change.held is not None
+        self._close_environment(change.onset)
+        self._forget(change.onset, events, "calibration in use is stale until a new one is "
+                     "accepted or a remembered one fits again" if self._cal is not None else
+                     "the samples of the old environment would bend the first fit", change.held)
         self.stale = self._cal is not None
         if in_force:        # the recall window watches the new field from here on
             self.recaller.restart()
@@ -607,21 +360,12 @@ class StreamingCalibrator:
             self._job.obsolete = True
 
     def _close_environment(self, end: float) -> None:
-        """Record the environment that ends at ``end`` (s) with the coverage it reached."""
-        self._environments.append({"start": _finite(self._env_start), "end": end,
-                                  "coverage": round(self.buffer.fraction, 4),
-                                  "n_samples": self.buffer.n_samples,
-                                  "calibrated": self._env_calibrated})
-        self._env_start, self._env_calibrated = end, False
+        self.environments.close(end, self.buffer.fraction, self.buffer.n_samples)
 
     def environment_summary(self) -> list:
-        """The environments seen, oldest first, the current one last (``end`` None): start and
-        end (s), the sphere coverage its samples reached, whether it was calibrated."""
-        current = {"start": _finite(self._env_start), "end": None,
-                   "coverage": round(self.buffer.fraction, 4),
-                   "n_samples": self.buffer.n_samples,
-                   "calibrated": self._env_calibrated or (self._cal is not None and not self.stale)}
-        return [*self._environments, current]
+        """The environments seen (:meth:`.environments.EnvironmentLog.summary`)."""
+        return self.environments.summary(self.buffer.fraction, self.buffer.n_samples,
+                                         self._cal is not None and not self.stale)
 
     def _forget(self, onset: float, events, why: str, held=None) -> None:
         """Drop the buffer's samples older than ``onset``; ``held`` (m, t, cov): samples held back
@@ -632,19 +376,10 @@ class StreamingCalibrator:
             n_held = len(held[1])
             self.buffer.insert(*held)
         kept = self.buffer.snapshot()
-        self.stats.reset()
-        self.stats.update(kept.m)
-        self.coarse = None
-        self._coarse_ref = None
-        self._since_coarse = 0
+        self.sphere.reset(kept.m)
         self.policy.restart()
-        self._milestone = _floor_milestone(self.buffer.fraction)
-        events.append(Event("forgot", f"forgot {dropped} stored samples older than "
-                            f"t={onset:.2f} s; kept {len(kept)}"
-                            + (f" (with {n_held} held-back samples of the new field)"
-                               if n_held else "") + f"; {why}",
-                            {"dropped": dropped, "kept": len(kept), "onset": onset,
-                             "held_added": n_held}, self.clock.t_last))
+        self.milestones.rebase(self.buffer.fraction)
+        events.append(ev.forgot(dropped, len(kept), n_held, onset, why, self.clock.t_last))
 
     def _check_recall(self, m, t, events) -> None:
         """While stale: a remembered calibration that fits the new samples ``m`` (n,3) at ``t``
@@ -652,35 +387,18 @@ class StreamingCalibrator:
         found = self.recaller.observe(m, t)
         if found is None:
             return
-        cal, support, stat, limit, start = (found.calibration, found.support, found.stat,
-                                            found.limit, found.start)
-        self._cal, self._support, self.stale = cal, support, False
+        cal, start = found.calibration, found.start
+        self._cal, self._support, self.stale = cal, found.support, False
         if self._job is not None:
             self._job.obsolete = True
-        events.append(Event("recalled", f"the field fits a remembered calibration again "
-                            f"(median relative error {stat:.3f} ≤ {limit:.3f} since t={start:.2f} "
-                            f"s): back in use, b = {np.round(cal.b, 2).tolist()}",
-                            {"value": stat, "limit": limit, "onset": start,
-                             "K": cal.K.round(6).tolist(), "b": cal.b.round(6).tolist()},
-                            self.clock.t_last))
+        events.append(ev.recalled(found, self.clock.t_last))
         self._close_environment(start)
-        self._env_calibrated = True
-        self._disturbance = None            # what it was judged against is gone
-        self._quarantine.clear()
+        self.environments.calibrated = True
+        self.tracker.clear()            # what it was judged against is gone
         self._forget(start, events, "samples of the other environment")
         self.policy.last_request_t = self.clock.t_last   # coverage decides the next fit, as a refit
         self._set_frame(cal.b, np.linalg.inv(cal.K), from_cal=True)
         self._save(cal, events)
-
-    def _milestones(self, events) -> None:
-        frac = self.buffer.fraction
-        reached = _floor_milestone(frac)
-        if reached > self._milestone:
-            self._milestone = reached
-            report = self.buffer.report()
-            events.append(Event("coverage", f"coverage {100 * frac:.0f}% of the sphere; "
-                                f"largest gap {report.empty_cap_deg:.0f}°: {report.hint}",
-                                report.to_dict(), self.clock.t_last, report))
 
     # -- fitting ------------------------------------------------------------------------------
     def _submit(self, request, t_now) -> list:
@@ -690,11 +408,7 @@ class StreamingCalibrator:
                    self.buffer.occupied)
         self.n_fits += 1
         self._job = job
-        event = Event("fit_started", f"fit #{self.n_fits} started ({request.reason}): "
-                      f"{len(job.fit_set)} samples, {len(job.holdout)} held out, coverage "
-                      f"{100 * job.coverage:.0f}%",
-                      {"reason": request.reason, "fit": self.n_fits, "n_fit": len(job.fit_set),
-                       "n_holdout": len(job.holdout), **request.data}, t_now)
+        event = ev.fit_started(self.n_fits, request, job, t_now)
         self._worker.submit(job)
         if self._worker.synchronous:
             return [event] + self._collect()
@@ -704,50 +418,44 @@ class StreamingCalibrator:
         job = self._job
         if job is None or not job.done:
             return []
-        dist = self._disturbance
+        dist = self.tracker.open
         if dist is not None and dist.hold and not job.obsolete and job.error is None:
             # Its held-out samples are all from before the disturbance: it waits for the
             # decision (transient: judged then; environment change: obsolete) — but not for
             # good: the drift window only fills with samples in directions the calibration was
             # fitted on, and a board that stays elsewhere would block every later fit.
-            if self.clock.t_last - dist.start < self.disturbance_rule.persist_s:
+            if self.tracker.waits(self.clock.t_last):
                 return []
             events = []
-            self._end_disturbance(events, "undecided")
+            self.tracker.end(events, "undecided", self.clock.t_last)
             return events + self._collect()
         self._job = None
         t = self.clock.t_last
         if job.obsolete:
-            return [Event("discarded", "fit result discarded: the environment changed while it "
-                          "ran", {"reason": "environment_changed"}, t)]
+            return [ev.discarded("environment_changed", t)]
         if job.error is not None:
-            return [Event("fit_failed", f"fit failed: {job.error}",
-                          {"error": type(job.error).__name__}, t)]
+            return [ev.fit_failed(job.error, t)]
         cand = job.result.replace(unit=self.unit, coverage=round(float(job.coverage), 4))
         if self.coarse is None or self._frame_is_cal:
-            found = self._buffer_sphere()       # the guard's reference radius, on demand
+            # the guard's reference radius, on demand
+            found = sphere_of_samples(self.buffer.stored_mag(), self.sphere.min_n)
             if found is not None:
-                self.coarse = found
-        current = self._cal if self._cal is not None else self._coarse_calibration()
+                self.sphere.estimate = found
+        current = self._cal if self._cal is not None else self.sphere.calibration(self.unit)
         ref_R = self.coarse[1] if self.coarse is not None else None
         decision = self.guard.check(cand, job.holdout.m, _cov_with_t(job.holdout), current, ref_R)
-        data = {**decision.to_dict(), "K": cand.K.round(6).tolist(), "b": cand.b.round(6).tolist(),
-                "rms": _finite(cand.rms), "coverage_at_fit": cand.coverage}
         if not decision.accepted:
-            return [Event("rejected", f"candidate rejected: {_reason_text(decision)}", data, t)]
+            return [ev.verdict(cand, decision, self.unit, t)]
         events = []
-        self._end_disturbance(events, "reference_replaced")     # the running estimate's
+        self.tracker.end(events, "reference_replaced", t)     # the running estimate's
         self._cal = cand
         self._support = job.support
         self.recaller.remember(cand, job.support)
         self.stale = False
-        self._env_calibrated = True
+        self.environments.calibrated = True
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
-        events += [Event("accepted", f"calibration accepted ({_reason_text(decision)}): rms "
-                        f"{cand.rms:.3g} {display_unit(self.unit)}, b = "
-                        f"{np.round(cand.b, 2).tolist()}",
-                        data, t)]
+        events.append(ev.verdict(cand, decision, self.unit, t))
         self._save(cand, events)
         return events
 
@@ -762,44 +470,18 @@ class StreamingCalibrator:
         except Exception as exc:    # keep calibrating; the old file stays valid
             events.append(Event("store_error", f"could not save the calibration: {exc}", {}, t))
 
-    def _coarse_calibration(self) -> Calibration | None:
-        if self.coarse is None:
-            return None
-        c, R = self.coarse
-        return Calibration(K=R * np.eye(3), b=c, model=("hard_iron",), method="sphere_stream",
-                           unit=self.unit, n=self.stats.n)
-
     def _load(self) -> None:
         result = self.store.load()
-        for problem in result.problems:
-            if not problem.endswith(": missing") or result.fell_back:
-                self._pending.append(Event("load_problem", problem, {}))
+        self._pending += ev.loaded(result)
         if result.calibration is not None:
             self._cal = result.calibration
             self.recaller.remember(self._cal, None)     # fitted on directions unknown: all
             self._set_frame(self._cal.b, np.linalg.inv(self._cal.K), from_cal=True)
-            how = " (fallback: the current file was missing or damaged)" if result.fell_back else ""
-            self._pending.append(Event("loaded", f"calibration in use loaded from {result.path}{how}",
-                                       {"path": str(result.path), "fell_back": result.fell_back}))
 
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []
         return out
 
 
-def _floor_milestone(frac: float) -> float:
-    passed = [m for m in MILESTONES if frac >= m]
-    return passed[-1] if passed else 0.0
-
-
 def _cov_with_t(snap: Snapshot) -> dict:
     return {"t": snap.t, **snap.covariates}
-
-
-def _finite(v):
-    v = float(v)
-    return v if np.isfinite(v) else None
-
-
-def _reason_text(decision: Decision) -> str:
-    return decision.explain()

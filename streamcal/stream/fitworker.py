@@ -12,6 +12,7 @@ import concurrent.futures as cf
 
 import numpy as np
 
+from ..calibration import DEFAULT_MODEL, Calibration
 from .coverage import Snapshot
 
 
@@ -87,3 +88,17 @@ class FitWorker:
         if self._executor is not None:
             self._executor.shutdown(wait=False)
             self._executor = None
+
+
+def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
+    """``fitter(snapshot) -> Calibration`` running :func:`streamcal.fitting.fit` on the stored
+    samples (with their covariates when the model has effects beyond K and b)."""
+
+    def fit_snapshot(snap: Snapshot) -> Calibration:
+        from ..fitting import fit
+
+        if set(model) <= {"hard_iron", "soft_iron", "scale"}:
+            return fit(snap.m, model=tuple(model), kernel=kernel)
+        return fit(snap.to_track(), model=tuple(model), kernel=kernel)
+
+    return fit_snapshot

@@ -69,6 +69,14 @@ class Decision:
             side = "at the limit"
         return f"{self.reason}: {value} is {side} {limit}"
 
+    def text(self) -> str:
+        """The rule and its figures in words (no verdict)."""
+        if self.value is None:
+            return self.reason
+        if self.limit is None:
+            return f"{self.reason} = {self.value:.4g}"
+        return f"{self.reason}: {self.value:.4g} vs limit {self.limit:.4g}"
+
     def to_dict(self) -> dict:
         return {"accepted": self.accepted, "reason": self.reason, "value": _num(self.value),
                 "limit": _num(self.limit), **{k: _num(v) for k, v in self.details.items()}}
@@ -93,16 +101,11 @@ def _num(v):
     return v
 
 
-def radius_of(cal) -> float:
-    """Geometric mean radius of the calibration's ``K`` (sensor unit)."""
-    return float(abs(np.linalg.det(cal.K)) ** (1.0 / 3.0))
-
-
 def holdout_errors(cal, m: np.ndarray, covariates: dict | None = None) -> np.ndarray:
     """Per-sample error (n,) of ``cal`` on samples ``m`` (n,3), sensor unit:
     ``|‖K⁻¹(m − b)‖ − 1|`` times the calibration's radius."""
     x = apply_finite(cal, m, covariates)
-    return np.abs(np.linalg.norm(x, axis=1) - 1.0) * radius_of(cal)
+    return np.abs(np.linalg.norm(x, axis=1) - 1.0) * cal.radius
 
 
 def apply_finite(cal, m: np.ndarray, covariates: dict | None = None) -> np.ndarray:
@@ -167,7 +170,7 @@ class AcceptanceGuard:
 
     def sanity(self, cand, reference_radius: float | None = None) -> Decision | None:
         """The first sanity rule ``cand`` breaks, as a rejection, or None when it is sane."""
-        R = radius_of(cand)
+        R = cand.radius
         if not (math.isfinite(cand.rms) and cand.rms >= 0):
             return Decision(False, "rms_not_finite", cand.rms, None)
         if not np.all(np.isfinite(cand.K)) or not np.all(np.isfinite(cand.b)) or not R > 0:

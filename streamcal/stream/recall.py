@@ -37,10 +37,9 @@ class Recaller:
         checks: consecutive checks a calibration must pass.
         drift_limit: ``drift_limit(rms, radius) -> float``, the relative error limit of a
             calibration (the policy's).
-        radius_of: ``radius_of(cal) -> float``, a calibration's field radius (sensor unit).
     """
 
-    def __init__(self, window: int, remember: int, checks: int, drift_limit, radius_of):
+    def __init__(self, window: int, remember: int, checks: int, drift_limit):
         self._m = np.empty((int(window), 3))
         self._t = np.empty(int(window))
         self._n = 0
@@ -48,7 +47,7 @@ class Recaller:
         self._streak: tuple = (None, 0)
         self._remembered: deque = deque(maxlen=max(1, int(remember)))
         self.checks = max(1, int(checks))
-        self._drift_limit, self._radius_of = drift_limit, radius_of
+        self._drift_limit = drift_limit
 
     @property
     def remembered(self) -> tuple:
@@ -92,7 +91,7 @@ class Recaller:
                 continue
             x = np.linalg.solve(cal.K, (self._m - cal.b).T).T
             stat = float(np.median(np.abs(np.linalg.norm(x, axis=1) - 1.0)))
-            limit = self._drift_limit(cal.rms, self._radius_of(cal))
+            limit = self._drift_limit(cal.rms, cal.radius)
             if stat <= limit:
                 break
         else:

@@ -100,6 +100,17 @@ class Stage:
             cov = np.empty((int(ok.sum()), 0))
         return m[ok], t[ok], cov
 
+    def take_with(self, block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`take` followed by :meth:`rows_of` ``block``, in one set of arrays (the staged
+        rows first: taking them fills their missing covariates from what came before, and
+        ``rows_of`` then carries the covariates forward from them)."""
+        staged = self.take() if self.n else None
+        m, t, cov = self.rows_of(block)
+        if staged is None:
+            return m, t, cov
+        m0, t0, cov0 = staged
+        return np.concatenate([m0, m]), np.concatenate([t0, t]), np.concatenate([cov0, cov])
+
     def rows_of(self, block) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Like :meth:`take` for a whole ``block`` that bypasses the stage (large blocks)."""
         m = np.asarray(block.mag, dtype=float)

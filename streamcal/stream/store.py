@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..atomic import atomic_write_text, sweep_stale_temps
-from ..calibration import MAX_FILE_BYTES, Calibration
+from ..calibration import Calibration
 from ..errors import CalibrationFileError, InputError
 
 CURRENT = "calibration.json"
@@ -101,7 +101,7 @@ class CalibrationStore:
                 problems.append(f"{path}: missing")
                 continue
             try:
-                return LoadResult(_read(path), path, problems)
+                return LoadResult(Calibration.load(path), path, problems)
             except CalibrationFileError as exc:
                 problems.append(str(exc))
         return LoadResult(None, None, problems)
@@ -133,20 +133,3 @@ def _write(path: Path, text: str) -> None:
     except OSError as exc:
         raise InputError(f"{path}: cannot write calibration ({exc})") from None
 
-
-def _read(path: Path) -> Calibration:
-    try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
-    except OSError as exc:
-        reason = "is a symbolic link; refusing to follow it" if os.path.islink(path) \
-            else f"cannot read ({exc.strerror or exc})"
-        raise CalibrationFileError(f"{path}: {reason}") from None
-    with os.fdopen(fd, "rb") as handle:
-        raw = handle.read(MAX_FILE_BYTES + 1)
-    if len(raw) > MAX_FILE_BYTES:
-        raise CalibrationFileError(f"{path}: too large for a calibration file")
-    try:
-        text = raw.decode("utf-8")
-    except UnicodeDecodeError as exc:
-        raise CalibrationFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
-    return Calibration.from_json(text, source=str(path))

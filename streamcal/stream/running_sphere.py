@@ -1,0 +1,119 @@
+"""The running sphere estimate: framing and change watching before the first calibration.
+
+Until a calibration is in force, the calibrator keeps O(1) running sums of the samples
+(:class:`~streamcal.fitting.sphere_stream.SphereStats`) and refits a sphere (centre ``c``,
+radius ``R``) from them every ``every`` samples: it frames directions for the coverage buffer
+and, once it fits the stored samples well, watches for an environment change (as a
+:class:`~.reference.Reference` that holds nothing back).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..constants import MAD_TO_SIGMA
+from ..fitting.sphere_stream import SphereStats
+from .reference import Reference
+
+#: The sphere fit stops at this relative step and after this many Gauss–Newton iterations: it
+#: only frames directions.
+TOL, MAX_ITER = 1e-6, 8
+#: The estimate judges new samples only when the stored ones fit it within this relative spread
+#: (MAD_TO_SIGMA × median |‖m − c‖/R − 1|): soft iron leaves a few percent; a sphere through a
+#: noise cluster (a board at rest) or through two environments leaves far more.
+MAX_SPREAD = 0.05
+
+
+def sphere_of(stats: SphereStats, min_n: int):
+    """Sphere ``(centre (3,), radius)`` of the sums ``stats``, or None with fewer than ``min_n``
+    samples or when undetermined (too few directions)."""
+    if stats.n < min_n:
+        return None
+    try:
+        c, R = stats.fit(tol=TOL, max_iter=MAX_ITER)
+    except Exception:           # too few directions yet
+        return None
+    return (c, R) if np.all(np.isfinite(c)) and np.isfinite(R) and R > 0 else None
+
+
+def sphere_of_samples(m: np.ndarray, min_n: int):
+    """:func:`sphere_of` the samples ``m`` (n,3) (sensor unit)."""
+    stats = SphereStats()
+    stats.update(m)
+    return sphere_of(stats, min_n)
+
+
+class RunningSphere:
+    """Running sums, the latest estimate ``(c, R)`` (or None) and its reference (or None).
+
+    Args:
+        every: samples between refits.
+        min_n: fewest samples for a fit.
+    """
+
+    def __init__(self, every: int = 200, min_n: int = 100):
+        self.every, self.min_n = int(every), int(min_n)
+        self.stats = SphereStats()
+        self.estimate: tuple[np.ndarray, float] | None = None
+        self.reference: Reference | None = None
+        self._since = 0
+
+    @property
+    def n(self) -> int:
+        """Samples in the sums."""
+        return self.stats.n
+
+    @property
+    def nbytes(self) -> int:
+        return self.stats.s22.nbytes
+
+    def add(self, m: np.ndarray, counted: int | None = None) -> bool:
+        """Add samples ``m`` (n,3) to the sums (``counted``: samples seen, default n); True
+        when a refit (:meth:`refit`) is due."""
+        self.stats.update(m)
+        self._since += len(m) if counted is None else int(counted)
+        return self._since >= self.every
+
+    def refit(self) -> tuple[tuple | None, bool]:
+        """Refit from the sums: ``(estimate, moved)``; ``estimate`` None (kept the old one) when
+        undetermined; ``moved`` when the centre or radius moved by over 5 % of the radius."""
+        self._since = 0
+        found = sphere_of(self.stats, self.min_n)
+        if found is None:
+            return None, False
+        c, R = found
+        previous, self.estimate = self.estimate, (c, R)
+        moved = previous is None or (np.linalg.norm(c - previous[0]) > 0.05 * R
+                                     or abs(R - previous[1]) > 0.05 * R)
+        return found, moved
+
+    def reset(self, m: np.ndarray) -> None:
+        """Restart from the samples ``m`` (n,3) (those kept after an environment change)."""
+        self.stats.reset()
+        self.stats.update(m)
+        self.estimate = None
+        self.reference = None
+        self._since = 0
+
+    def judge_reference(self, stored: np.ndarray, occupied: np.ndarray, drift_limit):
+        """The estimate as a :class:`~.reference.Reference` judging the cells ``occupied`` (C,)
+        bool, with its limit ``drift_limit(rms, R)`` from how well the stored samples
+        ``stored`` (n,3) fit it; None without an estimate or when they fit it worse than
+        :data:`MAX_SPREAD` (a sphere fitted to a cluster of noise, or to a mixture)."""
+        if self.estimate is None:
+            return None
+        c, R = self.estimate
+        spread = MAD_TO_SIGMA * float(np.median(np.abs(np.linalg.norm(stored - c, axis=1) / R
+                                                       - 1.0)))
+        if spread > MAX_SPREAD:
+            return None
+        return Reference(c, np.eye(3) / R, R, spread * R, drift_limit(spread * R, R),
+                         occupied.copy(), None, False)
+
+    def calibration(self, unit: str) -> Calibration | None:
+        """The estimate as a hard-iron-only :class:`Calibration` (None without one)."""
+        if self.estimate is None:
+            return None
+        c, R = self.estimate
+        return Calibration(K=R * np.eye(3), b=c, model=("hard_iron",), method="sphere_stream",
+                           unit=unit, n=self.stats.n)
