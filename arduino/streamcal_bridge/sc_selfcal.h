@@ -11,18 +11,20 @@
 //   cost = a'G a,   J'J = A'G A,   J'r = A'G a,   A = da/d(c, R) (5x4)
 //   da/dc_j = 2/R^2 e_j - 2c_j/R^2 e_4,   da/dR = (-4c/R^3, 2/R^3, 2|c|^2/R^3)
 // The start is the Kasa fit |d|^2 = 2 c.d + e: least squares of G's rows/columns 0,1,2,4
-// against column 3.
+// against column 3 (the Gauss-Newton step with a_3 held, see sc_sphere_fit).
 #ifndef SC_SELFCAL_H
 #define SC_SELFCAL_H
 
 #include "sc_protocol.h"
+
+#define SC_NOINLINE __attribute__((noinline, unused))   // one copy: flash, not speed, is short
 
 #ifndef SC_FIT_IDLE
 #define SC_FIT_IDLE()   // the sketch keeps polling its sensors between iterations
 #endif
 
 #define SC_FIT_MAX_ITER 12
-#define SC_FIT_STEP_TOL 1e-5f      // stop when the step is below this fraction of R
+#define SC_FIT_STEP_TOL 1e-5f      // stop when the step is below this fraction of |p|
 #define SC_MASK_CELLS 64           // 8 equal-area z bands x 8 sectors of 45 degrees
 #define SC_MASK_NEED 56            // cells a window must reach before a fit (7/8 of the sphere)
 #define SC_SCORE_CAP 0.0625f       // held-out loss per sample: min((|x|^2 - 1)^2, cap), cap = 0.25^2
@@ -33,7 +35,7 @@ static const uint8_t sc_pj[6] = {0, 0, 0, 1, 1, 2}, sc_pk[6] = {0, 1, 2, 1, 2, 2
 
 // G = <w w'> (5x5, row-major), w = (d, |d|^2, 1) in uT about the sums' origin; `scale` uT per
 // count per axis. Returns false if s.n < 4.
-static inline bool sc_moments(const ScSums &s, const float scale[3], float *G) {
+static SC_NOINLINE bool sc_moments(const ScSums &s, const float scale[3], float *G) {
   if (s.n < 4) return false;
   float inv = 1.0f / (float)s.n;
   memset(G, 0, 25 * sizeof(float));
@@ -81,103 +83,79 @@ static inline bool sc_solve4(float *a, float *x) {
   return true;
 }
 
-// Kasa start: centre c (relative to the origin) and R; false if undetermined.
-static inline bool sc_kasa(const float *G, float c[3], float &R) {
-  static const uint8_t f[5] = {0, 1, 2, 4, 3};
-  float a[20], x[4];
-  for (uint8_t i = 0; i < 4; ++i)
-    for (uint8_t k = 0; k < 5; ++k) a[5 * i + k] = G[5 * f[i] + f[k]];
-  if (!sc_solve4(a, x)) return false;
-  float r2 = x[3];
-  for (uint8_t j = 0; j < 3; ++j) { c[j] = 0.5f * x[j]; r2 += c[j] * c[j]; }
-  if (!(r2 > 0.0f)) return false;
-  R = sqrtf(r2);
-  return true;
-}
-
-// a(c, R) (5) and, if A is given, da/d(c, R) (5x4, row-major).
-static inline void sc_sphere_a(const float c[3], float R, float a[5], float *A) {
-  float i2 = 1.0f / (R * R), i3 = i2 / R, cc = c[0] * c[0] + c[1] * c[1] + c[2] * c[2];
-  a[3] = -i2;
-  a[4] = 1.0f - cc * i2;
-  if (A) {
-    memset(A, 0, 20 * sizeof(float));
-    A[15] = 2.0f * i3;
-    A[19] = 2.0f * cc * i3;
-  }
-  for (uint8_t j = 0; j < 3; ++j) {
-    a[j] = 2.0f * c[j] * i2;
-    if (A) { A[5 * j] = 2.0f * i2; A[16 + j] = -a[j]; A[4 * j + 3] = -4.0f * c[j] * i3; }
-  }
-}
-
-// v = G a (5); returns a'G a. `stride` steps through a (1, or 4 for a column of A).
-static inline float sc_quad(const float *G, const float *a, uint8_t stride, float v[5]) {
+// v = G a (5); returns a'G a, the mean squared residual.
+static SC_NOINLINE float sc_quad(const float *G, const float a[5], float v[5]) {
   float q = 0.0f;
   SC_FIT_IDLE();
   for (uint8_t i = 0; i < 5; ++i) {
     v[i] = 0.0f;
-    for (uint8_t k = 0; k < 5; ++k) v[i] += G[5 * i + k] * a[stride * k];
-    q += a[stride * i] * v[i];
+    for (uint8_t k = 0; k < 5; ++k) v[i] += G[5 * i + k] * a[k];
+    q += a[i] * v[i];
   }
   return q;
+}
+
+// a_4 on the sphere manifold: 1 - |c|^2/R^2 = 1 + (a_0^2 + a_1^2 + a_2^2) / (4 a_3).
+static SC_NOINLINE float sc_a4(const float a[5]) {
+  return 1.0f + (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) / (4.0f * a[3]);
+}
+
+// One Gauss-Newton step on a'G a over the entries f[0..3] of a, the fifth entry d depending on
+// them with da_d/da_f = q: H = G_ff + q G_df + G_fd q' + q q' G_dd, J'r = (G a)_f + q (G a)_d.
+// Returns |step|^2 / |a_f|^2 after the step, or -1 if the system is singular.
+static SC_NOINLINE float sc_gn_step(const float *G, float a[5], const uint8_t f[4], uint8_t d,
+                                                  const float q[4]) {
+  float H[20], v[5], step[4], n2 = 0.0f, p2 = 0.0f;
+  sc_quad(G, a, v);
+  for (uint8_t k = 0; k < 4; ++k) {
+    float b = G[5 * d + f[k]] + G[6 * d] * q[k];
+    for (uint8_t i = 0; i < 4; ++i) H[5 * i + k] = G[5 * f[i] + f[k]] + G[5 * f[i] + d] * q[k] + q[i] * b;
+    H[5 * k + 4] = -(v[f[k]] + q[k] * v[d]);
+  }
+  if (!sc_solve4(H, step)) return -1.0f;
+  for (uint8_t k = 0; k < 4; ++k) { a[f[k]] += step[k]; n2 += step[k] * step[k]; p2 += a[f[k]] * a[f[k]]; }
+  return n2 / p2;
 }
 
 // The fit's result: centre b (uT, sensor frame), radius R (uT), mean squared residual, iterations.
 struct ScSphereFit { float b[3], R, cost; uint8_t iters; };
 
-// Gauss-Newton sphere fit from the sums, as SphereStats.fit() in sphere_stream.py (same start,
-// same step halving); false if the samples do not determine a sphere.
-static inline bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out) {
-  float G[25], c[3], R, a[5], v[5], A[20];
-  if (!sc_moments(s, scale, G) || !sc_kasa(G, c, R)) return false;
-  sc_sphere_a(c, R, a, 0);
-  float cost = sc_quad(G, a, 1, v);
+// Gauss-Newton sphere fit from the sums: the minimum of SphereStats.fit() in sphere_stream.py
+// (same residual, same Kasa start). The Kasa fit is the one (linear) step with a_3 = -1 held,
+// scaled to a_3 = -1/R^2; the sphere fit then steps in p = (a_0, a_1, a_2, a_3) with a_4 =
+// sc_a4(p), q = (a_j / (2 a_3), -(a_4 - 1) / a_3). From the Kasa start the full steps converge
+// (no step halving). False if the samples do not determine a sphere.
+static SC_NOINLINE bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out) {
+  static const uint8_t kasa_f[4] = {0, 1, 2, 4}, sphere_f[4] = {0, 1, 2, 3};
+  float G[25], a[5] = {0.0f, 0.0f, 0.0f, -1.0f, 0.0f}, q[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+  if (!sc_moments(s, scale, G) || sc_gn_step(G, a, kasa_f, 3, q) < 0.0f) return false;
+  float r2 = a[4] - sc_a4(a) + 1.0f;           // x_3 + |c|^2, c = a_j / 2
+  if (!(r2 > 0.0f)) return false;
+  for (uint8_t j = 0; j < 4; ++j) a[j] /= r2;
   uint8_t it = 0;
-  for (; it < SC_FIT_MAX_ITER; ++it) {
-    float H[20], step[4], GA[5];
-    sc_sphere_a(c, R, a, A);
-    sc_quad(G, a, 1, v);
-    for (uint8_t i = 0; i < 4; ++i) {           // H = A'G A | -A'G a
-      sc_quad(G, A + i, 4, GA);
-      float g = 0.0f;
-      for (uint8_t k = 0; k < 4; ++k) {
-        float h = 0.0f;
-        for (uint8_t l = 0; l < 5; ++l) h += A[4 * l + k] * GA[l];
-        H[5 * k + i] = h;
-      }
-      for (uint8_t l = 0; l < 5; ++l) g -= A[4 * l + i] * v[l];
-      H[5 * i + 4] = g;
-    }
-    if (!sc_solve4(H, step)) return false;
-    float norm2 = 0.0f;
-    for (uint8_t k = 0; k < 4; ++k) norm2 += step[k] * step[k];
-    float tol2 = SC_FIT_STEP_TOL * SC_FIT_STEP_TOL * R * R;
-    while (norm2 > tol2) {                       // step halving keeps the cost decreasing
-      float tc[3], tR = R + step[3], tcost = INFINITY;
-      for (uint8_t j = 0; j < 3; ++j) tc[j] = c[j] + step[j];
-      if (tR > 0.0f) { sc_sphere_a(tc, tR, a, 0); tcost = sc_quad(G, a, 1, v); }
-      if (tcost <= cost) {
-        memcpy(c, tc, sizeof tc);
-        R = tR;
-        cost = tcost;
-        break;
-      }
-      for (uint8_t k = 0; k < 4; ++k) step[k] *= 0.5f;
-      norm2 *= 0.25f;
-    }
-    if (norm2 <= tol2) break;
+  while (it < SC_FIT_MAX_ITER) {
+    a[4] = sc_a4(a);
+    for (uint8_t j = 0; j < 3; ++j) q[j] = a[j] / (2.0f * a[3]);
+    q[3] = (1.0f - a[4]) / a[3];
+    float rel = sc_gn_step(G, a, sphere_f, 4, q);
+    if (rel < 0.0f) return false;
+    ++it;
+    if (rel <= SC_FIT_STEP_TOL * SC_FIT_STEP_TOL) break;
   }
-  for (uint8_t j = 0; j < 3; ++j) out.b[j] = c[j] + (float)s.center[j] * scale[j];
+  if (!(a[3] < 0.0f)) return false;
+  a[4] = sc_a4(a);
+  float v[5];
+  out.cost = sc_quad(G, a, v);
+  float R = 1.0f / sqrtf(-a[3]);
+  for (uint8_t j = 0; j < 3; ++j) out.b[j] = a[j] * 0.5f * R * R + (float)s.center[j] * scale[j];
   out.R = R;
-  out.cost = cost;
   out.iters = it;
-  return isfinite(R) && R > 0.0f;
+  return isfinite(R);
 }
 
 // Coverage cell (0..63) of the direction u = m - centre (uT): equal-area band of u_z/|u| (8 bands
 // of 1/4 in z, Archimedes) times the 45-degree sector of (u_x, u_y).
-static inline uint8_t sc_cell(const float u[3]) {
+static SC_NOINLINE uint8_t sc_cell(const float u[3]) {
   float r = sqrtf(u[0] * u[0] + u[1] * u[1] + u[2] * u[2]);
   int8_t band = (int8_t)((u[2] / r + 1.0f) * 4.0f);
   if (band < 0 || r == 0.0f) band = 0;
@@ -187,7 +165,7 @@ static inline uint8_t sc_cell(const float u[3]) {
   return (uint8_t)(band * 8 + sec);
 }
 
-static inline uint8_t sc_mask_count(const uint8_t mask[8]) {
+static SC_NOINLINE uint8_t sc_mask_count(const uint8_t mask[8]) {
   uint8_t n = 0;
   for (uint8_t i = 0; i < 8; ++i)
     for (uint8_t v = mask[i]; v; v &= (uint8_t)(v - 1)) ++n;
@@ -195,7 +173,7 @@ static inline uint8_t sc_mask_count(const uint8_t mask[8]) {
 }
 
 // Held-out loss of one sample m (uT) under a calibration: min((|K^-1 (m - b)|^2 - 1)^2, cap).
-static inline float sc_score(const ScCal &c, const float m[3]) {
+static SC_NOINLINE float sc_score(const ScCal &c, const float m[3]) {
   float x[3];
   sc_cal_apply(c, m, x);
   float e = x[0] * x[0] + x[1] * x[1] + x[2] * x[2] - 1.0f;
@@ -204,7 +182,7 @@ static inline float sc_score(const ScCal &c, const float m[3]) {
 }
 
 // A sphere as a calibration block: K = R I, b = centre (uT), CRC filled in.
-static inline void sc_cal_from_sphere(ScCal &c, uint16_t cal_id, const float b[3], float R) {
+static SC_NOINLINE void sc_cal_from_sphere(ScCal &c, uint16_t cal_id, const float b[3], float R) {
   c.cal_id = cal_id;
   for (uint8_t i = 0; i < 6; ++i) c.k[i] = (i == 0 || i == 3 || i == 5) ? R : 0.0f;
   for (uint8_t i = 0; i < 3; ++i) c.b[i] = b[i];

@@ -16,9 +16,9 @@
 // calibration to start from while the EEPROM holds none.
 // Register facts: HARDWARE.md sections 2-4 (MPU-9250 register map, AK8963 datasheet).
 #include <EEPROM.h>
-#include <Wire.h>
 
 #include "sc_protocol.h"
+#include "sc_twi.h"
 
 #if defined(__has_include)
 #if __has_include("sc_initial_cal.h")
@@ -103,19 +103,11 @@ static bool g_have_held;
 
 // ---- I2C ----
 static bool write_reg(uint8_t addr, uint8_t reg, uint8_t value) {
-  Wire.beginTransmission(addr);
-  Wire.write(reg);
-  Wire.write(value);
-  return Wire.endTransmission() == 0;
+  return sc_twi_write(addr, reg, &value, 1, false);
 }
 
 static bool read_regs(uint8_t addr, uint8_t reg, uint8_t *out, uint8_t n) {
-  Wire.beginTransmission(addr);
-  Wire.write(reg);
-  if (Wire.endTransmission(false) != 0) return false;
-  if (Wire.requestFrom(addr, n) != n) return false;
-  for (uint8_t i = 0; i < n; ++i) out[i] = Wire.read();
-  return true;
+  return sc_twi_read(addr, reg, out, n);
 }
 
 static uint8_t read_reg(uint8_t addr, uint8_t reg) {
@@ -394,7 +386,7 @@ static ScCal g_cand;             // candidate sphere: K = R I, b (uT); k[0] = 0:
 static float g_cand_cost, g_loss_new, g_loss_old;
 static uint32_t g_cand_n, g_check_n, g_fit_us, g_proc_us, g_proc_n;
 
-static void announce(uint8_t event, uint8_t reason, uint8_t cells) {
+static __attribute__((noinline)) void announce(uint8_t event, uint8_t reason, uint8_t cells) {
   ScWriter w = sc_begin(g_tx, SC_SELF_CAL, g_seq);
   sc_put_u8(w, event); sc_put_u8(w, reason); sc_put_u8(w, g_cal_valid ? g_origin : SC_ORIGIN_NONE);
   sc_put_u16(w, g_cal_valid ? g_cal.cal_id : 0); sc_put_u8(w, cells);
@@ -409,7 +401,7 @@ static void announce(uint8_t event, uint8_t reason, uint8_t cells) {
 }
 
 // A window has reached its coverage: judge the pending candidate on it, fit the next one to it.
-static void window_end() {
+static __attribute__((noinline)) void window_end() {
   uint8_t cells = sc_mask_count(g_mask);
   if (g_cand.k[0] > 0.0f) {
     uint8_t event = SC_SE_REJECTED, reason = SC_SR_NOT_BETTER;
@@ -449,20 +441,17 @@ static void window_end() {
 
 // Per magnetometer sample m (uT), after it was summed: coverage cell and held-out scores.
 // Returns true when the window is complete.
-static bool selfcal_sample(const float m[3]) {
-  if (g_cand.k[0] == 0.0f && (g_sums.n & 31) == 0) {
-    // No fitted centre yet: count cells about the Kasa centre of the window so far, and start
+static __attribute__((noinline)) bool selfcal_sample(const float m[3]) {
+  if (g_cand.k[0] == 0.0f && (g_sums.n & 63) == 0) {
+    // No candidate yet: count cells about the centre fitted to the window so far, and start
     // again when that centre moves by more than an eighth of the radius.
-    float G[25], c[3], R;
-    if (sc_moments(g_sums, g_mag_scale, G) && sc_kasa(G, c, R)) {
+    ScSphereFit f;
+    if (sc_sphere_fit(g_sums, g_mag_scale, f)) {
       float d2 = 0.0f;
-      for (uint8_t j = 0; j < 3; ++j) {
-        c[j] += g_sums.center[j] * g_mag_scale[j];
-        d2 += (c[j] - g_mask_c[j]) * (c[j] - g_mask_c[j]);
-      }
-      if (64.0f * d2 > R * R) memset(g_mask, 0, sizeof g_mask);
-      memcpy(g_mask_c, c, sizeof c);
-      g_mask_r = R;
+      for (uint8_t j = 0; j < 3; ++j) d2 += (f.b[j] - g_mask_c[j]) * (f.b[j] - g_mask_c[j]);
+      if (64.0f * d2 > f.R * f.R) memset(g_mask, 0, sizeof g_mask);
+      memcpy(g_mask_c, f.b, sizeof f.b);
+      g_mask_r = f.R;
     }
   }
   if (g_mask_r == 0.0f) return false;
@@ -517,8 +506,7 @@ static void emit_sample(const ScSample &s) {
 
 void setup() {
   Serial.begin(BAUD);
-  Wire.begin();
-  Wire.setClock(400000);
+  sc_twi_begin();
   sc_decoder_init(g_rx, g_rx_buf, sizeof g_rx_buf);
   sc_sums_reset(g_sums);
   sensor_setup();
