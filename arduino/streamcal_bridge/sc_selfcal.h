@@ -58,17 +58,37 @@ static SC_NOINLINE bool sc_moments(const ScSums &s, const float scale[3], float 
   return true;
 }
 
-// Solve the 4x4 system in a (4 rows of 5, the last column the right-hand side) in place by
-// Gaussian elimination with partial pivoting; false if a pivot is below 1e-6 of the largest
-// diagonal entry (the samples do not fix the fit).
-static inline bool sc_solve4(float *a, float *x) {
-  float big = 0.0f;
-  for (uint8_t i = 0; i < 4; ++i) if (fabsf(a[6 * i]) > big) big = fabsf(a[6 * i]);
+// Z[i zs + j] = sum_k X[i xr + k xc] Y[k yr + j yc], i < n, j < m, k < p (strides in floats; a
+// stride 0 repeats a vector). Every product the fit needs is this one routine: less flash than
+// each written out.
+static SC_NOINLINE void sc_mm(const float *X, uint8_t xr, uint8_t xc, const float *Y, uint8_t yr, uint8_t yc,
+                              float *Z, uint8_t zs, uint8_t n, uint8_t m, uint8_t p) {
+  SC_FIT_IDLE();
+  for (uint8_t i = 0; i < n; ++i)
+    for (uint8_t j = 0; j < m; ++j) {
+      float t = 0.0f;
+      for (uint8_t k = 0; k < p; ++k) t += X[i * xr + k * xc] * Y[k * yr + j * yc];
+      Z[i * zs + j] = t;
+    }
+}
+
+// a'G a (the mean squared residual of a); v = G a.
+static SC_NOINLINE float sc_quad(const float *G, const float a[5], float v[5]) {
+  float q;
+  sc_mm(G, 5, 1, a, 1, 0, v, 1, 5, 1, 5);
+  sc_mm(a, 0, 1, v, 1, 0, &q, 1, 1, 1, 5);
+  return q;
+}
+
+// Solve H x = h, H symmetric positive definite 4x4 (4 rows of 5 in a, h the last column), in place
+// by elimination without pivoting (stable for such H); false if a pivot falls to 1e-6 of its
+// diagonal entry before elimination or below (the samples do not fix the fit).
+static SC_NOINLINE bool sc_solve4(float *a, float *x) {
+  float d[4];
+  for (uint8_t i = 0; i < 4; ++i) d[i] = a[6 * i];
   for (uint8_t c = 0; c < 4; ++c) {
-    float *pc = a + 6 * c, *best = pc;
-    for (float *pr = pc + 5; pr < a + 20; pr += 5) if (fabsf(*pr) > fabsf(*best)) best = pr;
-    if (!(fabsf(*best) > 1e-6f * big)) return false;
-    for (uint8_t k = 0; k < 5 - c; ++k) { float t = pc[k]; pc[k] = best[k]; best[k] = t; }
+    float *pc = a + 6 * c;
+    if (!(*pc > 1e-6f * d[c])) return false;
     for (float *pr = pc + 5; pr < a + 20; pr += 5) {
       float f = *pr / *pc;
       for (uint8_t k = 0; k < 5 - c; ++k) pr[k] -= f * pc[k];
@@ -83,37 +103,23 @@ static inline bool sc_solve4(float *a, float *x) {
   return true;
 }
 
-// v = G a (5); returns a'G a, the mean squared residual.
-static SC_NOINLINE float sc_quad(const float *G, const float a[5], float v[5]) {
-  float q = 0.0f;
-  SC_FIT_IDLE();
-  for (uint8_t i = 0; i < 5; ++i) {
-    v[i] = 0.0f;
-    for (uint8_t k = 0; k < 5; ++k) v[i] += G[5 * i + k] * a[k];
-    q += a[i] * v[i];
-  }
-  return q;
-}
-
 // a_4 on the sphere manifold: 1 - |c|^2/R^2 = 1 + (a_0^2 + a_1^2 + a_2^2) / (4 a_3).
 static SC_NOINLINE float sc_a4(const float a[5]) {
   return 1.0f + (a[0] * a[0] + a[1] * a[1] + a[2] * a[2]) / (4.0f * a[3]);
 }
 
-// One Gauss-Newton step on a'G a over the entries f[0..3] of a, the fifth entry d depending on
-// them with da_d/da_f = q: H = G_ff + q G_df + G_fd q' + q q' G_dd, J'r = (G a)_f + q (G a)_d.
-// Returns |step|^2 / |a_f|^2 after the step, or -1 if the system is singular.
-static SC_NOINLINE float sc_gn_step(const float *G, float a[5], const uint8_t f[4], uint8_t d,
-                                                  const float q[4]) {
-  float H[20], v[5], step[4], n2 = 0.0f, p2 = 0.0f;
-  sc_quad(G, a, v);
-  for (uint8_t k = 0; k < 4; ++k) {
-    float b = G[5 * d + f[k]] + G[6 * d] * q[k];
-    for (uint8_t i = 0; i < 4; ++i) H[5 * i + k] = G[5 * f[i] + f[k]] + G[5 * f[i] + d] * q[k] + q[i] * b;
-    H[5 * k + 4] = -(v[f[k]] + q[k] * v[d]);
-  }
+// One Gauss-Newton step on a'G a for a = a(p), da/dp = A (5x4, row-major), linearised in a:
+// H = A'G A, h = A'G a, a -= A H^-1 h. Returns |step|^2 / |a_0..3|^2, or -1 if H is singular.
+static SC_NOINLINE float sc_gn_step(const float *G, float a[5], const float *A) {
+  float B[20], H[20], v[5], step[4], n2 = 0.0f, p2 = 0.0f;
+  sc_mm(G, 5, 1, A, 4, 1, B, 4, 5, 4, 5);        // B = G A
+  sc_mm(A, 1, 4, B, 4, 1, H, 5, 4, 4, 5);        // H = A'B
+  sc_mm(G, 5, 1, a, 1, 0, v, 1, 5, 1, 5);        // v = G a
+  sc_mm(A, 1, 4, v, 1, 0, H + 4, 5, 4, 1, 5);    // h = A'v
   if (!sc_solve4(H, step)) return -1.0f;
-  for (uint8_t k = 0; k < 4; ++k) { a[f[k]] += step[k]; n2 += step[k] * step[k]; p2 += a[f[k]] * a[f[k]]; }
+  sc_mm(A, 4, 1, step, 1, 0, v, 1, 5, 1, 4);     // v = A step
+  for (uint8_t l = 0; l < 5; ++l) a[l] -= v[l];
+  for (uint8_t k = 0; k < 4; ++k) { n2 += step[k] * step[k]; p2 += a[k] * a[k]; }
   return n2 / p2;
 }
 
@@ -121,36 +127,41 @@ static SC_NOINLINE float sc_gn_step(const float *G, float a[5], const uint8_t f[
 struct ScSphereFit { float b[3], R, cost; uint8_t iters; };
 
 // Gauss-Newton sphere fit from the sums: the minimum of SphereStats.fit() in sphere_stream.py
-// (same residual, same Kasa start). The Kasa fit is the one (linear) step with a_3 = -1 held,
-// scaled to a_3 = -1/R^2; the sphere fit then steps in p = (a_0, a_1, a_2, a_3) with a_4 =
-// sc_a4(p), q = (a_j / (2 a_3), -(a_4 - 1) / a_3). From the Kasa start the full steps converge
-// (no step halving). False if the samples do not determine a sphere.
+// (same residual, same Kasa start). The Kasa fit is one (linear) step over a_0, a_1, a_2, a_4 with
+// a_3 = -1 held, scaled to a_3 = -1/R^2; the sphere fit then steps in p = (a_0, a_1, a_2, a_3)
+// with a_4 = sc_a4(p): A = [I; q'], q = (a_j / (2 a_3), -(a_4 - 1) / a_3). From the Kasa start
+// the full steps converge (no step halving). False if the samples do not determine a sphere.
 static SC_NOINLINE bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out) {
-  static const uint8_t kasa_f[4] = {0, 1, 2, 4}, sphere_f[4] = {0, 1, 2, 3};
-  float G[25], a[5] = {0.0f, 0.0f, 0.0f, -1.0f, 0.0f}, q[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-  if (!sc_moments(s, scale, G) || sc_gn_step(G, a, kasa_f, 3, q) < 0.0f) return false;
+  // static, not on the stack: an AVR frame over 63 bytes costs 8 bytes of code per access
+  static float G[25], A[20], v[5], a[5];
+  if (!sc_moments(s, scale, G)) return false;
+  memset(A, 0, sizeof A);
+  memset(a, 0, sizeof a);
+  a[3] = -1.0f;
+  A[0] = A[5] = A[10] = A[19] = 1.0f;
+  if (sc_gn_step(G, a, A) < 0.0f) return false;
   float r2 = a[4] - sc_a4(a) + 1.0f;           // x_3 + |c|^2, c = a_j / 2
   if (!(r2 > 0.0f)) return false;
   for (uint8_t j = 0; j < 4; ++j) a[j] /= r2;
   uint8_t it = 0;
   while (it < SC_FIT_MAX_ITER) {
     a[4] = sc_a4(a);
-    for (uint8_t j = 0; j < 3; ++j) q[j] = a[j] / (2.0f * a[3]);
-    q[3] = (1.0f - a[4]) / a[3];
-    float rel = sc_gn_step(G, a, sphere_f, 4, q);
+    A[15] = 1.0f;
+    for (uint8_t j = 0; j < 3; ++j) A[16 + j] = a[j] / (2.0f * a[3]);
+    A[19] = (1.0f - a[4]) / a[3];
+    float rel = sc_gn_step(G, a, A);
     if (rel < 0.0f) return false;
     ++it;
     if (rel <= SC_FIT_STEP_TOL * SC_FIT_STEP_TOL) break;
   }
   if (!(a[3] < 0.0f)) return false;
   a[4] = sc_a4(a);
-  float v[5];
   out.cost = sc_quad(G, a, v);
-  float R = 1.0f / sqrtf(-a[3]);
-  for (uint8_t j = 0; j < 3; ++j) out.b[j] = a[j] * 0.5f * R * R + (float)s.center[j] * scale[j];
-  out.R = R;
+  float R2 = -1.0f / a[3];
+  for (uint8_t j = 0; j < 3; ++j) out.b[j] = 0.5f * a[j] * R2 + (float)s.center[j] * scale[j];
+  out.R = sqrtf(R2);
   out.iters = it;
-  return isfinite(R);
+  return isfinite(out.R);
 }
 
 // Coverage cell (0..63) of the direction u = m - centre (uT): equal-area band of u_z/|u| (8 bands
