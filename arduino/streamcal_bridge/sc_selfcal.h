@@ -31,7 +31,24 @@
 #define SC_ACCEPT_LOSS 0.02f       // mean held-out loss a fit needs when no calibration is in force
                                    // (|x|^2 within ~14 %, |x| within ~7 % rms; garbage scores ~cap)
 
-static const uint8_t sc_pj[6] = {0, 0, 0, 1, 1, 2}, sc_pk[6] = {0, 1, 2, 1, 2, 2};
+#ifdef __AVR__
+#include <avr/pgmspace.h>
+#else
+#define PROGMEM
+#define pgm_read_byte(p) (*(const uint8_t *)(p))
+#endif
+
+// For each of the 24 sums s1[3], s2[6], s3[9], s4[6] (their order in ScSums): the entry of G it
+// adds to (bit 7: twice), the powers of scale_0 (low nibble) and scale_1 (high nibble), the power
+// of scale_2. s1[j] -> G[j][4]; s2 (j, k) -> G[j][k]; s3[3k + j] = sum d_k^2 d_j -> G[j][3];
+// s4 (j, k) = sum d_j^2 d_k^2 -> G[3][3], twice if j != k.
+static const uint8_t sc_moment_map[72] PROGMEM = {
+    0x04, 0x01, 0x00, 0x09, 0x10, 0x00, 0x0E, 0x00, 0x01, 0x00, 0x02, 0x00,
+    0x01, 0x11, 0x00, 0x02, 0x01, 0x01, 0x06, 0x20, 0x00, 0x07, 0x10, 0x01,
+    0x0C, 0x00, 0x02, 0x03, 0x03, 0x00, 0x08, 0x12, 0x00, 0x0D, 0x02, 0x01,
+    0x03, 0x21, 0x00, 0x08, 0x30, 0x00, 0x0D, 0x20, 0x01, 0x03, 0x01, 0x02,
+    0x08, 0x10, 0x02, 0x0D, 0x00, 0x03, 0x12, 0x04, 0x00, 0x92, 0x22, 0x00,
+    0x92, 0x02, 0x02, 0x12, 0x40, 0x00, 0x92, 0x20, 0x02, 0x12, 0x00, 0x04};
 
 // G = <w w'> (5x5, row-major), w = (d, |d|^2, 1) in uT about the sums' origin; `scale` uT per
 // count per axis. Returns false if s.n < 4.
@@ -39,19 +56,18 @@ static SC_NOINLINE bool sc_moments(const ScSums &s, const float scale[3], float 
   if (s.n < 4) return false;
   float inv = 1.0f / (float)s.n;
   memset(G, 0, 25 * sizeof(float));
-  for (uint8_t q = 0; q < 6; ++q) {
-    uint8_t j = sc_pj[q], k = sc_pk[q];
-    float sjk = scale[j] * scale[k] * inv;
-    G[5 * j + k] = (float)s.s2[q] * sjk;
-    G[18] += (j == k ? 1.0f : 2.0f) * (float)s.s4[q] * sjk * scale[j] * scale[k];
+  const int64_t *sum = s.s1;                   // s1, s2, s3, s4 lie one after another
+  const uint8_t *e = sc_moment_map;
+  for (uint8_t i = 0; i < 24; ++i, e += 3) {
+    uint8_t g = pgm_read_byte(e), p01 = pgm_read_byte(e + 1);
+    uint8_t pw[3] = {(uint8_t)(p01 & 15), (uint8_t)(p01 >> 4), pgm_read_byte(e + 2)};
+    float f = (float)sum[i] * inv;
+    if (g & 0x80) f += f;
+    for (uint8_t j = 0; j < 3; ++j)
+      for (uint8_t k = pw[j]; k; --k) f *= scale[j];
+    G[g & 31] += f;
   }
-  for (uint8_t j = 0; j < 3; ++j) {
-    G[5 * j + 4] = (float)s.s1[j] * scale[j] * inv;
-    G[19] += G[6 * j];
-    float t = 0.0f;
-    for (uint8_t k = 0; k < 3; ++k) t += (float)s.s3[3 * k + j] * scale[k] * scale[k];
-    G[5 * j + 3] = t * scale[j] * inv;
-  }
+  G[19] = G[0] + G[6] + G[12];                 // <|d|^2>
   G[24] = 1.0f;
   for (uint8_t i = 1; i < 5; ++i)
     for (uint8_t k = 0; k < i; ++k) G[5 * i + k] = G[5 * k + i];
@@ -130,8 +146,10 @@ struct ScSphereFit { float b[3], R, cost; uint8_t iters; };
 // (same residual, same Kasa start). The Kasa fit is one (linear) step over a_0, a_1, a_2, a_4 with
 // a_3 = -1 held, scaled to a_3 = -1/R^2; the sphere fit then steps in p = (a_0, a_1, a_2, a_3)
 // with a_4 = sc_a4(p): A = [I; q'], q = (a_j / (2 a_3), -(a_4 - 1) / a_3). From the Kasa start
-// the full steps converge (no step halving). False if the samples do not determine a sphere.
-static SC_NOINLINE bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out) {
+// the full steps converge (no step halving). max_iter 0: the Kasa fit alone. False if the samples
+// do not determine a sphere.
+static SC_NOINLINE bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out,
+                                      uint8_t max_iter = SC_FIT_MAX_ITER) {
   // static, not on the stack: an AVR frame over 63 bytes costs 8 bytes of code per access
   static float G[25], A[20], v[5], a[5];
   if (!sc_moments(s, scale, G)) return false;
@@ -144,7 +162,7 @@ static SC_NOINLINE bool sc_sphere_fit(const ScSums &s, const float scale[3], ScS
   if (!(r2 > 0.0f)) return false;
   for (uint8_t j = 0; j < 4; ++j) a[j] /= r2;
   uint8_t it = 0;
-  while (it < SC_FIT_MAX_ITER) {
+  while (it < max_iter) {
     a[4] = sc_a4(a);
     A[15] = 1.0f;
     for (uint8_t j = 0; j < 3; ++j) A[16 + j] = a[j] / (2.0f * a[3]);

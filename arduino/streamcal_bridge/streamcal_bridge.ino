@@ -19,6 +19,7 @@
 
 #include "sc_protocol.h"
 #include "sc_twi.h"
+#include "sc_uart.h"
 
 #if defined(__has_include)
 #if __has_include("sc_initial_cal.h")
@@ -157,17 +158,14 @@ static void poll_while_busy();
 #include "sc_selfcal.h"
 #endif
 
-// Write a frame; while Serial's 64-byte transmit buffer is full, keep polling the sensors (a
+// Write a frame; while the 64-byte transmit ring is full, keep polling the sensors (a
 // 215-byte SPHERE_SUMS frame holds the line for ~19 ms, long enough for the AK8963 to overwrite
 // an unread sample).
 static void send(ScWriter w) {
   uint8_t n = (uint8_t)sc_finish(g_tx, w);
   for (uint8_t i = 0; i < n;) {
-    int room = Serial.availableForWrite();
-    if (room <= 0) { poll_while_busy(); continue; }
-    uint8_t k = (uint8_t)min(room, n - i);
-    Serial.write(g_tx + i, k);
-    i += k;
+    if (sc_uart_room() == 0) { poll_while_busy(); continue; }
+    sc_uart_put(g_tx[i++]);
   }
   ++g_seq;
 }
@@ -443,10 +441,11 @@ static __attribute__((noinline)) void window_end() {
 // Returns true when the window is complete.
 static __attribute__((noinline)) bool selfcal_sample(const float m[3]) {
   if (g_cand.k[0] == 0.0f && (g_sums.n & 63) == 0) {
-    // No candidate yet: count cells about the centre fitted to the window so far, and start
+    // No candidate yet: count cells about the Kasa centre of the window so far (the Gauss-Newton
+    // iterations here would hold the loop long enough to cost ~4 % of the 5 ms polls), and start
     // again when that centre moves by more than an eighth of the radius.
     ScSphereFit f;
-    if (sc_sphere_fit(g_sums, g_mag_scale, f)) {
+    if (sc_sphere_fit(g_sums, g_mag_scale, f, 0)) {
       float d2 = 0.0f;
       for (uint8_t j = 0; j < 3; ++j) d2 += (f.b[j] - g_mask_c[j]) * (f.b[j] - g_mask_c[j]);
       if (64.0f * d2 > f.R * f.R) memset(g_mask, 0, sizeof g_mask);
@@ -505,7 +504,7 @@ static void emit_sample(const ScSample &s) {
 }
 
 void setup() {
-  Serial.begin(BAUD);
+  sc_uart_begin(BAUD);
   sc_twi_begin();
   sc_decoder_init(g_rx, g_rx_buf, sizeof g_rx_buf);
   sc_sums_reset(g_sums);
@@ -518,8 +517,8 @@ void setup() {
 }
 
 void loop() {
-  while (Serial.available() > 0) {
-    int16_t n = sc_decoder_feed(g_rx, (uint8_t)Serial.read());
+  for (int16_t c; (c = sc_uart_get()) >= 0;) {
+    int16_t n = sc_decoder_feed(g_rx, (uint8_t)c);
     if (n > 0) handle_frame(n);
   }
   if (!g_streaming) return;
