@@ -150,11 +150,16 @@ struct ScSphereFit { float b[3], R, cost; uint8_t iters; };
 // do not determine a sphere.
 static SC_NOINLINE bool sc_sphere_fit(const ScSums &s, const float scale[3], ScSphereFit &out,
                                       uint8_t max_iter = SC_FIT_MAX_ITER) {
-  // static, not on the stack: an AVR frame over 63 bytes costs 8 bytes of code per access
-  static float G[25], A[20], v[5], a[5];
+  // Static, not on the stack (an AVR frame over 63 bytes costs 8 bytes of code per access), and
+  // reached through a pointer the compiler cannot see through (2-byte indexed loads, not 4-byte
+  // absolute ones).
+  static float work[55];
+  float *G = work;
+  __asm__("" : "+r"(G));
+  float *A = G + 25, *v = G + 45, *a = G + 50;
   if (!sc_moments(s, scale, G)) return false;
-  memset(A, 0, sizeof A);
-  memset(a, 0, sizeof a);
+  memset(A, 0, 20 * sizeof(float));
+  memset(a, 0, 5 * sizeof(float));
   a[3] = -1.0f;
   A[0] = A[5] = A[10] = A[19] = 1.0f;
   if (sc_gn_step(G, a, A) < 0.0f) return false;
@@ -212,9 +217,10 @@ static SC_NOINLINE float sc_score(const ScCal &c, const float m[3]) {
 
 // A sphere as a calibration block: K = R I, b = centre (uT), CRC filled in.
 static SC_NOINLINE void sc_cal_from_sphere(ScCal &c, uint16_t cal_id, const float b[3], float R) {
+  memset(c.k, 0, sizeof c.k);
   c.cal_id = cal_id;
-  for (uint8_t i = 0; i < 6; ++i) c.k[i] = (i == 0 || i == 3 || i == 5) ? R : 0.0f;
-  for (uint8_t i = 0; i < 3; ++i) c.b[i] = b[i];
+  c.k[0] = c.k[3] = c.k[5] = R;
+  memcpy(c.b, b, sizeof c.b);
   c.crc = sc_cal_crc(c);
 }
 

@@ -170,6 +170,19 @@ static void send(ScWriter w) {
   ++g_seq;
 }
 
+// The AVR is little-endian and lays these structs out without padding (the static_asserts), so
+// each is its frame body byte for byte, as sc_put_* would write it (those are checked against the
+// Python encoder by arduino/test_vectors; these frames end to end by tests/test_simavr.py).
+static_assert(sizeof(ScHello) == SC_SIZE_HELLO && sizeof(ScSample) == SC_SIZE_SAMPLE &&
+              sizeof(ScCalSample) == SC_SIZE_CAL_SAMPLE && sizeof(ScSums) == SC_SIZE_SPHERE_SUMS &&
+              sizeof(ScSelfCal) == SC_SIZE_SELF_CAL, "a message struct is not its packed frame body");
+static __attribute__((noinline)) void send_body(uint8_t type, const void *body, uint8_t n) {
+  ScWriter w = sc_begin(g_tx, type, g_seq);
+  memcpy(w.p, body, n);
+  w.p += n;
+  send(w);
+}
+
 static void send_hello() {
   ScHello h;
   h.fw_major = FW_MAJOR; h.fw_minor = FW_MINOR; h.whoami = g_whoami; h.ak_wia = g_ak_wia;
@@ -182,9 +195,7 @@ static void send_hello() {
   h.accel_scale = ACCEL_SCALE; h.gyro_scale = GYRO_SCALE;
   h.temp_scale = TEMP_SCALE; h.temp_offset = TEMP_OFFSET;
   for (uint8_t i = 0; i < 3; ++i) h.mag_scale[i] = g_mag_scale[i];
-  ScWriter w = sc_begin(g_tx, SC_HELLO, g_seq);
-  sc_put_hello(w, h);
-  send(w);
+  send_body(SC_HELLO, &h, SC_SIZE_HELLO);
 }
 
 static void send_ack(uint8_t type, uint16_t seq, uint8_t reason) {
@@ -203,9 +214,7 @@ static void send_cal_report() {
 }
 
 static void send_sums() {
-  ScWriter w = sc_begin(g_tx, SC_SPHERE_SUMS, g_seq);
-  sc_put_sums(w, g_sums);
-  send(w);
+  send_body(SC_SPHERE_SUMS, &g_sums, SC_SIZE_SPHERE_SUMS);
 }
 
 // ---- calibration in EEPROM ----
@@ -380,32 +389,33 @@ static void poll_while_busy() {
 // ---- self-calibration ----
 static uint8_t g_mask[8];        // coverage cells of the current window
 static float g_mask_c[3], g_mask_r;  // centre and radius (uT) the cells are counted about; r 0: none
-static ScCal g_cand;             // candidate sphere: K = R I, b (uT); k[0] = 0: none
-static float g_cand_cost, g_loss_new, g_loss_old;
-static uint32_t g_cand_n, g_check_n, g_fit_us, g_proc_us, g_proc_n;
+// The SELF_CAL frame body, kept up to date: n_fit, fit_cost, fit_cycles and cand (the candidate
+// sphere, K = R I, b in uT; k 0: none) between windows, n_check while one is scored.
+static ScSelfCal g_sc;
+static bool g_have_cand;
+static float g_loss_new, g_loss_old;
+static uint32_t g_proc_us, g_proc_n;
 
 static __attribute__((noinline)) void announce(uint8_t event, uint8_t reason, uint8_t cells) {
-  ScWriter w = sc_begin(g_tx, SC_SELF_CAL, g_seq);
-  sc_put_u8(w, event); sc_put_u8(w, reason); sc_put_u8(w, g_cal_valid ? g_origin : SC_ORIGIN_NONE);
-  sc_put_u16(w, g_cal_valid ? g_cal.cal_id : 0); sc_put_u8(w, cells);
-  sc_put_u32(w, g_cand_n); sc_put_u32(w, g_check_n);
-  sc_put_f32(w, g_cand_cost);
-  sc_put_f32(w, g_loss_new / g_check_n);
-  sc_put_f32(w, g_cal_valid ? g_loss_old / g_check_n : NAN);
-  sc_put_u32(w, g_fit_us * 16);
-  sc_put_u32(w, g_proc_n ? g_proc_us * 16 / g_proc_n : 0);
-  sc_put_cal(w, g_cand);
-  send(w);
+  g_sc.event = event;
+  g_sc.reason = reason;
+  g_sc.origin = g_cal_valid ? g_origin : SC_ORIGIN_NONE;
+  g_sc.in_force_id = g_cal_valid ? g_cal.cal_id : 0;
+  g_sc.cells = cells;
+  g_sc.loss_new = g_loss_new / g_sc.n_check;
+  g_sc.loss_old = g_cal_valid ? g_loss_old / g_sc.n_check : NAN;
+  g_sc.sample_cycles = g_proc_n ? g_proc_us * 16 / g_proc_n : 0;
+  send_body(SC_SELF_CAL, &g_sc, SC_SIZE_SELF_CAL);
 }
 
 // A window has reached its coverage: judge the pending candidate on it, fit the next one to it.
 static __attribute__((noinline)) void window_end() {
   uint8_t cells = sc_mask_count(g_mask);
-  if (g_cand.k[0] > 0.0f) {
+  if (g_have_cand) {
     uint8_t event = SC_SE_REJECTED, reason = SC_SR_NOT_BETTER;
-    if (g_cal_valid ? 4.0f * g_loss_new < 3.0f * g_loss_old : g_loss_new < SC_ACCEPT_LOSS * g_check_n) {
+    if (g_cal_valid ? 4.0f * g_loss_new < 3.0f * g_loss_old : g_loss_new < SC_ACCEPT_LOSS * g_sc.n_check) {
       reason = g_cal_valid ? SC_SR_BEATS_IN_FORCE : SC_SR_NO_CAL_IN_FORCE;
-      if (store_calibration(g_cand, SC_ORIGIN_BOARD) == 0) event = SC_SE_ACCEPTED;
+      if (store_calibration(g_sc.cand, SC_ORIGIN_BOARD) == 0) event = SC_SE_ACCEPTED;
       else reason = SC_SR_EEPROM_FAILED;
     } else if (!g_cal_valid) {
       reason = SC_SR_TOO_POOR;
@@ -415,20 +425,21 @@ static __attribute__((noinline)) void window_end() {
   ScSphereFit f;
   uint32_t t0 = micros();
   bool ok = sc_sphere_fit(g_sums, g_mag_scale, f);
-  g_fit_us = micros() - t0;
+  g_sc.fit_cycles = (micros() - t0) * 16;
   // A fit that does not even match its own window (a magnet went by) is no candidate, and its
   // centre would skew the next window's cells.
   uint8_t why = ok ? SC_SR_TOO_POOR : SC_SR_UNDETERMINED;
   ok = ok && f.cost < SC_ACCEPT_LOSS;
-  g_cand_n = g_sums.n;
-  g_cand_cost = f.cost;
+  g_sc.n_fit = g_sums.n;
+  g_sc.fit_cost = f.cost;
+  g_have_cand = ok;
   // cal_id of a board fit: 0xB000 + a 12-bit counter
-  sc_cal_from_sphere(g_cand, 0xB000 | ((g_cand.cal_id + 1) & 0x0FFF), f.b, ok ? f.R : 0.0f);
+  sc_cal_from_sphere(g_sc.cand, 0xB000 | ((g_sc.cand.cal_id + 1) & 0x0FFF), f.b, ok ? f.R : 0.0f);
   if (ok) {
     memcpy(g_mask_c, f.b, sizeof f.b);
     g_mask_r = f.R;
   }
-  g_check_n = 0;
+  g_sc.n_check = 0;
   g_loss_new = g_loss_old = 0.0f;
   announce(ok ? SC_SE_FITTED : SC_SE_FIT_FAILED, ok ? SC_SR_NONE : why, cells);
   sc_sums_reset(g_sums);
@@ -440,7 +451,7 @@ static __attribute__((noinline)) void window_end() {
 // Per magnetometer sample m (uT), after it was summed: coverage cell and held-out scores.
 // Returns true when the window is complete.
 static __attribute__((noinline)) bool selfcal_sample(const float m[3]) {
-  if (g_cand.k[0] == 0.0f && (g_sums.n & 63) == 0) {
+  if (!g_have_cand && (g_sums.n & 63) == 0) {
     // No candidate yet: count cells about the Kasa centre of the window so far (the Gauss-Newton
     // iterations here would hold the loop long enough to cost ~4 % of the 5 ms polls), and start
     // again when that centre moves by more than an eighth of the radius.
@@ -458,10 +469,10 @@ static __attribute__((noinline)) bool selfcal_sample(const float m[3]) {
   for (uint8_t j = 0; j < 3; ++j) u[j] = m[j] - g_mask_c[j];
   uint8_t cell = sc_cell(u);
   g_mask[cell >> 3] |= (uint8_t)(1 << (cell & 7));
-  if (g_cand.k[0] > 0.0f) {
-    g_loss_new += sc_score(g_cand, m);
+  if (g_have_cand) {
+    g_loss_new += sc_score(g_sc.cand, m);
     if (g_cal_valid) g_loss_old += sc_score(g_cal, m);
-    ++g_check_n;
+    ++g_sc.n_check;
   }
   return sc_mask_count(g_mask) >= SC_MASK_NEED;
 }
@@ -469,9 +480,7 @@ static __attribute__((noinline)) bool selfcal_sample(const float m[3]) {
 
 static void emit_sample(const ScSample &s) {
   if (g_outputs & SC_OUT_SAMPLES) {
-    ScWriter w = sc_begin(g_tx, SC_SAMPLE, g_seq);
-    sc_put_sample(w, s);
-    send(w);
+    send_body(SC_SAMPLE, &s, SC_SIZE_SAMPLE);
   }
   if (!(s.status & SC_ST_MAG_VALID)) return;
   float m[3];
@@ -481,9 +490,7 @@ static void emit_sample(const ScSample &s) {
     sc_cal_apply(g_cal, m, c.x);
     c.t_us = s.t_us;
     c.status = s.status;
-    ScWriter w = sc_begin(g_tx, SC_CAL_SAMPLE, g_seq);
-    sc_put_cal_sample(w, c);
-    send(w);
+    send_body(SC_CAL_SAMPLE, &c, SC_SIZE_CAL_SAMPLE);
   }
 #ifndef SC_NO_SELFCAL
   uint32_t t0 = micros();
