@@ -402,8 +402,6 @@ static __attribute__((noinline)) void announce(uint8_t event, uint8_t reason, ui
   g_sc.origin = g_cal_valid ? g_origin : SC_ORIGIN_NONE;
   g_sc.in_force_id = g_cal_valid ? g_cal.cal_id : 0;
   g_sc.cells = cells;
-  g_sc.loss_new = g_loss_new / g_sc.n_check;
-  g_sc.loss_old = g_cal_valid ? g_loss_old / g_sc.n_check : NAN;
   g_sc.sample_cycles = g_proc_n ? g_proc_us * 16 / g_proc_n : 0;
   send_body(SC_SELF_CAL, &g_sc, SC_SIZE_SELF_CAL);
 }
@@ -411,6 +409,9 @@ static __attribute__((noinline)) void announce(uint8_t event, uint8_t reason, ui
 // A window has reached its coverage: judge the pending candidate on it, fit the next one to it.
 static __attribute__((noinline)) void window_end() {
   uint8_t cells = sc_mask_count(g_mask);
+  // the losses as scored, before a decision changes what is in force (NaN: nothing was)
+  g_sc.loss_new = g_loss_new / g_sc.n_check;
+  g_sc.loss_old = g_cal_valid ? g_loss_old / g_sc.n_check : NAN;
   if (g_have_cand) {
     uint8_t event = SC_SE_REJECTED, reason = SC_SR_NOT_BETTER;
     if (g_cal_valid ? 4.0f * g_loss_new < 3.0f * g_loss_old : g_loss_new < SC_ACCEPT_LOSS * g_sc.n_check) {
@@ -441,6 +442,7 @@ static __attribute__((noinline)) void window_end() {
   }
   g_sc.n_check = 0;
   g_loss_new = g_loss_old = 0.0f;
+  g_sc.loss_new = g_sc.loss_old = NAN;
   announce(ok ? SC_SE_FITTED : SC_SE_FIT_FAILED, ok ? SC_SR_NONE : why, cells);
   sc_sums_reset(g_sums);
   g_sums_since = 0;
