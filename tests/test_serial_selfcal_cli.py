@@ -16,7 +16,7 @@ import pytest
 from firmware_bridge import frames as fr
 from firmware_bridge.selfcal_frames import CalOrigin, SelfCal, SelfCalEvent, SelfCalReason
 from streamcal.calibration import Calibration
-from streamcal.cli.serial_selfcal import WHY_HOST, board_self_cal, format_board_self_cal
+from streamcal.cli._selfcal import WHY_HOST, board_self_cal, format_board_self_cal
 
 REPO = Path(__file__).resolve().parent.parent
 

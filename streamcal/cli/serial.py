@@ -18,7 +18,7 @@ import json
 import sys
 
 from .daemon import add_service_options, build
-from .serial_selfcal import board_self_cal, format_board_self_cal
+from ._selfcal import board_self_cal, format_board_self_cal
 
 
 def register(sub) -> None:
