@@ -16,9 +16,10 @@
 // calibration to start from while the EEPROM holds none.
 // Register facts: HARDWARE.md sections 2-4 (MPU-9250 register map, AK8963 datasheet).
 #include <EEPROM.h>
-#include <Wire.h>
 
 #include "sc_protocol.h"
+#include "sc_twi.h"
+#include "sc_uart.h"
 
 #if defined(__has_include)
 #if __has_include("sc_initial_cal.h")
@@ -103,19 +104,11 @@ static bool g_have_held;
 
 // ---- I2C ----
 static bool write_reg(uint8_t addr, uint8_t reg, uint8_t value) {
-  Wire.beginTransmission(addr);
-  Wire.write(reg);
-  Wire.write(value);
-  return Wire.endTransmission() == 0;
+  return sc_twi_write(addr, reg, &value, 1, false);
 }
 
 static bool read_regs(uint8_t addr, uint8_t reg, uint8_t *out, uint8_t n) {
-  Wire.beginTransmission(addr);
-  Wire.write(reg);
-  if (Wire.endTransmission(false) != 0) return false;
-  if (Wire.requestFrom(addr, n) != n) return false;
-  for (uint8_t i = 0; i < n; ++i) out[i] = Wire.read();
-  return true;
+  return sc_twi_read(addr, reg, out, n);
 }
 
 static uint8_t read_reg(uint8_t addr, uint8_t reg) {
@@ -165,19 +158,29 @@ static void poll_while_busy();
 #include "sc_selfcal.h"
 #endif
 
-// Write a frame; while Serial's 64-byte transmit buffer is full, keep polling the sensors (a
+// Write a frame; while the 64-byte transmit ring is full, keep polling the sensors (a
 // 215-byte SPHERE_SUMS frame holds the line for ~19 ms, long enough for the AK8963 to overwrite
 // an unread sample).
 static void send(ScWriter w) {
   uint8_t n = (uint8_t)sc_finish(g_tx, w);
   for (uint8_t i = 0; i < n;) {
-    int room = Serial.availableForWrite();
-    if (room <= 0) { poll_while_busy(); continue; }
-    uint8_t k = (uint8_t)min(room, n - i);
-    Serial.write(g_tx + i, k);
-    i += k;
+    if (sc_uart_room() == 0) { poll_while_busy(); continue; }
+    sc_uart_put(g_tx[i++]);
   }
   ++g_seq;
+}
+
+// The AVR is little-endian and lays these structs out without padding (the static_asserts), so
+// each is its frame body byte for byte, as sc_put_* would write it (those are checked against the
+// Python encoder by arduino/test_vectors; these frames end to end by tests/test_simavr.py).
+static_assert(sizeof(ScHello) == SC_SIZE_HELLO && sizeof(ScSample) == SC_SIZE_SAMPLE &&
+              sizeof(ScCalSample) == SC_SIZE_CAL_SAMPLE && sizeof(ScSums) == SC_SIZE_SPHERE_SUMS &&
+              sizeof(ScSelfCal) == SC_SIZE_SELF_CAL, "a message struct is not its packed frame body");
+static __attribute__((noinline)) void send_body(uint8_t type, const void *body, uint8_t n) {
+  ScWriter w = sc_begin(g_tx, type, g_seq);
+  memcpy(w.p, body, n);
+  w.p += n;
+  send(w);
 }
 
 static void send_hello() {
@@ -192,9 +195,7 @@ static void send_hello() {
   h.accel_scale = ACCEL_SCALE; h.gyro_scale = GYRO_SCALE;
   h.temp_scale = TEMP_SCALE; h.temp_offset = TEMP_OFFSET;
   for (uint8_t i = 0; i < 3; ++i) h.mag_scale[i] = g_mag_scale[i];
-  ScWriter w = sc_begin(g_tx, SC_HELLO, g_seq);
-  sc_put_hello(w, h);
-  send(w);
+  send_body(SC_HELLO, &h, SC_SIZE_HELLO);
 }
 
 static void send_ack(uint8_t type, uint16_t seq, uint8_t reason) {
@@ -213,9 +214,7 @@ static void send_cal_report() {
 }
 
 static void send_sums() {
-  ScWriter w = sc_begin(g_tx, SC_SPHERE_SUMS, g_seq);
-  sc_put_sums(w, g_sums);
-  send(w);
+  send_body(SC_SPHERE_SUMS, &g_sums, SC_SIZE_SPHERE_SUMS);
 }
 
 // ---- calibration in EEPROM ----
@@ -390,32 +389,34 @@ static void poll_while_busy() {
 // ---- self-calibration ----
 static uint8_t g_mask[8];        // coverage cells of the current window
 static float g_mask_c[3], g_mask_r;  // centre and radius (uT) the cells are counted about; r 0: none
-static ScCal g_cand;             // candidate sphere: K = R I, b (uT); k[0] = 0: none
-static float g_cand_cost, g_loss_new, g_loss_old;
-static uint32_t g_cand_n, g_check_n, g_fit_us, g_proc_us, g_proc_n;
+// The SELF_CAL frame body, kept up to date: n_fit, fit_cost, fit_cycles and cand (the candidate
+// sphere, K = R I, b in uT; k 0: none) between windows, n_check while one is scored.
+static ScSelfCal g_sc;
+static bool g_have_cand;
+static float g_loss_new, g_loss_old;
+static uint32_t g_proc_us, g_proc_n;
 
-static void announce(uint8_t event, uint8_t reason, uint8_t cells) {
-  ScWriter w = sc_begin(g_tx, SC_SELF_CAL, g_seq);
-  sc_put_u8(w, event); sc_put_u8(w, reason); sc_put_u8(w, g_cal_valid ? g_origin : SC_ORIGIN_NONE);
-  sc_put_u16(w, g_cal_valid ? g_cal.cal_id : 0); sc_put_u8(w, cells);
-  sc_put_u32(w, g_cand_n); sc_put_u32(w, g_check_n);
-  sc_put_f32(w, g_cand_cost);
-  sc_put_f32(w, g_loss_new / g_check_n);
-  sc_put_f32(w, g_cal_valid ? g_loss_old / g_check_n : NAN);
-  sc_put_u32(w, g_fit_us * 16);
-  sc_put_u32(w, g_proc_n ? g_proc_us * 16 / g_proc_n : 0);
-  sc_put_cal(w, g_cand);
-  send(w);
+static __attribute__((noinline)) void announce(uint8_t event, uint8_t reason, uint8_t cells) {
+  g_sc.event = event;
+  g_sc.reason = reason;
+  g_sc.origin = g_cal_valid ? g_origin : SC_ORIGIN_NONE;
+  g_sc.in_force_id = g_cal_valid ? g_cal.cal_id : 0;
+  g_sc.cells = cells;
+  g_sc.sample_cycles = g_proc_n ? g_proc_us * 16 / g_proc_n : 0;
+  send_body(SC_SELF_CAL, &g_sc, SC_SIZE_SELF_CAL);
 }
 
 // A window has reached its coverage: judge the pending candidate on it, fit the next one to it.
-static void window_end() {
+static __attribute__((noinline)) void window_end() {
   uint8_t cells = sc_mask_count(g_mask);
-  if (g_cand.k[0] > 0.0f) {
+  // the losses as scored, before a decision changes what is in force (NaN: nothing was)
+  g_sc.loss_new = g_loss_new / g_sc.n_check;
+  g_sc.loss_old = g_cal_valid ? g_loss_old / g_sc.n_check : NAN;
+  if (g_have_cand) {
     uint8_t event = SC_SE_REJECTED, reason = SC_SR_NOT_BETTER;
-    if (g_cal_valid ? 4.0f * g_loss_new < 3.0f * g_loss_old : g_loss_new < SC_ACCEPT_LOSS * g_check_n) {
+    if (g_cal_valid ? 4.0f * g_loss_new < 3.0f * g_loss_old : g_loss_new < SC_ACCEPT_LOSS * g_sc.n_check) {
       reason = g_cal_valid ? SC_SR_BEATS_IN_FORCE : SC_SR_NO_CAL_IN_FORCE;
-      if (store_calibration(g_cand, SC_ORIGIN_BOARD) == 0) event = SC_SE_ACCEPTED;
+      if (store_calibration(g_sc.cand, SC_ORIGIN_BOARD) == 0) event = SC_SE_ACCEPTED;
       else reason = SC_SR_EEPROM_FAILED;
     } else if (!g_cal_valid) {
       reason = SC_SR_TOO_POOR;
@@ -425,21 +426,23 @@ static void window_end() {
   ScSphereFit f;
   uint32_t t0 = micros();
   bool ok = sc_sphere_fit(g_sums, g_mag_scale, f);
-  g_fit_us = micros() - t0;
+  g_sc.fit_cycles = (micros() - t0) * 16;
   // A fit that does not even match its own window (a magnet went by) is no candidate, and its
   // centre would skew the next window's cells.
   uint8_t why = ok ? SC_SR_TOO_POOR : SC_SR_UNDETERMINED;
   ok = ok && f.cost < SC_ACCEPT_LOSS;
-  g_cand_n = g_sums.n;
-  g_cand_cost = f.cost;
+  g_sc.n_fit = g_sums.n;
+  g_sc.fit_cost = f.cost;
+  g_have_cand = ok;
   // cal_id of a board fit: 0xB000 + a 12-bit counter
-  sc_cal_from_sphere(g_cand, 0xB000 | ((g_cand.cal_id + 1) & 0x0FFF), f.b, ok ? f.R : 0.0f);
+  sc_cal_from_sphere(g_sc.cand, 0xB000 | ((g_sc.cand.cal_id + 1) & 0x0FFF), f.b, ok ? f.R : 0.0f);
   if (ok) {
     memcpy(g_mask_c, f.b, sizeof f.b);
     g_mask_r = f.R;
   }
-  g_check_n = 0;
+  g_sc.n_check = 0;
   g_loss_new = g_loss_old = 0.0f;
+  g_sc.loss_new = g_sc.loss_old = NAN;
   announce(ok ? SC_SE_FITTED : SC_SE_FIT_FAILED, ok ? SC_SR_NONE : why, cells);
   sc_sums_reset(g_sums);
   g_sums_since = 0;
@@ -449,20 +452,18 @@ static void window_end() {
 
 // Per magnetometer sample m (uT), after it was summed: coverage cell and held-out scores.
 // Returns true when the window is complete.
-static bool selfcal_sample(const float m[3]) {
-  if (g_cand.k[0] == 0.0f && (g_sums.n & 31) == 0) {
-    // No fitted centre yet: count cells about the Kasa centre of the window so far, and start
+static __attribute__((noinline)) bool selfcal_sample(const float m[3]) {
+  if (!g_have_cand && (g_sums.n & 63) == 0) {
+    // No candidate yet: count cells about the Kasa centre of the window so far (the Gauss-Newton
+    // iterations here would hold the loop long enough to cost ~4 % of the 5 ms polls), and start
     // again when that centre moves by more than an eighth of the radius.
-    float G[25], c[3], R;
-    if (sc_moments(g_sums, g_mag_scale, G) && sc_kasa(G, c, R)) {
+    ScSphereFit f;
+    if (sc_sphere_fit(g_sums, g_mag_scale, f, 0)) {
       float d2 = 0.0f;
-      for (uint8_t j = 0; j < 3; ++j) {
-        c[j] += g_sums.center[j] * g_mag_scale[j];
-        d2 += (c[j] - g_mask_c[j]) * (c[j] - g_mask_c[j]);
-      }
-      if (64.0f * d2 > R * R) memset(g_mask, 0, sizeof g_mask);
-      memcpy(g_mask_c, c, sizeof c);
-      g_mask_r = R;
+      for (uint8_t j = 0; j < 3; ++j) d2 += (f.b[j] - g_mask_c[j]) * (f.b[j] - g_mask_c[j]);
+      if (64.0f * d2 > f.R * f.R) memset(g_mask, 0, sizeof g_mask);
+      memcpy(g_mask_c, f.b, sizeof f.b);
+      g_mask_r = f.R;
     }
   }
   if (g_mask_r == 0.0f) return false;
@@ -470,10 +471,10 @@ static bool selfcal_sample(const float m[3]) {
   for (uint8_t j = 0; j < 3; ++j) u[j] = m[j] - g_mask_c[j];
   uint8_t cell = sc_cell(u);
   g_mask[cell >> 3] |= (uint8_t)(1 << (cell & 7));
-  if (g_cand.k[0] > 0.0f) {
-    g_loss_new += sc_score(g_cand, m);
+  if (g_have_cand) {
+    g_loss_new += sc_score(g_sc.cand, m);
     if (g_cal_valid) g_loss_old += sc_score(g_cal, m);
-    ++g_check_n;
+    ++g_sc.n_check;
   }
   return sc_mask_count(g_mask) >= SC_MASK_NEED;
 }
@@ -481,9 +482,7 @@ static bool selfcal_sample(const float m[3]) {
 
 static void emit_sample(const ScSample &s) {
   if (g_outputs & SC_OUT_SAMPLES) {
-    ScWriter w = sc_begin(g_tx, SC_SAMPLE, g_seq);
-    sc_put_sample(w, s);
-    send(w);
+    send_body(SC_SAMPLE, &s, SC_SIZE_SAMPLE);
   }
   if (!(s.status & SC_ST_MAG_VALID)) return;
   float m[3];
@@ -493,9 +492,7 @@ static void emit_sample(const ScSample &s) {
     sc_cal_apply(g_cal, m, c.x);
     c.t_us = s.t_us;
     c.status = s.status;
-    ScWriter w = sc_begin(g_tx, SC_CAL_SAMPLE, g_seq);
-    sc_put_cal_sample(w, c);
-    send(w);
+    send_body(SC_CAL_SAMPLE, &c, SC_SIZE_CAL_SAMPLE);
   }
 #ifndef SC_NO_SELFCAL
   uint32_t t0 = micros();
@@ -516,9 +513,8 @@ static void emit_sample(const ScSample &s) {
 }
 
 void setup() {
-  Serial.begin(BAUD);
-  Wire.begin();
-  Wire.setClock(400000);
+  sc_uart_begin(BAUD);
+  sc_twi_begin();
   sc_decoder_init(g_rx, g_rx_buf, sizeof g_rx_buf);
   sc_sums_reset(g_sums);
   sensor_setup();
@@ -530,8 +526,8 @@ void setup() {
 }
 
 void loop() {
-  while (Serial.available() > 0) {
-    int16_t n = sc_decoder_feed(g_rx, (uint8_t)Serial.read());
+  for (int16_t c; (c = sc_uart_get()) >= 0;) {
+    int16_t n = sc_decoder_feed(g_rx, (uint8_t)c);
     if (n > 0) handle_frame(n);
   }
   if (!g_streaming) return;

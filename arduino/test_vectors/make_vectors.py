@@ -14,10 +14,13 @@ import struct
 import sys
 from pathlib import Path
 
+import numpy as np
+
 HERE = Path(__file__).resolve().parent
 sys.path.insert(0, str(HERE.parent.parent))
 
 from firmware_bridge import frames as fr  # noqa: E402
+from firmware_bridge.selfcal_frames import CalOrigin, SelfCal, SelfCalEvent, SelfCalReason  # noqa: E402
 from firmware_bridge.fake_board import apply_calibration_f32, mag_scale_from_asa, sphere_sums_add  # noqa: E402
 
 
@@ -59,7 +62,20 @@ def messages() -> list[tuple[str, int, fr.Message]]:
         ("set_cal", 12, cal),
         ("query_cal", 13, fr.QueryCal()),
         ("clear_cal", 14, fr.ClearCal()),
+        # the board's own calibration: a fit (candidate K = R I) and a decision with NaN loss_old
+        ("self_cal_fitted", 15, _self_cal(SelfCalEvent.FITTED, SelfCalReason.NONE, CalOrigin.HOST, 0xBEEF,
+                                          loss_old=_f32(0.0123))),
+        ("self_cal_accepted", 16, _self_cal(SelfCalEvent.ACCEPTED, SelfCalReason.NO_CAL_IN_FORCE,
+                                            CalOrigin.BOARD, 0xB001, loss_old=math.nan)),
     ]
+
+
+def _self_cal(event, reason, origin, in_force_id, loss_old) -> SelfCal:
+    cand = fr.SetCalibration.from_kb(np.diag([_f32(48.75)] * 3), [_f32(11.5), _f32(-7.25), _f32(30.0)],
+                                     cal_id=0xB001)
+    return SelfCal(event=int(event), reason=int(reason), origin=int(origin), in_force_id=in_force_id, cells=57,
+                   n_fit=5123, n_check=2600, fit_cost=_f32(0.00042), loss_new=_f32(0.0017), loss_old=loss_old,
+                   fit_cycles=1234567, sample_cycles=2345, cal_id=cand.cal_id, k=cand.k, b=cand.b, crc=cand.crc)
 
 
 def build() -> dict:
@@ -77,7 +93,7 @@ def build() -> dict:
     ]
     mag = [[100, -200, 300], [150, -180, 320], [90, -260, 280], [3000, 0, 0], [-32768, 32767, 5], [101, -199, 299]]
     sums = sphere_sums_add(fr.SphereSums(), mag)
-    cal = messages()[-3][2]
+    cal = dict((name, msg) for name, _, msg in messages())["set_cal"]
     m = [[40.5, -12.25, 7.0], [-3.0, 55.5, -41.0]]
     x = apply_calibration_f32(cal, m)
     return {

@@ -39,6 +39,7 @@ static bool encode(int type, int seq, const Values &v, uint8_t *buf, uint16_t *l
     case SC_ACK: need = 2; break;
     case SC_NAK: need = 3; break;
     case SC_START: need = 3; break;
+    case SC_SELF_CAL: need = 23; break;
     case SC_GET_INFO: case SC_STOP: case SC_QUERY_CAL: case SC_CLEAR_CAL: need = 0; break;
     default: return false;
   }
@@ -96,6 +97,18 @@ static bool encode(int type, int seq, const Values &v, uint8_t *buf, uint16_t *l
       ScStart s; s.outputs = v[0]; s.period_us = v[1]; s.sums_every = v[2];
       sc_put_start(w, s); break;
     }
+    case SC_SELF_CAL: {
+      ScSelfCal f;
+      f.event = v[i++]; f.reason = v[i++]; f.origin = v[i++]; f.in_force_id = v[i++]; f.cells = v[i++];
+      f.n_fit = v[i++]; f.n_check = v[i++];
+      f.fit_cost = f_of(v[i++]); f.loss_new = f_of(v[i++]); f.loss_old = f_of(v[i++]);
+      f.fit_cycles = v[i++]; f.sample_cycles = v[i++];
+      f.cand.cal_id = v[i++];
+      for (int j = 0; j < 6; ++j) f.cand.k[j] = f_of(v[i++]);
+      for (int j = 0; j < 3; ++j) f.cand.b[j] = f_of(v[i++]);
+      f.cand.crc = v[i++];
+      sc_put_self_cal(w, f); break;
+    }
   }
   *len = sc_finish(buf, w);
   return true;
@@ -128,6 +141,7 @@ static int expected_size(int type) {
     case SC_ACK: return SC_SIZE_ACK;
     case SC_NAK: return SC_SIZE_NAK;
     case SC_START: return SC_SIZE_START;
+    case SC_SELF_CAL: return SC_SIZE_SELF_CAL;
     case SC_GET_INFO: case SC_STOP: case SC_QUERY_CAL: case SC_CLEAR_CAL: return 0;
   }
   return -1;
@@ -173,6 +187,15 @@ static void decode(const std::string &hex) {
       case SC_SPHERE_SUMS: { ScSums s; sc_get_sums(r, s); printf(" "); print_sums(s); break; }
       case SC_CAL_REPORT: { printf(" %u", sc_get_u8(r)); ScCal c; sc_get_cal(r, c); print_cal(c); break; }
       case SC_SET_CAL: { ScCal c; sc_get_cal(r, c); print_cal(c); break; }
+      case SC_SELF_CAL: {
+        ScSelfCal f; sc_get_self_cal(r, f);
+        printf(" %u %u %u %u %u %lu %lu %lld %lld %lld %lu %lu", f.event, f.reason, f.origin, f.in_force_id,
+               f.cells, (unsigned long)f.n_fit, (unsigned long)f.n_check, bits_of(f.fit_cost),
+               bits_of(f.loss_new), bits_of(f.loss_old), (unsigned long)f.fit_cycles,
+               (unsigned long)f.sample_cycles);
+        print_cal(f.cand);
+        break;
+      }
       case SC_ACK: case SC_NAK: {
         unsigned t = sc_get_u8(r), s = sc_get_u16(r);
         printf(" %u %u", t, s);

@@ -8,7 +8,9 @@ streams calibrated directions; the board's answer is reported. Calibrated sample
 terminal coverage map at each coverage milestone on stderr. At the end the frames are accounted for:
 received + lost (from the board's sequence numbers) = sent. ``--port fake:TRACK.csv`` runs
 against a simulated board on a pseudo-terminal; ``--port simavr:TRACK.csv`` runs the compiled
-sketch itself in simavr (firmware in the loop; needs the AVR toolchain and simavr).
+sketch itself in simavr (firmware in the loop; needs the AVR toolchain and simavr). When the
+sketch calibrates itself (SELF_CAL frames), its latest fit is shown beside the host's calibration
+with which one the board has in force and why (``board_self_cal`` in the summary).
 """
 from __future__ import annotations
 
@@ -17,6 +19,7 @@ import sys
 
 from ._common import add_skip_bad_rows
 from .daemon import add_service_options, build
+from ._selfcal import board_self_cal, format_board_self_cal
 
 
 def register(sub) -> None:
@@ -107,5 +110,21 @@ def run(args) -> int:
     finally:
         source_close()
     summary = {**service.summary(), "link": frames, "sent_to_board": len(sync.sent)}
+    board = board_summary(source, service, frames, sync)
+    if board is not None:
+        summary["board_self_cal"] = board
+        if not args.json_lines:
+            print(format_board_self_cal(board), flush=True)
     print(json.dumps(summary), file=sys.stderr if args.json_lines else sys.stdout, flush=True)
     return code
+
+
+def board_summary(source, service, frames: dict, sync: BoardSync) -> dict | None:
+    """The board's own calibration beside the host's (None: the board sent no SELF_CAL frame)."""
+    link = source.link
+    if link is None:
+        return None
+    report = frames.get("board_calibration", {})
+    board_id = report.get("cal_id") if report.get("valid") else None
+    host = service.calibrator.calibration if service.calibrator is not None else None
+    return board_self_cal(getattr(link, "self_cal", ()), host, board_id, sync.sent)
