@@ -28,7 +28,7 @@ from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
                    field_radius, held_fit, project)
-from .held_check import settle
+from .held_check import implausible_effect, settle
 from .noise import noise_floor
 from .rank_subset import RANK_MAX, rank_subset
 from .residuals import families
@@ -74,6 +74,16 @@ class HeldDiagnosis(Diagnosis):
         out["fit_status"] = dict(self.fit_status)
         out["held_after_fit"] = list(self.held_after_fit)
         out["suspicious"] = dict(self.suspicious)
+        return out
+
+    def candidate_dict(self, c) -> dict:
+        """As for a fresh diagnosis; a candidate whose field is implausible
+        (:func:`streamcal.diagnosis.held_check.implausible_effect`) is neither significant nor
+        material, and ``implausible`` says why."""
+        out = super().candidate_dict(c)
+        why = getattr(c, "implausible", "")
+        if why:
+            out.update(significant=False, material=False, implausible=why)
         return out
 
     def _held_dict(self) -> dict:
@@ -279,6 +289,10 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                                cand.is_significant(before, after, p_value, nf.floor), ev.cal)
             c.rms_before, c.residual, c._evaluated = before, "sensor", ev
             c.n_compared = int(both.sum())
+            c.implausible = implausible_effect([(term, ev.fit.thetas[-1])],
+                                               ref.x @ ref.fit.K.T, cov_r, field_radius(K0))
+            if c.implausible:
+                c.significant, c.evidence = False, f"{c.implausible}; {c.evidence}"
             out.append(c)
         out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
         return out
