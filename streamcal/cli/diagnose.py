@@ -122,7 +122,8 @@ def held_text(d) -> str:
     unit = display_unit(d.unit) or "sensor unit"
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
-             f"{d.tolerance:.3g} {unit}, or not in the model)"]
+             f"{d.tolerance:.3g} {unit} at the given or the fitted point, or not in the "
+             "model)"]
     n_r = getattr(d, "n_ranked", 0) or d.n
     if n_r < d.n:
         lines.append(f"ranked     candidates refitted on {n_r} of {d.n} samples (every cell of "
