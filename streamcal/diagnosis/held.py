@@ -171,9 +171,6 @@ class HeldFit:
     #: :mod:`streamcal.fitting.damped_lm`; ``message`` in words.
     status: str = CONVERGED
     message: str = ""
-    #: {name: variance inflation factor} diag((AᵀWA)⁻¹)·diag(AᵀWA) of each estimated
-    #: parameter: how much its correlation with the others widens its σ (1: none).
-    inflation: dict = field(default_factory=dict)
 
 
 def _set(K, b, free, p):
@@ -257,7 +254,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     # noise and width re-estimated at the solution; covariance σ̂² (AᵀWA)⁻¹
     inliers = np.abs(s) <= OUTLIER_WIDTHS * tau
     sigma = float(np.sqrt(np.mean(s[inliers] ** 2))) if inliers.sum() > P else sigma
-    estimated, inflation = {}, {}
+    estimated = {}
     if P:
         A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
         w = 1.0 / (1.0 + (s / tau) ** 2)
@@ -265,9 +262,8 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
         try:
             Hinv = np.linalg.inv(H)
             sd = sigma * np.sqrt(np.maximum(np.diag(Hinv), 0.0))
-            vif = np.diag(Hinv) * np.diag(H)
         except np.linalg.LinAlgError:
-            sd = vif = np.full(P, np.inf)
+            sd = np.full(P, np.inf)
         values = [*(_value(K, b, n) for n in free)]
         for (term, th) in terms[len(held_terms):]:
             values += list(th)
@@ -275,12 +271,10 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
         for term, th in terms[len(held_terms):]:
             labels += [f"{term.name}[{k}]" for k in range(len(th))]
         estimated = {n: (float(v), float(e)) for n, v, e in zip(labels, values, sd)}
-        inflation = {n: float(f) for n, f in zip(labels, vif)}
     rn = np.linalg.norm(r, axis=1)
     return HeldFit(K=K, b=b, thetas=[t for _, t in terms[len(held_terms):]], r=r, x=x, s=s,
                    normal=normal, inliers=rn <= OUTLIER_WIDTHS * tau, sigma=sigma, tau=tau,
-                   estimated=estimated, iterations=it, status=status, message=message,
-                   inflation=inflation)
+                   estimated=estimated, iterations=it, status=status, message=message)
 
 
 def _value(K, b, name):
