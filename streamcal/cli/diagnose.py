@@ -122,7 +122,8 @@ def held_text(d) -> str:
     unit = display_unit(d.unit) or "sensor unit"
     lines = ["", f"against    {d.calibration_source}",
              f"held       {', '.join(d.held) or 'none'} (predicted error above "
-             f"{d.tolerance:.3g} {unit}, or not in the model)"]
+             f"{d.tolerance:.3g} {unit} at the given or the fitted point, or not in the "
+             "model)"]
     n_r = getattr(d, "n_ranked", 0) or d.n
     if n_r < d.n:
         lines.append(f"ranked     candidates refitted on {n_r} of {d.n} samples (every cell of "
@@ -134,7 +135,29 @@ def held_text(d) -> str:
     if d.estimated:
         lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
         lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]
+    lines += _recheck_lines(d, unit)
     return "\n".join(lines)
+
+
+def _recheck_lines(d, unit: str) -> list[str]:
+    """The re-check at the fitted point (:mod:`streamcal.diagnosis.held_check`) and how the
+    held fit ended."""
+    lines = []
+    status = getattr(d, "fit_status", None) or {}
+    if status:
+        lines.append(f"held fit   {status['status']} after {status['iterations']} iterations"
+                     + (f" ({status['message']})" if status.get("message") else ""))
+    after = getattr(d, "held_after_fit", [])
+    if after:
+        lines.append("held after the fit (rule: at the fitted point σ ≤ the tolerance and the "
+                     "value within its plausible range ± 3 σ, else the worst is held and the "
+                     "fit repeated)")
+        lines += [f"  {h['parameter']:<8}{h['value']:>12.5g} ± {h['sigma']:.3g} {unit}: "
+                  f"{h['reason']}" for h in after]
+    for k, v in getattr(d, "suspicious", {}).items():
+        lines.append(f"SUSPICIOUS {k} {v['value']:.5g} ± {v['sigma']:.3g} {unit}: {v['reason']} "
+                     "(kept: it is what the recording is asked for)")
+    return lines
 
 
 

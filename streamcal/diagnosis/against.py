@@ -28,6 +28,7 @@ from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
                    field_radius, held_fit, project)
+from .held_check import implausible_effect, settle
 from .noise import noise_floor
 from .rank_subset import RANK_MAX, rank_subset
 from .residuals import families
@@ -58,11 +59,31 @@ class HeldDiagnosis(Diagnosis):
     #: ``{channel: r}``: how closely the base model's residual (every sample) follows each
     #: auxiliary channel alone (:func:`streamcal.diagnosis.aux_channels.channel_scores`), largest first.
     aux_channels: dict = field(default_factory=dict)
+    #: How the base (held) fit's LM loop ended: ``{"status", "iterations", "message"}``.
+    fit_status: dict = field(default_factory=dict)
+    #: Parameters held by the re-check at the fitted point
+    #: (:func:`streamcal.diagnosis.held_check.settle`), in order, each with the value and σ it
+    #: had and why; and ``suspicious``: kept parameters (b without a calibration) that failed it.
+    held_after_fit: list = field(default_factory=list)
+    suspicious: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         out = self._held_dict()
         out["n_ranked"] = int(self.n_ranked or self.n)
         out["aux_channels"] = dict(self.aux_channels)
+        out["fit_status"] = dict(self.fit_status)
+        out["held_after_fit"] = list(self.held_after_fit)
+        out["suspicious"] = dict(self.suspicious)
+        return out
+
+    def candidate_dict(self, c) -> dict:
+        """As for a fresh diagnosis; a candidate whose field is implausible
+        (:func:`streamcal.diagnosis.held_check.implausible_effect`) is neither significant nor
+        material, and ``implausible`` says why."""
+        out = super().candidate_dict(c)
+        why = getattr(c, "implausible", "")
+        if why:
+            out.update(significant=False, material=False, implausible=why)
         return out
 
     def _held_dict(self) -> dict:
@@ -225,7 +246,12 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         return _Eval(fit, cal, len(free) + sum(len(th) for th in fit.thetas),
                      [t for t, _ in new_terms])
 
-    base = evaluate([])
+    # re-check at the fitted point; the candidates then use the settled estimated set
+    settled = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma), free, m, cov,
+                     held_terms, sigma, tol, field_radius(K0), b0, keep)
+    free = settled.free
+    fit = settled.fit
+    base = _Eval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model), len(free), [])
     idx = rank_subset(m, base.fit.b, t, rank_max)
     m_r, cov_r = (m, cov) if idx is None else (m[idx], {k: v[idx] for k, v in cov.items()})
     base_r = base if idx is None else evaluate([], base, m_r, cov_r)
@@ -263,6 +289,10 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                                cand.is_significant(before, after, p_value, nf.floor), ev.cal)
             c.rms_before, c.residual, c._evaluated = before, "sensor", ev
             c.n_compared = int(both.sum())
+            c.implausible = implausible_effect([(term, ev.fit.thetas[-1])],
+                                               ref.x @ ref.fit.K.T, cov_r, field_radius(K0))
+            if c.implausible:
+                c.significant, c.evidence = False, f"{c.implausible}; {c.evidence}"
             out.append(c)
         out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
         return out
@@ -304,4 +334,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         calibration=base.cal, held=held, estimated=estimated,
         predicted_sigma={k: errors[k] for k in names if k in errors}, tolerance=tol,
         calibration_source=source, unit=unit, n_ranked=n_r,
-        aux_channels=channel_scores(base.s, base.normal, cov))
+        aux_channels=channel_scores(base.s, base.normal, cov),
+        fit_status={"status": base.fit.status, "iterations": base.fit.iterations,
+                    "message": base.fit.message},
+        held_after_fit=settled.held_after_fit, suspicious=settled.suspicious)

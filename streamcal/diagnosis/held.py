@@ -29,6 +29,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import InsufficientDataError
+from ..fitting.damped_lm import CONVERGED, MAX_ITER as STATUS_MAX_ITER, STALLED
 from .residuals import GN_ITERATIONS, _model, _tangent_basis
 
 #: Core parameter names: (name, kind, index) — kind "K" with (row, col), or "b" with axis.
@@ -164,6 +165,12 @@ class HeldFit:
     tau: float
     estimated: dict = field(default_factory=dict)
     iterations: int = 0
+    #: How the LM loop ended: ``converged`` (relative cost decrease below :data:`RTOL`, or
+    #: nothing to fit), ``stalled`` (no trial step lowered the cost) or ``max_iter``
+    #: (:data:`MAX_ITER` rounds used while the cost still fell), as in
+    #: :mod:`streamcal.fitting.damped_lm`; ``message`` in words.
+    status: str = CONVERGED
+    message: str = ""
 
 
 def _set(K, b, free, p):
@@ -213,8 +220,10 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
 
     lam, it = 1e-3, 0
     c = cost(s)
+    status, message = CONVERGED, "nothing to fit" if P == 0 else ""
     for it in range(1, MAX_ITER + 1):
         if P == 0:
+            it = 0
             break
         A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
         w = 1.0 / (1.0 + (s / tau) ** 2)
@@ -233,8 +242,15 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
                 c, lam, improved = c_new, max(lam / 10, 1e-12), True
                 break
             lam *= 10
-        if not improved or rel < RTOL:
+        if not improved:
+            status, message = STALLED, f"no step lowered the cost in 10 trials (λ = {lam:.3g})"
             break
+        if rel < RTOL:
+            status, message = CONVERGED, f"relative cost decrease {rel:.3g} < {RTOL:g}"
+            break
+    else:
+        if P:
+            status, message = STATUS_MAX_ITER, f"{MAX_ITER} rounds used while the cost still fell"
     # noise and width re-estimated at the solution; covariance σ̂² (AᵀWA)⁻¹
     inliers = np.abs(s) <= OUTLIER_WIDTHS * tau
     sigma = float(np.sqrt(np.mean(s[inliers] ** 2))) if inliers.sum() > P else sigma
@@ -242,9 +258,10 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     if P:
         A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
         w = 1.0 / (1.0 + (s / tau) ** 2)
+        H = np.einsum("np,nq->pq", A * w[:, None], A)
         try:
-            C = sigma ** 2 * np.linalg.inv(np.einsum("np,nq->pq", A * w[:, None], A))
-            sd = np.sqrt(np.maximum(np.diag(C), 0.0))
+            Hinv = np.linalg.inv(H)
+            sd = sigma * np.sqrt(np.maximum(np.diag(Hinv), 0.0))
         except np.linalg.LinAlgError:
             sd = np.full(P, np.inf)
         values = [*(_value(K, b, n) for n in free)]
@@ -257,7 +274,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     rn = np.linalg.norm(r, axis=1)
     return HeldFit(K=K, b=b, thetas=[t for _, t in terms[len(held_terms):]], r=r, x=x, s=s,
                    normal=normal, inliers=rn <= OUTLIER_WIDTHS * tau, sigma=sigma, tau=tau,
-                   estimated=estimated, iterations=it)
+                   estimated=estimated, iterations=it, status=status, message=message)
 
 
 def _value(K, b, name):

@@ -31,9 +31,11 @@ def held_section(d, unit: str) -> str:
         return ""
     e = html.escape
     rows = []
+    after = {h["parameter"]: h for h in getattr(d, "held_after_fit", [])}
     for name, _ in (*K_PARAMS, *B_PARAMS):
         est = d.estimated.get(name)
-        status = "re-estimated" if est else "held"
+        status = "re-estimated" if est else (
+            "held after the fit" if name in after else "held")
         value = est["value"] if est else _value(d.calibration, name)
         sigma = _num(est["sigma"]) if est else "–"
         rows.append((name, status, _num(value), sigma, _num(d.predicted_sigma.get(name)), unit))
@@ -50,6 +52,15 @@ def held_section(d, unit: str) -> str:
             f"<p>Calibration: <b>{e(str(d.calibration_source))}</b>. A parameter is re-estimated "
             f"from this recording when its predicted (Cramér–Rao) error is below "
             f"{_num(d.tolerance, '.3g')} {e(unit)} (0.5 % of the field radius), else held at the "
-            f"calibration's value.{ranked}</p>"
+            f"calibration's value. After the fit the rule is checked again at the fitted point "
+            f"(σ within the tolerance, value within its plausible range ± 3 σ); the worst "
+            f"failing parameter is held and the fit repeated ({len(after)} held so)."
+            f"{_status(d)}{ranked}</p>"
             f'<table id="held-parameters"><thead><tr>{head}</tr></thead><tbody>{body}</tbody>'
             f"</table>")
+
+
+def _status(d) -> str:
+    st = getattr(d, "fit_status", None) or {}
+    return (f" The held fit ended <b>{html.escape(st['status'])}</b> after {st['iterations']} "
+            f"iterations." if st else "")
