@@ -20,7 +20,7 @@ from streamcal.report.figures_sphere import cell_polygons, lambert
 from streamcal.report.terminal import EMPTY, FILLED
 from streamcal.sim import simulate
 from streamcal.stream import CoverageBuffer
-from streamcal.stream.sphere_cells import SphereCells, fibonacci_sphere
+from streamcal.sphere_cells import SphereCells, fibonacci_sphere
 
 HIDDEN = "temperature_offset"
 TRIED = [HIDDEN, "time_drift", "aux_interference"]

@@ -6,6 +6,7 @@ import numpy as np
 from matplotlib.collections import PolyCollection
 from matplotlib.figure import Figure
 
+from ..sphere_cells import SphereCells, hint, largest_empty_cap
 from .figure_common import FIT, INLIER, OUTLIER, stride_index, thin_index
 from .figure_data import FigureData, unit_label
 
@@ -99,8 +100,6 @@ def lambert(d: np.ndarray, north: bool) -> np.ndarray:
 def coverage_cells(data: FigureData, n_cells: int = COVERAGE_CELLS):
     """Cells, per-cell sample count (C,), per-cell rms residual over inliers (C,) (NaN: no
     inlier), the covered fraction, and the largest empty cap (centre (3,), radius °)."""
-    from ..stream.sphere_cells import SphereCells, largest_empty_cap
-
     cells = SphereCells(n_cells)
     ok = np.isfinite(data.directions).all(axis=1)
     idx = cells.cell_of(data.directions[ok])
@@ -120,8 +119,6 @@ def coverage_cells(data: FigureData, n_cells: int = COVERAGE_CELLS):
 def coverage_figure(data: FigureData) -> Figure:
     import matplotlib
     from matplotlib import cm, colors
-
-    from ..stream.sphere_cells import hint
 
     cells, count, rms, fraction, gap_c, gap_r = coverage_cells(data)
     fig = Figure(figsize=(12, 5.4))
