@@ -15,11 +15,12 @@ from streamcal.cli import main
 from streamcal.diagnosis import diagnose
 from streamcal.report import (FigureData, coverage_map, coverage_view, render_figures,
                               render_html, write_diagnosis_plots, write_report)
-from streamcal.report.figures import FIGURES, cell_polygons, lambert
+from streamcal.report.figures import FIGURES
+from streamcal.report.figures_sphere import cell_polygons, lambert
 from streamcal.report.terminal import EMPTY, FILLED
 from streamcal.sim import simulate
 from streamcal.stream import CoverageBuffer
-from streamcal.stream.sphere_cells import SphereCells, fibonacci_sphere
+from streamcal.sphere_cells import SphereCells, fibonacci_sphere
 
 HIDDEN = "temperature_offset"
 TRIED = [HIDDEN, "time_drift", "aux_interference"]

@@ -13,8 +13,8 @@ from matplotlib.colors import to_rgba
 from streamcal.cli.diagnose import _text
 from streamcal.diagnosis import diagnose, outlier_spans
 from streamcal.report import FigureData, render_figures, render_html
-from streamcal.report.figures import (RESIDUAL_FAMILIES, candidate_groups, ladder_figure,
-                                      ladder_steps)
+from streamcal.report.figures_ladder import (RESIDUAL_FAMILIES, candidate_groups, ladder_figure,
+                                             ladder_steps)
 from streamcal.sim import simulate
 
 MISALIGNED = "mag_accel_misalignment"

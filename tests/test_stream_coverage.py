@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from streamcal.stream.coverage import CoverageBuffer
-from streamcal.stream.sphere_cells import (SphereCells, describe_direction, fibonacci_sphere,
+from streamcal.sphere_cells import (SphereCells, describe_direction, fibonacci_sphere,
                                            largest_empty_cap)
 
 

@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import InsufficientDataError
 from ..fitting.damped_lm import CONVERGED, MAX_ITER as STATUS_MAX_ITER, STALLED
-from .residuals import GN_ITERATIONS, _model, _tangent_basis
+from .residuals import GN_ITERATIONS, closest_point
 
 #: Core parameter names: (name, kind, index) — kind "K" with (row, col), or "b" with axis.
 K_PARAMS = (("K_xx", (0, 0)), ("K_xy", (0, 1)), ("K_xz", (0, 2)), ("K_yy", (1, 1)),
@@ -69,31 +69,8 @@ def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
     cal = SimpleNamespace(K=np.asarray(K, float), b=np.asarray(b, float))
     if x is None:
         x = np.linalg.solve(cal.K, (m - cal.b).T).T
-    x = x / np.linalg.norm(x, axis=1, keepdims=True)
-    for _ in range(iters):
-        g, J = _model(cal, terms, x, cov)
-        B = _tangent_basis(x)
-        JB = J @ B
-        A = np.einsum("nki,nkj->nij", JB, JB)
-        rhs = np.einsum("nki,nk->ni", JB, g - m)
-        x = x - np.einsum("nij,nj->ni", B, _solve2(A, rhs))
-        x /= np.linalg.norm(x, axis=1, keepdims=True)
-    g, J = _model(cal, terms, x, cov)
-    normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    r = g - m
-    D = J @ np.linalg.inv(cal.K)
-    return r, x, -np.einsum("ni,ni->n", r, normal), normal, D
-
-
-def _solve2(A: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve the (N,2,2) systems A z = rhs (N,2) in closed form (Cramer's rule): batched
-    ``np.linalg.solve`` spends most of its time on per-call overhead at this size."""
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
-    det = a * d - b * c
-    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
-    return np.stack([(d * rhs[:, 0] - b * rhs[:, 1]) / det,
-                     (a * rhs[:, 1] - c * rhs[:, 0]) / det], axis=1)
+    r, x, s, normal, J = closest_point(cal, terms, m, cov, x, iters)
+    return r, x, s, normal, J @ np.linalg.inv(cal.K)
 
 
 def jacobian(free: Sequence[str], terms, x, normal, D, cov, u) -> np.ndarray:

@@ -52,23 +52,42 @@ def sensor_residual(cal, m: np.ndarray, cov: Mapping[str, np.ndarray]):
     """Eq. 41 residual. Returns ``r`` (N,3) = g(x̂) − m, ``x̂`` (N,3), the signed distance
     ``s`` (N,) of the reading along the outward surface normal (sensor unit) and that unit normal
     (N,3)."""
-    terms = terms_from_params(cal.effects)
     x = cal.apply(m, cov)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    for _ in range(GN_ITERATIONS):
+    r, x, s, normal, _ = closest_point(cal, terms_from_params(cal.effects), m, cov, x)
+    return r, x, s, normal
+
+
+def closest_point(cal, terms, m: np.ndarray, cov: Mapping[str, np.ndarray], x: np.ndarray,
+                  iters: int = GN_ITERATIONS):
+    """Closest point of the model surface ``g(x) = K x + b + Σ terms`` (``cal``: K, b; ``terms``:
+    [(effect term, θ)] in sensor units) to each reading ``m`` (N,3), by ``iters`` Gauss–Newton
+    steps on the unit sphere from the directions ``x`` (N,3). Returns ``r`` (N,3) = g(x̂) − m,
+    ``x̂`` (N,3), the signed distance ``s`` (N,) along the outward unit normal, that normal
+    (N,3) and ∂g/∂x at x̂ (N,3,3)."""
+    x = x / np.linalg.norm(x, axis=1, keepdims=True)
+    for _ in range(iters):
         g, J = _model(cal, terms, x, cov)
         B = _tangent_basis(x)
         JB = J @ B                                              # (N,3,2)
         A = np.einsum("nki,nkj->nij", JB, JB)
         rhs = np.einsum("nki,nk->ni", JB, g - m)
-        step = -np.linalg.solve(A, rhs[..., None])[..., 0]
-        x = x + np.einsum("nij,nj->ni", B, step)
+        x = x - np.einsum("nij,nj->ni", B, _solve2(A, rhs))
         x /= np.linalg.norm(x, axis=1, keepdims=True)
     g, J = _model(cal, terms, x, cov)
     normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     r = g - m
-    return r, x, -np.einsum("ni,ni->n", r, normal), normal
+    return r, x, -np.einsum("ni,ni->n", r, normal), normal, J
+
+
+def _solve2(A: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """Solve the (N,2,2) systems A z = rhs (N,2) in closed form (Cramer's rule): batched
+    ``np.linalg.solve`` spends most of its time on per-call overhead at this size."""
+    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
+    det = a * d - b * c
+    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+    return np.stack([(d * rhs[:, 0] - b * rhs[:, 1]) / det,
+                     (a * rhs[:, 1] - c * rhs[:, 0]) / det], axis=1)
 
 
 def rms(r: np.ndarray, mask: np.ndarray | None = None) -> float:

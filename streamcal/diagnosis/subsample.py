@@ -10,10 +10,11 @@ inside a block; the fits drop pairs across gaps). Two strata decide which blocks
   known); each bin keeps :data:`PER_BIN` blocks spread round-robin over the sphere cells it
   visits, the lowest random priority first in each cell. Every part of the time span keeps its
   samples, so drift, temperature and motor channels keep their leverage.
-- **direction**: every equal-area sphere cell (:class:`streamcal.stream.coverage`-style
-  partition, :data:`N_CELLS` cells) the recording visits keeps its lowest-priority block, so no
-  visited direction is lost. Cells are of the block's mean field direction about the centre of
-  the algebraic ellipsoid fit of every sample read so far (running sufficient statistics).
+- **direction**: every equal-area sphere cell (:class:`streamcal.sphere_cells.SphereCells`, the
+  coverage buffer's partition, :data:`N_CELLS` cells) the recording visits keeps its
+  lowest-priority block, so no visited direction is lost. Cells are of the block's mean field
+  direction about the centre of the algebraic ellipsoid fit of every sample read so far (running
+  sufficient statistics).
 
 Priorities are uniform random numbers from a fixed seed, so a subsample is reproducible. The
 diagnosis then runs on the subsample; the outlier spans are computed over the whole recording
@@ -30,6 +31,7 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL
 from ..fitting.ellipsoid import design_matrix
 from ..inputs.track import Track
+from ..sphere_cells import SphereCells
 from .entry import diagnose as _diagnose
 from .residuals import sensor_residual
 from .spans import outlier_spans, widen_outliers
@@ -52,28 +54,6 @@ PIECE = 50_000
 OUTLIER_WIDTHS, OUTLIER_SIGMAS = 2.0, 5.0
 
 
-class _SphereCells:
-    """Equal-area sphere cells (the same partition as the coverage report's), built here because
-    :mod:`streamcal.stream` sits above the diagnosis layer."""
-
-    def __init__(self, n_cells: int):
-        side = np.sqrt(4.0 * np.pi / n_cells)
-        n_bands = max(2, 2 * int(round(np.pi / side / 2.0)))
-        theta_mid = (np.arange(n_bands) + 0.5) * np.pi / n_bands
-        counts = np.maximum(1, np.round(2.0 * np.pi * np.sin(theta_mid) / side)).astype(int)
-        self.counts = np.maximum(counts, counts[::-1])
-        self.offsets = np.concatenate([[0], np.cumsum(self.counts)[:-1]])
-        self.z_edges = 1.0 - 2.0 * np.concatenate([[0], np.cumsum(self.counts)]) / self.counts.sum()
-        self.z_edges[-1] = -1.0
-
-    def cell_of(self, d: np.ndarray) -> np.ndarray:
-        """Cell index (n,) of unit directions ``d`` (n,3)."""
-        band = np.searchsorted(-self.z_edges[1:-1], -d[:, 2], side="right")
-        n = self.counts[band]
-        phi = np.arctan2(d[:, 1], d[:, 0])
-        return self.offsets[band] + np.minimum((phi + np.pi) * (n / (2.0 * np.pi)), n - 1).astype(int)
-
-
 def _round_robin(cell: np.ndarray, u: np.ndarray, q: int) -> np.ndarray:
     """Indices of the ``q`` blocks a round-robin over cells picks (lowest ``u`` first in each
     cell, cells in order of their next-lowest ``u``): water-filling the cells to one level."""
@@ -94,7 +74,7 @@ class StratifiedSampler:
     def __init__(self, block_s: float = BLOCK_S, time_bins: int = TIME_BINS,
                  per_bin: int = PER_BIN, n_cells: int = N_CELLS, seed: int = 0):
         self.block_s, self.time_bins, self.per_bin = float(block_s), int(time_bins), int(per_bin)
-        self.cells = _SphereCells(n_cells)
+        self.cells = SphereCells(n_cells)
         self.rng = np.random.default_rng(seed)
         self.width = 4.0 * self.block_s          # time-bin width, s (doubles as needed)
         self.t0 = None

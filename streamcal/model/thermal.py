@@ -15,83 +15,35 @@ from typing import Mapping
 
 import numpy as np
 
-from ._common import column, number, only_keys, same_constant, vector3
+from .linear_term import LinearTerm
 
 _EYE = np.eye(3)
 
 
-class _TemperatureTerm:
-    """What both temperature terms share: ``T0``, ``ΔT`` and one 3-vector parameter ``PARAM``."""
-
-    name = ""
-    PARAM = ""
-
-    def __init__(self, T0: float):
-        self.T0 = float(T0)
-
-    @classmethod
-    def build(cls, cov: Mapping[str, np.ndarray]):
-        return cls(float(np.nanmedian(column(cov, "temp", cls.name))))
-
-    @classmethod
-    def from_params(cls, params: Mapping):
-        only_keys(params, ("T0", cls.PARAM), cls.name)
-        vector3(params, cls.PARAM, cls.name)
-        return cls(number(params, "T0", cls.name))
-
-    def n_params(self) -> int:
-        return 3
-
-    def initial(self) -> np.ndarray:
-        return np.zeros(3)
-
-    def _dT(self, cov):
-        return column(cov, "temp", self.name) - self.T0
-
-    def _physical_vector(self, params: Mapping) -> np.ndarray:
-        same_constant(self.T0, number(params, "T0", self.name), "T0", self.name)
-        return vector3(params, self.PARAM, self.name)
-
-
-class TemperatureOffset(_TemperatureTerm):
+class TemperatureOffset(LinearTerm):
     """``f_j = c (T_j − T0)``: offset drifting linearly with temperature."""
 
     name = "temperature_offset"
-    PARAM = "c"
-
-    def term(self, theta, u, cov):
-        return self._dT(cov)[:, None] * np.asarray(theta)[None, :]
-
-    def jac_theta(self, theta, u, cov):
-        return self._dT(cov)[:, None, None] * _EYE[None]
-
-    def jac_u(self, theta, u, cov):
-        return None
-
-    def to_physical(self, theta, scale: float) -> dict:
-        return {"T0": self.T0, "c": [float(v) for v in np.asarray(theta) * scale]}
-
-    def from_physical(self, params: Mapping, scale: float) -> np.ndarray:
-        return self._physical_vector(params) / scale
+    COLUMN, REF, PARAM = "temp", "T0", "c"
 
 
-class TemperatureScale(_TemperatureTerm):
+class TemperatureScale(LinearTerm):
     """``f_j = diag(s) (T_j − T0) u_j``: per-axis gain changing linearly with temperature."""
 
     name = "temperature_scale"
-    PARAM = "s"
+    COLUMN, REF, PARAM = "temp", "T0", "s"
 
     def term(self, theta, u, cov):
-        return self._dT(cov)[:, None] * np.asarray(theta)[None, :] * u
+        return self.delta(cov)[:, None] * np.asarray(theta)[None, :] * u
 
     def jac_theta(self, theta, u, cov):
-        return (self._dT(cov)[:, None] * u)[:, :, None] * _EYE[None]
+        return (self.delta(cov)[:, None] * u)[:, :, None] * _EYE[None]
 
     def jac_u(self, theta, u, cov):
-        return (self._dT(cov)[:, None] * np.asarray(theta)[None, :])[:, :, None] * _EYE[None]
+        return (self.delta(cov)[:, None] * np.asarray(theta)[None, :])[:, :, None] * _EYE[None]
 
     def to_physical(self, theta, scale: float) -> dict:
-        return {"T0": self.T0, "s": [float(v) for v in np.asarray(theta)]}
+        return {self.REF: self.ref, self.PARAM: [float(v) for v in np.asarray(theta)]}
 
     def from_physical(self, params: Mapping, scale: float) -> np.ndarray:
         return self._physical_vector(params)

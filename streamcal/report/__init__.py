@@ -18,8 +18,8 @@ from .terminal import coverage_map, coverage_view
 
 # The figures and the page load matplotlib: imported on first use, so that the terminal view
 # (drawn by the services at coverage milestones) does not load it (startup, issue #12).
-_LAZY = {"FigureData": "figures", "RenderedFigure": "figures", "render_figures": "figures",
-         "render_html": "html", "write_report": "html"}
+_LAZY = {"FigureData": "figure_data", "RenderedFigure": "figure_common",
+         "render_figures": "figures", "render_html": "html", "write_report": "html"}
 
 
 def __getattr__(name):
@@ -37,7 +37,8 @@ def write_diagnosis_plots(diagnosis, track, directory: str | os.PathLike,
     on ``track`` as ``DIRECTORY/<name>.png`` (atomically; the directory is created). Returns the
     paths written."""
     from ..atomic import atomic_write_bytes
-    from .figures import FigureData, render_figures
+    from .figure_data import FigureData
+    from .figures import render_figures
 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -17,7 +17,8 @@ from matplotlib.figure import Figure
 
 from ..diagnosis.held import project
 from ..model import TERMS, terms_from_params
-from .figures import RenderedFigure, _png, unit_label
+from .figure_common import RenderedFigure, png_bytes
+from .figure_data import unit_label
 
 MAX_PANELS = 4
 N_BINS = 16
@@ -109,4 +110,4 @@ def aux_residual_figure(track, diagnosis) -> RenderedFigure | None:
                + (f"; green: with the top candidate, {added}, added" if added else "")
                + ". A field that follows the channel shows as a slope of the blue curve; r is "
                "how closely the residual follows that channel alone.")
-    return RenderedFigure(NAME, TITLE, caption, _png(fig))
+    return RenderedFigure(NAME, TITLE, caption, png_bytes(fig))

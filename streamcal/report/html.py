@@ -16,8 +16,10 @@ from pathlib import Path
 import numpy as np
 
 from ..atomic import atomic_write_text
-from .figures import (RESIDUAL_FAMILIES, FigureData, RenderedFigure, ladder_steps,
-                      relative_change, render_figures, unit_label)
+from .figure_common import RenderedFigure
+from .figure_data import FigureData, unit_label
+from .figures import render_figures
+from .figures_ladder import RESIDUAL_FAMILIES, ladder_steps, relative_change
 
 _CSS = """
 body{font-family:-apple-system,"Segoe UI",Helvetica,Arial,sans-serif;max-width:1240px;margin:0 auto;

@@ -3,7 +3,7 @@
 The two hemispheres of field directions (around +Z and −Z, each seen from outside) are drawn
 side by side as Lambert azimuthal equal-area discs, one character per grid point: the point is
 mapped back onto the sphere and shows whether its cell of the coverage partition
-(:class:`streamcal.stream.sphere_cells.SphereCells`) holds a sample. Terminal characters are about
+(:class:`streamcal.sphere_cells.SphereCells`) holds a sample. Terminal characters are about
 twice as tall as wide, so each disc is twice as many columns as rows.
 
     print(coverage_view(calibrator.buffer))
@@ -54,7 +54,7 @@ def coverage_map(cells, occupied, rows: int = 7, ascii: bool = False, gap=None) 
     """The two hemispheres side by side, rim labelled with body axes.
 
     Args:
-        cells: a :class:`~streamcal.stream.sphere_cells.SphereCells` partition.
+        cells: a :class:`~streamcal.sphere_cells.SphereCells` partition.
         occupied: (C,) bool, cells holding a sample.
         rows: text rows per disc (≥ 3); each disc is ``2·rows + 1`` columns.
         ascii: ``#``/``.`` instead of ``█``/``·``.

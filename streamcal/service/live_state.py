@@ -16,7 +16,7 @@ Snapshot keys (JSON, what ``/events`` sends and ``/state.json`` returns):
 
 - ``seq``: capture number; ``uptime_s``: wall seconds since the page started.
 - ``coverage``: occupied cells / all cells (0..1); ``cells``: ``{"counts": [...], "z_edges":
-  [...]}`` the equal-area partition (:class:`~streamcal.stream.sphere_cells.SphereCells`: cells per
+  [...]}`` the equal-area partition (:class:`~streamcal.sphere_cells.SphereCells`: cells per
   band north first, band edges in z) and ``occupied``: one ``"0"``/``"1"`` per cell;
   ``n_samples``; ``gap``: ``{"deg", "center": [x, y, z]}`` the largest empty cap (body axes of
   the current frame); ``hint``: where to turn next (the same words as the terminal report).
@@ -54,7 +54,7 @@ from collections import deque
 import numpy as np
 
 from ..geomag import NO_LOCATION, compare, dip_deg
-from ..stream.sphere_cells import hint, largest_empty_cap
+from ..sphere_cells import hint, largest_empty_cap
 
 #: The residual the calibration's ``rms`` is computed on.
 RMS_RESIDUAL = "sensor estimation error over inliers (paper eq. 41)"

@@ -14,7 +14,7 @@ import importlib
 _WHERE = {
     "StreamingCalibrator": "calibrator", "Event": "events", "default_fitter": "fitworker",
     "CoverageBuffer": "coverage", "CoverageReport": "coverage", "Snapshot": "coverage",
-    "SphereCells": "sphere_cells", "AcceptanceGuard": "guard", "Decision": "guard",
+    "SphereCells": "coverage", "AcceptanceGuard": "guard", "Decision": "guard",
     "RecalPolicy": "policy", "CalibrationStore": "store", "LoadResult": "store",
 }
 

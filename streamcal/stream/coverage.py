@@ -3,7 +3,7 @@
 Directions are ``x = A (m − c)`` normalised, with ``(A, c)`` the current frame: ``K⁻¹, b`` of the
 calibration in use, or ``I/R, centre`` of the running sphere estimate before the first one.
 
-Cells: :class:`~.sphere_cells.SphereCells` (equal-area, O(1) lookup).
+Cells: :class:`~streamcal.sphere_cells.SphereCells` (equal-area, O(1) lookup).
 
 Each cell keeps at most ``slots`` samples, at least ``min_spacing_deg`` apart (ArduPilot keeps
 ≥ 6.3°, PX4 6.7°); a new sample that is far from all stored samples of its cell takes a free
@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .sphere_cells import SphereCells, hint, largest_empty_cap
+from ..sphere_cells import SphereCells, hint, largest_empty_cap
 
 
 @dataclass(frozen=True)
