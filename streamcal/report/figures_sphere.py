@@ -123,7 +123,6 @@ def coverage_figure(data: FigureData) -> Figure:
     cells, count, rms, fraction, gap_c, gap_r = coverage_cells(data)
     fig = Figure(figsize=(12, 5.4))
     axes = fig.subplots(1, 2)
-    fig.subplots_adjust(left=0.02, right=0.86, bottom=0.02, top=0.84, wspace=0.05)
     floor = data.diagnosis.noise_floor if data.diagnosis is not None else float("nan")
     finite = rms[np.isfinite(rms)]
     vmax = float(np.percentile(finite, 98)) if finite.size else 1.0
@@ -175,9 +174,13 @@ def coverage_figure(data: FigureData) -> Figure:
     else:
         second = ("approximate: directions seen from the centre of a one-pass sphere fit, "
                   "because the full fit was refused")
-    fig.suptitle(f"coverage of the sphere of field directions: {100 * fraction:.0f}% "
-                 f"({seen}/{cells.n_cells} equal-area cells; grey = never seen)\n" + second,
-                 fontsize=10)
+    title = (f"coverage of the sphere of field directions: {100 * fraction:.0f}% "
+             f"({seen}/{cells.n_cells} equal-area cells; grey = never seen)\n" + second)
+    fig.suptitle(title, fontsize=10)
+    # room for every line of the title above the two subplot titles (≈ 0.19 in a line)
+    lines = title.count("\n") + 1
+    fig.subplots_adjust(left=0.02, right=0.86, bottom=0.02, wspace=0.05,
+                        top=1.0 - (0.19 * lines + 0.42) / fig.get_figheight())
     return fig
 
 
