@@ -26,3 +26,18 @@ def test_coverage_title_clears_the_subplot_titles(real_tracks_dir):
         if ax.get_title():
             box = ax.title.get_window_extent(renderer)
             assert box.y1 < top.y0, (ax.get_title(), box, top)
+
+
+def test_before_after_figure_of_the_top_effect_exists_without_aux_channels(tmp_path):
+    """A track with no motor/current column still gets the residual before and after its top
+    effect, against time, on the same axes."""
+    from streamcal.report.figures_aux import aux_residual_figure
+    from streamcal.sim import simulate
+
+    track = simulate(120.0, seed=4, effects={"time_drift": 0.05}, motor=False, temp_delta_c=0.0).track
+    assert not track.aux_names
+    d = diagnose(track)
+    assert d.candidates and d.candidates[0].effect == "time_drift"
+    fig = aux_residual_figure(track, d)
+    assert fig is not None and "with the top candidate, time_drift, added" in fig.caption
+    assert fig.png.startswith(b"\x89PNG")

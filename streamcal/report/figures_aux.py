@@ -1,7 +1,7 @@
-"""The figure a drone user wants: the residual against motor output, current, throttle and
-temperature, before and after the top effect is added (issue #10).
+"""The residual before and after the top effect is added, against time and against motor
+output, current, throttle and temperature — the figure a drone user wants.
 
-For each auxiliary channel the recording carries (the ones the residual follows most first,
+One panel against time (``t``, always: drift, warm-up and whatever else is slow), then for each auxiliary channel the recording carries (the ones the residual follows most first,
 from the diagnosis' ``aux_channels`` scores, at most :data:`MAX_PANELS`) and for ``temp``, one
 panel: the signed sensor residual (eq. 41: distance of each reading from the model surface along
 its normal, in the sensor unit) binned by the channel into :data:`N_BINS` equal-count bins, the
@@ -23,11 +23,11 @@ from .figure_data import unit_label
 MAX_PANELS = 4
 N_BINS = 16
 #: Units of the channels the readers produce (by name, else by suffix).
-CHANNEL_UNITS = {"throttle": "0..1", "temp": "°C", "motor_current": "A"}
+CHANNEL_UNITS = {"t": "s", "throttle": "0..1", "temp": "°C", "motor_current": "A"}
 SUFFIX_UNITS = (("_a", "A"), ("_v", "V"), ("_c", "°C"))
 _BEFORE, _AFTER = "#1f5fa8", "#2ca02c"
 NAME = "aux_residuals"
-TITLE = "Residual against motor output, current, throttle and temperature"
+TITLE = "Residual before and after the top effect, against time and each channel"
 
 
 def channel_unit(name: str) -> str:
@@ -52,7 +52,7 @@ def _channels(diagnosis, cov) -> list[str]:
     scored = [c for c in getattr(diagnosis, "aux_channels", {}) if c in cov]
     rest = [c for c in cov if c not in scored and c not in (
         "t", "temp", "ax", "ay", "az", "gx", "gy", "gz")]
-    chans = (scored + rest)[:MAX_PANELS]
+    chans = ["t"] + (scored + rest)[:MAX_PANELS]
     if "temp" in cov and np.ptp(np.asarray(cov["temp"], float)) > 0:
         chans.append("temp")
     return [c for c in chans if np.ptp(np.asarray(cov[c], float)) > 0]
@@ -68,12 +68,12 @@ def _binned(x: np.ndarray, y: np.ndarray):
 
 
 def aux_residual_figure(track, diagnosis) -> RenderedFigure | None:
-    """The figure, or None when the track has no auxiliary channel or temperature that varies,
-    or the diagnosis has no calibration to compute a residual from."""
+    """The figure, or None when the diagnosis has no calibration to compute a residual from."""
     cal = getattr(diagnosis, "calibration", None)
     if diagnosis is None or cal is None:
         return None
     cov = {k: np.asarray(v, float) for k, v in track.covariates_at_mag().items()}
+    cov.setdefault("t", np.asarray(track.t_mag, float))
     chans = _channels(diagnosis, cov)
     if not chans:
         return None
@@ -108,6 +108,9 @@ def aux_residual_figure(track, diagnosis) -> RenderedFigure | None:
                f"model surface along its normal, {unit}) in {N_BINS} equal-count bins of each "
                "channel: median line, 25–75 % band. Blue: the model as diagnosed"
                + (f"; green: with the top candidate, {added}, added" if added else "")
+               + ("" if added or top is None else f"; the top candidate, {top.effect}, is judged on "
+                  f"the {top.residual.replace('_', '-')} residual, so it is not drawn on this "
+                  "one (the ladder figure compares it)")
                + ". A field that follows the channel shows as a slope of the blue curve; r is "
                "how closely the residual follows that channel alone.")
     return RenderedFigure(NAME, TITLE, caption, png_bytes(fig))
