@@ -34,8 +34,9 @@ def test_before_after_figure_of_the_top_effect_exists_without_aux_channels(tmp_p
     from streamcal.report.figures_aux import aux_residual_figure
     from streamcal.sim import simulate
 
-    track = simulate(120.0, seed=4, effects={"time_drift": 0.05}, motor=False, temp_delta_c=0.0).track
-    assert not track.aux_names
+    sim = simulate(120.0, seed=4, effects={"time_drift": 0.05}, motor=False).track
+    track = Track({k: v for k, v in sim.columns.items() if k != "temp"}, sim.metadata)
+    assert not track.aux_names and not track.has("temp")
     d = diagnose(track)
     assert d.candidates and d.candidates[0].effect == "time_drift"
     fig = aux_residual_figure(track, d)
