@@ -29,7 +29,8 @@ SUMMARY = """\
 
 - **BROAD 32 (magnet attached 1 cm away)**: now fitted on its undisturbed support (autocal's
   coherent-disturbance start, 762d4a3): the attached-magnet period is one outlier span
-  (38–95 s, 13 423 samples), the rest is at_noise_floor. BROAD 30 (a stationary magnet nearby)
+  (38–95 s, 13 423 samples); its floor is not measurable (repeated readings), so since round 2
+  the verdict is `unexplained` rather than at_noise_floor. BROAD 30 (a stationary magnet nearby)
   shows three short spans where it passes the magnet. BROAD 32's gravity-tied time_lag (13.9 ms,
   1.14 → 1.05 µT, both refitted on every sample) is not material; that refit used to drift
   onto the magnet's samples (4.87 µT) until the registration LM capped its kernel at 2 widths.
@@ -53,10 +54,13 @@ SUMMARY = """\
   material (−6 % / −4 %); set 1's gyro clips at 250 °/s (197 rows at full scale; pairs across
   them are dropped). **tlefloch**: 1.7 ms, nothing (the gyro's frame is the magnetometer's turned
   180° about x, which the fitted gyro map absorbs).
-- **jr_mpu9250_accmag (AK8963 14-bit, counts)**: at_noise_floor; the LSB (1 count, quantization
-  noise 0.29 counts) is *not* what sets the floor at 3.3 Hz: the second differences still carry
-  the hand's motion, so the floor (4.1 counts) exceeds the rms (1.8 counts ≈ 1 µT). The same
-  holds for the other 3 Hz `jr_*` logs (rms / floor < 1): the floor is only an upper bound there.
+- **jr_mpu9250_accmag (AK8963 14-bit, counts)** and the other 3 Hz `jr_*` logs: the noise floor
+  cannot be measured (round 2): at 3.3 Hz the second differences still carry the hand's motion
+  (their lag-1 correlation is ≈ −0.05, not the −0.67 of white noise), so what they gave (4.1
+  counts) exceeded the rms (1.8 counts). The floor is now `null` with the reason, no ratio is
+  printed, and with no floor to be "at", these logs are `unexplained` or, where a candidate is
+  significant and material, `effect_missing`. BROAD 02/30/32 likewise (29 % of the readings repeat
+  the previous one).
 - **tlefloch (1.8 K swing)**: enough to see a thermal effect — temperature_scale (r = 0.57) and
   temperature_offset (r = 0.55) are significant and cut the rms by ~20 % — but time_drift (r = 0.60)
   explains it slightly better: the temperature rises monotonically during the 2-minute log, so
@@ -67,8 +71,10 @@ SUMMARY = """\
   accelerometer's (the fitted rotation is ≈ 180° or ≈ 87°): mag_accel_misalignment is then a
   real and large frame difference, not a small mounting error; its rms_after is on the
   gravity-tied scale (marked in the ladder), not comparable with the free-direction rms.
-- tiva_* (magnetometer only, 100 Hz, counts): at_noise_floor verdicts with rms 1.2–3.9 × the
-  floor and scattered short spans — the model misfit left is not one of the catalog effects.
+- tiva_* (magnetometer only, 100 Hz, counts): rms 1.2–3.9 × a measurable floor. Round 2 applies
+  the stated rule (at_noise_floor only within 1.5× the floor): 02 and 03 stay at_noise_floor, the
+  others are `unexplained`, and the misfit line says where the energy sits (e.g. tiva_06: 41 % of
+  it in the 24 % of samples with the field along +Y) — the misfit left is not a catalog effect.
 - **kernel**: diagnose now fits with `streamcal fit`'s default kernel (`auto`: Cauchy, then a
   Geman–McClure polish; session 2), so every rms and outlier count here is what `streamcal fit`
   reports (BROAD 32 1.128 µT, 13 423 outliers; with Cauchy it read 0.842 µT, 14 498). No
@@ -83,6 +89,33 @@ SUMMARY = """\
 
 def _fmt(v, digits=4) -> str:
     return "–" if v is None or v != v else f"{v:.{digits}g}"
+
+
+def _misfit(misfit: dict) -> str:
+    """Per family of places, the bin with the largest excess (share of the residual energy ÷
+    share of the samples), in words."""
+    def place(b):
+        if "t" in b and None not in b["t"]:
+            return f"t {b['t'][0]:.0f}–{b['t'][1]:.0f} s"
+        if "axis" in b:
+            return f"field along {b['axis']}"
+        if "rad_s" in b:
+            lo, hi = b["rad_s"]
+            return f"rotation above {lo:g} rad/s" if hi is None else f"rotation {lo:g}–{hi:g} rad/s"
+        return ", ".join(f"{k} {v}" for k, v in b.items() if k not in ("share", "samples", "excess"))
+
+    families = {"time": misfit.get("time"), "directions": misfit.get("directions"),
+                "rotation rate": (misfit.get("rotation_rate") or {}).get("bins")}
+    for name, bins in (misfit.get("covariates") or {}).items():
+        families[name] = bins
+    parts = []
+    for family, bins in families.items():
+        bins = [b for b in (bins or []) if isinstance(b, dict) and b.get("samples")]
+        if bins:
+            top = max(bins, key=lambda b: b["excess"])
+            parts.append(f"{family}: {100 * top['share']:.0f}% of the energy in "
+                         f"{100 * top['samples']:.0f}% of the samples ({place(top)})")
+    return "; ".join(parts) or "–"
 
 
 def _spans(spans) -> str:
@@ -121,19 +154,32 @@ def diagnose_one(path: Path) -> list[str]:
         return lines + [f"- **failed**: {tb}", ""]
     dt = time.perf_counter() - t0
     noise = d.noise
+    out = d.to_dict()
     lsb = [v for v in noise.get("lsb", []) if v]
-    lines += [f"- verdict **{d.verdict}** ({dt:.1f} s)",
-              f"- rms {_fmt(d.rms)} {track.mag_unit}, noise floor {_fmt(d.noise_floor)} "
-              f"({noise.get('method')}; per axis {', '.join(_fmt(v, 3) for v in noise['sigma_axes'])}"
-              + (f"; quantized, LSB {', '.join(_fmt(v, 3) for v in noise['lsb'])}" if lsb else "")
-              + f"), rms / floor = {_fmt(d.rms / d.noise_floor, 3) if d.noise_floor else '–'}",
+    unit = track.mag_unit
+    residual = out.get("residual", "sensor")
+    if d.noise_floor_reliable and d.noise_floor:
+        floor = (f"noise floor {_fmt(d.noise_floor)} {unit} ({noise.get('method')}; per axis "
+                 f"{', '.join(_fmt(v, 3) for v in noise['sigma_axes'])}"
+                 + (f"; quantized, LSB {', '.join(_fmt(v, 3) for v in noise['lsb'])}" if lsb else "")
+                 + f"), rms / floor = {_fmt(d.rms / d.noise_floor, 3)}")
+    else:
+        floor = f"noise floor not measurable: {d.noise_floor_reason}"
+    lines += [f"- verdict **{d.verdict}** ({dt:.1f} s); rule: {d.noise_floor_rule}",
+              f"- rms {_fmt(d.rms)} {unit} on the {residual} residual; {floor}",
               f"- outliers {d.n_outliers} of {d.n}; spans (s): {_spans(d.outlier_spans)}"]
-    if d.candidates:
-        lines += ["", "| candidate | rms after | p-value | significant | evidence |",
-                  "|---|---|---|---|---|"]
-        for c in d.candidates[:5]:
-            lines.append(f"| {c.effect} | {_fmt(c.rms_after)} | {c.p_value:.2g} | "
-                         f"{'yes' if c.significant else 'no'} | {c.evidence} |")
+    if d.verdict == "unexplained" and out.get("misfit"):
+        lines.append("- misfit: " + _misfit(out["misfit"]))
+    if out.get("candidates"):
+        lines += ["", "| candidate | residual | rms before → after | p-value | significant | "
+                  "material | evidence |", "|---|---|---|---|---|---|---|"]
+        for c in out["candidates"][:5]:
+            before = c.get("rms_before")
+            lines.append(f"| {c['effect']} | {c.get('residual', 'sensor')} | "
+                         f"{_fmt(before if before is not None else d.rms)} → {_fmt(c['rms_after'])} | "
+                         f"{c['p_value']:.2g} | {'yes' if c.get('significant') else 'no'} | "
+                         f"{'yes' if c.get('material') else 'no'} | {c['evidence']} |")
+        lines += ["", f"significance rule: {d.significance_rule}"]
     if len(d.ladder) > 1:
         lines += ["", "ladder: " + " → ".join(
             f"{s.get('added', '+'.join(s['model']))} {_fmt(s['rms'])}"
