@@ -457,12 +457,21 @@ def format_text(columns: dict[str, np.ndarray], metadata: dict[str, str]) -> str
     Floats are written with ``repr`` (shortest string that reads back to the same float);
     NaN becomes an empty cell.
     """
+    return format_head(list(columns), metadata) + format_rows(columns)
+
+
+def format_head(names: list[str], metadata: dict[str, str]) -> str:
+    """The metadata lines and the header line of :func:`format_text`, each ending in newline."""
     head = [f"# {VERSION_KEY}: {VERSION}"]
     head += [f"# {k}: {v}" for k, v in check_metadata(metadata).items() if k != VERSION_KEY]
-    head.append(",".join(columns))
+    head.append(",".join(names))
+    return "\n".join(head) + "\n"
+
+
+def format_rows(columns: dict[str, np.ndarray]) -> str:
+    """The data lines of :func:`format_text` (one per row, each ending in newline)."""
     cells = [_format_column(np.asarray(col, dtype=np.float64)) for col in columns.values()]
-    rows = map(",".join, zip(*cells))
-    return "\n".join(head) + "\n" + "\n".join(rows) + "\n"
+    return "\n".join(map(",".join, zip(*cells))) + "\n"
 
 
 def write(path: str | os.PathLike, columns: dict[str, np.ndarray],
