@@ -57,6 +57,7 @@ class Client(threading.Thread):
         self.addr, self.mode, self.args, self.stop, self.alive = addr, mode, args, stop, alive
         self.events = self.connects = self.dropped = self.refused = 0
         self.last: dict | None = None
+        self.drop_times: list[float] = []          # monotonic instants of the drops
 
     def run(self) -> None:
         while not self.stop.is_set():
@@ -65,6 +66,7 @@ class Client(threading.Thread):
             except OSError:            # reset, refused or 5 s without a byte
                 if not self.stop.is_set() and self.alive():
                     self.dropped += 1
+                    self.drop_times.append(time.monotonic())
             if self.mode == "vanish":
                 self.stop.wait(self.args.vanish_every)
             else:
@@ -88,6 +90,7 @@ class Client(threading.Thread):
                         self.refused += 1
                     elif not self.stop.is_set() and self.alive():
                         self.dropped += 1
+                        self.drop_times.append(time.monotonic())
                     return
                 buf += chunk
                 *lines, buf = buf.split(b"\n")
@@ -185,7 +188,8 @@ def _soak(args, proc, err, wall: float) -> int:
         "rss_min_after_warmup_mib": float(rss[after].min()),
         "slope_mib_per_sim_h": slope,
         "clients": {c.mode: {"events": c.events, "connects": c.connects,
-                             "dropped_by_server": c.dropped, "refused_503": c.refused}
+                             "dropped_by_server": c.dropped, "refused_503": c.refused,
+                             "dropped_at_s": [round(d - start, 1) for d in c.drop_times]}
                     for c in clients},
         "last_event_device": steady.get("device"),
         "curve": [[round(float(a), 4), round(float(b), 1)] for a, b in zip(t, rss)],
@@ -199,7 +203,8 @@ def _soak(args, proc, err, wall: float) -> int:
     print(f"slope after warm-up: {slope:+.2f} MiB per simulated hour (least squares)")
     for mode, c in out["clients"].items():
         print(f"client {mode:<7} events {c['events']:>6}  connects {c['connects']:>5}  "
-              f"dropped by server {c['dropped_by_server']:>4}  refused 503 {c['refused_503']}")
+              f"dropped by server {c['dropped_by_server']:>4} (at {c['dropped_at_s']} s of "
+              f"{alive_s:.0f})  refused 503 {c['refused_503']}")
     print(f"last event's device block: {out['last_event_device']}")
     print(f"daemon stderr tail: {tail.strip()[-300:]}")
     if args.json:
