@@ -7,6 +7,7 @@ up with them.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
 import time
@@ -72,3 +73,34 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes, mode: int = 0o600) 
 def atomic_write_text(path: str | os.PathLike, text: str, mode: int = 0o600) -> None:
     """Text (UTF-8) version of :func:`atomic_write_bytes`."""
     atomic_write_bytes(path, text.encode("utf-8"), mode)
+
+
+@contextlib.contextmanager
+def atomic_open(path: str | os.PathLike, mode: int = 0o600):
+    """A binary file handle to write ``path`` in pieces: the bytes go to a temp file in the same
+    directory, which replaces ``path`` (fsync, rename, fsync the directory) when the ``with``
+    block ends normally; on an exception the temp file is removed and ``path`` left as it was."""
+    path = Path(path)
+    if path.is_symlink():
+        raise OSError(f"{path}: refusing to replace a symbolic link")
+    directory = path.parent if str(path.parent) else Path(".")
+    sweep_stale_temps(directory, path.name)
+    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=".tmp", dir=directory)
+    try:
+        os.fchmod(fd, mode)
+        with os.fdopen(fd, "wb") as handle:
+            yield handle
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    dir_fd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(dir_fd)
+    finally:
+        os.close(dir_fd)

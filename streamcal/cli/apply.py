@@ -6,7 +6,7 @@ import sys
 
 import numpy as np
 
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import RECORDING_HELP, add_input_options, read_track, recording_chunks
 
 
 def register(sub) -> None:
@@ -23,37 +23,60 @@ def register(sub) -> None:
     p.set_defaults(func=run)
 
 
+#: Rows per chunk of a section-1 track (memory is bounded by a chunk, not by the recording;
+#: 20 000 rows keep the parser's temporaries near 20 MiB: bench_replay_memory).
+CHUNK_ROWS = 20_000
+
+
 def run(args) -> int:
     from ..calibration import Calibration
     from ..errors import InputError
-    from ..export.apply import apply_calibration, write_applied
+    from ..export.apply_stream import applied_chunks, write_applied_chunks
+    from ..inputs.track import Track
 
     cal = Calibration.load(args.calibration)
-    track = read_track(args)
-    if not track.mag_rows.any():
-        raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz)")
-    if track.mag_unit != cal.unit:
-        raise InputError(f"{args.track}: magnetometer in {track.mag_unit}, the calibration in "
-                         f"{cal.unit}")
-    cov = track.covariates_at_mag()
-    accel = np.column_stack([cov[c] for c in ("ax", "ay", "az")]) \
-        if all(c in cov for c in ("ax", "ay", "az")) else None
-    applied = apply_calibration(cal, track.t_mag, track.mag, cov, accel)
-    meta = {"streamcal-applied": "1", "calibration": str(args.calibration),
-            "recording": str(args.track),
-            "field": (f"|B| = {applied.field_scale:.6g} {cal.unit} (the calibration's field)"
-                      if applied.field_known else
-                      f"|B| unknown: fields scaled by K's mean radius {applied.field_scale:.6g} "
-                      f"{cal.unit}"),
-            "heading": ("degrees from magnetic north of body x, tilt-compensated with the "
-                        "accelerometer" if accel is not None else "none: no accelerometer")}
-    write_applied(args.output, applied, meta)
-    norm = np.linalg.norm(applied.field, axis=1)
+    if getattr(args, "unit", None) is not None:
+        chunks = iter([read_track(args)])        # read_track explains --unit on a track
+    else:
+        chunks = recording_chunks(args, rows=CHUNK_ROWS)
+    stats = np.zeros(3)                           # samples, sum |f|, sum |f|^2
+    field = {}
+
+    def checked():
+        for k, chunk in enumerate(chunks):
+            if k == 0 and chunk.mag_unit != cal.unit:
+                raise InputError(f"{args.track}: magnetometer in {chunk.mag_unit}, the "
+                                 f"calibration in {cal.unit}")
+            yield chunk
+
+    def pieces():
+        for piece in applied_chunks(cal, checked(), Track):
+            norm = np.linalg.norm(piece.field, axis=1)
+            stats[:] += (len(norm), norm.sum(), np.square(norm).sum())
+            field.update(scale=piece.field_scale, known=piece.field_known)
+            yield piece
+        if not stats[0]:
+            raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz)")
+
+    def meta(piece):
+        return {"streamcal-applied": "1", "calibration": str(args.calibration),
+                "recording": str(args.track),
+                "field": (f"|B| = {piece.field_scale:.6g} {cal.unit} (the calibration's field)"
+                          if piece.field_known else
+                          f"|B| unknown: fields scaled by K's mean radius "
+                          f"{piece.field_scale:.6g} {cal.unit}"),
+                "heading": ("degrees from magnetic north of body x, tilt-compensated with the "
+                            "accelerometer" if piece.heading_deg is not None
+                            else "none: no accelerometer")}
+
+    write_applied_chunks(args.output, pieces(), meta)
+    n, total, squares = stats
+    mean = total / n
     from ..units import display_unit
 
-    print(f"{args.output}: {len(norm)} samples, |field| {np.mean(norm):.4g} ± {np.std(norm):.2g} "
-          f"{display_unit(cal.unit)}")
-    if not applied.field_known:
+    print(f"{args.output}: {int(n)} samples, |field| {mean:.4g} ± "
+          f"{np.sqrt(max(squares / n - mean * mean, 0.0)):.2g} {display_unit(cal.unit)}")
+    if not field["known"]:
         print("streamcal apply: the calibration has no field strength; |field| is in units of "
               "K's mean radius", file=sys.stderr)
     return 0

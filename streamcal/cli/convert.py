@@ -2,7 +2,11 @@
 (docs/tracks_and_inputs.md)."""
 from __future__ import annotations
 
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import RECORDING_HELP, add_input_options, read_track, recording_chunks
+
+#: Rows per chunk of a section-1 track (memory is bounded by a chunk, not by the recording;
+#: 20 000 rows keep the parser's temporaries near 20 MiB: bench_replay_memory).
+CHUNK_ROWS = 20_000
 
 
 def register(sub) -> None:
@@ -19,11 +23,29 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    track = read_track(args)
-    track.write(args.output)
-    print(f"{args.output}: {len(track)} rows, {len(track.t_mag)} mag samples, "
-          f"{track.t[-1] - track.t[0]:.1f} s, columns {','.join(track.columns)}")
+    if getattr(args, "unit", None) is not None:   # read_track explains --unit on a track
+        track = read_track(args)
+        track.write(args.output)
+        _say(args, len(track), len(track.t_mag), track.t[-1] - track.t[0], track)
+        return 0
+    from ..inputs.track_writer import track_writer
+
+    rows = mag = 0
+    first = last = None
+    with track_writer(args.output) as write:
+        for chunk in recording_chunks(args, rows=CHUNK_ROWS):
+            write(chunk)
+            rows, mag = rows + len(chunk), mag + len(chunk.t_mag)
+            if len(chunk):
+                first = chunk.t[0] if first is None else first
+                last, kept = chunk.t[-1], chunk
+    _say(args, rows, mag, last - first, kept)
+    return 0
+
+
+def _say(args, rows: int, mag: int, seconds: float, track) -> None:
+    print(f"{args.output}: {rows} rows, {mag} mag samples, {seconds:.1f} s, columns "
+          f"{','.join(track.columns)}")
     for key in ("mag_offsets_undone", "mag_calibration_undone", "read_warnings"):
         if key in track.metadata:
             print(f"  {key}: {track.metadata[key]}")
-    return 0

@@ -70,20 +70,35 @@ def apply_calibration(cal: Calibration, t, mag, covariates: Mapping[str, np.ndar
                    known, cal.unit)
 
 
-def format_csv(applied: Applied, metadata: Mapping[str, str]) -> str:
-    """CSV text: ``# key: value`` lines, header, one row per sample (NaN → empty cell)."""
+def applied_columns(applied: Applied) -> dict[str, np.ndarray]:
+    """The output columns ``{name: (M,)}`` of :func:`format_csv`, in order."""
     u = applied.unit
     cols = {"t": applied.t, f"fx_{u}": applied.field[:, 0], f"fy_{u}": applied.field[:, 1],
             f"fz_{u}": applied.field[:, 2], "ux": applied.direction[:, 0],
             "uy": applied.direction[:, 1], "uz": applied.direction[:, 2]}
     if applied.heading_deg is not None:
         cols["heading_deg"] = applied.heading_deg
+    return cols
+
+
+def format_head(names, metadata: Mapping[str, str]) -> str:
+    """``# key: value`` lines and the header line of :func:`format_csv`."""
     head = [f"# {k}: {v}" for k, v in metadata.items()]
-    head.append(",".join(cols))
+    head.append(",".join(names))
+    return "\n".join(head) + "\n"
+
+
+def format_body(applied: Applied) -> str:
+    """The data lines of :func:`format_csv`: one per sample, NaN → empty cell."""
     buf = io.StringIO()
-    np.savetxt(buf, np.column_stack(list(cols.values())), delimiter=",", fmt="%.9g")
-    body = buf.getvalue().replace("nan", "")
-    return "\n".join(head) + "\n" + body
+    np.savetxt(buf, np.column_stack(list(applied_columns(applied).values())), delimiter=",",
+               fmt="%.9g")
+    return buf.getvalue().replace("nan", "")
+
+
+def format_csv(applied: Applied, metadata: Mapping[str, str]) -> str:
+    """CSV text: ``# key: value`` lines, header, one row per sample (NaN → empty cell)."""
+    return format_head(applied_columns(applied), metadata) + format_body(applied)
 
 
 def write_applied(path, applied: Applied, metadata: Mapping[str, str]) -> None:

@@ -305,20 +305,77 @@ def _semantic_problems(values: np.ndarray, names: list[str], problems: dict):
 # ----------------------------------------------------------------------------- read / write
 
 
+#: Bytes of the data section parsed per slice by :func:`read` (whole lines; a longer line is
+#: one slice). Bounds the parser's temporaries: its peak is the file's bytes, the result and
+#: about ten times a slice, not several times the file.
+SLICE_BYTES = 1 << 20
+
+
+def _preamble_of(raw: bytes, where: str):
+    """Parse the preamble from a prefix of ``raw`` ending at a newline (grown until the header
+    is found). Returns ``(metadata, header index, names, byte offset of the data section)``."""
+    size = 1 << 16
+    while True:
+        end = raw.rfind(b"\n", 0, size) + 1 if size < len(raw) else len(raw)
+        if end == 0:   # no newline within the prefix: take up to the first one
+            end = raw.find(b"\n", size) + 1 or len(raw)
+        try:
+            metadata, header_index, names, _ = parse_preamble(_decode(raw[:end]), where)
+        except TrackError as exc:
+            if end >= len(raw) or exc.line is not None:
+                raise
+            size = 2 * max(size, end)
+            continue
+        offset = 0   # the data section starts after the header's newline (same count in raw)
+        for _ in range(header_index + 1):
+            offset = raw.find(b"\n", offset) + 1
+            if offset == 0:
+                offset = len(raw)
+                break
+        return metadata, header_index, names, offset
+
+
 def read(path: str | os.PathLike, skip_bad_rows: bool = False) -> Parsed:
-    """Parse the track file at ``path``; raise :class:`TrackError` naming file, line and column."""
+    """Parse the track file at ``path``; raise :class:`TrackError` naming file, line and column.
+
+    The data section is parsed in slices of whole lines (:data:`SLICE_BYTES`) with
+    :func:`parse_rows`, as :mod:`streamcal.inputs.chunks` does, into one preallocated
+    (columns, rows) float64 array whose rows become the returned columns (views, no copy).
+    """
     where = os.fspath(path)
-    text = _decode(_load_bytes(where))
-    metadata, header_index, names, body = parse_preamble(text, where)
-    values, numbers, skipped, reasons = parse_rows(body, header_index + 2, names, where,
-                                                   skip_bad_rows)
-    if not len(numbers) and not skipped:
+    raw = _load_bytes(where)
+    metadata, header_index, names, pos = _preamble_of(raw, where)
+    capacity = raw.count(b"\n", pos) + 1
+    out = np.empty((len(names), capacity))
+    line_numbers = np.empty(capacity, dtype=np.int64)
+    n = skipped = 0
+    reasons: list[str] = []
+    first_line, t_before, time_col = header_index + 2, None, names.index(TIME)
+    while pos < len(raw):
+        end = raw.rfind(b"\n", pos, pos + SLICE_BYTES) + 1 \
+            if pos + SLICE_BYTES < len(raw) else len(raw)
+        if end == 0:   # one line longer than a slice
+            end = raw.find(b"\n", pos + SLICE_BYTES) + 1 or len(raw)
+        piece = raw[pos:end]
+        body = _decode(b"\n" + piece)[1:]   # a BOM only counts at the start of the file
+        values, numbers, bad, why = parse_rows(body, first_line, names, where, skip_bad_rows,
+                                               t_before)
+        first_line += piece.count(b"\n")
+        pos = end
+        out[:, n:n + len(values)] = values.T
+        line_numbers[n:n + len(values)] = numbers
+        n, skipped = n + len(values), skipped + bad
+        reasons += why[:MAX_REASONS - len(reasons)]
+        if len(values):
+            t_before = max(float(np.max(values[:, time_col])),
+                           -np.inf if t_before is None else t_before)
+    if not n and not skipped:
         raise TrackError("no data rows after the header", where, header_index + 1)
-    if not len(values):
+    if not n:
         raise TrackError(f"no valid data rows: all {skipped} rows are bad; first: "
                          f"{reasons[0]}", where)
-    columns = {name: np.ascontiguousarray(values[:, j]) for j, name in enumerate(names)}
-    return Parsed(columns, metadata, numbers, skipped, reasons)
+    columns = {name: out[j, :n] for j, name in enumerate(names)}
+    return Parsed(columns, metadata, line_numbers[:n], skipped, reasons)
 
 
 def parse_preamble(text: str, where: str):
@@ -400,12 +457,21 @@ def format_text(columns: dict[str, np.ndarray], metadata: dict[str, str]) -> str
     Floats are written with ``repr`` (shortest string that reads back to the same float);
     NaN becomes an empty cell.
     """
+    return format_head(list(columns), metadata) + format_rows(columns)
+
+
+def format_head(names: list[str], metadata: dict[str, str]) -> str:
+    """The metadata lines and the header line of :func:`format_text`, each ending in newline."""
     head = [f"# {VERSION_KEY}: {VERSION}"]
     head += [f"# {k}: {v}" for k, v in check_metadata(metadata).items() if k != VERSION_KEY]
-    head.append(",".join(columns))
+    head.append(",".join(names))
+    return "\n".join(head) + "\n"
+
+
+def format_rows(columns: dict[str, np.ndarray]) -> str:
+    """The data lines of :func:`format_text` (one per row, each ending in newline)."""
     cells = [_format_column(np.asarray(col, dtype=np.float64)) for col in columns.values()]
-    rows = map(",".join, zip(*cells))
-    return "\n".join(head) + "\n" + "\n".join(rows) + "\n"
+    return "\n".join(map(",".join, zip(*cells))) + "\n"
 
 
 def write(path: str | os.PathLike, columns: dict[str, np.ndarray],
