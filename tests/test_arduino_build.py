@@ -48,6 +48,7 @@ def test_vectors_file_matches_python_encoder():
         assert (int(frame.type), frame.seq) == (vec["type"], vec["seq"])
 
 
+@pytest.mark.slow
 def test_sketch_builds_for_uno_within_budget(tmp_path):
     """The self-calibrating sketch (issue #15: <= 14 KB flash, <= 1.2 KB RAM); 14,160 B / 1,078 B
     when this was written (tools/bench_firmware.py compares it with -DSC_NO_SELFCAL)."""

@@ -69,6 +69,7 @@ def test_unknown_task_is_an_input_error(paths):
         streamcal.batch(paths, "fly")
 
 
+@pytest.mark.slow
 def test_dask_distributed_executor_matches_a_serial_run(paths, monkeypatch):
     distributed = pytest.importorskip("distributed")
     # the worker processes must import this checkout, not another installed streamcal

@@ -58,6 +58,7 @@ def _whole_apply(cal, track_path, cal_path, out):
     write_applied(out, applied, meta)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".csv", ".csv.gz"])
 @pytest.mark.parametrize("rows", [997, 100_000])
 def test_convert_chunked_equals_whole(tmp_path, monkeypatch, suffix, rows):
@@ -84,6 +85,7 @@ def test_apply_chunked_equals_whole_real(tmp_path, monkeypatch, rows):
     assert out.read_bytes() == ref.read_bytes()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("rows", [7, 333, 1000])
 def test_apply_chunked_equals_whole_async_rows(tmp_path, monkeypatch, sim_track, rows):
     path, sim = sim_track

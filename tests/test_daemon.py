@@ -138,6 +138,7 @@ def test_garbage_block_is_counted_not_fatal(tmp_path):
 
 # -- outputs ----------------------------------------------------------------------------------
 
+@pytest.mark.slow
 def test_json_lines_and_socket_output_are_unit_directions(tmp_path):
     d = short_dir()
     stream = io.StringIO()

@@ -43,6 +43,7 @@ def test_demo_finds_the_hidden_effect_and_writes_the_report(tmp_path, capsys):
     assert hidden in page and "calibrations accepted as coverage grew" in page
 
 
+@pytest.mark.slow
 def test_demo_quiet_prints_little(tmp_path, capsys):
     out_file = tmp_path / "sub" / "r.html"
     track = tmp_path / "t.csv.gz"

@@ -24,6 +24,7 @@ def _clean_rms(seed, noise, model=("hard_iron", "soft_iron")):
     return rms(r, cal.inliers)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("effect, magnitude, seed, noise", HIDDEN)
 def test_hidden_effect_is_found_and_promise_is_kept(effect, magnitude, seed, noise):
     track = simulate(DURATION, seed, effects={effect: magnitude}, noise_uT=noise).track
@@ -38,6 +39,7 @@ def test_hidden_effect_is_found_and_promise_is_kept(effect, magnitude, seed, noi
     assert effect in top.evidence or "residual follows" in top.evidence
 
 
+@pytest.mark.slow
 def test_two_hidden_effects_are_found_one_after_the_other():
     track = simulate(DURATION, 21, effects={"time_drift": 0.06, "axis_nonlinearity": 0.12},
                      temp_profile="constant", noise_uT=0.3).track

@@ -75,6 +75,7 @@ def test_cal_that_is_not_a_calibration_exits_2(tmp_path, capsys, full_and_slice)
     assert str(bogus) in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_cli_diagnose_and_report_with_cal(tmp_path, capsys, full_and_slice):
     cal, track = full_and_slice
     path, cal_path = tmp_path / "slice.csv", tmp_path / "cal.json"

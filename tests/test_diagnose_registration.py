@@ -39,6 +39,7 @@ def test_hidden_registration_effect_is_found_and_promise_is_kept(effect, magnitu
 HIDDEN_GYRO = [(0.03, 52), (-0.02, 53), (0.012, 54)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("tau, seed", HIDDEN_GYRO)
 def test_hidden_lag_is_found_from_the_gyro_alone(tau, seed):
     track = without_accel(simulate(DURATION, seed, effects={"time_lag": tau}).track)
@@ -85,6 +86,7 @@ def test_clean_gyro_only_tracks_raise_no_false_alarm():
     assert lag_flags <= 1
 
 
+@pytest.mark.slow
 def test_demo_track_spans_are_only_the_real_burst(demo_track):
     d = diagnose(demo_track, fitter=fitter, candidates=["temperature_offset", "time_drift"])
     assert d.verdict == "effect_missing"

@@ -115,6 +115,7 @@ def _keys(value, parent: str | None = None, out: set | None = None) -> set:
     return out
 
 
+@pytest.mark.slow
 def test_every_diagnose_json_key_is_documented(tmp_path, capsys):
     from streamcal.sim import simulate
 

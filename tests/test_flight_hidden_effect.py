@@ -53,6 +53,7 @@ def log16():
     return track, autopilot_calibration(track)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("channel", ["throttle", "rcou_c3"])
 def test_injected_motor_field_is_aux_interference_on_that_channel(log16, channel):
     track, cal = log16
@@ -66,6 +67,7 @@ def test_injected_motor_field_is_aux_interference_on_that_channel(log16, channel
     assert d.to_dict()["calibration_source"].endswith("COMPASS_* parameters")
 
 
+@pytest.mark.slow
 def test_unmodified_log_top_candidate_is_not_aux_interference(log16):
     """Measured: against its COMPASS_* parameters this flight's top candidate is a slow drift
     (temperature_offset / time_drift, both follow the flight's time); aux_interference is
@@ -77,6 +79,7 @@ def test_unmodified_log_top_candidate_is_not_aux_interference(log16):
     assert not (top["effect"] == "aux_interference" and top["significant"] and top["material"])
 
 
+@pytest.mark.slow
 def test_pxf_flight_honestly_shows_a_motor_channel_field():
     """Measured on the unmodified PXF flight (1231 s) against its own COMPASS_* parameters
     (which have no COMPASS_MOT). Only b_z is re-estimated: every K entry fails the re-check at
@@ -111,6 +114,7 @@ def test_log_without_motor_channel_does_not_invent_one(log16):
     assert "aux_interference" not in d.to_dict()["ladder"][-1]["model"]
 
 
+@pytest.mark.slow
 def test_cli_cal_autopilot_names_its_source_and_refuses_a_log_without_one(capsys):
     from streamcal.cli import main
 

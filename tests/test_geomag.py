@@ -78,6 +78,7 @@ def _diagnose(*args):
     return out.stdout
 
 
+@pytest.mark.slow
 def test_simulated_48uT_60deg_matches_a_place_with_those_numbers(sim_track):
     ref = json.loads(_diagnose(sim_track, "--json", *SIM_PLACE))["reference_field"]
     assert ref["source"] == "WMM2025" and ref["field_unit"] == "uT"
@@ -93,12 +94,14 @@ def test_simulated_48uT_60deg_matches_a_place_with_those_numbers(sim_track):
     assert "reference  WMM2025 at 43.0000°, 21.0000°" in text and "fitted dip" in text
 
 
+@pytest.mark.slow
 def test_no_location_says_so(sim_track):
     ref = json.loads(_diagnose(sim_track, "--json"))["reference_field"]
     assert ref == {"source": None, "reason": "no location given (--lat/--lon)"}
     assert "reference  none: no location given (--lat/--lon)" in _diagnose(sim_track)
 
 
+@pytest.mark.slow
 def test_report_has_the_local_field(sim_track, tmp_path):
     out = tmp_path / "r.html"
     run = subprocess.run([sys.executable, "-m", "streamcal", "report", str(sim_track), "-o",
@@ -109,6 +112,7 @@ def test_report_has_the_local_field(sim_track, tmp_path):
     assert '<section id="reference-field">' in html and "fitted dip" in html
 
 
+@pytest.mark.slow
 def test_live_page_compares_with_the_local_field(tmp_path):
     proc, url = start_daemon(tmp_path, *SIM_PLACE, speed="4", seconds="60")
     try:

@@ -30,6 +30,7 @@ def flight(request):
     return cal, streamcal.diagnose(track, calibration=cal)
 
 
+@pytest.mark.slow
 def test_every_reestimated_parameter_is_determined_and_plausible(flight):
     cal, d = flight
     r = field_radius(cal.K)
@@ -60,6 +61,7 @@ def test_held_fit_status_and_recheck_reach_the_output(flight):
             assert not c["significant"]
 
 
+@pytest.mark.slow
 def test_cli_text_says_how_the_held_fit_ended(capsys):
     from streamcal.cli import main
 

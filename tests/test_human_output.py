@@ -63,6 +63,7 @@ def test_quantities_carry_units_and_three_significant_digits():
     assert text == "T0 24.1 °C, c [0.12, -0.0341, 0.05] µT/°C"
 
 
+@pytest.mark.slow
 def test_fit_prints_the_time_lag_of_a_real_track_in_ms(real_tracks_dir, capsys):
     """broad_30 (real BROAD recording) is where ``tau=0.010945823840833167`` was printed."""
     path = real_tracks_dir / "broad_30_stationary_magnet_C.csv.gz"
@@ -83,6 +84,7 @@ def test_fit_text_of_a_thermal_effect_has_units(sim_track, capsys):
 
 
 # -- 2. one spelling of µT in text; JSON unchanged ---------------------------------------------
+@pytest.mark.slow
 def test_text_says_micro_tesla_and_json_keeps_its_keys(sim_track, capsys):
     assert main(["fit", str(sim_track), "--add", "time_lag"]) == 0
     fit_text = capsys.readouterr().out
@@ -159,6 +161,7 @@ def _commands(bad: Path, tmp: Path, cal: Path) -> dict[str, list[str]]:
 
 @pytest.mark.parametrize("command", ["fit", "diagnose", "report", "replay", "convert", "apply",
                                      "batch", "record", "daemon"])
+@pytest.mark.slow
 def test_skip_bad_rows_counts_the_skipped_rows_on_stderr(command, bad_track, sim_cal,
                                                          tmp_path, capsys):
     bad, spoiled = bad_track
@@ -178,6 +181,7 @@ def test_skip_bad_rows_counts_the_skipped_rows_on_stderr(command, bad_track, sim
 
 
 # -- 6. diagnose --plots says where ------------------------------------------------------------
+@pytest.mark.slow
 def test_plots_say_where_and_how_many(sim_track, tmp_path, capsys):
     out_dir = tmp_path / "figs"
     assert main(["diagnose", str(sim_track), "--plots", str(out_dir)]) == 0
@@ -207,6 +211,7 @@ def test_field_out_of_range_says_which_side(scale, words):
 
 
 # -- 4 and 8. the demo: a pasteable command, nothing left in the current directory -------------
+@pytest.mark.slow
 def test_demo_leaves_the_cwd_clean_and_its_command_works(tmp_path, monkeypatch, capsys):
     track = tmp_path / "in" / "t.csv.gz"
     track.parent.mkdir()
@@ -243,6 +248,7 @@ def test_demo_leaves_the_cwd_clean_and_its_command_works(tmp_path, monkeypatch, 
         shutil.rmtree(report.parent, ignore_errors=True)
 
 
+@pytest.mark.slow
 def test_report_command_names_the_track_as_given(sim_track, tmp_path, monkeypatch, capsys):
     from streamcal.report.html import fit_command
 

@@ -42,6 +42,7 @@ def _mag_messages(path):
     return np.array(logged, float), np.array(ofs, float)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", BINS + ULGS)
 def test_every_flight_log_converts(flight_dir, tmp_path, name, capsys):
     out = tmp_path / "track.csv"
@@ -68,6 +69,7 @@ def test_detected_from_content_not_name(flight_dir, tmp_path):
 
 @pytest.mark.parametrize("name,readme_mG", [(BINS[0], (696, 37)), (BINS[1], (250, 62)),
                                             (BINS[2], (373, 16))])
+@pytest.mark.slow
 def test_dataflash_offsets_undone_and_units(flight_dir, name, readme_mG):
     """raw µT × 10 + OfsX/Y/Z gives back the logged MagX/Y/Z exactly; the logged field has the
     magnitude the README states."""
@@ -83,6 +85,7 @@ def test_dataflash_offsets_undone_and_units(flight_dir, name, readme_mG):
     assert "subtracted" in track.metadata["mag_offsets_undone"]
 
 
+@pytest.mark.slow
 def test_dataflash_aux_columns(flight_dir):
     pxf = read_recording(flight_dir / BINS[1])
     for name in ("rcou_c1", "rcou_c4", "battery_current_a", "battery_voltage_v", "throttle"):
@@ -96,6 +99,7 @@ def test_dataflash_aux_columns(flight_dir):
     assert old.metadata["param.COMPASS_OFS_X"] == "-36"
 
 
+@pytest.mark.slow
 def test_autopilot_calibration_reproduces_logged_field(flight_dir):
     """The Calibration built from COMPASS_* maps the undone readings back onto the field the
     autopilot logged (here DIA = 1, ODI = MOT = 0: logged = raw + offsets)."""

@@ -91,6 +91,7 @@ def daemon(tmp_path_factory):
     proc.wait(timeout=30)
 
 
+@pytest.mark.slow
 def test_sse_delivers_json_with_coverage_growing(daemon):
     proc, url = daemon
     events = sse_events(url, seconds=4.0)
@@ -110,6 +111,7 @@ def test_sse_delivers_json_with_coverage_growing(daemon):
     assert 0 <= last["gap"]["deg"] <= 180 and last["hint"]
 
 
+@pytest.mark.slow
 def test_hundred_connections_excess_get_503_and_daemon_runs(daemon):
     proc, url = daemon
     socks = []
@@ -242,6 +244,7 @@ def test_parse_http():
         parse_http("70000")
 
 
+@pytest.mark.slow
 def test_non_loopback_warns_on_stderr(tmp_path):
     env = {**os.environ, "PYTHONPATH": str(REPO)}
     done = subprocess.run([sys.executable, "-m", "streamcal", "daemon", "--bus", f"fake:{TRACK}",

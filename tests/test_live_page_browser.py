@@ -26,6 +26,7 @@ def _coverage(page) -> tuple[float, str, int]:
     return value, text, int(page.evaluate("document.body.dataset.events || 0"))
 
 
+@pytest.mark.slow
 def test_live_stream_updates_the_dom_in_chromium(tmp_path):
     chromium = _chromium()
     try:

@@ -13,6 +13,7 @@ from streamcal.sim.scenario import simulate
 from tests.test_live_page import REPO, sse_events
 
 
+@pytest.mark.slow
 def test_replay_realtime_serves_the_page(tmp_path):
     track = tmp_path / "short.csv"
     simulate(25, seed=5, motor=False).track.write(track)

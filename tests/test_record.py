@@ -87,6 +87,7 @@ def test_record_refuses_bad_arguments(tmp_path):
     assert proc.returncode == 2
 
 
+@pytest.mark.slow
 @pytest.mark.toolchain
 def test_record_from_the_firmware_in_simavr_keeps_every_magnetometer_sample(tmp_path):
     """``--port simavr:TRACK``: the compiled sketch samples every 5 ms; every magnetometer row

@@ -110,6 +110,7 @@ def bad_tokens():
 # ----------------------------------------------------------------------------- row-level faults
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=small_tracks(), data=st.data(), zipped=st.booleans())
 def test_bad_cell_exits_2_naming_file_line_column(workdir, track, data, zipped):
@@ -148,6 +149,7 @@ def test_wrong_cell_count_exits_2_naming_line(workdir, track, data):
     assert f"{path}:{len(meta) + 2 + r}" in err and f"expected {len(names)} cells" in err, err
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=small_tracks().filter(lambda tr: len(tr[2]) >= 2), data=st.data())
 def test_time_going_backwards_exits_2_naming_line(workdir, track, data):
@@ -171,6 +173,7 @@ chaos_ops = st.sampled_from(["truncate", "insert_bytes", "flip", "utf16", "latin
                              "binary", "drop_header", "long_line", "gzip"])
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=small_tracks(), ops=st.lists(chaos_ops, min_size=1, max_size=3), data=st.data())
 def test_chaos_through_fit_never_tracebacks(workdir, track, ops, data):

@@ -69,6 +69,7 @@ def _truth(b):
     return Calibration(K=K_TRUE, b=b, n=1)
 
 
+@pytest.mark.slow
 def test_no_acceptance_makes_the_calibration_worse(run):
     assert len(run["accepted"]) >= 3
     for t, index, before, cand in run["accepted"]:

@@ -26,6 +26,7 @@ def _runs(capsys, track, *flags, n=3):
     return [_replay(capsys, track, *flags) for _ in range(n)]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("track", [TIVA_06, DEMO], ids=["tiva_06", "demo"])
 def test_three_json_replays_are_identical(track, capsys):
     runs = _runs(capsys, track, "--json")

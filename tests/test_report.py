@@ -64,6 +64,7 @@ def _assert_self_contained(page: str) -> None:
         assert needle not in lower, needle
 
 
+@pytest.mark.slow
 def test_hidden_effect_report_names_the_effect_and_inlines_every_figure(hidden):
     track, d = hidden
     assert d.verdict == "effect_missing" and d.candidates[0].effect == HIDDEN
@@ -95,6 +96,7 @@ def test_residual_figure_has_a_panel_per_covariate(hidden):
     assert d.outlier_spans and len(fig.axes[0].patches) >= len(d.outlier_spans)
 
 
+@pytest.mark.slow
 def test_clean_report_says_at_noise_floor(clean):
     track, d = clean
     assert d.verdict == "at_noise_floor"
@@ -127,6 +129,7 @@ def test_refused_track_still_renders_what_it_can(tmp_path):
         _assert_not_blank(png)
 
 
+@pytest.mark.slow
 def test_diagnose_plots_writes_the_pngs(tmp_path, capsys):
     path = tmp_path / "t.csv.gz"
     simulate(30.0, 7, effects={"time_drift": 0.06}).track.write(path)

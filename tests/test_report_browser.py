@@ -40,6 +40,7 @@ def _run(args, tmp_path):
     return subprocess.run(cmd, capture_output=True, text=True, timeout=120, stdin=subprocess.DEVNULL)
 
 
+@pytest.mark.slow
 def test_every_image_loads_in_chromium(report, tmp_path):
     done = _run(["--virtual-time-budget=10000", "--dump-dom", report.as_uri()], tmp_path)
     assert done.returncode == 0, done.stderr[-2000:]

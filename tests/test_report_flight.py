@@ -12,6 +12,7 @@ from .conftest import SHARED
 LOG = SHARED / "data" / "real" / "flight" / "ardupilot_erle_15-12-2014_16.BIN"
 
 
+@pytest.mark.slow
 def test_report_against_a_calibration_file_shows_aux_figure_and_held_table(tmp_path, capsys):
     if not LOG.exists():
         pytest.skip(f"{LOG} not found")

@@ -28,6 +28,7 @@ def test_coverage_title_clears_the_subplot_titles(real_tracks_dir):
             assert box.y1 < top.y0, (ax.get_title(), box, top)
 
 
+@pytest.mark.slow
 def test_before_after_figure_of_the_top_effect_exists_without_aux_channels(tmp_path):
     """A track with no motor/current column still gets the residual before and after its top
     effect, against time, on the same axes."""

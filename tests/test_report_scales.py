@@ -118,6 +118,7 @@ def test_ladder_panel_draws_the_tied_step_from_the_same_model_on_its_residual(ti
     assert f"−{abs(pct)} %" in texts and pct < 0
 
 
+@pytest.mark.slow
 def test_html_and_terminal_tables_name_the_residual_of_every_row(tied):
     track, d = tied
     page = render_html(track, d)
@@ -139,6 +140,7 @@ def test_html_and_terminal_tables_name_the_residual_of_every_row(tied):
     assert step.split()[-1] == "–"
 
 
+@pytest.mark.slow
 def test_outlier_count_spans_and_mask_come_from_one_model(hidden):
     track, d = hidden
     assert d.outliers_model == ("hard_iron", "soft_iron", "temperature_offset")
@@ -172,6 +174,7 @@ def test_without_a_ladder_outliers_are_the_base_models(hidden):
     assert d.n_outliers == d.n_outliers_model == int(d.outliers.sum())
 
 
+@pytest.mark.slow
 def test_ladder_png_is_byte_identical(tied):
     track, d = tied
     a = {f.name: f.png for f in render_figures(FigureData.build(track, d))}

@@ -54,6 +54,7 @@ def run_host(board: FakeBoard, state_dir) -> tuple[Service, BoardSync, dict, lis
     return service, sync, frames, log
 
 
+@pytest.mark.slow
 def test_every_frame_accounted_for_and_calibration_sent_despite_line_faults(track, tmp_path):
     faults = Faults(drop=0.01, corrupt=0.01, truncate=0.01, garbage=0.01, seed=5)
     with board_for(track, faults=faults) as board:
@@ -68,6 +69,7 @@ def test_every_frame_accounted_for_and_calibration_sent_despite_line_faults(trac
         assert frames["board_calibration"]["cal_id"] == sync.sent[-1]
 
 
+@pytest.mark.slow
 def test_accepted_calibration_lands_in_eeprom_and_board_output_matches_apply(track, tmp_path):
     with board_for(track) as board:
         service, sync, frames, log = run_host(board, tmp_path)

@@ -274,6 +274,7 @@ def test_calibration_survives_reboot_in_simulated_eeprom(tmp_path):
     assert not ee_slot(image, 0)[0] and not ee_slot(image, 1)[0]     # CLEAR_CAL invalidated both
 
 
+@pytest.mark.slow
 @pytest.mark.toolchain
 def test_reset_in_the_middle_of_an_eeprom_write_keeps_the_previous_calibration(tmp_path):
     """SET_CAL A, then SET_CAL B with the AVR reset right after its k-th EEPROM byte write: on

@@ -30,6 +30,7 @@ def _small_track():
     return simulate(40.0, seed=3).track
 
 
+@pytest.mark.slow
 def test_public_api_stays_callable_after_every_module_is_imported():
     for name in _all_modules():
         if name.endswith("__main__"):

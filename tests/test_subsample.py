@@ -49,6 +49,7 @@ def test_sample_keeps_every_cell_and_the_whole_span():
 
 @pytest.mark.parametrize("effect, magnitude, seed, noise",
                          [("temperature_offset", 0.6, 11, 0.4), ("time_drift", 0.05, 13, 0.5)])
+@pytest.mark.slow
 def test_subsample_agrees_with_the_full_diagnosis(effect, magnitude, seed, noise):
     track = simulate(240.0, seed, effects={effect: magnitude}, noise_uT=noise).track
     full = diagnose(track, fitter=fitter, ladder=False)
@@ -58,6 +59,7 @@ def test_subsample_agrees_with_the_full_diagnosis(effect, magnitude, seed, noise
     assert sub.candidates[0].effect == effect
 
 
+@pytest.mark.slow
 def test_file_path_spans_over_the_whole_recording_and_json_says_so(tmp_path):
     res = simulate(240.0, 31, outlier_bursts=2, noise_uT=0.4)
     path = tmp_path / "long.csv"
@@ -76,6 +78,7 @@ def test_file_path_spans_over_the_whole_recording_and_json_says_so(tmp_path):
     assert small["subsample_rule"] == "every sample"
 
 
+@pytest.mark.slow
 def test_cli_takes_the_chunked_path_above_the_size_and_full_says_every_sample(
         tmp_path, monkeypatch, capsys):
     from streamcal.cli import main

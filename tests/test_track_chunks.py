@@ -55,6 +55,7 @@ def _assert_same(a, b):
 @FUZZ
 @given(track=valid_tracks(), ops=st.lists(chaos_ops, min_size=0, max_size=3), data=st.data(),
        skip=st.booleans(), rows=st.integers(1, 6), read_bytes=st.sampled_from([7, 64, 1 << 20]))
+@pytest.mark.slow
 def test_chunks_match_the_whole_file_reader(tmp_path, monkeypatch, track, ops, data, skip, rows,
                                             read_bytes):
     monkeypatch.setattr(chunks, "READ_BYTES", read_bytes)

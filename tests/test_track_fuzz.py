@@ -95,6 +95,7 @@ def read_expecting_error(path, line, column, **kw) -> TrackError:
 # ----------------------------------------------------------------------------- properties
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=valid_tracks(), zipped=st.booleans())
 def test_valid_files_load_exactly(workdir, track, zipped):
@@ -116,6 +117,7 @@ def bad_tokens():
     return st.one_of(words, specials)
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=valid_tracks(), data=st.data(), zipped=st.booleans())
 def test_bad_cell_is_located(workdir, track, data, zipped):
@@ -135,6 +137,7 @@ def test_bad_cell_is_located(workdir, track, data, zipped):
         assert kept.skipped_rows == 1 and len(kept) == len(rows) - 1
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=valid_tracks(), data=st.data())
 def test_wrong_cell_count_is_located(workdir, track, data):
@@ -153,6 +156,7 @@ def test_wrong_cell_count_is_located(workdir, track, data):
     assert f"expected {len(names)} cells" in err.reason
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=valid_tracks().filter(lambda tr: len(tr[2]) >= 2), data=st.data())
 def test_backwards_time_is_located(workdir, track, data):
@@ -166,6 +170,7 @@ def test_backwards_time_is_located(workdir, track, data):
                          "t")
 
 
+@pytest.mark.slow
 @FUZZ
 @given(track=valid_tracks(), data=st.data())
 def test_partial_mag_row_is_located(workdir, track, data):
@@ -210,6 +215,7 @@ chaos_ops = st.sampled_from(["truncate", "insert_bytes", "flip", "utf16", "latin
 @FUZZ
 @given(track=valid_tracks(), ops=st.lists(chaos_ops, min_size=1, max_size=3), data=st.data(),
        skip=st.booleans())
+@pytest.mark.slow
 def test_chaos_loads_or_raises_track_error(workdir, track, ops, data, skip):
     TRIED["chaos"] += 1
     meta, names, rows, _ = track

@@ -102,6 +102,7 @@ def test_significance_and_materiality_are_reported_apart_with_their_rule(real_tr
     assert re.search(r"\byes\s+no\b", line), line
 
 
+@pytest.mark.slow
 def test_fit_of_a_tied_effect_names_both_residuals(real_tracks_dir, capsys):
     """broad_30 (real BROAD recording): the plain fit's rms is on the sensor residual; the
     --add time_lag fit's rms is on the gravity-tied one, printed with its name and beside the
@@ -152,6 +153,7 @@ def test_disturbance_ramps_do_not_inflate_the_rms(seed):
     assert d0.n_outliers <= 0.002 * d0.n
 
 
+@pytest.mark.slow
 def test_report_units_heading_and_note_once(real_tracks_dir, tmp_path):
     """Every effect parameter in the report has a unit, the heading names the file (not its
     directory), and the note on residual scales is printed once even when both the candidate
