@@ -44,30 +44,8 @@ def sweep_stale_temps(directory: str | os.PathLike, name: str | None = None,
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, mode: int = 0o600) -> None:
     """Replace ``path`` with ``data`` atomically; refuse to write through a symlink at ``path``."""
-    path = Path(path)
-    if path.is_symlink():
-        raise OSError(f"{path}: refusing to replace a symbolic link")
-    directory = path.parent if str(path.parent) else Path(".")
-    sweep_stale_temps(directory, path.name)
-    fd, tmp = tempfile.mkstemp(prefix=temp_prefix(path.name), suffix=".tmp", dir=directory)
-    try:
-        os.fchmod(fd, mode)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
-    dir_fd = os.open(directory, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
+    with atomic_open(path, mode) as handle:
+        handle.write(data)
 
 
 def atomic_write_text(path: str | os.PathLike, text: str, mode: int = 0o600) -> None:
