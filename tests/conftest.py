@@ -6,12 +6,23 @@ import pytest
 REPO = Path(__file__).resolve().parent.parent
 SHARED = Path(os.environ.get("STREAMCAL_SHARED", REPO.parent / "shared"))
 REAL_TRACKS = SHARED / "data" / "real" / "tracks"
+REAL_FLIGHTS = SHARED / "data" / "real" / "flight"
+
+
+def _shared_dir(path: Path, what: str) -> Path:
+    """``path`` when it exists; else a failure in CI (which must have ../shared) or a skip."""
+    if not path.is_dir():
+        if os.environ.get("CI"):
+            pytest.fail(f"{path} is missing: CI must have ../shared beside the checkout")
+        pytest.skip(f"{what} not found at {path} (set STREAMCAL_SHARED)")
+    return path
 
 
 @pytest.fixture(scope="session")
 def real_tracks_dir() -> Path:
-    if not REAL_TRACKS.is_dir():
-        if os.environ.get("CI"):
-            pytest.fail(f"{REAL_TRACKS} is missing: CI must have ../shared beside the checkout")
-        pytest.skip(f"real tracks not found at {REAL_TRACKS} (set STREAMCAL_SHARED)")
-    return REAL_TRACKS
+    return _shared_dir(REAL_TRACKS, "real tracks")
+
+
+@pytest.fixture(scope="session")
+def flight_dir() -> Path:
+    return _shared_dir(REAL_FLIGHTS, "flight logs")

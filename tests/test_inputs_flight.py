@@ -1,6 +1,5 @@
 """Real flight-controller logs (../shared/data/real/flight): read, convert, offsets undone,
 truncated copies refused."""
-import os
 import shutil
 from pathlib import Path
 
@@ -19,15 +18,6 @@ BINS = ["ardupilot_erle_Erle-Brain3.BIN", "ardupilot_erle_PXFv2.0b_Rpi.BIN",
         "ardupilot_erle_15-12-2014_16.BIN"]
 ULGS = ["px4_pyulog_sample.ulg", "px4_pyulog_sample_logging_tagged_and_default_params.ulg",
         "px4_pyulog_sample_px4_events.ulg"]
-
-
-@pytest.fixture(scope="module")
-def flight_dir() -> Path:
-    if not FLIGHT.is_dir():
-        if os.environ.get("CI"):
-            pytest.fail(f"{FLIGHT} is missing: CI must have ../shared beside the checkout")
-        pytest.skip(f"flight logs not found at {FLIGHT} (set STREAMCAL_SHARED)")
-    return FLIGHT
 
 
 def _mag_messages(path):
