@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from streamcal.service.http_page import LivePage, parse_http
+from streamcal.service.http_page import PEER_CHECK_S, LivePage, parse_http
 
 REPO = Path(__file__).resolve().parent.parent
 TRACK = REPO / "streamcal" / "data" / "demo_track.csv.gz"
@@ -114,6 +114,7 @@ def test_sse_delivers_json_with_coverage_growing(daemon):
 @pytest.mark.slow
 def test_hundred_connections_excess_get_503_and_daemon_runs(daemon):
     proc, url = daemon
+    time.sleep(5 * PEER_CHECK_S)       # streams of earlier tests: closed, their slots freed by now
     socks = []
     for _ in range(100):
         s = socket.create_connection(_addr(url), timeout=5.0)
@@ -141,7 +142,7 @@ def test_hundred_connections_excess_get_503_and_daemon_runs(daemon):
 
 def test_busy_message_is_clear(daemon):
     proc, url = daemon
-    time.sleep(1.5)         # streams closed by earlier tests are noticed at their next writes
+    time.sleep(5 * PEER_CHECK_S)       # streams of earlier tests: closed, their slots freed by now
     socks = [socket.create_connection(_addr(url), timeout=5.0) for _ in range(17)]
     try:
         for s in socks:
@@ -216,6 +217,42 @@ def test_client_that_never_reads_is_dropped():
         time.sleep(0.3)
         assert page.stats["events"] > before           # the publisher never waited for it
         stuck.close()
+    finally:
+        page.close()
+
+
+class _QuietState:
+    """A state that never changes after its first snapshot (a daemon whose device went quiet)."""
+
+    def __init__(self):
+        self.seq = 0
+
+    def wait(self, seq, timeout):
+        if self.seq == 0:
+            self.seq = 1
+        else:
+            time.sleep(timeout)
+        return self.seq
+
+    def build(self):
+        return {"seq": self.seq, "coverage": 0.1}
+
+
+def test_closed_stream_frees_its_slot_without_any_event():
+    page = LivePage(_QuietState(), "127.0.0.1", 0, max_clients=2).start()
+    try:
+        url = page.url
+        socks = [socket.create_connection(_addr(url), timeout=5.0) for _ in range(2)]
+        for s in socks:
+            s.sendall(b"GET /events HTTP/1.1\r\nHost: x\r\n\r\n")
+            assert s.recv(64).startswith(b"HTTP/1.0 200")
+        assert request(url, b"GET /events HTTP/1.1\r\n\r\n", timeout=1.0).startswith(b"HTTP/1.0 503")
+        events = page.stats["events"]
+        for s in socks:
+            s.close()
+        time.sleep(5 * PEER_CHECK_S)
+        assert page.stats["events"] == events          # nothing was written that could fail
+        assert page.n_clients == 0
     finally:
         page.close()
 

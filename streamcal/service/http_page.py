@@ -17,6 +17,9 @@ Nothing is loaded from elsewhere: the page works without any external network. B
 - at most ``max_connections`` connections in progress (64): beyond, 503 before any parsing;
 - each stream has a queue of ``queue_len`` events; a client that does not keep up (its queue full)
   is dropped and its socket shut, and every socket has a ``timeout_s`` send/receive timeout;
+- a stream whose client has closed its end frees its slot within ``PEER_CHECK_S`` (0.2 s), even
+  when no event is due (an SSE client sends nothing after its request, so end-of-file on the
+  socket means it left);
 - a request line or header that is not HTTP gets 400; an unknown path 404; other methods 501.
 
 The snapshot is built (:meth:`LiveState.build`) and serialised once per capture on the publisher
@@ -27,8 +30,10 @@ from __future__ import annotations
 import hmac
 import json
 import queue
+import select
 import socket
 import threading
+import time
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from importlib import resources
@@ -39,6 +44,7 @@ MAX_CONNECTIONS = 64
 QUEUE_LEN = 8
 TIMEOUT_S = 5.0
 KEEPALIVE_S = 10.0
+PEER_CHECK_S = 0.2
 _BUSY = (b"HTTP/1.0 503 Service Unavailable\r\nContent-Type: text/plain; charset=utf-8\r\n"
          b"Connection: close\r\n\r\nstreamcal live page: too many connections; try again later\n")
 
@@ -317,21 +323,36 @@ class _Handler(BaseHTTPRequestHandler):
                 first += b"data: " + page.latest + b"\n\n"
             self.wfile.write(first)
             self.wfile.flush()
+            keepalive_at = time.monotonic() + KEEPALIVE_S
             while not client.dropped:
                 try:
-                    data = client.queue.get(timeout=KEEPALIVE_S)
-                    chunk = b"data: " + data + b"\n\n"
+                    chunk = b"data: " + client.queue.get(timeout=PEER_CHECK_S) + b"\n\n"
                 except queue.Empty:
-                    chunk = b": keepalive\n\n"
-                if client.dropped:
+                    chunk = None
+                if client.dropped or _peer_closed(self.connection):
                     break
+                if chunk is None:
+                    if time.monotonic() < keepalive_at:
+                        continue
+                    chunk = b": keepalive\n\n"
                 self.wfile.write(chunk)
                 self.wfile.flush()
+                keepalive_at = time.monotonic() + KEEPALIVE_S
         except (OSError, ValueError):        # the client left, or its socket was shut
             pass
         finally:
             page._remove(client)
             self.close_connection = True
+
+
+def _peer_closed(conn) -> bool:
+    """True when the peer has closed its end (readable with nothing to read) or the socket failed."""
+    try:
+        poller = select.poll()                  # not select.select: descriptors may pass 1024
+        poller.register(conn, select.POLLIN)
+        return bool(poller.poll(0)) and conn.recv(1, socket.MSG_PEEK) == b""
+    except (OSError, ValueError):
+        return True
 
 
 _TEMPLATE: str | None = None
