@@ -1,4 +1,4 @@
-"""Many recordings at once: one summary row per file (SPEC §4 ``streamcal batch``).
+"""Many recordings at once: one summary row per file (docs/cli.md ``streamcal batch``).
 
 ``batch(paths, task, executor=None)`` runs a task over every file on any
 :class:`concurrent.futures.Executor` — a process pool by default, ``distributed.Client(...)

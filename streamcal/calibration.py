@@ -212,6 +212,7 @@ class Calibration:
             "b": [float(v) for v in self.b],
             "effects": _jsonable(self.effects),
             "rms": _finite_or_none(self.rms),
+            "residual": self.residual,
             "n": int(self.n),
             "n_outliers": int(self.n_outliers),
             "coverage": _finite_or_none(self.coverage),
@@ -267,6 +268,10 @@ class Calibration:
         except UnicodeDecodeError as exc:
             raise CalibrationFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
         return cls.from_json(text, source=path)
+
+
+#: The residual families an rms can be on.
+RESIDUALS = ("sensor", "gravity_tied", "gyro_tied")
 
 
 def rms_residual(cal) -> str:
@@ -369,8 +374,11 @@ def _parse(data, source: str) -> Calibration:
     created = data.get("created", "")
     if not isinstance(created, str):
         fail("created", "expected an ISO-8601 string")
-    known = {"format", "sensor", "model", "K", "b", "effects", "rms", "n", "n_outliers", "coverage",
-             "unit", "field_uT", "field", "method", "kernel", "created"}
+    if data.get("residual") is not None and data["residual"] not in RESIDUALS:
+        fail("residual", f"expected one of {', '.join(RESIDUALS)}, found {data['residual']!r}")
+    # "residual" is derived from the model and the extra keys (rms_residual), never stored
+    known = {"format", "sensor", "model", "K", "b", "effects", "rms", "residual", "n", "n_outliers",
+             "coverage", "unit", "field_uT", "field", "method", "kernel", "created"}
     extra = {k: v for k, v in data.items() if k not in known}
     return Calibration(K=K, b=b, sensor=sensor, model=tuple(model), effects=dict(effects),
                        rms=numbers.get("rms", float("nan")), n=numbers["n"],

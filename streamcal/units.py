@@ -18,7 +18,8 @@ _DISPLAY = {"uT": "µT", "μT": "µT", "ut": "µT", "m/s2": "m/s²", "m/s^2": "m
 #: Significant digits of a number written for a reader.
 DIGITS = 3
 
-#: Units of effect parameters (SPEC §3; ``{u}`` stands for the sensor unit). Angles are stored in
+#: Units of effect parameters (docs/effects.md; ``{u}`` stands for the sensor unit). Angles are
+#: stored in
 #: radians and shown in degrees; seconds are shown with an SI prefix (``ms``, ``µs``).
 PARAM_UNITS: dict[tuple[str, str], str] = {
     ("temperature_offset", "T0"): "°C", ("temperature_offset", "c"): "{u}/°C",

@@ -72,3 +72,27 @@ def test_radius_is_the_cube_root_of_det_K():
     cal = _cal()
     assert cal.radius == pytest.approx((50.0 * 47.0 * 52.0) ** (1 / 3), rel=1e-12)
     assert field_radius(K) == cal.radius
+
+
+def test_saved_file_names_the_residual_its_rms_is_on(tmp_path):
+    import json
+    plain = _cal()
+    tied = _cal(model=("hard_iron", "soft_iron", "time_lag"),
+                extra={"gyro_tied": {"pairs": 10}, "tau": 1.1})
+    for cal, expected in ((plain, "sensor"), (tied, "gyro_tied")):
+        path = tmp_path / f"{expected}.json"
+        cal.save(path)
+        data = json.loads(path.read_text())
+        assert data["residual"] == expected
+        again = Calibration.load(path)
+        assert again == cal and "residual" not in again.extra
+
+
+def test_a_residual_outside_the_three_families_is_refused(tmp_path):
+    import json
+    data = _cal().to_dict()
+    data["residual"] = "whatever"
+    path = tmp_path / "bad.json"
+    path.write_text(json.dumps(data))
+    with pytest.raises(CalibrationFileError, match="residual"):
+        Calibration.load(path)

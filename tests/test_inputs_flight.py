@@ -11,9 +11,6 @@ from streamcal.errors import InputError
 from streamcal.inputs import autopilot_calibration, detect, read_recording
 from streamcal.inputs.track import Track
 
-from .conftest import SHARED
-
-FLIGHT = SHARED / "data" / "real" / "flight"
 BINS = ["ardupilot_erle_Erle-Brain3.BIN", "ardupilot_erle_PXFv2.0b_Rpi.BIN",
         "ardupilot_erle_15-12-2014_16.BIN"]
 ULGS = ["px4_pyulog_sample.ulg", "px4_pyulog_sample_logging_tagged_and_default_params.ulg",

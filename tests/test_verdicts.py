@@ -175,3 +175,19 @@ def test_report_units_heading_and_note_once(real_tracks_dir, tmp_path):
     main(["report", str(path), "-o", str(out)])
     heading = re.search(r"<h1>(.*?)</h1>", out.read_text()).group(1)
     assert "jr_mpu9250_accmag.csv" in heading and str(path.parent) not in heading
+
+
+def test_against_a_calibration_the_verdict_follows_the_same_rules(real_tracks_dir):
+    """Diagnosed against its own fit, tiva 01 (rms ~1.8× a measured floor, no effect both
+    significant and material) is ``unexplained``, never ``at_noise_floor``; the misfit is
+    located; materiality uses the floor the verdict uses."""
+    track, fresh = _diagnosed(real_tracks_dir, "tiva_mpu9250_mag_01.csv.gz")
+    d = diagnose(track, calibration=fresh.calibration)
+    js = json.loads(json.dumps(d.to_dict(), allow_nan=False, default=lambda v: None))
+    assert js["held"] is not None and js["noise_floor_reliable"] is True
+    assert js["rms"] > FLOOR_FACTOR * js["noise_floor"]
+    assert not any(c["significant"] and c["material"] for c in js["candidates"])
+    assert js["verdict"] == "unexplained"
+    assert js["misfit"]["n"] == js["n"] - js["n_outliers"]
+    for c, obj in zip(js["candidates"], d.candidates):
+        assert obj.significant == (c["significant"] and c["material"])

@@ -74,7 +74,7 @@ def run(args) -> int:
         if residual != "sensor":   # the tied fit's rms is not on the sensor residual
             sensor = sensor_rms(cal, track)
     if args.json:
-        out = {**cal.to_dict(), "residual": residual}
+        out = cal.to_dict()
         if sensor is not None:
             out["rms_sensor"] = sensor
         print(json.dumps(out))

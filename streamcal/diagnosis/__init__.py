@@ -1,4 +1,4 @@
-"""Model diagnosis (SPEC §4 ``streamcal diagnose``): residual families, the noise floor,
+"""Model diagnosis (docs/cli.md ``streamcal diagnose``): residual families, the noise floor,
 outlier spans and the ranking of missing effects."""
 from .diagnosis import Diagnosis
 from .entry import diagnose

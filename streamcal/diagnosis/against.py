@@ -24,6 +24,8 @@ from ..model import (REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns
                      terms_from_params)
 from ..model.build import check_known
 from . import candidates as cand
+from . import misfit as misfit_mod
+from . import verdict as verdict_mod
 from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
@@ -252,6 +254,10 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     free = settled.free
     fit = settled.fit
     base = _Eval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model), len(free), [])
+    # the floor the verdict and the materiality test use: the same rule as a fresh diagnosis
+    reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
+                                                  "sensor")
+    floor = nf.floor if reliable else float("nan")
     idx = rank_subset(m, base.fit.b, t, rank_max)
     m_r, cov_r = (m, cov) if idx is None else (m[idx], {k: v[idx] for k, v in cov.items()})
     base_r = base if idx is None else evaluate([], base, m_r, cov_r)
@@ -286,7 +292,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
             text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov_r,
                                  ref.inliers)
             c = cand.Candidate(name, after, p_value, text, ev.p - ref.p,
-                               cand.is_significant(before, after, p_value, nf.floor), ev.cal)
+                               cand.is_significant(before, after, p_value, floor), ev.cal)
             c.rms_before, c.residual, c._evaluated = before, "sensor", ev
             c.n_compared = int(both.sum())
             c.implausible = implausible_effect([(term, ev.fit.thetas[-1])],
@@ -310,7 +316,9 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                       "n": n_r})
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = rank(current, added, rest) if rest else []
-    verdict = "effect_missing" if ranked and ranked[0].significant else "at_noise_floor"
+    verdict = verdict_mod.decide(base.rms, "sensor", nf.floor, reliable, ranked)
+    misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float), cov,
+                                 gyro)
     if current is base_r:
         current = base
     inl = current.inliers
@@ -325,7 +333,8 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     estimated = {k: {"value": v, "sigma": e} for k, (v, e) in base.fit.estimated.items()}
     return HeldDiagnosis(
         model=tuple(model), n=n, n_outliers=int((~base.inliers).sum()),
-        n_outliers_model=int(outliers.sum()), rms=base.rms, noise_floor=nf.floor,
+        n_outliers_model=int(outliers.sum()), rms=base.rms, noise_floor=floor,
+        noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
         verdict=verdict, candidates=ranked, outlier_spans=outlier_spans(t, outliers),
         ladder=steps, residual="sensor", outliers_model=(*model, *added), outliers=outliers,
         residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x),

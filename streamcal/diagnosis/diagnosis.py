@@ -1,5 +1,5 @@
 """``diagnose``: compare the fitted model with the measurements, find where it fails and which
-effect is missing (SPEC §4 ``streamcal diagnose``)."""
+effect is missing (docs/cli.md ``streamcal diagnose``)."""
 from __future__ import annotations
 
 import inspect
@@ -35,7 +35,7 @@ RESIDUAL_LABELS = {"sensor": "sensor", "gravity_tied": "gravity-tied", "gyro_tie
 
 @dataclass
 class Diagnosis:
-    """Result of :func:`diagnose`; ``to_dict`` gives the JSON of SPEC §4 plus ``ladder``,
+    """Result of :func:`diagnose`; ``to_dict`` gives the JSON of docs/cli.md plus ``ladder``,
     ``noise``, ``residual_families``, ``residual``, ``candidate_baselines``,
     ``outliers_model`` and ``n_outliers_model``. rms, noise_floor and rms_after in the sensor
     unit.
@@ -48,7 +48,7 @@ class Diagnosis:
     residual's rms. Each ladder step carries its ``residual`` and (after the first) the
     ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual.
 
-    Outliers: ``n_outliers`` belongs with ``model`` and ``rms`` (SPEC §4): the base model's
+    Outliers: ``n_outliers`` belongs with ``model`` and ``rms`` (docs/cli.md): the base model's
     outliers, the complement of the samples its rms is over. ``outlier_spans``, the (N,) bool
     mask ``outliers`` and its count ``n_outliers_model`` come from one model,
     ``outliers_model``: the last magnetometer-only (sensor residual) model of the ladder — the
@@ -212,6 +212,8 @@ class _Context:
 
     def __init__(self, track, fitter, kernel, floor, subset_max=None):
         self.track, self.fitter, self.floor = track, fitter, floor
+        #: the floor the materiality test uses: NaN once the floor is found unmeasurable
+        self.material_floor = floor
         # the tied fits have one robust cost of their own (as streamcal.fit does for them)
         self.kernel = "cauchy" if kernel == "auto" else kernel
         self.m = np.asarray(track.mag, dtype=float)
@@ -317,7 +319,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         else:
             text = f"{ev.kind}-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
         c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
-                           cand.is_significant(ref.rms, ev.rms, p_value, ctx.floor), ev.cal)
+                           cand.is_significant(ref.rms, ev.rms, p_value, ctx.material_floor), ev.cal)
         c.rms_before, c.residual = ref.rms, RESIDUALS[ev.kind]
         c._evaluated = ev
         out.append(c)
@@ -350,7 +352,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
                 top.p_value = _f_test(tied_full, ev)
                 top.rms_before = tied_full.rms
                 top.significant = cand.is_significant(tied_full.rms, ev.rms, top.p_value,
-                                                      ctx.floor)
+                                                      ctx.material_floor)
         top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
         out.sort(key=lambda c: not c.significant)
     return out
@@ -438,6 +440,10 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     cov = ctx.cov
     base = (_Evaluated(calibration, m, cov, nf.floor) if calibration is not None and not _tied(model)
             else ctx.evaluate(model, calibration))
+    residual = RESIDUALS[base.kind]
+    reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
+                                                  residual)
+    ctx.material_floor = nf.floor if reliable else float("nan")
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
@@ -458,9 +464,6 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         # Effects that explained nothing significant alone are not retried (saves refits).
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
-    residual = RESIDUALS[base.kind]
-    reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
-                                                  residual)
     verdict = verdict_mod.decide(base.rms, residual, nf.floor, reliable, ranked)
     misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float),
                                  ctx.cov, gyro)

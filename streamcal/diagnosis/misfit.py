@@ -1,5 +1,5 @@
 """Where the misfit sits: the residual energy of a model split over time, field direction,
-covariate ranges and rotation rate (SPEC §4 ``misfit``, given with the ``unexplained`` verdict).
+covariate ranges and rotation rate (docs/cli.md ``misfit``, given with the ``unexplained`` verdict).
 
 Energy is ``Σ‖r_j‖²`` over the inliers the rms is over (so ``rms² = energy / n``). Each
 grouping partitions those samples into bins; a bin reports its ``share`` of the energy and its

@@ -1,4 +1,4 @@
-"""The verdict of a diagnosis (SPEC §4 ``verdict``) and the rules it states.
+"""The verdict of a diagnosis (docs/cli.md ``verdict``) and the rules it states.
 
 Three verdicts:
 

@@ -1,4 +1,4 @@
-"""A calibration in the form its destination loads (SPEC §4 ``streamcal export``).
+"""A calibration in the form its destination loads (docs/cli.md ``streamcal export``).
 
     text, notes = export(cal, "ardupilot")   # also "px4", "c-header", "json"
 

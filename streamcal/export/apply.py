@@ -1,4 +1,4 @@
-"""A calibration applied to recorded readings (SPEC §4 ``streamcal apply``).
+"""A calibration applied to recorded readings (docs/cli.md ``streamcal apply``).
 
 Per magnetometer sample: the calibrated field ``f = |B| x`` (µT) with ``x = K⁻¹ (m − b − effect
 terms)``, the unit direction ``x/|x|``, and, when the accelerometer is known at that instant,

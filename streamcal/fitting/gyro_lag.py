@@ -1,4 +1,5 @@
-"""``time_lag`` from the gyro alone: the gyro-tied residual and its fit (SPEC §3 ``time_lag``,
+"""``time_lag`` from the gyro alone: the gyro-tied residual and its fit (docs/effects.md
+``time_lag``,
 "needs gyro or accel"; DESIGN §3 "with the gyro, consecutive directions are linked by the
 rotation rate").
 

@@ -1,4 +1,4 @@
-"""Registration effects (SPEC §3 ``mag_accel_misalignment``, ``time_lag``) and their solver.
+"""Registration effects (docs/effects.md ``mag_accel_misalignment``, ``time_lag``) and their solver.
 
 Parameters in a calibration file:
 

@@ -6,7 +6,8 @@
     track = read_recording("other.tsv", columns="mx=Bx,my=By,mz=Bz,t=time", unit="nT")
 
 The format is detected from the content (:mod:`.detect`). Every reader returns a
-:class:`~streamcal.inputs.track.Track` in SPEC §1 units, with units, axes and provenance in its
+:class:`~streamcal.inputs.track.Track` in docs/tracks_and_inputs.md units, with units, axes and
+provenance in its
 metadata, and raises :class:`~streamcal.errors.InputError` (or its subclass ``TrackError``)
 naming the file and what is wrong or missing.
 """
@@ -32,7 +33,8 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
     Args:
         path: the file (``.csv``/``.csv.gz`` track, ``.bin``, ``.ulg``, ``Raw:`` capture, CSV/TSV).
         columns: ``"mx=NAME,my=NAME,mz=NAME[,t=NAME,…]"`` (or a dict) for a delimited file that
-            is not a SPEC §1 track; also accepted for a track, to rename its columns.
+            is not a docs/tracks_and_inputs.md track; also accepted for a track, to rename its
+            columns.
         unit: the magnetometer unit of such a file: ``uT``, ``nT``, ``mG``, ``G`` or ``counts``.
         skip_bad_rows: skip and count malformed rows (text) or a cut last message (logs).
     """

@@ -1,4 +1,5 @@
-"""Track files read in chunks (SPEC §1): memory bounded by the chunk, not the recording.
+"""Track files read in chunks (docs/tracks_and_inputs.md): memory bounded by the chunk, not the
+recording.
 
 :func:`iter_track_chunks` decompresses and parses a ``.csv`` / ``.csv.gz`` track incrementally
 and yields one :class:`~streamcal.inputs.track.Track` per chunk of at most ``rows`` physical lines.

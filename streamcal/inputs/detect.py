@@ -34,7 +34,8 @@ def read_head(path: Path) -> bytes:
 
 def detect(path) -> str:
     """One of :data:`FORMATS`: ``dataflash`` (ArduPilot .bin), ``ulog`` (PX4 .ulg), ``track``
-    (SPEC §1 CSV), ``raw`` (MotionCal ``Raw:`` lines) or ``csv`` (other delimited text)."""
+    (docs/tracks_and_inputs.md CSV), ``raw`` (MotionCal ``Raw:`` lines) or ``csv`` (other
+    delimited text)."""
     path = Path(path)
     head = read_head(path)
     if not head:

@@ -1,8 +1,10 @@
-"""Asynchronous sensor streams merged into one track (SPEC §1 rows carrying only some columns).
+"""Asynchronous sensor streams merged into one track (docs/tracks_and_inputs.md rows carrying only
+some columns).
 
 An autopilot log holds each message type at its own rate (MAG ~10 Hz, IMU 25–50 Hz, RCOU…).
 Rather than resample, every message becomes its own row: the row carries the columns of its
-stream and leaves the others empty (NaN), which is exactly what SPEC §1 allows. Rows are put in
+stream and leaves the others empty (NaN), which is exactly what docs/tracks_and_inputs.md allows.
+Rows are put in
 time order with a stable sort, so equal stamps keep the order in which the streams were given.
 
     streams = [Stream("MAG", t_mag, {"mx": .., "my": .., "mz": ..}),

@@ -1,4 +1,5 @@
-"""A track file written chunk by chunk (SPEC §1), atomically: memory bounded by one chunk.
+"""A track file written chunk by chunk (docs/tracks_and_inputs.md), atomically: memory bounded by
+one chunk.
 
 The bytes are those :func:`streamcal.inputs.trackio.write` writes for the concatenated chunks
 (same head, same cells; for ``.gz`` the member :func:`gzip.compress` writes at level 6 with

@@ -1,4 +1,5 @@
-"""Track files on disk (SPEC §1): parse CSV / CSV.gz into columns, format columns back to CSV.
+"""Track files on disk (docs/tracks_and_inputs.md): parse CSV / CSV.gz into columns, format
+columns back to CSV.
 
 Parsing is columnar. The fast path hands the whole data section to :func:`numpy.loadtxt` (its C
 tokenizer) after empty cells have been turned into ``nan``; that is only sound when the data

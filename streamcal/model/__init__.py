@@ -1,4 +1,4 @@
-"""The sensor model as a sum of effect terms (SPEC §3, DESIGN §2).
+"""The sensor model as a sum of effect terms (docs/effects.md, DESIGN §2).
 
 ``build_effects(names, covariates)`` makes the term objects the LM fits (contract in
 :mod:`.effect`), ``invert_model`` applies a calibration with effects, ``check_needs`` and

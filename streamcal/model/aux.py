@@ -1,4 +1,4 @@
-"""Interference from auxiliary channels (SPEC §3 ``aux_interference``).
+"""Interference from auxiliary channels (docs/effects.md ``aux_interference``).
 
 For channels ``a_k`` (motor current, PWM duty…, any numeric track column that is not time,
 temperature or an IMU axis) the term is

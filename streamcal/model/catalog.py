@@ -1,4 +1,4 @@
-"""The effect catalog of SPEC §3: names (part of the interface), parameter counts and needs.
+"""The effect catalog of docs/effects.md: names (part of the interface), parameter counts and needs.
 
 ``needs`` lists track columns; ``"aux"`` means at least one auxiliary channel, and
 ``("gyro", "accel")`` in ``needs_any`` means either group of columns will do.

@@ -1,4 +1,4 @@
-"""Time drift (SPEC §3 ``time_drift``): ``f_j = d (t_j − t0)``.
+"""Time drift (docs/effects.md ``time_drift``): ``f_j = d (t_j − t0)``.
 
 ``t0`` is the median time of the data the term was built from (s, stored), ``d`` (3,) is in the
 sensor unit per second; normalization divides ``d`` by ``scale``.

@@ -1,4 +1,4 @@
-"""Cubic axis nonlinearity (SPEC §3 ``axis_nonlinearity``).
+"""Cubic axis nonlinearity (docs/effects.md ``axis_nonlinearity``).
 
 Each axis reading bends with the cube of its own undistorted value:
 

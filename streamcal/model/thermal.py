@@ -1,4 +1,4 @@
-"""Temperature effects (SPEC §3 ``temperature_offset``, ``temperature_scale``).
+"""Temperature effects (docs/effects.md ``temperature_offset``, ``temperature_scale``).
 
 Both are linear in ``ΔT = T − T0`` with ``T0`` the median temperature of the data they were
 built from (°C, stored with the parameters), so the constant part stays in ``b`` / ``K``:

@@ -14,7 +14,8 @@ Signals (handled between blocks; a block takes at most about one second):
   through the guard and the store as usual), abandon it after that, ``STOPPING=1``, exit 0. The
   store writes atomically, so the calibration file is valid whatever instant the stop comes.
 - SIGHUP: re-read the calibration file (``RELOADING=1`` … ``READY=1``); the coverage buffer is
-  kept. A missing or damaged file leaves the calibration in use unchanged (SPEC §2).
+  kept. A missing or damaged file leaves the calibration in use unchanged
+  (docs/calibration_file.md).
 
 systemd (``Type=notify``): ``READY=1`` once the store is loaded and the outputs listen (before the
 device answers: an absent sensor is a status, not a failed start), ``WATCHDOG=1`` at half of

@@ -2,7 +2,7 @@
 
     from streamcal.sim import simulate, paper_protocol
     res = simulate(duration_s=120, seed=1, effects={"temperature_offset": 0.05}, outlier_bursts=1)
-    res.track            # a streamcal Track (SPEC §1 columns, async mag/IMU rows)
+    res.track            # a streamcal Track (docs/tracks_and_inputs.md columns, async mag/IMU rows)
     res.truth.K, res.truth.b, res.truth.effects, res.truth.outlier_spans
     m, K, b, inliers = paper_protocol(n=1000, sigma=1.0, eta=0.1, seed=0)
 

@@ -6,7 +6,8 @@ changes the data by exactly that effect's term while the motion and the noise st
 
 Sampling: the sensors sample on their own regular clocks (mag ``mag_rate_hz``, IMU
 ``imu_rate_hz``); the host stamps each sample with a small jitter; mag and IMU samples go to
-separate rows with empty cells (NaN) for the columns not sampled (SPEC §1). Temperature and the
+separate rows with empty cells (NaN) for the columns not sampled (docs/tracks_and_inputs.md).
+Temperature and the
 ``motor_current`` auxiliary channel ride on the IMU rows.
 """
 from __future__ import annotations
@@ -132,12 +133,12 @@ def simulate(duration_s: float = 300.0, seed: int = 0, effects: Mapping[str, Any
     Args:
         duration_s: length of the recording, s.
         seed: everything is deterministic per seed.
-        effects: ``{effect name: magnitude}`` of SPEC §3 effects to switch on (see
+        effects: ``{effect name: magnitude}`` of docs/effects.md effects to switch on (see
             :mod:`streamcal.sim.sensor` for each term and its magnitude's unit); a 3-vector
             parameter may be given as a (3,) sequence instead of a magnitude.
         noise_uT: magnetometer white noise per axis, µT.
         mag_bits: AK8963 output width, 16 (0.15 µT/LSB) or 14 (0.6 µT/LSB).
-        mag_rate_hz, imu_rate_hz: sample rates, Hz (rows are written per SPEC §1).
+        mag_rate_hz, imu_rate_hz: sample rates, Hz (rows are written per docs/tracks_and_inputs.md).
         coverage: ``full``, ``hemisphere``, ``planar`` or ``band`` (:mod:`streamcal.sim.motion`).
         outlier_bursts: number of magnets/phones passing by, each a few seconds long with a peak
             disturbance of ``burst_uT`` µT.

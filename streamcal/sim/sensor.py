@@ -1,6 +1,6 @@
-"""MPU-9250 sensor models: the magnetometer with the SPEC §3 effects, accelerometer, gyro.
+"""MPU-9250 sensor models: the magnetometer with the docs/effects.md effects, accelerometer, gyro.
 
-Magnetometer model (SPEC §2, the effect terms as in :mod:`streamcal.model`)::
+Magnetometer model (docs/calibration_file.md, the effect terms as in :mod:`streamcal.model`)::
 
     u = K x                                        undistorted reading, µT
     m = u + b + Σ_e f_e(u, covariates) + K d / F + ε,   then quantized

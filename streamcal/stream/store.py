@@ -3,7 +3,8 @@
 Layout::
 
     STATE_DIR/            0700
-      calibration.json    0600, the calibration in use (SPEC §2), replaced atomically
+      calibration.json    0600, the calibration in use (docs/calibration_file.md), replaced
+      atomically
       history/NNNN.json   0600, the last ``keep`` accepted calibrations, NNNN increasing
 
 Every write goes through :func:`streamcal.atomic.atomic_write_text` (temp file, fsync, rename),
