@@ -219,9 +219,21 @@ def _sym(M9: np.ndarray) -> np.ndarray:
 BLOCK = 8192
 
 
+_CORE_MAPS: dict = {}
+
+
 def _core_map(structure: str, fit_b: bool) -> np.ndarray:
     """E (12,P): column f = 3c + i of the full map is ∂r/∂K[i, c] (c < 3) or ∂r/∂b[i] (c = 3);
-    E picks (or, for K = kI, sums) the columns the structure frees."""
+    E picks (or, for K = kI, sums) the columns the structure frees. Built once per
+    (structure, fit_b), read-only."""
+    E = _CORE_MAPS.get((structure, fit_b))
+    if E is None:
+        E = _CORE_MAPS[structure, fit_b] = _build_core_map(structure, fit_b)
+        E.setflags(write=False)
+    return E
+
+
+def _build_core_map(structure: str, fit_b: bool) -> np.ndarray:
     eye = np.eye(12)
     if structure == "sphere":
         cols = [eye[0] + eye[4] + eye[8]]
@@ -277,13 +289,16 @@ class _Block:
     iteration, then :meth:`reduce` and :meth:`step` per damping trial."""
 
     def __init__(self, x, u, r, w, e, gw, K, Jx, jac, beta):
-        if Jx is None:                                       # J_x = K, so J_x x = u
-            A = K[:, :, None] - u[:, None, :] * x[None, :, :]
+        if Jx is None:                 # J_x = K, so J_x x = u: Aᵀ = Kᵀ − x uᵀ, Aᵀr = Kᵀr − x (u·r)
+            At = K.T[:, :, None] - x[:, None, :] * u[None, :, :]
+            h = K.T @ r
+            h -= x * np.einsum("ak,ak->k", u, r)
         else:
-            A = Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]
-        h = np.einsum("abk,ak->bk", A, r)                    # Aᵀ r
-        self.B = w * A.transpose(1, 0, 2) + (e * h)[:, None, :] * r[None, :, :]   # Aᵀ W
-        self.H6 = _sym(np.einsum("ack,cbk->abk", self.B, A))
+            At = (Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]).transpose(1, 0, 2)
+            h = np.einsum("bak,ak->bk", At, r)               # Aᵀ r
+        self.B = w * At                                      # Aᵀ W
+        self.B += (e * h)[:, None, :] * r[None, :, :]
+        self.H6 = _sym(np.einsum("ack,bck->abk", self.B, At))
         self.H6 *= 2.0
         self.H6 += beta * (x.take(_SYM_I, axis=0) * x.take(_SYM_J, axis=0))
         self.W2 = (2.0 * e) * (r.take(_SYM_I, axis=0) * r.take(_SYM_J, axis=0))

@@ -4,7 +4,7 @@
 At N ≈ 1000 numpy's general versions spend most of their ~20–60 µs in argument handling
 (axes, NaN checks, moving axes); the robust fit calls them a dozen times per fit. Both
 functions below partition once and interpolate exactly as numpy does (``_lerp``), so results
-are bit-for-bit equal; anything but a finite 1-D float sample goes to numpy itself.
+are bit-for-bit equal (signed zeros included); anything but a finite 1-D float sample goes to numpy itself.
 """
 from __future__ import annotations
 
@@ -25,7 +25,9 @@ def quantiles(a: np.ndarray, qs: Sequence[float]) -> list[float]:
         virtual = (n - 1) * float(q)
         lo = min(max(int(math.floor(virtual)), 0), n - 1)
         spots.append((virtual, lo, min(lo + 1, n - 1)))
-    part = np.partition(a, sorted({i for _, lo, hi in spots for i in (lo, hi)}))
+    # numpy's own partition points (first, last and the neighbours), so that equal values
+    # (0.0 and -0.0) land in the same places
+    part = np.partition(a, sorted({0, n - 1} | {i for _, lo, hi in spots for i in (lo, hi)}))
     out = []
     for virtual, lo, hi in spots:
         below, above, t = float(part[lo]), float(part[hi]), virtual - lo
@@ -46,7 +48,16 @@ def median(a: np.ndarray) -> float:
     if n == 0 or a.dtype != np.float64 or not np.isfinite(a).all():
         return float(np.median(a))
     half = n // 2
+    # numpy averages the middle value(s) as a sum from 0.0: a median of -0.0s is +0.0
     if n % 2:
-        return float(np.partition(a, half)[half])
-    part = np.partition(a, (half - 1, half))
-    return float((part[half - 1] + part[half]) / 2.0)
+        return 0.0 + float(np.partition(a, sorted({half, n - 1}))[half])
+    part = np.partition(a, sorted({half - 1, half, n - 1}))
+    return (0.0 + float(part[half - 1]) + float(part[half])) / 2.0
+
+
+def column_medians(m: np.ndarray) -> np.ndarray:
+    """``np.median(m, axis=0)`` for an (N,k) array, column by column (k,)."""
+    m = np.asarray(m)
+    if m.ndim != 2 or m.dtype != np.float64 or m.shape[0] == 0:
+        return np.median(m, axis=0)
+    return np.array([median(np.ascontiguousarray(m[:, j])) for j in range(m.shape[1])])
