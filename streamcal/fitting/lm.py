@@ -289,16 +289,13 @@ class _Block:
     iteration, then :meth:`reduce` and :meth:`step` per damping trial."""
 
     def __init__(self, x, u, r, w, e, gw, K, Jx, jac, beta):
-        if Jx is None:                 # J_x = K, so J_x x = u: Aᵀ = Kᵀ − x uᵀ, Aᵀr = Kᵀr − x (u·r)
-            At = K.T[:, :, None] - x[:, None, :] * u[None, :, :]
-            h = K.T @ r
-            h -= x * np.einsum("ak,ak->k", u, r)
+        if Jx is None:                                       # J_x = K, so J_x x = u
+            A = K[:, :, None] - u[:, None, :] * x[None, :, :]
         else:
-            At = (Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]).transpose(1, 0, 2)
-            h = np.einsum("bak,ak->bk", At, r)               # Aᵀ r
-        self.B = w * At                                      # Aᵀ W
-        self.B += (e * h)[:, None, :] * r[None, :, :]
-        self.H6 = _sym(np.einsum("ack,bck->abk", self.B, At))
+            A = Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]
+        h = np.einsum("abk,ak->bk", A, r)                    # Aᵀ r
+        self.B = w * A.transpose(1, 0, 2) + (e * h)[:, None, :] * r[None, :, :]   # Aᵀ W
+        self.H6 = _sym(np.einsum("ack,cbk->abk", self.B, A))
         self.H6 *= 2.0
         self.H6 += beta * (x.take(_SYM_I, axis=0) * x.take(_SYM_J, axis=0))
         self.W2 = (2.0 * e) * (r.take(_SYM_I, axis=0) * r.take(_SYM_J, axis=0))
