@@ -51,7 +51,9 @@ HALF_NORMAL_QUANTILE_KEEP = 0.31863936396437514
 SUPPORT_BANDS = 2.0
 #: The shared-shape refinement is first checked on about this many samples (time-strided).
 SHARED_SHAPE_CHECK = 3000
-#: Initial LM damping of the first Cauchy pass from a clean algebraic start (else 10).
+#: Initial LM damping of the default fit's first (loose) Cauchy pass from a clean algebraic
+#: start (else refine's 10): the start is near the optimum, so the heavily damped first steps
+#: only cost iterations (4 → 3 on freeimucal N = 1000).
 CLEAN_LAM0 = 1.0
 
 
@@ -240,7 +242,8 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         # (same or re-estimated width) polishes to rtol from a nearby start.
         res = refine(m_n, K_start, b_start, x_start, kernel=make_kernel(kernel, tau_cur),
                      structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,
-                     thetas=thetas, max_iter=max_iter, rtol=max(rtol, 1e-3) if adaptive else rtol, lam0=CLEAN_LAM0 if clean and polish else 10.0)
+                     thetas=thetas, max_iter=max_iter, rtol=max(rtol, 1e-3) if adaptive else rtol,
+                     lam0=CLEAN_LAM0 if clean and polish and adaptive else 10.0)
         polished = not adaptive
         for _ in range(max_width_rounds if adaptive else 0):
             new_sig = truncated_sigma(np.linalg.norm(res.residuals, axis=1), sig)
