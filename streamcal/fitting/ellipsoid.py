@@ -16,6 +16,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..errors import InsufficientDataError
+from .order_stats import column_medians
 
 SQRT2 = np.sqrt(2.0)
 
@@ -182,10 +183,10 @@ def spread_subset(m: np.ndarray, n_max: int, seed: int = 0) -> np.ndarray:
     n = m.shape[0]
     if n <= n_max:
         return np.arange(n)
-    v = m - np.median(m, axis=0)
+    v = m - column_medians(m)
     v /= np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
-    az = np.floor((np.arctan2(v[:, 1], v[:, 0]) + np.pi) / (2 * np.pi) * 12).clip(0, 11)
-    band = np.floor((v[:, 2] + 1.0) / 2.0 * 6).clip(0, 5)
+    az = np.minimum(np.maximum(np.floor((np.arctan2(v[:, 1], v[:, 0]) + np.pi) / (2 * np.pi) * 12), 0), 11)
+    band = np.minimum(np.maximum(np.floor((v[:, 2] + 1.0) / 2.0 * 6), 0), 5)
     cell = (band * 12 + az).astype(int)
     rng = np.random.default_rng(seed)
     order = rng.permutation(n)
@@ -193,10 +194,12 @@ def spread_subset(m: np.ndarray, n_max: int, seed: int = 0) -> np.ndarray:
     by_cell = np.argsort(cell_sorted, kind="stable")
     # rank of each sample inside its cell (in the random order)
     sorted_cells = cell_sorted[by_cell]
-    starts = np.r_[0, np.flatnonzero(np.diff(sorted_cells)) + 1]
-    counts = np.diff(np.r_[starts, n])
+    starts = np.concatenate(([0], np.flatnonzero(np.diff(sorted_cells)) + 1))
+    counts = np.diff(np.concatenate((starts, [n])))
     rank_sorted = np.arange(n) - np.repeat(starts, counts)
     rank = np.empty(n, dtype=int)
     rank[by_cell] = rank_sorted
-    pick = np.lexsort((rng.random(n), rank))[:n_max]
+    # by rank, ties by a random key: np.lexsort((key, rank)) as two stable argsorts (faster)
+    by_key = np.argsort(rng.random(n), kind="stable")
+    pick = by_key[np.argsort(rank[by_key], kind="stable")[:n_max]]
     return np.sort(order[pick])

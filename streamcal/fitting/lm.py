@@ -77,6 +77,8 @@ _PAIR4 = {**{p: n for n, p in enumerate(_XBAR)}, **{(d, c): n for n, (c, d) in e
 _PAIR3 = {**{p: n for n, p in enumerate(_SYM)}, **{(j, i): n for n, (i, j) in enumerate(_SYM)}}
 _GRAM_C = np.array([[_PAIR4[f // 3, g // 3] for g in range(12)] for f in range(12)])
 _GRAM_I = np.array([[_PAIR3[f % 3, g % 3] for g in range(12)] for f in range(12)])
+# (fancy indexing costs ~4x np.take on these small arrays: ~10 % of an LM iteration at N = 1000)
+_GRAM_FLAT = _GRAM_C * len(_SYM) + _GRAM_I
 
 
 @dataclass
@@ -195,8 +197,8 @@ class _Model:
 
 def _inv_sym(H6: np.ndarray) -> np.ndarray:
     """Inverses (6,N) of symmetric 3×3 matrices given by their unique entries H6 (6,N)."""
-    co = H6[_CO[0]] * H6[_CO[1]]
-    co -= H6[_CO[2]] * H6[_CO[3]]
+    co = H6.take(_CO[0], axis=0) * H6.take(_CO[1], axis=0)
+    co -= H6.take(_CO[2], axis=0) * H6.take(_CO[3], axis=0)
     det = np.einsum("ik,ik->k", H6[:3], co[:3])
     co /= det
     return co
@@ -204,12 +206,12 @@ def _inv_sym(H6: np.ndarray) -> np.ndarray:
 
 def _full(M6: np.ndarray) -> np.ndarray:
     """(3,3,N) symmetric matrices from their unique entries (6,N)."""
-    return M6[_SYM_OF_FULL].reshape(3, 3, -1)
+    return M6.take(_SYM_OF_FULL, axis=0).reshape(3, 3, -1)
 
 
 def _sym(M9: np.ndarray) -> np.ndarray:
     """Unique entries (6,N) of (3,3,N) matrices known to be symmetric."""
-    return M9.reshape(9, -1)[_FULL_OF_SYM]
+    return M9.reshape(9, -1).take(_FULL_OF_SYM, axis=0)
 
 
 #: Samples per block: one block's per-sample arrays ((3,3,8192) doubles = 0.6 MB each) stay in
@@ -217,9 +219,21 @@ def _sym(M9: np.ndarray) -> np.ndarray:
 BLOCK = 8192
 
 
+_CORE_MAPS: dict = {}
+
+
 def _core_map(structure: str, fit_b: bool) -> np.ndarray:
     """E (12,P): column f = 3c + i of the full map is ∂r/∂K[i, c] (c < 3) or ∂r/∂b[i] (c = 3);
-    E picks (or, for K = kI, sums) the columns the structure frees."""
+    E picks (or, for K = kI, sums) the columns the structure frees. Built once per
+    (structure, fit_b), read-only."""
+    E = _CORE_MAPS.get((structure, fit_b))
+    if E is None:
+        E = _CORE_MAPS[structure, fit_b] = _build_core_map(structure, fit_b)
+        E.setflags(write=False)
+    return E
+
+
+def _build_core_map(structure: str, fit_b: bool) -> np.ndarray:
     eye = np.eye(12)
     if structure == "sphere":
         cols = [eye[0] + eye[4] + eye[8]]
@@ -236,12 +250,12 @@ class _CoreJacobian:
     def __init__(self, E: np.ndarray, x: np.ndarray):
         self.E, self.x = E, x
         self.xbar = np.vstack([x, np.ones((1, x.shape[1]))])
-        self.xx = self.xbar[_XBAR_I] * self.xbar[_XBAR_J]
+        self.xx = self.xbar.take(_XBAR_I, axis=0) * self.xbar.take(_XBAR_J, axis=0)
 
     def gram(self, Q6: np.ndarray) -> np.ndarray:
         """Σ J_pjᵀ Q_j J_pj (P,P) for symmetric Q (6,n)."""
         M = self.xx @ Q6.T
-        return self.E.T @ M[_GRAM_C, _GRAM_I] @ self.E
+        return self.E.T @ M.take(_GRAM_FLAT) @ self.E
 
     def project(self, y: np.ndarray) -> np.ndarray:
         """Σ J_pjᵀ y_j (P,) for y (3,n)."""
@@ -283,8 +297,8 @@ class _Block:
         self.B = w * A.transpose(1, 0, 2) + (e * h)[:, None, :] * r[None, :, :]   # Aᵀ W
         self.H6 = _sym(np.einsum("ack,cbk->abk", self.B, A))
         self.H6 *= 2.0
-        self.H6 += beta * (x[_SYM_I] * x[_SYM_J])
-        self.W2 = (2.0 * e) * (r[_SYM_I] * r[_SYM_J])
+        self.H6 += beta * (x.take(_SYM_I, axis=0) * x.take(_SYM_J, axis=0))
+        self.W2 = (2.0 * e) * (r.take(_SYM_I, axis=0) * r.take(_SYM_J, axis=0))
         self.W2 += 2.0 * w * _SYM_EYE
         self.gx = (2.0 * gw) * h
         self.y_r = (-2.0 * gw) * r

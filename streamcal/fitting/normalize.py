@@ -3,6 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .order_stats import column_medians
+
 
 def normalize(m: np.ndarray):
     """Return ``(m_n, center, scale)`` with ``m_n = (m − center) / scale``.
@@ -12,7 +14,7 @@ def normalize(m: np.ndarray):
     model's geometry, so K_n is K / scale).
     """
     m = np.asarray(m, dtype=float)
-    center = np.median(m, axis=0)
+    center = column_medians(m)
     scale = float(np.sqrt(np.mean((m - center) ** 2)))
     if not np.isfinite(scale) or scale <= 0:
         scale = 1.0
