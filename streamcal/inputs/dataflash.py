@@ -132,7 +132,8 @@ def _parse_pymavlink(path: Path, skip_bad_rows: bool) -> _Messages:
     ~10× slower): the reference the equivalence test compares :func:`_parse` against."""
     from pymavlink import DFReader  # heavy (lxml, ~0.5 s): imported only when asked for
 
-    _refuse_cut(path, walk(_read_bytes(path)).cut, skip_bad_rows)
+    cut = walk(_read_bytes(path)).cut
+    _refuse_cut(path, cut, skip_bad_rows)
     out = _Messages()
     rows: dict = {}
     chatter = io.StringIO()
@@ -167,9 +168,8 @@ def _parse_pymavlink(path: Path, skip_bad_rows: bool) -> _Messages:
             except (TypeError, ValueError):
                 out.cols[name][column] = np.array(values, dtype=object)
         out.types[name] = dict(zip(formats[name].columns, formats[name].format))
-    chain = walk(_read_bytes(path))
-    if chain.cut > 0:
-        out.texts.append(f"truncated: {chain.cut} trailing bytes ignored")
+    if cut > 0:
+        out.texts.append(f"truncated: {cut} trailing bytes ignored")
     if "Skipped" in chatter.getvalue():
         out.texts.append(chatter.getvalue().strip().splitlines()[0])
     return out
