@@ -1,5 +1,6 @@
 """The bulk DataFlash decoder against pymavlink: same Track on every real log, same format table;
 damaged logs resynchronised on the next header and the skipped bytes named."""
+import functools
 import struct
 
 import numpy as np
@@ -162,3 +163,47 @@ def test_every_format_character_decodes_as_pymavlink_getattr():
                 g = got[column][k]
                 assert g == want or (np.isnan(g) and np.isnan(want)), (column, k, g, want)
     assert got["FZ11"][0] == "x" * 64 and got["Fn9"][0] == "ab"
+
+
+def test_string_where_a_number_is_needed_named(flight_dir, tmp_path):
+    data = bytearray((flight_dir / PXF).read_bytes())
+    chain, offsets = _messages(bytes(data))
+    mag = next(o for o, t in offsets if t == FMT_TYPE and chain.formats[data[o + 3]].name == "MAG")
+    fmt_at = mag + 3 + 1 + 1 + 4
+    assert data[fmt_at:fmt_at + 11] == b"QhhhhhhhhhB"  # the test is about this layout
+    data[fmt_at:fmt_at + 11] = b"QnhhhhhhhB\0"  # same size: MagX, MagY become a 4-byte string
+    bad = tmp_path / "string_mag.bin"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"string_mag\.bin: MAG\.MagX is not a number.*'n'"):
+        dataflash.read_dataflash(bad)
+
+
+@functools.lru_cache(maxsize=1)
+def _head(flight_dir):
+    return (flight_dir / BINS[2]).read_bytes()[:120_000]
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_random_damage_gives_a_track_or_a_named_error(flight_dir, tmp_path, seed):
+    """Flipped, inserted and deleted bytes (mostly in the FMT block): the reader returns a Track
+    or raises InputError naming the file, never another exception."""
+    rng = np.random.default_rng(seed)
+    blob = bytearray(_head(flight_dir))
+    for _ in range(int(rng.integers(1, 25))):
+        at = int(rng.integers(0, 8000 if rng.random() < 0.7 else len(blob)))
+        op = rng.random()
+        if op < 0.4:
+            blob[at] ^= int(rng.integers(1, 256))
+        elif op < 0.7:
+            blob[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
+        else:
+            del blob[at:at + int(rng.integers(1, 9))]
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(bytes(blob))
+    for skip in (False, True):
+        try:
+            track = dataflash.read_dataflash(path, skip_bad_rows=skip)
+        except InputError as exc:
+            assert str(path) in str(exc)
+        else:
+            assert len(track.t_mag) > 0

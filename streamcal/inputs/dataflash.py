@@ -59,9 +59,15 @@ class _Messages:
     cols: dict = field(default_factory=dict)
     params: dict = field(default_factory=dict)
     texts: list = field(default_factory=list)
+    path: Path | None = None
 
     def array(self, name: str, column: str) -> np.ndarray:
-        return np.asarray(self.cols[name][column], dtype=np.float64)
+        try:
+            return np.asarray(self.cols[name][column], dtype=np.float64)
+        except (TypeError, ValueError):
+            kind = self.types.get(name, {}).get(column, "?")
+            raise InputError(f"{self.path}: {name}.{column} is not a number (format character "
+                             f"{kind!r}): unknown layout") from None
 
     def has(self, name: str, *columns: str) -> bool:
         return name in self.cols and all(c in self.fields[name] for c in columns)
@@ -94,7 +100,7 @@ def _parse(path: Path, skip_bad_rows: bool) -> _Messages:
     data = _read_bytes(path)
     chain = walk(data)
     _refuse_cut(path, chain.cut, skip_bad_rows)
-    out = _Messages()
+    out = _Messages(path=path)
     for name in MESSAGES:
         ftype = chain.name_to_type.get(name)
         if ftype is None or ftype not in chain.offsets:
@@ -134,7 +140,7 @@ def _parse_pymavlink(path: Path, skip_bad_rows: bool) -> _Messages:
 
     cut = walk(_read_bytes(path)).cut
     _refuse_cut(path, cut, skip_bad_rows)
-    out = _Messages()
+    out = _Messages(path=path)
     rows: dict = {}
     chatter = io.StringIO()
     try:
