@@ -6,10 +6,14 @@ autopilot's own calibration, beside a plain fit of the same samples timed in the
 Target: read + diagnose ≤ 10 s for ``ardupilot_erle_PXFv2.0b_Rpi.BIN`` (1231 s, 4675 MAG
 samples). Timed (median of ``--repeats``, after one warm-up):
 
-* ``read``: :func:`streamcal.inputs.read_recording` (DataFlash → Track, offsets undone);
+* ``read``: :func:`streamcal.inputs.read_recording` (DataFlash → Track, offsets undone; the
+  bulk decoder of :mod:`streamcal.inputs.dataflash_bulk`), alternated call by call with the
+  same-run baseline ``read via pymavlink`` (``DFReader_binary`` + ``recv_match``, the way
+  before); both reported as median and min..max;
 * ``diagnose --cal autopilot``: :func:`streamcal.inputs.autopilot_calibration` and
   :func:`streamcal.diagnose` against it, as shipped (candidate refits on the cell × time
   subsample of :mod:`streamcal.diagnosis.rank_subset`);
+* ``CLI``: one ``streamcal diagnose LOG --cal autopilot`` process, imports included (once);
 * the same with every candidate refitted on every sample (``rank_max`` = N: the way before);
 * baseline: ``fit_core`` (hard_iron, soft_iron, coverage check off: a flight is a slice) on the
   same magnetometer samples, started from the autopilot calibration (stage 1 refuses a slice:
@@ -20,6 +24,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+
+import numpy as np
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -27,6 +33,36 @@ from _bench_common import SHARED, median_seconds, run_stamp  # noqa: E402
 
 DEFAULT_LOG = SHARED / "data" / "real" / "flight" / "ardupilot_erle_PXFv2.0b_Rpi.BIN"
 TARGET_S = 10.0
+
+
+def _alternate_reads(log: str, repeats: int) -> tuple[list, list]:
+    """Wall times (s) of the bulk read and the pymavlink read, alternated A, B, A, B."""
+    from streamcal.inputs import read_recording
+    from streamcal.inputs.dataflash import _parse_pymavlink, read_dataflash
+
+    def pymav():
+        read_dataflash(log, _parser=_parse_pymavlink)
+
+    pymav()  # warm-up (imports pymavlink)
+    bulk, base = [], []
+    for _ in range(repeats):
+        for fn, times in ((lambda: read_recording(log), bulk), (pymav, base)):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+    return bulk, base
+
+
+def _cli_seconds(log: str) -> float:
+    """Wall time (s) of one ``streamcal diagnose LOG --cal autopilot`` process (imports, read,
+    diagnosis, report to a pipe): what a user waits for."""
+    import subprocess
+
+    root = Path(__file__).resolve().parent.parent
+    t0 = time.perf_counter()
+    subprocess.run([sys.executable, "-m", "streamcal", "diagnose", log, "--cal", "autopilot"],
+                   cwd=root, check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t0
 
 
 def main() -> int:
@@ -44,7 +80,7 @@ def main() -> int:
     cal = autopilot_calibration(track)
     n = len(track.mag)
     span = float(track.t_mag[-1] - track.t_mag[0])
-    t_read = median_seconds(lambda: read_recording(args.log), args.repeats)
+    t_read, t_pymav = _alternate_reads(args.log, args.repeats)
     out = {}
 
     def shipped():
@@ -55,18 +91,26 @@ def main() -> int:
 
     t_diag = median_seconds(shipped, args.repeats)
     t_full = median_seconds(every_sample, max(1, args.repeats - 2), warmup=0)
+    t_cli = _cli_seconds(args.log)
     t_fit = median_seconds(lambda: fit_core(track.mag, check_coverage=False, initial=cal), args.repeats)
     d, full = out["d"], out["full"]
-    total = t_read + t_diag
+    total = float(np.median(t_read)) + t_diag
+    total_pymav = float(np.median(t_pymav)) + t_diag
     print(f"log {Path(args.log).name}: {n} MAG samples over {span:.0f} s")
-    print(f"{'step':<48}{'s':>8}{'× plain fit':>13}")
-    rows = [("read (DataFlash → Track)", t_read),
+    print(f"{'step':<52}{'s':>8}{'× plain fit':>13}")
+    rows = [("read (DataFlash → Track, bulk decoder)", float(np.median(t_read))),
+            ("read via pymavlink (same-run baseline)", float(np.median(t_pymav))),
             (f"diagnose --cal autopilot (refits on {d.n_ranked} of {n})", t_diag),
             ("read + diagnose", total),
+            ("read via pymavlink + diagnose", total_pymav),
+            ("CLI: streamcal diagnose LOG --cal autopilot (1 run)", t_cli),
             (f"diagnose, every refit on all {n} samples", t_full),
             ("baseline: plain fit_core, same samples, warm", t_fit)]
     for label, t in rows:
-        print(f"{label:<48}{t:>8.2f}{t / t_fit:>13.2f}")
+        print(f"{label:<52}{t:>8.2f}{t / t_fit:>13.2f}")
+    print(f"read spread (min..max of {len(t_read)}): bulk {min(t_read):.3f}..{max(t_read):.3f} s, "
+          f"pymavlink {min(t_pymav):.3f}..{max(t_pymav):.3f} s; bulk is "
+          f"{np.median(t_pymav) / np.median(t_read):.1f}× faster")
     print(f"target read + diagnose ≤ {TARGET_S:.0f} s: {'met' if total <= TARGET_S else 'NOT met'}"
           f" ({total:.2f} s); subsample speed-up {t_full / t_diag:.2f}×")
     for label, dg in (("shipped", d), ("every sample", full)):
