@@ -32,6 +32,7 @@ from .ellipsoid import (directions_from_model, ellipsoid_to_model, fit_l1_ellips
                         fit_l2_ellipsoid, spread_subset)
 from .kernels import EFFICIENCY_TAU, WIDTH_KERNELS, make_kernel
 from .lm import LMResult, refine
+from .mixture_polish import mixture_polish
 from .normalize import normalize
 from .observability import assess
 from .order_stats import median, quantile, quantiles
@@ -304,6 +305,11 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
 
     if support is None:
         result, sigma_n, tau_n = solve(m_n, covariates, K0, b0, x0, sigma_n)
+        if polish and tau is None:  # outliers near the shell: their ML fit (a no-op without)
+            result, _ = mixture_polish(result, sigma_n, lambda res, k: refine(
+                m_n, res.K, res.b, res.x, kernel=k, structure=structure, fit_b=fit_b,
+                effects=effects, covariates=covariates, thetas=res.thetas, max_iter=max_iter,
+                rtol=rtol))
         solver = result
     else:
         # A coherent disturbance: refine on the undisturbed chunks only (the disturbed shell
