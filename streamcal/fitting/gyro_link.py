@@ -173,11 +173,27 @@ def _width(rn):
     return max(float(np.median(rn)) / 1.538, 1e-12)
 
 
+@dataclass
+class SpherePrior:
+    """The sphere (normal) residual linearised at K0, b0 for the entries ``names``: cost
+    δᵀ F δ − 2 cᵀ δ (+ const) in χ² units, δ the change of those entries (sensor unit);
+    F = AᵀWA/σ², c = AᵀWs/σ² (A the rows ∂(−s)/∂p, s the signed normal residual, W its robust
+    weights, σ its noise)."""
+
+    names: list
+    F: np.ndarray
+    c: np.ndarray
+
+
 def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
-             scale: float | None = None) -> LinkFit:
+             scale: float | None = None, sphere: SpherePrior | None = None) -> LinkFit:
     """Fit the entries ``names`` of (K, b) (every other entry at ``K0``/``b0``) and the gyro's
     bias and gain error on the residual (1) of the pairs ``sel`` (default all); see the module
-    doc. ``scale``: the field radius (sets the difference steps; default from diag K0)."""
+    doc. ``scale``: the field radius (sets the difference steps; default from diag K0).
+    ``sphere``: fit jointly with the linearised sphere residual (entries of ``sphere.names``
+    missing from ``names`` stay at K0, b0): the link in χ² units (Cauchy cost × C², per-axis
+    σ̂ fixed at the start's) plus the sphere's quadratic; the covariance adds F to both the
+    bread and the meat of the sandwich."""
     K0, b0 = np.asarray(K0, float), np.asarray(b0, float)
     names = list(names)
     for n in names:
@@ -200,6 +216,13 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
         R = rot(q)[sel]
         return R, res(q, R)
 
+    Fp, cp = _prior(sphere, names, len(p))
+    p0 = p.copy()
+
+    def quad(q):
+        d = q - p0
+        return float(d @ Fp @ d - 2 * cp @ d)
+
     R, r = evaluate(p)
     dR = _rotation_steps(p, nk, steps, rot, sel)   # the rates' nuisances barely move R: once
 
@@ -208,19 +231,24 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
         h_a = np.linalg.solve(K, (pairs.m[pairs.a[sel]] - b).T).T
         return _jacobian(q, nk, steps, R, res, dR, h_a, K)
 
-    tau = CAUCHY_C * _width(np.linalg.norm(r, axis=1))
-    cost = np.sum(np.log1p(np.sum(r * r, 1) / tau ** 2))
+    sig0 = _width(np.linalg.norm(r, axis=1))
+    tau = CAUCHY_C * sig0
+
+    def total(r_, q):
+        return CAUCHY_C ** 2 * np.sum(np.log1p(np.sum(r_ * r_, 1) / tau ** 2)) + quad(q)
+
+    cost = total(r, p)
     it = 0
     for it in range(1, GN_ROUNDS + 1):
         J = jac(p)
         w = 1.0 / (1.0 + np.sum(r * r, 1) / tau ** 2)
-        H = np.einsum("p,pik,pil->kl", w, J, J)
-        g = np.einsum("p,pik,pi->k", w, J, r)
+        H = np.einsum("p,pik,pil->kl", w, J, J) / sig0 ** 2 + Fp
+        g = np.einsum("p,pik,pi->k", w, J, r) / sig0 ** 2 + Fp @ (p - p0) - cp
         dp = -_pinv(H) @ g
         improved = False
         for _ in range(6):
             R_t, r_t = evaluate(p + dp)
-            c_t = np.sum(np.log1p(np.sum(r_t * r_t, 1) / tau ** 2))
+            c_t = total(r_t, p + dp)
             if c_t < cost:
                 rel = (cost - c_t) / max(cost, 1e-300)
                 p, R, r, cost, improved = p + dp, R_t, r_t, c_t, True
@@ -234,7 +262,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
     dR = _rotation_steps(p, nk, steps, rot, sel)
     J = jac(p)
     w = 1.0 / (1.0 + rn ** 2 / tau ** 2)
-    sd = _errors(J, w, r, pairs.t[pairs.a[sel]], pairs.horizon, sigma)
+    sd = _errors(J, w, r, pairs.t[pairs.a[sel]], pairs.horizon, sigma, Fp)
     K, b = _set(K0, b0, names, p[:nk])
     inl = rn <= 2 * tau
     r_still = pairs.residual(K, b, np.broadcast_to(np.eye(3), (len(sel), 3, 3)), sel)
@@ -277,23 +305,37 @@ def _pinv(H):
     return (V * inv) @ V.T
 
 
-def _errors(J, w, r, t_pair, horizon, sigma) -> np.ndarray:
-    """Standard errors (module doc): max(block sandwich, σ̂²H⁻¹); inf on unobservable ones."""
-    H = np.einsum("p,pik,pil->kl", w, J, J)
+def _prior(sphere, names, n):
+    """(F, c) of ``sphere`` on the parameter vector (entries of ``names``, then the gyro's)."""
+    F, c = np.zeros((n, n)), np.zeros(n)
+    if sphere is None:
+        return F, c
+    idx = {nm: k for k, nm in enumerate(names)}
+    src = [k for k, nm in enumerate(sphere.names) if nm in idx]
+    dst = [idx[sphere.names[k]] for k in src]
+    F[np.ix_(dst, dst)] = np.asarray(sphere.F)[np.ix_(src, src)]
+    c[dst] = np.asarray(sphere.c)[src]
+    return F, c
+
+
+def _errors(J, w, r, t_pair, horizon, sigma, F) -> np.ndarray:
+    """Standard errors (module doc): max(block sandwich, naive); inf on unobservable ones. The
+    link in χ² units (÷ σ̂²) plus the sphere's information F."""
+    H = np.einsum("p,pik,pil->kl", w, J, J) / sigma ** 2 + F
     ev, V = np.linalg.eigh(H)
     null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
     inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))
     Hinv = (V * inv) @ V.T
     on_null = (V[:, null] ** 2).sum(axis=1) > 1e-6 if null.any() else np.zeros(len(H), bool)
-    scores = np.einsum("p,pik,pi->pk", w, J, r)
+    scores = np.einsum("p,pik,pi->pk", w, J, r) / sigma ** 2
     block = max(BLOCK_HORIZONS * horizon, 1.0)
     ids = np.floor((t_pair - t_pair.min()) / block).astype(int)
     S = np.zeros((ids.max() + 1, J.shape[2]))
     np.add.at(S, ids, scores)
     nb = int(np.count_nonzero(np.any(S != 0, axis=1)))
-    meat = S.T @ S * (nb / max(nb - J.shape[2], 1))
+    meat = S.T @ S * (nb / max(nb - J.shape[2], 1)) + F
     sandwich = np.diag(Hinv @ meat @ Hinv)
-    naive = sigma ** 2 * np.diag(Hinv)
+    naive = np.diag(Hinv)
     sd = np.sqrt(np.maximum(np.maximum(sandwich, naive), 0.0))
     if nb <= 2 * J.shape[2]:   # too few blocks to estimate the correlated spread
         sd = np.full(len(sd), np.inf)

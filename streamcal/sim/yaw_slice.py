@@ -27,16 +27,20 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
               tilt_deg: float = 10.0, yaw_rate: float = 0.6, rate_sd: float = 0.4,
               gyro_noise: float = 0.005, gyro_bias=(0.004, -0.006, 0.003),
               gyro_gain=(0.005, -0.004, 0.006), field_uT: float = 48.0, dip_deg: float = 60.0,
-              mag_rate_hz: float = 100.0, imu_rate_hz: float = 200.0) -> SimResult:
+              mag_rate_hz: float = 100.0, imu_rate_hz: float = 200.0,
+              yaw_deg: float | None = None) -> SimResult:
     """Simulate the slice (module doc); ``K`` (3,3), ``b`` (3,) µT the true sensor model,
     ``yaw_rate`` the mean yaw rate (rad/s), ``rate_sd`` the spread of the yaw and tilt rates,
-    ``gyro_noise`` rad/s per axis."""
+    ``gyro_noise`` rad/s per axis; ``yaw_deg``: when given, the yaw is bounded to ± that
+    (tanh, like the tilt: a hovering board) instead of turning round."""
     rng = np.random.default_rng(seed)
     K, b = np.asarray(K, float), np.asarray(b, float)
     dt = 1e-3
     tg = np.arange(-1.0, duration_s + 1.0 + dt, dt)
     n = len(tg)
     psi = np.cumsum(yaw_rate + smooth_noise(n, dt, 1.0, rate_sd, rng)[:, 0]) * dt
+    if yaw_deg is not None:
+        psi = np.radians(yaw_deg) * np.tanh((psi - yaw_rate * (tg + 1.0)) / 0.2)
     tilt = np.radians(tilt_deg) * np.tanh(np.cumsum(smooth_noise(n, dt, 0.5, rate_sd, rng)[:, :2],
                                                     axis=0) * dt / 0.2)
     rot = Rotation.from_euler("ZYX", np.column_stack([psi, tilt[:, 1], tilt[:, 0]]))

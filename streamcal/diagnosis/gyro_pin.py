@@ -1,0 +1,199 @@
+"""Pin held parameters with the gyro link, only where that helps (issue #10).
+
+A slice leaves some parameters of K and b undetermined by the sphere (normal) residual; they are
+held at the given calibration (:mod:`streamcal.diagnosis.held`). When the recording has a gyro,
+the rotation between readings (:mod:`streamcal.fitting.gyro_link`, residual (1) there) can
+observe some of them. The gyro estimate *replaces* the held value ("pinned") only when all of:
+
+1. **the gyro explains the rotation**: on the link residual with the held values, the rms is at
+   most :data:`EXPLAINED` × the rms of predicting each reading with no rotation (a gyro in
+   another frame, saturated or very noisy fails);
+2. **it is determined**: each pinned parameter's standard error (block sandwich, see the
+   fitting module) is within the same tolerance as the sphere's re-estimated ones
+   (TOLERANCE × r). Starting from every held parameter, the one with the largest error is left
+   held and the rest refitted, until all are within it (so a rotation that does not observe a
+   parameter leaves it held);
+3. **it predicts held-out time better**: the pairs are cut into :data:`FOLDS` contiguous time
+   blocks; for each, the link is fitted on the others with the candidate set free and with it
+   held (the gyro's bias/gain free in both), and the held-out block's link residual is
+   compared: the rms over the pairs either fit counts as inliers (‖r‖ ≤ 2 widths of the held
+   fit) must be lower with the pinned values, pooled over the blocks;
+4. **the sphere does not object** (checked by the caller, :mod:`streamcal.diagnosis.against`):
+   refitted with the pinned values held, the sphere residual rms rises by at most
+   :data:`SPHERE_RISE` (a rise means the sphere saw these parameters after all and disagrees).
+
+Anything else leaves them held, and ``reason`` says which rule failed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import InsufficientDataError, MissingColumnsError
+from ..fitting.gyro_lag import gyro_rates
+from ..fitting.gyro_link import LinkPairs, SpherePrior, link_fit
+from .held import jacobian, project
+
+#: Rule 1: link rms at most this fraction of the no-rotation rms.
+EXPLAINED = 0.5
+#: Rule 3: contiguous held-out time blocks.
+FOLDS = 4
+#: Rule 4: sphere rms with the pinned values at most this factor of the rms with them held.
+SPHERE_RISE = 1.05
+RULE = (f"pinned only when: the gyro explains the rotation (link rms ≤ {EXPLAINED:g} × the "
+        f"no-rotation rms); each pinned σ ≤ the tolerance; the link rms on {FOLDS} held-out "
+        f"time blocks is lower than with the parameters held; the sphere rms rises by at most "
+        f"{SPHERE_RISE - 1:.0%}")
+
+
+@dataclass
+class GyroPin:
+    """``used``: the pinned values replace the held ones; ``pinned`` {name: {value, sigma,
+    held_value}}; ``K``, ``b`` the given model with the pinned values; ``report`` the JSON-able
+    summary (key ``gyro_link`` of the diagnosis)."""
+
+    used: bool
+    K: np.ndarray
+    b: np.ndarray
+    pinned: dict = field(default_factory=dict)
+    report: dict = field(default_factory=dict)
+
+    def reject(self, reason: str) -> "GyroPin":
+        """The same outcome, not used, saying why."""
+        self.report.update(used=False, reason=reason)
+        self.used, self.pinned = False, {}
+        return self
+
+
+def _value(K, b, name):
+    from ..fitting.gyro_link import B_INDEX, K_INDEX
+    return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
+
+
+def sphere_prior(fit, names: Sequence[str], m, cov, held_terms) -> SpherePrior:
+    """The sphere residual of the held fit ``fit`` (:class:`streamcal.diagnosis.held.HeldFit`)
+    linearised over the core parameters ``names`` (F = AᵀWA/σ̂², c = AᵀWs/σ̂², W its Cauchy
+    weights)."""
+    _, x, s, normal, D = project(fit.K, fit.b, list(held_terms), m, cov)
+    A = jacobian(list(names), [], x, normal, D, cov, x @ fit.K.T)
+    w = 1.0 / (1.0 + (s / fit.tau) ** 2)
+    sig2 = max(fit.sigma, 1e-12) ** 2
+    return SpherePrior(list(names), np.einsum("n,np,nq->pq", w, A, A) / sig2,
+                       np.einsum("n,np,n->p", w, A, s) / sig2)
+
+
+def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Sequence[str],
+             held: Sequence[str], tol: float, r: float) -> GyroPin:
+    """Rules 1–3 of the module doc for the ``held`` core parameters of the model, at the
+    settled sphere fit ``fit`` (HeldFit: K, b with the held values) whose re-estimated
+    parameters are ``free``; ``cov`` the covariates at the readings, ``held_terms`` the
+    calibration's effect terms; ``tol`` sensor unit; ``r`` the field radius. The held
+    parameters are fitted jointly with the ``free`` ones, the link plus the linearised sphere
+    residual (:func:`sphere_prior`), so a free parameter the wrong held value bent is bent back."""
+    K, b = np.asarray(fit.K, float), np.asarray(fit.b, float)
+    free = list(free)
+    out = GyroPin(False, K, b, report={"used": False, "rule": RULE, "residual": "gyro_link",
+                                       "tolerance": tol})
+    if not held:
+        return out.reject("no parameter is held")
+    try:
+        t_g, w_g = gyro_rates(track)
+        pairs = LinkPairs(m, t, t_g, w_g)
+    except MissingColumnsError:
+        return out.reject("no gyro columns (gx, gy, gz)")
+    except InsufficientDataError as exc:
+        return out.reject(str(exc))
+    out.report.update(n_pairs=len(pairs), horizon_s=pairs.horizon)
+    names = list(held)
+    base = link_fit(pairs, K, b, [], scale=r)
+    out.report.update(rms_held=base.rms, rms_still=base.rms_still)
+    if not base.rms <= EXPLAINED * base.rms_still:
+        return out.reject(f"the gyro does not explain the rotation: link rms {base.rms:.3g} "
+                          f"> {EXPLAINED:g} × the no-rotation rms {base.rms_still:.3g}")
+    prior = sphere_prior(fit, [*free, *names], m, cov, held_terms)
+    tried = {}
+    while names:
+        fit = link_fit(pairs, K, b, [*free, *names], scale=r, sphere=prior)
+        for n_ in names:
+            tried[n_] = {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1]}
+        worst = max(names, key=lambda n_: fit.estimated[n_][1])
+        if fit.estimated[worst][1] <= tol:
+            break
+        names.remove(worst)
+    out.report["estimates"] = tried
+    if not names:
+        return out.reject("the rotation does not determine any held parameter within the "
+                          f"tolerance {tol:.3g} (σ: " + ", ".join(
+                              f"{k} {v['sigma']:.3g}" for k, v in tried.items()) + ")")
+    held_ho, pinned_ho = _held_out(pairs, K, b, free, names, r, prior)
+    out.report.update(candidates=list(names), rms_heldout_held=held_ho,
+                      rms_heldout_pinned=pinned_ho, rms_link=fit.rms)
+    if not pinned_ho < held_ho:
+        return out.reject(f"held-out link rms not lower with the gyro's values "
+                          f"({pinned_ho:.4g} vs {held_ho:.4g} held)")
+    out.used, out.K, out.b = True, fit.K, fit.b
+    out.pinned = {n_: {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1],
+                       "held_value": _value(K, b, n_)} for n_ in names}
+    out.report.update(used=True, reason="every rule passed")
+    return out
+
+
+def _held_out(pairs: LinkPairs, K, b, free, names, r, prior) -> tuple[float, float]:
+    """Pooled held-out link rms (rule 3) with ``names`` held at K, b and fitted (``free`` and
+    the sphere ``prior`` in both; the prior is from every reading, the link from the
+    training blocks)."""
+    t_pair = pairs.t[pairs.a]
+    edges = np.quantile(t_pair, np.linspace(0, 1, FOLDS + 1))
+    fold = np.clip(np.searchsorted(edges, t_pair, side="right") - 1, 0, FOLDS - 1)
+    sq_h, sq_p = [], []
+    for k in range(FOLDS):
+        test = np.flatnonzero(fold == k)
+        # a pair straddling the boundary shares readings with the test block: left out
+        train = np.flatnonzero((fold != k) & ((pairs.t[pairs.b] < edges[k]) |
+                                              (t_pair > edges[k + 1])))
+        res = []
+        for est in (free, [*free, *names]):
+            f = link_fit(pairs, K, b, est, sel=train, scale=r, sphere=prior)
+            R = pairs.rotations(f.gyro_bias, f.gyro_gain)[test]
+            res.append((np.linalg.norm(pairs.residual(f.K, f.b, R, test), axis=1), f.tau))
+        (rh, tau), (rp, _) = res
+        keep = (rh <= 2 * tau) | (rp <= 2 * tau)
+        sq_h.append(rh[keep] ** 2)
+        sq_p.append(rp[keep] ** 2)
+    return (float(np.sqrt(np.mean(np.concatenate(sq_h)))),
+            float(np.sqrt(np.mean(np.concatenate(sq_p)))))
+
+
+def pinned_model(K, b, pin: GyroPin) -> tuple[np.ndarray, np.ndarray]:
+    """The given model ``K``, ``b`` with the pinned values substituted (copies)."""
+    from ..fitting.gyro_link import B_INDEX, K_INDEX
+    K, b = np.array(K, float), np.array(b, float)
+    for name, entry in pin.pinned.items():
+        if name in K_INDEX:
+            K[K_INDEX[name]] = entry["value"]
+        else:
+            b[B_INDEX[name]] = entry["value"]
+    return K, b
+
+
+def _sphere_rms(fit) -> float:
+    rss = np.sum(np.square(fit.r), axis=1)
+    return float(np.sqrt(np.mean(rss[fit.inliers]))) if fit.inliers.any() else float("nan")
+
+
+def confirm(pin: GyroPin, held_fit_, refit: Callable):
+    """Rule 4: ``refit()`` (the settled sphere fit with the pinned values held) against
+    ``held_fit_`` (with them at the given values). Returns the refit when it passes, else None
+    (and ``pin`` says why)."""
+    if not pin.used:
+        return None
+    new = refit()
+    before, after = _sphere_rms(held_fit_), _sphere_rms(new.fit)
+    pin.report.update(sphere_rms_held=before, sphere_rms_pinned=after)
+    if not after <= SPHERE_RISE * before:
+        pin.reject(f"the sphere rms rose from {before:.4g} to {after:.4g} with the gyro's "
+                   f"values (more than {SPHERE_RISE - 1:.0%})")
+        return None
+    return new
