@@ -72,12 +72,19 @@ def _value(K, b, name):
     return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
 
 
-def sphere_prior(fit, names: Sequence[str], m, cov, held_terms) -> SpherePrior:
-    """The sphere residual of the held fit ``fit`` (:class:`streamcal.diagnosis.held.HeldFit`)
-    linearised over the core parameters ``names`` (F = AᵀWA/σ̂², c = AᵀWs/σ̂², W its Cauchy
-    weights)."""
-    _, x, s, normal, D = project(fit.K, fit.b, list(held_terms), m, cov)
-    A = jacobian(list(names), [], x, normal, D, cov, x @ fit.K.T)
+#: Joint fits: the sphere residual is re-linearised at each round's estimate (a slice's
+#: valley between b and K is curved: one linearisation at a wrong held value biases).
+JOINT_ROUNDS = 6
+#: Rounds of each held-out fit, started from the all-data joint estimate.
+HELD_OUT_ROUNDS = 2
+
+
+def sphere_prior(K, b, fit, names: Sequence[str], m, cov, held_terms) -> SpherePrior:
+    """The sphere residual at ``K``, ``b`` linearised over the core parameters ``names``
+    (F = AᵀWA/σ̂², c = AᵀWs/σ̂², W Cauchy weights of the width and σ̂ of the held fit
+    ``fit``, :class:`streamcal.diagnosis.held.HeldFit`)."""
+    _, x, s, normal, D = project(K, b, list(held_terms), m, cov)
+    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T)
     w = 1.0 / (1.0 + (s / fit.tau) ** 2)
     sig2 = max(fit.sigma, 1e-12) ** 2
     return SpherePrior(list(names), np.einsum("n,np,nq->pq", w, A, A) / sig2,
@@ -112,10 +119,18 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     if not base.rms <= EXPLAINED * base.rms_still:
         return out.reject(f"the gyro does not explain the rotation: link rms {base.rms:.3g} "
                           f"> {EXPLAINED:g} × the no-rotation rms {base.rms_still:.3g}")
-    prior = sphere_prior(fit, [*free, *names], m, cov, held_terms)
+    def joint(est, sel=None, start=None, rounds=JOINT_ROUNDS):
+        Kc, bc = (K, b) if start is None else (start.K, start.b)
+        for _ in range(rounds):
+            prior = sphere_prior(Kc, bc, sfit, est, m, cov, held_terms)
+            f = link_fit(pairs, Kc, bc, est, sel=sel, scale=r, sphere=prior)
+            Kc, bc = f.K, f.b
+        return f
+
+    sfit = fit
     tried = {}
     while names:
-        fit = link_fit(pairs, K, b, [*free, *names], scale=r, sphere=prior)
+        fit = joint([*free, *names])
         for n_ in names:
             tried[n_] = {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1]}
         worst = max(names, key=lambda n_: fit.estimated[n_][1])
@@ -127,7 +142,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
         return out.reject("the rotation does not determine any held parameter within the "
                           f"tolerance {tol:.3g} (σ: " + ", ".join(
                               f"{k} {v['sigma']:.3g}" for k, v in tried.items()) + ")")
-    held_ho, pinned_ho = _held_out(pairs, K, b, free, names, r, prior)
+    held_ho, pinned_ho = _held_out(pairs, free, names, joint, fit)
     out.report.update(candidates=list(names), rms_heldout_held=held_ho,
                       rms_heldout_pinned=pinned_ho, rms_link=fit.rms)
     if not pinned_ho < held_ho:
@@ -140,10 +155,12 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     return out
 
 
-def _held_out(pairs: LinkPairs, K, b, free, names, r, prior) -> tuple[float, float]:
-    """Pooled held-out link rms (rule 3) with ``names`` held at K, b and fitted (``free`` and
-    the sphere ``prior`` in both; the prior is from every reading, the link from the
-    training blocks)."""
+def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, float]:
+    """Pooled held-out link rms (rule 3) with ``names`` held and fitted (``free`` fitted in
+    both, by ``joint(est, sel)``: the sphere residual from every reading, the link from the
+    training blocks; each started from the all-data estimate, :data:`HELD_OUT_ROUNDS`
+    rounds)."""
+    starts = (joint(list(free)) if free else None, pinned_fit)
     t_pair = pairs.t[pairs.a]
     edges = np.quantile(t_pair, np.linspace(0, 1, FOLDS + 1))
     fold = np.clip(np.searchsorted(edges, t_pair, side="right") - 1, 0, FOLDS - 1)
@@ -154,8 +171,8 @@ def _held_out(pairs: LinkPairs, K, b, free, names, r, prior) -> tuple[float, flo
         train = np.flatnonzero((fold != k) & ((pairs.t[pairs.b] < edges[k]) |
                                               (t_pair > edges[k + 1])))
         res = []
-        for est in (free, [*free, *names]):
-            f = link_fit(pairs, K, b, est, sel=train, scale=r, sphere=prior)
+        for est, start in zip((list(free), [*free, *names]), starts):
+            f = joint(est, train, start, HELD_OUT_ROUNDS)
             R = pairs.rotations(f.gyro_bias, f.gyro_gain)[test]
             res.append((np.linalg.norm(pairs.residual(f.K, f.b, R, test), axis=1), f.tau))
         (rh, tau), (rp, _) = res

@@ -6,7 +6,7 @@
 
 The body turns about the world vertical (yaw ψ, a smooth random rate around a mean, so it goes
 round several times) and tilts by roll φ and pitch θ of amplitude ``tilt_deg`` (smooth random,
-bounded by tanh). Body → world rotation Rz(ψ) Ry(θ) Rx(φ); the body rate ω is from the
+a sum of three sinusoids of random frequency in :data:`WOBBLE_HZ` and phase). Body → world rotation Rz(ψ) Ry(θ) Rx(φ); the body rate ω is from the
 orientation path (centred differences on a 1 ms grid). The field direction in the body is
 h = Rᵀ f/‖f‖ (Earth field of ``field_uT`` µT, ``dip_deg`` below the horizon), the reading
 m = K h + b + noise (µT); the gyro reads (1 + gain) ⊙ ω + bias + noise (rad/s), the
@@ -19,6 +19,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation, Slerp
 
 from .motion import smooth_noise
+
+#: Frequencies (Hz) of the bounded tilt/yaw wobble.
+WOBBLE_HZ = (0.1, 0.5)
 from .scenario import SimResult, SimTruth, _assemble
 from .sensor import earth_field
 
@@ -32,7 +35,7 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
     """Simulate the slice (module doc); ``K`` (3,3), ``b`` (3,) µT the true sensor model,
     ``yaw_rate`` the mean yaw rate (rad/s), ``rate_sd`` the spread of the yaw and tilt rates,
     ``gyro_noise`` rad/s per axis; ``yaw_deg``: when given, the yaw is bounded to ± that
-    (tanh, like the tilt: a hovering board) instead of turning round."""
+    (like the tilt: a hovering board) instead of turning round."""
     rng = np.random.default_rng(seed)
     K, b = np.asarray(K, float), np.asarray(b, float)
     dt = 1e-3
@@ -40,9 +43,8 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
     n = len(tg)
     psi = np.cumsum(yaw_rate + smooth_noise(n, dt, 1.0, rate_sd, rng)[:, 0]) * dt
     if yaw_deg is not None:
-        psi = np.radians(yaw_deg) * np.tanh((psi - yaw_rate * (tg + 1.0)) / 0.2)
-    tilt = np.radians(tilt_deg) * np.tanh(np.cumsum(smooth_noise(n, dt, 0.5, rate_sd, rng)[:, :2],
-                                                    axis=0) * dt / 0.2)
+        psi = _wobble(tg, np.radians(yaw_deg), rng)
+    tilt = np.column_stack([_wobble(tg, np.radians(tilt_deg), rng) for _ in range(2)])
     rot = Rotation.from_euler("ZYX", np.column_stack([psi, tilt[:, 1], tilt[:, 0]]))
     q = rot.as_quat()
     step = (rot[:-1].inv() * rot[1:]).as_rotvec() / dt
@@ -73,3 +75,10 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
                      disturbance=np.zeros_like(h), temp=np.full(len(t_mag), 25.0),
                      motor_current=np.zeros(len(t_mag)))
     return SimResult(track, truth)
+
+
+def _wobble(t: np.ndarray, amp: float, rng: np.random.Generator) -> np.ndarray:
+    """(G,) angle bounded by ``amp`` rad: three sinusoids of amplitude amp/3."""
+    f = rng.uniform(*WOBBLE_HZ, 3)
+    ph = rng.uniform(0, 2 * np.pi, 3)
+    return amp / 3 * np.sum(np.sin(2 * np.pi * f * t[:, None] + ph), axis=1)
