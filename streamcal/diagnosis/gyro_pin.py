@@ -33,7 +33,7 @@ import numpy as np
 
 from ..errors import InsufficientDataError, MissingColumnsError
 from ..fitting.gyro_lag import gyro_rates
-from ..fitting.gyro_link import LinkPairs, SpherePrior, link_fit
+from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
 from .held import jacobian, project
 
 #: Rule 1: link rms at most this fraction of the no-rotation rms.
@@ -74,9 +74,9 @@ def _value(K, b, name):
 
 #: Joint fits: the sphere residual is re-linearised at each round's estimate (a slice's
 #: valley between b and K is curved: one linearisation at a wrong held value biases).
-JOINT_ROUNDS = 6
+JOINT_ROUNDS = 4
 #: Rounds of each held-out fit, started from the all-data joint estimate.
-HELD_OUT_ROUNDS = 2
+HELD_OUT_ROUNDS = 1
 
 
 def sphere_prior(K, b, fit, names: Sequence[str], m, cov, held_terms) -> SpherePrior:
@@ -128,20 +128,34 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
         return f
 
     sfit = fit
+    # choose on the linearisation at the held point (errors of each subset from one
+    # evaluation), then fit the chosen set; a chosen one above the tolerance after the fit
+    # is dropped and the rest refitted
+    allp = [*free, *names]
+    start = link_fit(pairs, K, b, allp, scale=r, rounds=0,
+                     sphere=sphere_prior(K, b, sfit, allp, m, cov, held_terms))
+    gyro = list(range(len(allp), len(allp) + N_GYRO))
     tried = {}
     while names:
-        fit = joint([*free, *names])
+        keep = [allp.index(n_) for n_ in [*free, *names]] + gyro
+        sd = dict(zip([*free, *names], subset_errors(start, keep)))
         for n_ in names:
-            tried[n_] = {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1]}
-        worst = max(names, key=lambda n_: fit.estimated[n_][1])
-        if fit.estimated[worst][1] <= tol:
-            break
+            tried[n_] = {"value": _value(K, b, n_), "sigma_predicted": float(sd[n_])}
+        worst = max(names, key=lambda n_: sd[n_])
+        if sd[worst] <= tol:
+            fit = joint([*free, *names])
+            worst = max(names, key=lambda n_: fit.estimated[n_][1])
+            for n_ in names:
+                tried[n_].update(value=fit.estimated[n_][0], sigma=fit.estimated[n_][1])
+            if fit.estimated[worst][1] <= tol:
+                break
         names.remove(worst)
     out.report["estimates"] = tried
     if not names:
         return out.reject("the rotation does not determine any held parameter within the "
                           f"tolerance {tol:.3g} (σ: " + ", ".join(
-                              f"{k} {v['sigma']:.3g}" for k, v in tried.items()) + ")")
+                              f"{k} {v.get('sigma', v['sigma_predicted']):.3g}"
+                          for k, v in tried.items()) + ")")
     held_ho, pinned_ho = _held_out(pairs, free, names, joint, fit)
     out.report.update(candidates=list(names), rms_heldout_held=held_ho,
                       rms_heldout_pinned=pinned_ho, rms_link=fit.rms)

@@ -70,7 +70,7 @@ GAP_FACTOR = 3.0
 N_GYRO = 6
 MIN_PAIRS = 30
 #: Most pairs used (evenly spaced in time).
-MAX_PAIRS = 5000
+MAX_PAIRS = 3000
 
 
 @dataclass
@@ -95,6 +95,9 @@ class LinkFit:
     pair_t: np.ndarray = field(repr=False, default=None)
     r: np.ndarray = field(repr=False, default=None)
     iterations: int = 0
+    #: (n,n) H and the block meat over (entries, gyro bias, gyro gain), χ² units.
+    bread: np.ndarray = field(repr=False, default=None)
+    meat: np.ndarray = field(repr=False, default=None)
 
 
 class LinkPairs:
@@ -146,6 +149,19 @@ class LinkPairs:
         Qb = orient.at(self.t[self.b]).as_matrix()
         return np.einsum("pji,pjk->pik", Qb, Qa)
 
+    def rotation_steps(self) -> np.ndarray:
+        """(N_GYRO,P,3,3) ∂R_ab/∂(bias, gain) at zero bias and gain error, central differences
+        (re-integrated), computed once: the nuisances are small and barely move it."""
+        if getattr(self, "_dR", None) is None:
+            out, step = [], 1e-5
+            for k in range(N_GYRO):
+                e = np.zeros(N_GYRO)
+                e[k] = step
+                out.append((self.rotations(e[:3], e[3:]) - self.rotations(-e[:3], -e[3:]))
+                           / (2 * step))
+            self._dR = np.stack(out)
+        return self._dR
+
     def residual(self, K, b, R, sel=None) -> np.ndarray:
         """(P,3) residual (1), sensor unit, of the pairs ``sel`` (default all); ``R`` the
         rotations of those pairs."""
@@ -186,14 +202,16 @@ class SpherePrior:
 
 
 def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
-             scale: float | None = None, sphere: SpherePrior | None = None) -> LinkFit:
+             scale: float | None = None, sphere: SpherePrior | None = None,
+             rounds: int = GN_ROUNDS) -> LinkFit:
     """Fit the entries ``names`` of (K, b) (every other entry at ``K0``/``b0``) and the gyro's
     bias and gain error on the residual (1) of the pairs ``sel`` (default all); see the module
     doc. ``scale``: the field radius (sets the difference steps; default from diag K0).
     ``sphere``: fit jointly with the linearised sphere residual (entries of ``sphere.names``
     missing from ``names`` stay at K0, b0): the link in χ² units (Cauchy cost × C², per-axis
     σ̂ fixed at the start's) plus the sphere's quadratic; the covariance adds F to both the
-    bread and the meat of the sandwich."""
+    bread and the meat of the sandwich. ``rounds`` = 0 evaluates the start (its ``bread`` and
+    ``meat`` give the errors of any subset, :func:`subset_errors`)."""
     K0, b0 = np.asarray(K0, float), np.asarray(b0, float)
     names = list(names)
     for n in names:
@@ -224,7 +242,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
         return float(d @ Fp @ d - 2 * cp @ d)
 
     R, r = evaluate(p)
-    dR = _rotation_steps(p, nk, steps, rot, sel)   # the rates' nuisances barely move R: once
+    dR = pairs.rotation_steps()[:, sel]
 
     def jac(q):
         K, b = _set(K0, b0, names, q[:nk])
@@ -239,7 +257,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
 
     cost = total(r, p)
     it = 0
-    for it in range(1, GN_ROUNDS + 1):
+    for it in range(1, rounds + 1):
         J = jac(p)
         w = 1.0 / (1.0 + np.sum(r * r, 1) / tau ** 2)
         H = np.einsum("p,pik,pil->kl", w, J, J) / sig0 ** 2 + Fp
@@ -259,10 +277,9 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
     rn = np.linalg.norm(r, axis=1)
     sigma = _width(rn)
     tau = CAUCHY_C * sigma
-    dR = _rotation_steps(p, nk, steps, rot, sel)
     J = jac(p)
     w = 1.0 / (1.0 + rn ** 2 / tau ** 2)
-    sd = _errors(J, w, r, pairs.t[pairs.a[sel]], pairs.horizon, sigma, Fp)
+    sd, bread, meat = _errors(J, w, r, pairs.t[pairs.a[sel]], pairs.horizon, sigma, Fp)
     K, b = _set(K0, b0, names, p[:nk])
     inl = rn <= 2 * tau
     r_still = pairs.residual(K, b, np.broadcast_to(np.eye(3), (len(sel), 3, 3)), sel)
@@ -273,12 +290,13 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
                    rms_still=float(np.sqrt(np.mean(np.sum(r_still[inl] ** 2, 1))))
                    if inl.any() else float("nan"),
                    sigma=sigma, tau=tau, n_pairs=len(sel), horizon_s=pairs.horizon,
-                   pair_t=pairs.t[pairs.a[sel]], r=r, iterations=it)
+                   pair_t=pairs.t[pairs.a[sel]], r=r, iterations=it, bread=bread, meat=meat)
 
 
 def _jacobian(p, nk, steps, R, res, dR, h_a, K):
     """(P,3,n): central differences in the K/b entries (the rotations ``R`` kept), and for the
-    gyro nuisances −K (∂R/∂q) h_a with ``dR`` (N_GYRO,P,3,3) from :func:`_rotation_steps`."""
+    gyro nuisances −K (∂R/∂q) h_a with ``dR`` (N_GYRO,P,3,3) from
+    :meth:`LinkPairs.rotation_steps`."""
     cols = []
     for k in range(nk):
         e = np.zeros(len(p))
@@ -287,16 +305,6 @@ def _jacobian(p, nk, steps, R, res, dR, h_a, K):
     for d in dR:
         cols.append(-np.einsum("ij,pjk,pk->pi", K, d, h_a))
     return np.stack(cols, axis=2)
-
-
-def _rotation_steps(p, nk, steps, rot, sel):
-    """(N_GYRO,P,3,3) ∂R_ab/∂(bias, gain) by central differences (re-integrated)."""
-    out = []
-    for k in range(nk, len(p)):
-        e = np.zeros(len(p))
-        e[k] = steps[k]
-        out.append((rot(p + e)[sel] - rot(p - e)[sel]) / (2 * steps[k]))
-    return np.stack(out)
 
 
 def _pinv(H):
@@ -340,4 +348,19 @@ def _errors(J, w, r, t_pair, horizon, sigma, F) -> np.ndarray:
     if nb <= 2 * J.shape[2]:   # too few blocks to estimate the correlated spread
         sd = np.full(len(sd), np.inf)
     sd[on_null] = np.inf
+    return sd, H, meat
+
+
+def subset_errors(fit: LinkFit, keep: Sequence[int]) -> np.ndarray:
+    """Errors of the parameters ``keep`` (indices into the fit's vector) when the others are
+    fixed: max(sandwich, naive) on the sub-blocks of ``fit.bread``/``fit.meat`` (inf where
+    unobservable), linearised at that fit."""
+    keep = list(keep)
+    H, M = fit.bread[np.ix_(keep, keep)], fit.meat[np.ix_(keep, keep)]
+    ev, V = np.linalg.eigh(H)
+    null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
+    Hinv = (V * np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))) @ V.T
+    sd = np.sqrt(np.maximum(np.maximum(np.diag(Hinv @ M @ Hinv), np.diag(Hinv)), 0.0))
+    if null.any():
+        sd[(V[:, null] ** 2).sum(axis=1) > 1e-6] = np.inf
     return sd
