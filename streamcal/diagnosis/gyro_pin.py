@@ -8,11 +8,12 @@ observe some of them. The gyro estimate *replaces* the held value ("pinned") onl
 1. **the gyro explains the rotation**: on the link residual with the held values, the rms is at
    most :data:`EXPLAINED` × the rms of predicting each reading with no rotation (a gyro in
    another frame, saturated or very noisy fails);
-2. **it is determined**: each pinned parameter's standard error (block sandwich, see the
-   fitting module) is within the same tolerance as the sphere's re-estimated ones
-   (TOLERANCE × r). Starting from every held parameter, the one with the largest error is left
-   held and the rest refitted, until all are within it (so a rotation that does not observe a
-   parameter leaves it held);
+2. **it is determined**: each pinned parameter's standard error is within the same tolerance
+   as the sphere's re-estimated ones (TOLERANCE × r). Starting from every held parameter, the
+   one with the largest predicted (Cramér–Rao, at the held point) error is left held until all
+   are within it; the rest are fitted, and one whose error at the fitted point (block
+   sandwich, see the fitting module) exceeds it is left held too and the rest refitted (so a
+   rotation that does not observe a parameter leaves it held);
 3. **it predicts held-out time better**: the pairs are cut into :data:`FOLDS` contiguous time
    blocks; for each, the link is fitted on the others with the candidate set free and with it
    held (the gyro's bias/gain free in both), and the held-out block's link residual is
@@ -128,9 +129,9 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
         return f
 
     sfit = fit
-    # choose on the linearisation at the held point (errors of each subset from one
-    # evaluation), then fit the chosen set; a chosen one above the tolerance after the fit
-    # is dropped and the rest refitted
+    # choose on the information at the held point (Cramér–Rao errors of each subset from one
+    # evaluation), then fit the chosen set; one whose sandwich error at the fitted point is
+    # above the tolerance is dropped and the rest refitted
     allp = [*free, *names]
     start = link_fit(pairs, K, b, allp, scale=r, rounds=0,
                      sphere=sphere_prior(K, b, sfit, allp, m, cov, held_terms))

@@ -351,16 +351,21 @@ def _errors(J, w, r, t_pair, horizon, sigma, F) -> np.ndarray:
     return sd, H, meat
 
 
-def subset_errors(fit: LinkFit, keep: Sequence[int]) -> np.ndarray:
+def subset_errors(fit: LinkFit, keep: Sequence[int], sandwich: bool = False) -> np.ndarray:
     """Errors of the parameters ``keep`` (indices into the fit's vector) when the others are
-    fixed: max(sandwich, naive) on the sub-blocks of ``fit.bread``/``fit.meat`` (inf where
-    unobservable), linearised at that fit."""
+    fixed, on the sub-blocks of ``fit.bread`` (and ``fit.meat`` with ``sandwich``: then
+    max(sandwich, naive)); inf where unobservable; linearised at that fit. Without
+    ``sandwich`` it is the information alone (Cramér–Rao, independent pairs): at a start point
+    whose held values are wrong the residuals, hence the meat, carry that error."""
     keep = list(keep)
     H, M = fit.bread[np.ix_(keep, keep)], fit.meat[np.ix_(keep, keep)]
     ev, V = np.linalg.eigh(H)
     null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
     Hinv = (V * np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))) @ V.T
-    sd = np.sqrt(np.maximum(np.maximum(np.diag(Hinv @ M @ Hinv), np.diag(Hinv)), 0.0))
+    var = np.diag(Hinv)
+    if sandwich:
+        var = np.maximum(np.diag(Hinv @ M @ Hinv), var)
+    sd = np.sqrt(np.maximum(var, 0.0))
     if null.any():
         sd[(V[:, null] ** 2).sum(axis=1) > 1e-6] = np.inf
     return sd
