@@ -28,7 +28,7 @@ from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
                    field_radius, held_fit, project)
-from .gyro_pin import confirm, gyro_pin, pinned_model
+from .gyro_pin import confirm, gyro_pin, json_safe, pinned_model
 from .held_check import implausible_effect, settle
 from .noise import noise_floor
 from .rank_subset import RANK_MAX, rank_subset
@@ -79,8 +79,8 @@ class HeldDiagnosis(Diagnosis):
         out["fit_status"] = dict(self.fit_status)
         out["held_after_fit"] = list(self.held_after_fit)
         out["suspicious"] = dict(self.suspicious)
-        out["gyro_pinned"] = dict(self.gyro_pinned)
-        out["gyro_link"] = dict(self.gyro_link)
+        out["gyro_pinned"] = json_safe(self.gyro_pinned)
+        out["gyro_link"] = json_safe(self.gyro_link)
         return out
 
     def candidate_dict(self, c) -> dict:
