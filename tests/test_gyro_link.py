@@ -6,9 +6,11 @@ import pytest
 
 import streamcal
 from streamcal.calibration import Calibration
+from streamcal.cli.diagnose import held_text
 from streamcal.diagnosis.held import TOLERANCE, field_radius
 from streamcal.fitting.gyro_lag import gyro_rates
 from streamcal.fitting.gyro_link import LinkPairs, link_fit
+from streamcal.inputs.track import Track
 from streamcal.sim.yaw_slice import yaw_slice
 
 K = np.array([[47.0, 1.2, -0.8], [0.0, 49.0, 0.6], [0.0, 0.0, 46.5]])
@@ -43,7 +45,8 @@ def test_link_does_not_see_the_offset_along_the_only_rotation_axis():
 
 
 def _diagnose(res, cal):
-    return streamcal.diagnose(res.track, calibration=cal, candidates=[], ladder=False)
+    track = res if isinstance(res, Track) else res.track
+    return streamcal.diagnose(track, calibration=cal, candidates=[], ladder=False)
 
 
 @pytest.mark.slow
@@ -65,6 +68,8 @@ def test_gyro_pins_a_wrong_held_K_zz_and_the_offset_follows():
     assert abs(d.calibration.K[2, 2] - K[2, 2]) < 1.0 / 3
     assert abs(d.calibration.b[2] - B[2]) < 1.0 / 3
     assert out["gyro_link"]["rms_heldout_pinned"] < out["gyro_link"]["rms_heldout_held"]
+    text = held_text(d)
+    assert "pinned by the gyro link" in text and "K_zz" in text.split("pinned by the gyro")[1]
 
 
 @pytest.mark.slow
@@ -77,6 +82,11 @@ def test_not_pinned_when_the_rotation_does_not_determine_it():
     assert "b_y" in d.held and not d.gyro_pinned and not link["used"]
     assert "does not determine" in link["reason"]
     assert link["estimates"]["b_y"]["sigma_predicted"] > d.tolerance
+    # the same track without gyro columns: held alike, the link not tried
+    bare = Track({c: v for c, v in res.track.columns.items() if c not in ("gx", "gy", "gz")},
+                 res.track.metadata)
+    d0 = _diagnose(bare, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron",)))
+    assert d0.held == d.held and d0.gyro_link["reason"].startswith("no gyro columns")
 
 
 @pytest.mark.slow
