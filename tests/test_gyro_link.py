@@ -97,3 +97,18 @@ def test_noisy_gyro_is_not_used():
     d = _diagnose(res, Calibration(K=Kg, b=B.copy(), model=("hard_iron", "soft_iron")))
     assert not d.gyro_pinned and not d.gyro_link["used"]
     assert "K_zz" in d.held
+
+
+@pytest.mark.slow
+def test_gyro_pins_a_wrong_held_offset_within_its_sigma():
+    """Hovering (yaw ±30°, tilt ±15°, 300 s, σ 0.15 µT), calibration 2 µT off on every offset:
+    the sphere re-estimates b_z but holds b_x and b_y; the link determines b_x."""
+    res = yaw_slice(300, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.15)
+    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron", "soft_iron")))
+    assert d.gyro_link["used"], d.gyro_link["reason"]
+    pinned = d.gyro_pinned["b_x"]
+    assert pinned["held_value"] == pytest.approx(B[0] + 2.0)
+    assert pinned["sigma"] <= d.tolerance
+    assert abs(pinned["value"] - B[0]) <= 3 * pinned["sigma"]
+    assert abs(d.calibration.b[0] - B[0]) <= 3 * pinned["sigma"]
+    assert "b_x" not in d.held
