@@ -9,7 +9,8 @@ the relation behind the MAGYC methods (Rodríguez et al., "MAGYC: magnetometer a
 calibration", the ``magyc`` package). Rotation keeps ‖h‖, so it fixes the *shape* of K and the
 offset b but not the overall scale of K (K → sK leaves it unchanged): the scale must come from
 the sphere fit or a held value. b is seen only across the rotation axes present: a term
-ω × Δh is blind to Δh along ω, so a yaw-only slice cannot see b_z this way.
+ω × Δh is blind to Δh along ω, so a yaw-only slice cannot see b_z this way (only through
+the off-diagonal K, weakly).
 
 The scheme (integrated, over a horizon)
 ---------------------------------------
@@ -33,7 +34,11 @@ The fit and its uncertainty
 ---------------------------
 Gauss–Newton on (1) over the chosen entries (named as in
 :mod:`streamcal.diagnosis.held`: ``K_xx … K_zz`` upper-triangular, ``b_x b_y b_z``) and the six
-gyro nuisances, every other entry fixed at its given value; central-difference Jacobian;
+gyro nuisances, every other entry fixed at its given value; central-difference Jacobian (for
+the nuisances, ∂R/∂(c, g) once per pair set at c = g = 0, :meth:`LinkPairs.rotation_steps`);
+at most :data:`MAX_PAIRS` pairs, evenly spaced. With a :class:`SpherePrior` the sphere
+(normal) residual, linearised, is added in χ² units (joint fit: the link alone cannot fix the
+scale);
 Cauchy weights on ‖r_ab‖ of width :data:`CAUCHY_C` σ̂ (σ̂ per axis from the median ‖r_ab‖).
 Consecutive pairs share samples, so the residuals are correlated over a horizon: the
 covariance is the sandwich H⁻¹ (Σ_B s_B s_Bᵀ) H⁻¹ with the weighted scores s summed over time
