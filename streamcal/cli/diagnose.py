@@ -136,7 +136,22 @@ def held_text(d) -> str:
         lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
         lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]
     lines += _recheck_lines(d, unit)
+    lines += _gyro_lines(d, unit)
     return "\n".join(lines)
+
+
+def _gyro_lines(d, unit: str) -> list[str]:
+    """Held parameters the gyro link pinned (:mod:`streamcal.diagnosis.gyro_pin`), or why not."""
+    link = getattr(d, "gyro_link", None) or {}
+    if not link:
+        return []
+    pinned = getattr(d, "gyro_pinned", {})
+    if not pinned:
+        return [f"gyro link  not used: {link.get('reason', '')}"]
+    lines = ["pinned by the gyro link (value ± σ, " + unit + "; " + link.get("rule", "") + ")"]
+    lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g} (held value {v['held_value']:.5g})"
+              for k, v in pinned.items()]
+    return lines
 
 
 def _recheck_lines(d, unit: str) -> list[str]:

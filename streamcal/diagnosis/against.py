@@ -30,6 +30,7 @@ from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
                    field_radius, held_fit, project)
+from .gyro_pin import confirm, gyro_pin, json_safe, pinned_model
 from .held_check import implausible_effect, settle
 from .noise import noise_floor
 from .rank_subset import RANK_MAX, rank_subset
@@ -68,6 +69,10 @@ class HeldDiagnosis(Diagnosis):
     #: had and why; and ``suspicious``: kept parameters (b without a calibration) that failed it.
     held_after_fit: list = field(default_factory=list)
     suspicious: dict = field(default_factory=dict)
+    #: Held parameters the gyro link pinned instead (:mod:`streamcal.diagnosis.gyro_pin`):
+    #: ``{name: {"value", "sigma", "held_value"}}``; ``gyro_link`` how that was decided.
+    gyro_pinned: dict = field(default_factory=dict)
+    gyro_link: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         out = self._held_dict()
@@ -76,6 +81,8 @@ class HeldDiagnosis(Diagnosis):
         out["fit_status"] = dict(self.fit_status)
         out["held_after_fit"] = list(self.held_after_fit)
         out["suspicious"] = dict(self.suspicious)
+        out["gyro_pinned"] = json_safe(self.gyro_pinned)
+        out["gyro_link"] = json_safe(self.gyro_link)
         return out
 
     def candidate_dict(self, c) -> dict:
@@ -253,6 +260,15 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                      held_terms, sigma, tol, field_radius(K0), b0, keep)
     free = settled.free
     fit = settled.fit
+    # held parameters the gyro link determines (only when that helps: gyro_pin's rules)
+    pin = gyro_pin(track, m, t, cov, held_terms, fit, free,
+                   [p for p in names if p not in free], tol, field_radius(K0))
+    K0p, b0p = pinned_model(K0, b0, pin)
+    again = confirm(pin, fit, lambda: settle(
+        lambda f: held_fit(m, cov, K0p, b0p, f, held_terms, (), sigma), free, m, cov,
+        held_terms, sigma, tol, field_radius(K0), b0, keep))
+    if again is not None:
+        K0, b0, settled, free, fit = K0p, b0p, again, again.free, again.fit
     base = _Eval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model), len(free), [])
     # the floor the verdict and the materiality test use: the same rule as a fresh diagnosis
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
@@ -327,7 +343,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                         [*held_terms, *zip(current.terms, current.fit.thetas)], m, cov)[0]
         inl = np.linalg.norm(r_all, axis=1) <= OUTLIER_WIDTHS * current.fit.tau
     outliers = ~np.asarray(inl, bool)
-    held = [p for p in names if p not in free] + [
+    held = [p for p in names if p not in free and p not in pin.pinned] + [
         p for p in ("K_xx", "K_xy", "K_xz", "K_yy", "K_yz", "K_zz", "b_x", "b_y", "b_z")
         if p not in names] + [f"{t.name}" for t, _ in held_terms]
     estimated = {k: {"value": v, "sigma": e} for k, (v, e) in base.fit.estimated.items()}
@@ -346,4 +362,5 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         aux_channels=channel_scores(base.s, base.normal, cov),
         fit_status={"status": base.fit.status, "iterations": base.fit.iterations,
                     "message": base.fit.message},
-        held_after_fit=settled.held_after_fit, suspicious=settled.suspicious)
+        held_after_fit=settled.held_after_fit, suspicious=settled.suspicious,
+        gyro_pinned=pin.pinned, gyro_link=pin.report)

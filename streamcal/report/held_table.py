@@ -33,8 +33,9 @@ def held_section(d, unit: str) -> str:
     rows = []
     after = {h["parameter"]: h for h in getattr(d, "held_after_fit", [])}
     for name, _ in (*K_PARAMS, *B_PARAMS):
-        est = d.estimated.get(name)
-        status = "re-estimated" if est else (
+        pin = getattr(d, "gyro_pinned", {}).get(name)
+        est = d.estimated.get(name) or pin
+        status = "pinned by the gyro link" if pin else "re-estimated" if est else (
             "held after the fit" if name in after else "held")
         value = est["value"] if est else _value(d.calibration, name)
         sigma = _num(est["sigma"]) if est else "–"

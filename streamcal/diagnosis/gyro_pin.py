@@ -1,0 +1,242 @@
+"""Pin held parameters with the gyro link, only where that helps (issue #10).
+
+A slice leaves some parameters of K and b undetermined by the sphere (normal) residual; they are
+held at the given calibration (:mod:`streamcal.diagnosis.held`). When the recording has a gyro,
+the rotation between readings (:mod:`streamcal.fitting.gyro_link`, residual (1) there) can
+observe some of them. The gyro estimate *replaces* the held value ("pinned") only when all of:
+
+1. **the gyro explains the rotation**: on the link residual with the held values, the rms is at
+   most :data:`EXPLAINED` × the rms of predicting each reading with no rotation (a gyro in
+   another frame, saturated or very noisy fails);
+2. **it is determined**: each pinned parameter's standard error is within the same tolerance
+   as the sphere's re-estimated ones (TOLERANCE × r). Starting from every held parameter, the
+   one with the largest predicted (Cramér–Rao, at the held point) error is left held until all
+   are within it; the rest are fitted, and one whose error at the fitted point (block
+   sandwich, see the fitting module) exceeds it is left held too and the rest refitted (so a
+   rotation that does not observe a parameter leaves it held);
+3. **it predicts held-out time better**: the pairs are cut into :data:`FOLDS` contiguous time
+   blocks; for each, the link is fitted on the others with the candidate set free and with it
+   held (the gyro's bias/gain free in both), and the held-out block's link residual is
+   compared: the rms over the pairs either fit counts as inliers (‖r‖ ≤ 2 widths of the held
+   fit) must be lower with the pinned values, pooled over the blocks;
+4. **the sphere does not object** (checked by the caller, :mod:`streamcal.diagnosis.against`):
+   refitted with the pinned values held, the sphere residual rms rises by at most
+   :data:`SPHERE_RISE` (a rise means the sphere saw these parameters after all and disagrees).
+
+Anything else leaves them held, and ``reason`` says which rule failed.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import InsufficientDataError, MissingColumnsError
+from ..fitting.gyro_lag import gyro_rates
+from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
+from .held import jacobian, project
+
+#: Rule 1: link rms at most this fraction of the no-rotation rms.
+EXPLAINED = 0.5
+#: Rule 3: contiguous held-out time blocks.
+FOLDS = 4
+#: Rule 4: sphere rms with the pinned values at most this factor of the rms with them held.
+SPHERE_RISE = 1.05
+RULE = (f"pinned only when: the gyro explains the rotation (link rms ≤ {EXPLAINED:g} × the "
+        f"no-rotation rms); each pinned σ ≤ the tolerance; the link rms on {FOLDS} held-out "
+        f"time blocks is lower than with the parameters held; the sphere rms rises by at most "
+        f"{SPHERE_RISE - 1:.0%}")
+
+
+@dataclass
+class GyroPin:
+    """``used``: the pinned values replace the held ones; ``pinned`` {name: {value, sigma,
+    held_value}}; ``K``, ``b`` the given model with the pinned values; ``report`` the JSON-able
+    summary (key ``gyro_link`` of the diagnosis)."""
+
+    used: bool
+    K: np.ndarray
+    b: np.ndarray
+    pinned: dict = field(default_factory=dict)
+    report: dict = field(default_factory=dict)
+
+    def reject(self, reason: str) -> "GyroPin":
+        """The same outcome, not used, saying why."""
+        self.report.update(used=False, reason=reason)
+        self.used, self.pinned = False, {}
+        return self
+
+
+def _value(K, b, name):
+    from ..fitting.gyro_link import B_INDEX, K_INDEX
+    return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
+
+
+#: Joint fits: the sphere residual is re-linearised at each round's estimate (a slice's
+#: valley between b and K is curved: one linearisation at a wrong held value biases).
+JOINT_ROUNDS = 4
+#: Rounds of each held-out fit, started from the all-data joint estimate.
+HELD_OUT_ROUNDS = 1
+
+
+def sphere_prior(K, b, fit, names: Sequence[str], m, cov, held_terms) -> SpherePrior:
+    """The sphere residual at ``K``, ``b`` linearised over the core parameters ``names``
+    (F = AᵀWA/σ̂², c = AᵀWs/σ̂², W Cauchy weights of the width and σ̂ of the held fit
+    ``fit``, :class:`streamcal.diagnosis.held.HeldFit`)."""
+    _, x, s, normal, D = project(K, b, list(held_terms), m, cov)
+    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T)
+    w = 1.0 / (1.0 + (s / fit.tau) ** 2)
+    sig2 = max(fit.sigma, 1e-12) ** 2
+    return SpherePrior(list(names), np.einsum("n,np,nq->pq", w, A, A) / sig2,
+                       np.einsum("n,np,n->p", w, A, s) / sig2)
+
+
+def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Sequence[str],
+             held: Sequence[str], tol: float, r: float) -> GyroPin:
+    """Rules 1–3 of the module doc for the ``held`` core parameters of the model, at the
+    settled sphere fit ``fit`` (HeldFit: K, b with the held values) whose re-estimated
+    parameters are ``free``; ``cov`` the covariates at the readings, ``held_terms`` the
+    calibration's effect terms; ``tol`` sensor unit; ``r`` the field radius. The held
+    parameters are fitted jointly with the ``free`` ones, the link plus the linearised sphere
+    residual (:func:`sphere_prior`), so a free parameter the wrong held value bent is bent back."""
+    K, b = np.asarray(fit.K, float), np.asarray(fit.b, float)
+    free = list(free)
+    out = GyroPin(False, K, b, report={"used": False, "rule": RULE, "residual": "gyro_link",
+                                       "tolerance": tol})
+    if not held:
+        return out.reject("no parameter is held")
+    try:
+        t_g, w_g = gyro_rates(track)
+        pairs = LinkPairs(m, t, t_g, w_g)
+    except MissingColumnsError:
+        return out.reject("no gyro columns (gx, gy, gz)")
+    except InsufficientDataError as exc:
+        return out.reject(str(exc))
+    out.report.update(n_pairs=len(pairs), horizon_s=pairs.horizon)
+    names = list(held)
+    base = link_fit(pairs, K, b, [], scale=r)
+    out.report.update(rms_held=base.rms, rms_still=base.rms_still)
+    if not base.rms <= EXPLAINED * base.rms_still:
+        return out.reject(f"the gyro does not explain the rotation: link rms {base.rms:.3g} "
+                          f"> {EXPLAINED:g} × the no-rotation rms {base.rms_still:.3g}")
+    def joint(est, sel=None, start=None, rounds=JOINT_ROUNDS):
+        Kc, bc = (K, b) if start is None else (start.K, start.b)
+        for _ in range(rounds):
+            prior = sphere_prior(Kc, bc, sfit, est, m, cov, held_terms)
+            f = link_fit(pairs, Kc, bc, est, sel=sel, scale=r, sphere=prior)
+            Kc, bc = f.K, f.b
+        return f
+
+    sfit = fit
+    # choose on the information at the held point (Cramér–Rao errors of each subset from one
+    # evaluation), then fit the chosen set; one whose sandwich error at the fitted point is
+    # above the tolerance is dropped and the rest refitted
+    allp = [*free, *names]
+    start = link_fit(pairs, K, b, allp, scale=r, rounds=0,
+                     sphere=sphere_prior(K, b, sfit, allp, m, cov, held_terms))
+    gyro = list(range(len(allp), len(allp) + N_GYRO))
+    tried = {}
+    while names:
+        keep = [allp.index(n_) for n_ in [*free, *names]] + gyro
+        sd = dict(zip([*free, *names], subset_errors(start, keep)))
+        for n_ in names:
+            tried[n_] = {"value": _value(K, b, n_), "sigma_predicted": float(sd[n_])}
+        worst = max(names, key=lambda n_: sd[n_])
+        if sd[worst] <= tol:
+            fit = joint([*free, *names])
+            worst = max(names, key=lambda n_: fit.estimated[n_][1])
+            for n_ in names:
+                tried[n_].update(value=fit.estimated[n_][0], sigma=fit.estimated[n_][1])
+            if fit.estimated[worst][1] <= tol:
+                break
+        names.remove(worst)
+    out.report["estimates"] = tried
+    if not names:
+        return out.reject("the rotation does not determine any held parameter within the "
+                          f"tolerance {tol:.3g} (σ: " + ", ".join(
+                              f"{k} {v.get('sigma', v['sigma_predicted']):.3g}"
+                          for k, v in tried.items()) + ")")
+    held_ho, pinned_ho = _held_out(pairs, free, names, joint, fit)
+    out.report.update(candidates=list(names), rms_heldout_held=held_ho,
+                      rms_heldout_pinned=pinned_ho, rms_link=fit.rms)
+    if not pinned_ho < held_ho:
+        return out.reject(f"held-out link rms not lower with the gyro's values "
+                          f"({pinned_ho:.4g} vs {held_ho:.4g} held)")
+    out.used, out.K, out.b = True, fit.K, fit.b
+    out.pinned = {n_: {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1],
+                       "held_value": _value(K, b, n_)} for n_ in names}
+    out.report.update(used=True, reason="every rule passed")
+    return out
+
+
+def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, float]:
+    """Pooled held-out link rms (rule 3) with ``names`` held and fitted (``free`` fitted in
+    both, by ``joint(est, sel)``: the sphere residual from every reading, the link from the
+    training blocks; each started from the all-data estimate, :data:`HELD_OUT_ROUNDS`
+    rounds)."""
+    starts = (joint(list(free)) if free else None, pinned_fit)
+    t_pair = pairs.t[pairs.a]
+    edges = np.quantile(t_pair, np.linspace(0, 1, FOLDS + 1))
+    fold = np.clip(np.searchsorted(edges, t_pair, side="right") - 1, 0, FOLDS - 1)
+    sq_h, sq_p = [], []
+    for k in range(FOLDS):
+        test = np.flatnonzero(fold == k)
+        # a pair straddling the boundary shares readings with the test block: left out
+        train = np.flatnonzero((fold != k) & ((pairs.t[pairs.b] < edges[k]) |
+                                              (t_pair > edges[k + 1])))
+        res = []
+        for est, start in zip((list(free), [*free, *names]), starts):
+            f = joint(est, train, start, HELD_OUT_ROUNDS)
+            R = pairs.rotations(f.gyro_bias, f.gyro_gain)[test]
+            res.append((np.linalg.norm(pairs.residual(f.K, f.b, R, test), axis=1), f.tau))
+        (rh, tau), (rp, _) = res
+        keep = (rh <= 2 * tau) | (rp <= 2 * tau)
+        sq_h.append(rh[keep] ** 2)
+        sq_p.append(rp[keep] ** 2)
+    return (float(np.sqrt(np.mean(np.concatenate(sq_h)))),
+            float(np.sqrt(np.mean(np.concatenate(sq_p)))))
+
+
+def pinned_model(K, b, pin: GyroPin) -> tuple[np.ndarray, np.ndarray]:
+    """The given model ``K``, ``b`` with the pinned values substituted (copies)."""
+    from ..fitting.gyro_link import B_INDEX, K_INDEX
+    K, b = np.array(K, float), np.array(b, float)
+    for name, entry in pin.pinned.items():
+        if name in K_INDEX:
+            K[K_INDEX[name]] = entry["value"]
+        else:
+            b[B_INDEX[name]] = entry["value"]
+    return K, b
+
+
+def _sphere_rms(fit) -> float:
+    rss = np.sum(np.square(fit.r), axis=1)
+    return float(np.sqrt(np.mean(rss[fit.inliers]))) if fit.inliers.any() else float("nan")
+
+
+def confirm(pin: GyroPin, held_fit_, refit: Callable):
+    """Rule 4: ``refit()`` (the settled sphere fit with the pinned values held) against
+    ``held_fit_`` (with them at the given values). Returns the refit when it passes, else None
+    (and ``pin`` says why)."""
+    if not pin.used:
+        return None
+    new = refit()
+    before, after = _sphere_rms(held_fit_), _sphere_rms(new.fit)
+    pin.report.update(sphere_rms_held=before, sphere_rms_pinned=after)
+    if not after <= SPHERE_RISE * before:
+        pin.reject(f"the sphere rms rose from {before:.4g} to {after:.4g} with the gyro's "
+                   f"values (more than {SPHERE_RISE - 1:.0%})")
+        return None
+    return new
+
+
+def json_safe(obj):
+    """``obj`` with every non-finite float (an unobservable σ = inf) replaced by None."""
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj

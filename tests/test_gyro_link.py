@@ -1,0 +1,114 @@
+"""The gyro link (issue #10): held parameters pinned by the rotation rate only when that helps."""
+import json
+
+import numpy as np
+import pytest
+
+import streamcal
+from streamcal.calibration import Calibration
+from streamcal.cli.diagnose import held_text
+from streamcal.diagnosis.held import TOLERANCE, field_radius
+from streamcal.fitting.gyro_lag import gyro_rates
+from streamcal.fitting.gyro_link import LinkPairs, link_fit
+from streamcal.inputs.track import Track
+from streamcal.sim.yaw_slice import yaw_slice
+
+K = np.array([[47.0, 1.2, -0.8], [0.0, 49.0, 0.6], [0.0, 0.0, 46.5]])
+B = np.array([12.0, -7.0, 20.0])
+TOL = TOLERANCE * field_radius(K)
+
+
+def _pairs(res, horizon=1.0):
+    tr = res.track
+    t_g, w_g = gyro_rates(tr)
+    return LinkPairs(np.asarray(tr.mag), np.asarray(tr.t_mag), t_g, w_g, horizon)
+
+
+def test_link_recovers_an_offset_and_the_horizon_beats_consecutive_readings():
+    res = yaw_slice(60, seed=1, K=K, b=B, tilt_deg=10)
+    start = B + [0.0, 0.0, 3.0]
+    fit = link_fit(_pairs(res), K, start, ["b_z"])
+    value, sd = fit.estimated["b_z"]
+    assert sd < 0.5 and abs(value - B[2]) <= 3 * sd
+    assert fit.rms < 0.5 * fit.rms_still     # the gyro explains the rotation
+    # the derivative between consecutive readings divides the noise by 10 ms
+    consecutive = link_fit(_pairs(res, 0.0), K, start, ["b_z"]).estimated["b_z"][1]
+    assert consecutive > 10 * sd
+
+
+def test_link_does_not_see_the_offset_along_the_only_rotation_axis():
+    Kd = np.diag(np.diag(K))
+    res = yaw_slice(60, seed=1, K=Kd, b=B, tilt_deg=0)      # yaw only: ω along body z
+    fit = link_fit(_pairs(res), Kd, B + [0.0, 0.0, 3.0], ["b_x", "b_z"])
+    assert fit.estimated["b_x"][1] < TOL
+    assert not fit.estimated["b_z"][1] < 100 * TOL
+
+
+def _diagnose(res, cal):
+    track = res if isinstance(res, Track) else res.track
+    return streamcal.diagnose(track, calibration=cal, candidates=[], ladder=False)
+
+
+@pytest.mark.slow
+def test_gyro_pins_a_wrong_held_K_zz_and_the_offset_follows():
+    """A yaw-turning slice (±25° tilt) leaves K_zz to trade against b_z on the sphere: K_zz is
+    held at the calibration's wrong value (+1 µT) and b_z bends by ≈ 1 µT to match it."""
+    res = yaw_slice(120, seed=2, K=K, b=B, tilt_deg=25, noise_uT=0.15)
+    Kg = K.copy()
+    Kg[2, 2] += 1.0
+    d = _diagnose(res, Calibration(K=Kg, b=B.copy(), model=("hard_iron", "soft_iron")))
+    out = d.to_dict()
+    json.dumps(out, allow_nan=False, default=lambda v: None)
+    assert out["gyro_link"]["used"], out["gyro_link"]["reason"]
+    pinned = out["gyro_pinned"]["K_zz"]
+    assert pinned["held_value"] == pytest.approx(47.5)
+    assert pinned["sigma"] <= out["tolerance"]
+    assert abs(pinned["value"] - K[2, 2]) <= 3 * pinned["sigma"]
+    assert "K_zz" not in out["held"]
+    assert abs(d.calibration.K[2, 2] - K[2, 2]) < 1.0 / 3
+    assert abs(d.calibration.b[2] - B[2]) < 1.0 / 3
+    assert out["gyro_link"]["rms_heldout_pinned"] < out["gyro_link"]["rms_heldout_held"]
+    text = held_text(d)
+    assert "pinned by the gyro link" in text and "K_zz" in text.split("pinned by the gyro")[1]
+
+
+@pytest.mark.slow
+def test_not_pinned_when_the_rotation_does_not_determine_it():
+    """Yaw ±20° with no tilt: b_y is held by the sphere, and the link sees it only through
+    the yaw, where it trades against the gyro's z gain: σ above the tolerance, held."""
+    res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=0, yaw_deg=20)
+    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron",)))
+    link = d.to_dict()["gyro_link"]
+    assert "b_y" in d.held and not d.gyro_pinned and not link["used"]
+    assert "does not determine" in link["reason"]
+    assert link["estimates"]["b_y"]["sigma_predicted"] > d.tolerance
+    # the same track without gyro columns: held alike, the link not tried
+    bare = Track({c: v for c, v in res.track.columns.items() if c not in ("gx", "gy", "gz")},
+                 res.track.metadata)
+    d0 = _diagnose(bare, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron",)))
+    assert d0.held == d.held and d0.gyro_link["reason"].startswith("no gyro columns")
+
+
+@pytest.mark.slow
+def test_noisy_gyro_is_not_used():
+    res = yaw_slice(120, seed=2, K=K, b=B, tilt_deg=25, noise_uT=0.15, gyro_noise=0.5)
+    Kg = K.copy()
+    Kg[2, 2] += 1.0
+    d = _diagnose(res, Calibration(K=Kg, b=B.copy(), model=("hard_iron", "soft_iron")))
+    assert not d.gyro_pinned and not d.gyro_link["used"]
+    assert "K_zz" in d.held
+
+
+@pytest.mark.slow
+def test_gyro_pins_a_wrong_held_offset_within_its_sigma():
+    """Hovering (yaw ±30°, tilt ±15°, 300 s, σ 0.15 µT), calibration 2 µT off on every offset:
+    the sphere re-estimates b_z but holds b_x and b_y; the link determines b_x."""
+    res = yaw_slice(300, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.15)
+    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron", "soft_iron")))
+    assert d.gyro_link["used"], d.gyro_link["reason"]
+    pinned = d.gyro_pinned["b_x"]
+    assert pinned["held_value"] == pytest.approx(B[0] + 2.0)
+    assert pinned["sigma"] <= d.tolerance
+    assert abs(pinned["value"] - B[0]) <= 3 * pinned["sigma"]
+    assert abs(d.calibration.b[0] - B[0]) <= 3 * pinned["sigma"]
+    assert "b_x" not in d.held

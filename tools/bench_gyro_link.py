@@ -1,0 +1,101 @@
+"""The gyro link measured against holding (issue #10): simulated slices and the real flight logs.
+
+    python3 tools/bench_gyro_link.py [--seeds N] [--flights]
+
+Simulated (:func:`streamcal.sim.yaw_slice.yaw_slice`, a yaw-turning slice tilting ±25°,
+120 s, 100 Hz, true K and b fixed): the given calibration has K_zz 1 µT too large and is
+otherwise exact. The sphere holds K_zz (it trades against b_z on such a slice) and bends b_z
+to match. Per seed and reading noise, the error of K_zz and b_z after the diagnosis against the
+calibration (``streamcal.diagnose(track, calibration=cal)``) with the gyro link (as shipped)
+and with it switched off (the track's gyro columns removed): held vs gyro.
+
+``--flights``: each ArduPilot log of ../shared/data/real/flight against its autopilot
+calibration: what the gyro link did (``gyro_link`` of the diagnosis) and the time it took,
+beside the same diagnosis without gyro columns, in the same run.
+"""
+from __future__ import annotations
+
+import argparse
+import time
+from pathlib import Path
+
+import numpy as np
+
+import streamcal
+from streamcal.calibration import Calibration
+from streamcal.inputs.track import Track
+from streamcal.sim.yaw_slice import yaw_slice
+
+K = np.array([[47.0, 1.2, -0.8], [0.0, 49.0, 0.6], [0.0, 0.0, 46.5]])
+B = np.array([12.0, -7.0, 20.0])
+FLIGHT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "flight"
+
+
+def without_gyro(track: Track) -> Track:
+    """The same track without the gyro columns: the gyro link is then not tried."""
+    cols = {c: v for c, v in track.columns.items() if c not in ("gx", "gy", "gz")}
+    return Track(cols, track.metadata)
+
+
+def simulated(seeds, noises):
+    print("| noise µT | seed | held K_zz err | gyro K_zz err ± σ | held b_z err | gyro b_z err "
+          "| pinned | reason |")
+    print("|---|---|---|---|---|---|---|---|")
+    Kg = K.copy()
+    Kg[2, 2] += 1.0
+    for noise in noises:
+        for seed in seeds:
+            res = yaw_slice(120, seed=seed, K=K, b=B, tilt_deg=25, noise_uT=noise)
+            cal = Calibration(K=Kg, b=B.copy(), model=("hard_iron", "soft_iron"))
+            out = {}
+            for label, track in (("held", without_gyro(res.track)), ("gyro", res.track)):
+                d = streamcal.diagnose(track, calibration=cal, candidates=[], ladder=False)
+                out[label] = d
+            h, g = out["held"], out["gyro"]
+            sd = g.gyro_pinned.get("K_zz", {}).get("sigma", float("nan"))
+            print(f"| {noise:g} | {seed} | {h.calibration.K[2, 2] - K[2, 2]:+.3f} "
+                  f"| {g.calibration.K[2, 2] - K[2, 2]:+.3f} ± {sd:.3f} "
+                  f"| {h.calibration.b[2] - B[2]:+.3f} | {g.calibration.b[2] - B[2]:+.3f} "
+                  f"| {', '.join(g.gyro_pinned) or '—'} | {g.gyro_link.get('reason', '')[:60]} |")
+
+
+def flights():
+    from streamcal.inputs import autopilot_calibration, read_recording
+
+    for path in sorted(FLIGHT.glob("ardupilot_*.BIN")):
+        track = read_recording(path)
+        cal = autopilot_calibration(track)
+        times = {"gyro": [], "no gyro": []}
+        result = None
+        for _ in range(2):   # alternate A, B, A, B
+            for label, tr in (("gyro", track), ("no gyro", without_gyro(track))):
+                t0 = time.perf_counter()
+                d = streamcal.diagnose(tr, calibration=cal, calibration_source="autopilot")
+                times[label].append(time.perf_counter() - t0)
+                if label == "gyro":
+                    result = d
+        link = result.gyro_link
+        est = {k: (round(v.get("value", np.nan), 3), round(v.get("sigma", v.get(
+            "sigma_predicted", np.nan)), 3)) for k, v in link.get("estimates", {}).items()}
+        print(f"{path.name}: held {result.held}; pinned {result.gyro_pinned}; used "
+              f"{link['used']}: {link['reason']}")
+        print(f"  link rms {link.get('rms_held', float('nan')):.4g} vs no-rotation "
+              f"{link.get('rms_still', float('nan')):.4g} ({result.unit}); estimates {est}")
+        print(f"  diagnose time median {np.median(times['gyro']):.2f} s (runs "
+              f"{', '.join(f'{v:.2f}' for v in times['gyro'])}) vs without gyro "
+              f"{np.median(times['no gyro']):.2f} s "
+              f"({', '.join(f'{v:.2f}' for v in times['no gyro'])})")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, default=3)
+    ap.add_argument("--flights", action="store_true")
+    args = ap.parse_args()
+    simulated(range(1, args.seeds + 1), (0.15, 0.4))
+    if args.flights:
+        flights()
+
+
+if __name__ == "__main__":
+    main()
