@@ -1,7 +1,8 @@
 """Time and peak RSS of ``streamcal diagnose`` on long tracks: the subsampled path against the
 full computation, same run (issue #13 item 2).
 
-    python tools/bench_long_diagnose.py [--keep DIR] [--hours 1,4] [--full-long]
+    python tools/bench_long_diagnose.py [--keep DIR] [--full-long] [--only 1h,4h]
+                                        [--baseline CHECKOUT] [--repeat N]
 
 Simulates 5-minute, 1-hour and 4-hour 100 Hz tracks with ``streamcal.sim.simulate`` (hourly
 segments of one sensor model and one hidden ``temperature_offset`` placed end to end, two outlier
@@ -11,6 +12,10 @@ own subprocess (``python -m streamcal diagnose TRACK --json``, peak RSS from
 (``--full``) of the 5-minute track, and of the 1-hour track with ``--full-long``. Targets:
 1-hour ≤ 10 s and ≤ 400 MB; 4-hour peak RSS ≤ 1.3 × the 1-hour's; verdict and top candidate as
 the full computation's.
+
+``--baseline CHECKOUT`` runs every row with that checkout's code too (another worktree, e.g. the
+commit this one branched from), alternating baseline / this ``--repeat`` times (default 1), and
+prints medians, spreads and this/baseline ratios of time and peak RSS. ``--only`` picks rows.
 """
 from __future__ import annotations
 
@@ -60,22 +65,23 @@ print(json.dumps({"rc": proc.returncode, "maxrss_kib":
 """
 
 
-def _run(path: Path, full: bool) -> dict:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+def _run(path: Path, full: bool, repo: Path = REPO, label: str = "") -> dict:
+    env = dict(os.environ, PYTHONPATH=str(repo))
     start = time.perf_counter()
+    # cwd: ``-m streamcal`` looks in the working directory first
     proc = subprocess.run([sys.executable, "-c", _MEASURE, str(path), *(["--full"] if full else [])],
-                          capture_output=True, text=True, env=env, check=True)
+                          capture_output=True, text=True, env=env, check=True, cwd=str(repo))
     elapsed = time.perf_counter() - start
     out = json.loads(proc.stdout)
     if out["rc"] != 0:
         sys.exit(f"diagnose of {path} failed ({out['rc']}): {out['stderr']}")
     d = json.loads(out["out"])
     top = d["candidates"][0]["effect"] if d["candidates"] else None
-    row = {"track": path.name, "mode": "full" if full else "auto", "s": elapsed,
+    row = {"track": path.name, "mode": ("full" if full else "auto") + label, "s": elapsed,
            "rss_mb": out["maxrss_kib"] / 1024, "verdict": d["verdict"], "top": top,
            "used": d["samples_used"], "total": d["samples_total"],
            "spans": len(d["outlier_spans"]), "spans_over": d.get("outlier_spans_over", "all")}
-    print(f"{row['track']:<8}{row['mode']:<6}{row['s']:>8.1f} s{row['rss_mb']:>9.0f} MiB  "
+    print(f"{row['track']:<8}{row['mode']:<9}{row['s']:>8.1f} s{row['rss_mb']:>9.0f} MiB  "
           f"{row['verdict']:<15}{str(top):<22}{row['used']:>9}/{row['total']:<9}"
           f"{row['spans']:>4} spans over {row['spans_over']}", flush=True)
     return row
@@ -85,36 +91,66 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--keep", metavar="DIR", help="write the tracks here and reuse them")
     ap.add_argument("--full-long", action="store_true", help="also the full 1-hour diagnosis")
+    ap.add_argument("--only", help="comma-separated rows: 5min-full,5min,1h-full,1h,4h")
+    ap.add_argument("--baseline", metavar="CHECKOUT", help="also run each row with this checkout")
+    ap.add_argument("--repeat", type=int, default=1, help="alternations per row (default 1)")
     args = ap.parse_args()
+    plan = [("5min", True), ("5min", False)] + ([("1h", True)] if args.full_long else []) + \
+        [("1h", False), ("4h", False)]
+    if args.only:
+        want = set(args.only.split(","))
+        plan = [(n, f) for n, f in plan if (f"{n}-full" if f else n) in want]
     with tempfile.TemporaryDirectory(prefix="bench_long_diag_") as tmp:
         where = Path(args.keep or tmp)
         where.mkdir(parents=True, exist_ok=True)
         tracks = {"5min": 300.0, "1h": 3600.0, "4h": 4 * 3600.0}
         paths = {}
-        for name, seconds in tracks.items():
+        for name in sorted({n for n, _ in plan}, key=list(tracks).index):
             paths[name] = where / f"{name}.csv"
             if not paths[name].exists():
                 start = time.perf_counter()
-                rows = _make(paths[name], seconds, seed=3)
+                rows = _make(paths[name], tracks[name], seed=3)
                 print(f"simulated {name}: {rows} rows, {paths[name].stat().st_size / 1e6:.0f} MB "
                       f"in {time.perf_counter() - start:.0f} s", flush=True)
-        print(f"{'track':<8}{'mode':<6}{'time':>10}{'peak RSS':>13}  {'verdict':<15}"
+        print(f"{'track':<8}{'mode':<9}{'time':>10}{'peak RSS':>13}  {'verdict':<15}"
               f"{'top candidate':<22}{'used/total mag samples':>19}")
-        rows = {("5min", "full"): _run(paths["5min"], True)}
-        rows[("5min", "sub")] = _run(paths["5min"], False)   # below the size: full as well
-        if args.full_long:
-            rows[("1h", "full")] = _run(paths["1h"], True)
-        rows[("1h", "sub")] = _run(paths["1h"], False)
-        rows[("4h", "sub")] = _run(paths["4h"], False)
-        one, four, base = rows[("1h", "sub")], rows[("4h", "sub")], rows[("5min", "full")]
-        print(f"1 h subsampled: {one['s']:.1f} s (target <= 10), {one['rss_mb']:.0f} MiB (<= 400); "
-              f"= {one['s'] / base['s']:.2f}x time, {one['rss_mb'] / base['rss_mb']:.2f}x RSS of "
-              f"the full 5-min diagnosis")
-        print(f"4 h / 1 h peak RSS: {four['rss_mb'] / one['rss_mb']:.3f} (target <= 1.3)")
+        runs: dict = {}
+        for name, full in plan:
+            key = (name, "full" if full else "sub")
+            for _ in range(max(1, args.repeat)):
+                if args.baseline:
+                    runs.setdefault(key + ("base",), []).append(
+                        _run(paths[name], full, Path(args.baseline).resolve(), "/base"))
+                runs.setdefault(key + ("this",), []).append(_run(paths[name], full))
+        rows = {k[:2]: v[-1] for k, v in runs.items() if k[2] == "this"}
+        if args.baseline:
+            import statistics
+            print(f"same run, {args.repeat} alternation(s) baseline/this; medians [min-max]:")
+            for (name, mode, who), rs in runs.items():
+                if who != "this":
+                    continue
+                base = runs[(name, mode, "base")]
+                ts, bs = [r["s"] for r in rs], [r["s"] for r in base]
+                ms, mb = [r["rss_mb"] for r in rs], [r["rss_mb"] for r in base]
+                print(f"  {name} {mode}: time {statistics.median(bs):.1f} [{min(bs):.1f}-"
+                      f"{max(bs):.1f}] -> {statistics.median(ts):.1f} [{min(ts):.1f}-"
+                      f"{max(ts):.1f}] s (x{statistics.median(ts) / statistics.median(bs):.2f}); "
+                      f"peak RSS {statistics.median(mb):.0f} -> {statistics.median(ms):.0f} MiB "
+                      f"(x{statistics.median(ms) / statistics.median(mb):.2f})")
+        one, four, base = rows.get(("1h", "sub")), rows.get(("4h", "sub")), \
+            rows.get(("5min", "full"))
+        if one and base:
+            print(f"1 h subsampled: {one['s']:.1f} s (target <= 10), {one['rss_mb']:.0f} MiB "
+                  f"(<= 400); = {one['s'] / base['s']:.2f}x time, "
+                  f"{one['rss_mb'] / base['rss_mb']:.2f}x RSS of the full 5-min diagnosis")
+        if one and four:
+            print(f"4 h / 1 h peak RSS: {four['rss_mb'] / one['rss_mb']:.3f} (target <= 1.3)")
         ref = rows.get(("1h", "full"), base)
-        same = all((r["verdict"], r["top"]) == (ref["verdict"], ref["top"]) for r in rows.values())
-        print(f"verdict and top candidate equal to the full {ref['track']} diagnosis on every "
-              f"track: {same}")
+        if ref:
+            same = all((r["verdict"], r["top"]) == (ref["verdict"], ref["top"])
+                       for v in runs.values() for r in v)
+            print(f"verdict and top candidate equal to the full {ref['track']} diagnosis on "
+                  f"every track and run: {same}")
     return 0
 
 

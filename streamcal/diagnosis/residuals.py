@@ -38,14 +38,21 @@ def _tangent_basis(x: np.ndarray) -> np.ndarray:
 
 
 def _model(cal, terms, x, cov):
+    """g(x) (N,3) and ∂g/∂x: (3,3) when no term depends on u (the same for every sample),
+    else (N,3,3)."""
     u = x @ cal.K.T
     g = u + cal.b + sum((t.term(th, u, cov) for t, th in terms), np.zeros_like(u))
-    jac = np.broadcast_to(np.eye(3), (len(x), 3, 3)).copy()
+    jac = None
     for t, th in terms:
         ju = t.jac_u(th, u, cov)
         if ju is not None:
-            jac += ju
-    return g, jac @ cal.K
+            jac = (np.broadcast_to(np.eye(3), (len(x), 3, 3)) if jac is None else jac) + ju
+    return g, (cal.K if jac is None else jac @ cal.K)
+
+
+def _times(J: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """J v per sample (N,3) for J (3,3) or (N,3,3) and v (N,3)."""
+    return v @ J.T if J.ndim == 2 else np.matmul(J, v[:, :, None])[:, :, 0]
 
 
 def sensor_residual(cal, m: np.ndarray, cov: Mapping[str, np.ndarray]):
@@ -63,31 +70,33 @@ def closest_point(cal, terms, m: np.ndarray, cov: Mapping[str, np.ndarray], x: n
     [(effect term, θ)] in sensor units) to each reading ``m`` (N,3), by ``iters`` Gauss–Newton
     steps on the unit sphere from the directions ``x`` (N,3). Returns ``r`` (N,3) = g(x̂) − m,
     ``x̂`` (N,3), the signed distance ``s`` (N,) along the outward unit normal, that normal
-    (N,3) and ∂g/∂x at x̂ (N,3,3)."""
+    (N,3) and ∂g/∂x at x̂ (N,3,3).
+
+    The 2×2 normal equations in the tangent plane are written out per component (no batched
+    matmul or einsum over tiny matrices: issue #13 item 2, whole-recording spans)."""
     x = x / np.linalg.norm(x, axis=1, keepdims=True)
     for _ in range(iters):
         g, J = _model(cal, terms, x, cov)
         B = _tangent_basis(x)
-        JB = J @ B                                              # (N,3,2)
-        A = np.einsum("nki,nkj->nij", JB, JB)
-        rhs = np.einsum("nki,nk->ni", JB, g - m)
-        x = x - np.einsum("nij,nj->ni", B, _solve2(A, rhs))
+        e1, e2 = B[:, :, 0], B[:, :, 1]
+        j1, j2 = _times(J, e1), _times(J, e2)                  # the columns of J B (N,3)
+        d = g - m
+        a11, a12, a22 = (j1 * j1).sum(1), (j1 * j2).sum(1), (j2 * j2).sum(1)
+        r1, r2 = (j1 * d).sum(1), (j2 * d).sum(1)
+        det = a11 * a22 - a12 * a12
+        det = np.where(np.abs(det) > 1e-300, det, 1e-300)
+        z1, z2 = (a22 * r1 - a12 * r2) / det, (a11 * r2 - a12 * r1) / det
+        x = x - (e1 * z1[:, None] + e2 * z2[:, None])
         x /= np.linalg.norm(x, axis=1, keepdims=True)
     g, J = _model(cal, terms, x, cov)
-    normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
+    if J.ndim == 2:
+        normal = np.linalg.solve(J.T, x.T).T
+        J = np.broadcast_to(J, (len(x), 3, 3))
+    else:
+        normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
     r = g - m
     return r, x, -np.einsum("ni,ni->n", r, normal), normal, J
-
-
-def _solve2(A: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """Solve the (N,2,2) systems A z = rhs (N,2) in closed form (Cramer's rule): batched
-    ``np.linalg.solve`` spends most of its time on per-call overhead at this size."""
-    a, b, c, d = A[:, 0, 0], A[:, 0, 1], A[:, 1, 0], A[:, 1, 1]
-    det = a * d - b * c
-    det = np.where(np.abs(det) > 1e-300, det, 1e-300)
-    return np.stack([(d * rhs[:, 0] - b * rhs[:, 1]) / det,
-                     (a * rhs[:, 1] - c * rhs[:, 0]) / det], axis=1)
 
 
 def rms(r: np.ndarray, mask: np.ndarray | None = None) -> float:

@@ -119,8 +119,8 @@ def _start(track, names, kernel, initial):
 
 def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
                      tau: float | None = None, initial=None, rows: np.ndarray | None = None,
-                     gref: GravityReference | None = None, max_rounds: int = MAX_ROUNDS
-                     ) -> RegistrationFit:
+                     gref: GravityReference | None = None, max_rounds: int = MAX_ROUNDS,
+                     rtol: float = RTOL) -> RegistrationFit:
     """Gravity-tied robust fit of ``model`` on ``track``'s magnetometer (see module docstring).
 
     ``model``: effect names; the registration effects in it are estimated, the others are fitted
@@ -130,7 +130,8 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     start from (else an ellipsoid fit of the non-registration part of the model). ``rows``:
     indices of the magnetometer samples to fit on (default all); the residuals, inliers and rms
     returned are still over every sample (headings re-solved there, step (a)). ``gref``: a precomputed
-    :func:`gravity_reference`.
+    :func:`gravity_reference`. ``rtol``: relative cost decrease that ends the last LM pass
+    (a ranking fit may stop earlier than :data:`RTOL`).
 
     A track with a gyro but no accelerometer (and no ``mag_accel_misalignment`` in ``model``) is
     fitted on the gyro-tied residual instead (:func:`streamcal.fitting.gyro_lag.gyro_lag_fit`).
@@ -185,7 +186,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     for _ in range(MAX_WIDTH_ROUNDS):   # LM passes at a fixed width until the width settles
         # while the width is still moving a loose tolerance suffices (as in autocal)
         lm, cost, h, r = _refine(prob, state, kernel, width, budget,
-                                 RTOL if settled else WIDTH_RTOL)
+                                 rtol if settled else max(rtol, WIDTH_RTOL))
         state = lm.x
         budget -= lm.iterations
         if settled or budget <= 0:
@@ -194,7 +195,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
         settled = abs(again - width) <= WIDTH_SETTLED * width
         width = again
     else:   # the width kept moving: polish at its last estimate
-        lm, cost, h, r = _refine(prob, state, kernel, width, budget, RTOL)
+        lm, cost, h, r = _refine(prob, state, kernel, width, budget, rtol)
         state = lm.x
         budget -= lm.iterations
     status, message = lm.status, lm.message

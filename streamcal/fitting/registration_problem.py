@@ -21,6 +21,7 @@ class _Problem:
         self.fit_rot, self.fit_lag = fit_rot, fit_lag
         self.sizes = [t.n_params() for t in terms]
         self.t = np.asarray(cov["t"], dtype=float)
+        self._down: dict[float, tuple] = {}
 
     def pack(self, K, b, thetas, dip, lag):
         p = [K[tuple(zip(*_UPPER))], b, *thetas]
@@ -48,7 +49,18 @@ class _Problem:
         return K, b, thetas, R, dip, lag
 
     def down(self, lag):
-        return self.gref.at(self.t - lag)
+        """(ĝ (N,3), trust (N,)) at the samples' instants minus ``lag``; read-only arrays,
+        cached per lag (an LM pass asks for the same lag hundreds of times)."""
+        key = float(lag)
+        hit = self._down.get(key)
+        if hit is None:
+            if len(self._down) >= 4:   # a lag fit moves on: keep the cache small
+                self._down.clear()
+            hit = self.gref.at(self.t - lag)
+            for a in hit:
+                a.setflags(write=False)
+            self._down[key] = hit
+        return hit
 
     def model(self, K, b, thetas, x):
         u = x @ K.T

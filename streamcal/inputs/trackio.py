@@ -24,6 +24,7 @@ import numpy as np
 
 from ..atomic import atomic_write_bytes
 from ..errors import TrackError
+from .fastcsv import parse_plain
 
 TIME = "t"
 MAG = ("mx", "my", "mz")
@@ -191,6 +192,9 @@ def _parse_fast(text: str, nrow: int, ncol: int) -> np.ndarray | None:
     data = text.encode("utf-8", errors="surrogateescape")
     if data.translate(None, _PLAIN):
         return None
+    values = parse_plain(data, nrow, ncol)
+    if values is not None:
+        return None if np.isinf(values).any() else values
     if text[0] == "," or text[-1] == "," or _EMPTY_CELL.search(data) or \
             _EMPTY_FIRST_CELL.search(data):
         text = ("\n" + text + "\n").replace(",,", ",nan,").replace(",,", ",nan,")
