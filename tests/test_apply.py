@@ -87,7 +87,8 @@ def _applied(rows: int, heading: bool):
                    values[:, 7] if heading else None, 48.0, True, "uT")
 
 
-@pytest.mark.parametrize("rows,heading", [(0, True), (1, False), (257, True), (1000, False)])
+@pytest.mark.parametrize("rows,heading", [(0, True), (1, False), (257, True), (1000, False),
+                                          (4096, True), (9000, False)])
 def test_format_body_is_savetxt_text(rows, heading):
     """The data lines are exactly what np.savetxt(fmt="%.9g", delimiter=",") writes, NaN → empty
     cell (the output format of earlier versions)."""

@@ -87,6 +87,10 @@ def format_head(names, metadata: Mapping[str, str]) -> str:
     return "\n".join(head) + "\n"
 
 
+#: Rows formatted per ``%`` in :func:`format_body`.
+FORMAT_ROWS = 4096
+
+
 def format_body(applied: Applied) -> str:
     """The data lines of :func:`format_csv`: one per sample, ``%.9g`` cells joined by ``,``,
     NaN → empty cell (the text ``np.savetxt(fmt="%.9g", delimiter=",")`` writes).
@@ -99,7 +103,11 @@ def format_body(applied: Applied) -> str:
     """
     table = np.column_stack(list(applied_columns(applied).values()))
     row = ",".join(["%.9g"] * table.shape[1]) + "\n"
-    return ((row * len(table)) % tuple(table.ravel().tolist())).replace("nan", "")
+    # in blocks of rows: the Python floats of one block at a time, whatever M is (a recording
+    # read whole gives one piece of every sample)
+    parts = [(row * len(block)) % tuple(block.ravel().tolist())
+             for block in (table[k:k + FORMAT_ROWS] for k in range(0, len(table), FORMAT_ROWS))]
+    return "".join(parts).replace("nan", "")
 
 
 def format_csv(applied: Applied, metadata: Mapping[str, str]) -> str:
