@@ -1,6 +1,7 @@
 """streamcal apply: calibrated field magnitude constant on a simulated track; heading checked
 on known attitudes in two body-frame conventions."""
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from streamcal.calibration import Calibration
@@ -72,3 +73,50 @@ def test_apply_nan_accel_rows_have_no_heading():
     accel = np.array([[0, 0, 9.8], [np.nan, np.nan, np.nan]])
     out = apply_calibration(cal, [0.0, 0.1], m, None, accel)
     assert np.isfinite(out.heading_deg[0]) and np.isnan(out.heading_deg[1])
+
+
+def _applied(rows: int, heading: bool):
+    from streamcal.export.apply import Applied
+
+    rng = np.random.default_rng(3)
+    values = rng.standard_normal((rows, 8)) * 10.0 ** rng.integers(-12, 12, (rows, 8))
+    if rows:
+        values[0, :3] = (np.nan, np.inf, -np.inf)
+        values[-1, 3:] = (0.0, -0.0, 1e300, -1e-300, np.nan)
+    return Applied(values[:, 0], values[:, 1:4], values[:, 4:7],
+                   values[:, 7] if heading else None, 48.0, True, "uT")
+
+
+@pytest.mark.parametrize("rows,heading", [(0, True), (1, False), (257, True), (1000, False),
+                                          (4096, True), (9000, False)])
+def test_format_body_is_savetxt_text(rows, heading):
+    """The data lines are exactly what np.savetxt(fmt="%.9g", delimiter=",") writes, NaN → empty
+    cell (the output format of earlier versions)."""
+    import io
+
+    from streamcal.export.apply import applied_columns, format_body
+
+    applied = _applied(rows, heading)
+    buf = io.StringIO()
+    np.savetxt(buf, np.column_stack(list(applied_columns(applied).values())), delimiter=",",
+               fmt="%.9g")
+    assert format_body(applied) == buf.getvalue().replace("nan", "")
+
+
+def test_format_body_leaves_no_reference_cycle():
+    """A chunk's text must be freed when the chunk is written, not at the next cyclic garbage
+    collection (np.savetxt's file wrapper is a reference cycle holding the whole text)."""
+    import gc
+
+    from streamcal.export.apply import format_body
+
+    applied = _applied(100, True)
+    gc.collect()
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        format_body(applied)
+        assert gc.collect() == 0
+    finally:
+        if was:
+            gc.enable()

@@ -2,7 +2,7 @@
 short one, same run.
 
     python tools/bench_replay_memory.py [--short-min 5] [--long-h 4] [--keep DIR]
-        [--only replay|convert-apply]
+        [--only replay|convert-apply] [--before REV] [--repeat N]
 
 Simulates a short (default 5 min) and a long (default 4 h) 100 Hz track with
 ``streamcal.sim.simulate`` (magnetometer and IMU both at 100 Hz, on interleaved instants), writes
@@ -13,6 +13,11 @@ end to end), then replays each in its own subprocess (``python -m streamcal repl
 child's peak would include ours). The same for ``streamcal convert TRACK -o OUT.csv.gz`` and
 ``streamcal apply CAL.json TRACK -o OUT.csv`` (a fixed calibration). Target: long / short ≤ 1.15
 (memory bounded by the chunk and the calibrator's buffers, not by the recording's length).
+
+``--before REV`` also runs every convert and apply row on the code of git revision ``REV``
+(``git archive`` into a temp dir, put first on ``PYTHONPATH``), alternating before / after
+``--repeat`` times, and prints each ratio's median and range: a change against its baseline
+measured in the same run.
 """
 from __future__ import annotations
 
@@ -64,15 +69,19 @@ print(json.dumps({"rc": proc.returncode, "maxrss_kib":
 """
 
 
-def _replay(path: Path, command: list[str] | None = None) -> tuple[float, int, str]:
-    """Run ``streamcal COMMAND`` (default ``replay PATH --json``); (wall s, peak KiB, last line)."""
+def _replay(path: Path, command: list[str] | None = None,
+            code: Path = REPO) -> tuple[float, int, str]:
+    """Run ``streamcal COMMAND`` (default ``replay PATH --json``) from the package under
+    ``code``; (wall s, peak KiB, last line)."""
     import json
 
     command = command or ["replay", str(path), "--json"]
-    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env = dict(os.environ, PYTHONPATH=str(code))
     start = time.perf_counter()
+    # run from ``code``: ``python -m`` puts the working directory first on sys.path, before
+    # PYTHONPATH, so another directory's ``streamcal`` would be imported instead
     proc = subprocess.run([sys.executable, "-c", _MEASURE, *command], capture_output=True,
-                          text=True, env=env, check=True)
+                          text=True, env=env, check=True, cwd=code)
     elapsed = time.perf_counter() - start
     out = json.loads(proc.stdout)
     if out["rc"] not in (0, 1):
@@ -87,9 +96,13 @@ def main() -> int:
     ap.add_argument("--keep", metavar="DIR", help="write the tracks here and keep them")
     ap.add_argument("--only", choices=("replay", "convert-apply"),
                     help="run only the replay rows or only the convert and apply rows")
+    ap.add_argument("--before", metavar="REV",
+                    help="also run convert and apply on git revision REV, alternating")
+    ap.add_argument("--repeat", type=int, default=1,
+                    help="convert/apply measurements per code version (alternated)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory(prefix="bench_replay_mem_") as tmp:
-        where = Path(args.keep or tmp)
+        where = Path(args.keep or tmp).resolve()      # commands run from the code's directory
         where.mkdir(parents=True, exist_ok=True)
         short, long_ = where / "short.csv", where / "long.csv"
         sizes = {}
@@ -102,7 +115,7 @@ def main() -> int:
                       flush=True)
             sizes[path] = path.stat().st_size
         if args.only != "replay":
-            _convert_apply(where, short, long_)
+            _convert_apply(where, short, long_, args.before, args.repeat)
         if args.only == "convert-apply":
             return 0
         t_short, rss_short, s_short = _replay(short)
@@ -117,8 +130,19 @@ def main() -> int:
     return 0
 
 
-def _convert_apply(where: Path, short: Path, long_: Path) -> None:
-    """The convert and apply rows: same tracks, peak RSS long / short."""
+def _checkout(rev: str, into: Path) -> Path:
+    """The ``streamcal`` package of git revision ``rev`` extracted under ``into``."""
+    archive = subprocess.run(["git", "-C", str(REPO), "archive", rev, "streamcal"],
+                             capture_output=True, check=True).stdout
+    into.mkdir(parents=True, exist_ok=True)
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive, check=True)
+    return into
+
+
+def _convert_apply(where: Path, short: Path, long_: Path, before: str | None = None,
+                   repeat: int = 1) -> None:
+    """The convert and apply rows: same tracks, peak RSS long / short; with ``before``, the
+    same on that revision's code, alternated ``repeat`` times (median and range printed)."""
     import numpy as np
 
     from streamcal.calibration import Calibration
@@ -126,17 +150,26 @@ def _convert_apply(where: Path, short: Path, long_: Path) -> None:
     cal = where / "cal.json"
     Calibration(K=np.diag([48.0, 47.0, 49.0]), b=np.array([10.0, -5.0, 3.0]), field=48.0,
                 n=1).save(cal)
+    codes = {"after": REPO}
+    if before:
+        codes = {"before": _checkout(before, where / f"code-{before}"), "after": REPO}
     for name, make in (("convert", lambda p: ["convert", str(p), "-o", str(p) + ".out.csv.gz"]),
                        ("apply", lambda p: ["apply", str(cal), str(p), "-o",
                                             str(p) + ".applied.csv"])):
-        peaks = {}
-        for label, path in (("short", short), ("long", long_)):
-            seconds, peaks[label], last = _replay(path, make(path))
-            print(f"{name} {label + ':':<6} {seconds:.1f} s, peak RSS {peaks[label] / 1024:.1f} "
-                  f"MiB ({last[:120]})", flush=True)
-        print(f"{name} peak RSS long / short: {peaks['long'] / peaks['short']:.3f} "
-              "(target <= 1.15)", flush=True)
-
+        ratios = {version: [] for version in codes}
+        for k in range(repeat):
+            for version, code in codes.items():
+                peaks = {}
+                for label, path in (("short", short), ("long", long_)):
+                    seconds, peaks[label], last = _replay(path, make(path), code)
+                    print(f"{name} {version if before else ''} #{k + 1} {label + ':':<6} "
+                          f"{seconds:.1f} s, peak RSS {peaks[label] / 1024:.1f} MiB "
+                          f"({last[:100]})", flush=True)
+                ratios[version].append(peaks["long"] / peaks["short"])
+        for version, values in ratios.items():
+            print(f"{name} {version if before else ''} peak RSS long / short: median "
+                  f"{np.median(values):.3f}, range {min(values):.3f}-{max(values):.3f} over "
+                  f"{len(values)} (target <= 1.15)", flush=True)
 
 if __name__ == "__main__":
     sys.exit(main())
