@@ -7,6 +7,7 @@ import pytest
 import streamcal
 from streamcal.calibration import Calibration
 from streamcal.cli.diagnose import held_text
+from streamcal.diagnosis.gyro_guard import P_GUARD
 from streamcal.diagnosis.held import TOLERANCE, field_radius
 from streamcal.fitting.gyro_lag import gyro_rates
 from streamcal.fitting.gyro_link import LinkPairs, link_fit
@@ -112,3 +113,37 @@ def test_gyro_pins_a_wrong_held_offset_within_its_sigma():
     assert abs(pinned["value"] - B[0]) <= 3 * pinned["sigma"]
     assert abs(d.calibration.b[0] - B[0]) <= 3 * pinned["sigma"]
     assert "b_x" not in d.held
+    # the guard passed (b_x does not lean on b_y), and it says b_y is held at a wrong value
+    guard = d.gyro_link["guard"]
+    assert guard["passed"] and abs(guard["shift"]["b_x"]) < pinned["sigma"]
+    check = guard["held_check"]["b_y"]
+    assert check["held_value"] == pytest.approx(B[1] + 2.0)
+    assert check["z"] > 3 and abs(check["link_value"] - B[1]) <= 3 * check["link_sigma"]
+    assert "b_y" in held_text(d).split("pinned by the gyro")[1]
+
+
+@pytest.mark.slow
+def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
+    """Hovering (yaw ±30°, tilt ±15°, 120 s, σ 0.4 µT), every offset 2 µT off: the sphere
+    holds K_yz, K_zz, b_x, b_y; the link determines K_yz only with b_x, b_y held, and there it
+    pinned the value that fits the wrong offsets (1.78 ± 0.18 against 0.6) before the guard."""
+    res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
+    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron", "soft_iron")))
+    link = d.gyro_link
+    assert link["candidates"] == ["K_yz"]
+    assert not link["used"] and not d.gyro_pinned and "K_yz" in d.held
+    assert d.calibration.K[1, 2] == pytest.approx(K[1, 2])     # held at the given value
+    guard = link["guard"]
+    assert not guard["passed"] and guard["p_value"] < P_GUARD
+    assert abs(guard["shift"]["K_yz"]) > link["estimates"]["K_yz"]["sigma"]
+    # what the conditional fit would have pinned is off by more than 3 of its σ: the guard
+    # is what keeps it out; with every held parameter free the link's K_yz is within 3 σ
+    cond = link["estimates"]["K_yz"]
+    assert abs(cond["value"] - K[1, 2]) > 3 * cond["sigma"]
+    value, sd = guard["unconditional"]["K_yz"]
+    assert abs(value - K[1, 2]) <= 3 * sd
+    for i, name in ((0, "b_x"), (1, "b_y")):
+        c = guard["held_check"][name]
+        assert c["held_value"] == pytest.approx(B[i] + 2.0)
+        assert abs(c["link_value"] - B[i]) <= 3 * c["link_sigma"]
+    assert "b_y held at" in link["reason"] and "K_yz" in link["reason"]
