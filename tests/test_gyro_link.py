@@ -147,3 +147,31 @@ def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
         assert c["held_value"] == pytest.approx(B[i] + 2.0)
         assert abs(c["link_value"] - B[i]) <= 3 * c["link_sigma"]
     assert "b_y held at" in link["reason"] and "K_yz" in link["reason"]
+
+
+def test_guard_shift_is_the_conditional_move_of_a_gaussian():
+    """With the sandwich equal to H⁻¹ (independent pairs), holding h at h₀ moves p by
+    Σ_ph Σ_hh⁻¹ (h₀ − ĥ) (the conditional mean of a Gaussian); the guard's shift is minus that
+    and its χ² that move over its own variance Σ_ph² / Σ_hh."""
+    from streamcal.diagnosis.gyro_guard import MATERIAL, held_check
+    from streamcal.fitting.gyro_link import LinkFit
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((3, 3))
+    H = A @ A.T + 0.5 * np.eye(3)       # (p, h, gyro-like nuisance)
+    S = np.linalg.inv(H)
+    est = {"K_yz": (0.4, float(np.sqrt(S[0, 0]))), "b_y": (-6.8, float(np.sqrt(S[1, 1])))}
+    fit = LinkFit(K=np.eye(3), b=np.zeros(3), estimated=est, gyro_bias=np.zeros(3),
+                  gyro_gain=np.zeros(3), rms=1.0, rms_still=2.0, sigma=1.0, tau=1.0, n_pairs=100,
+                  horizon_s=1.0, bread=H, meat=H)
+    sd_cond = 1 / np.sqrt(H[0, 0])
+    for h0, right in ((-6.8 + 0.1 * np.sqrt(S[1, 1]), True),
+                      (-6.8 + 5 * np.sqrt(S[1, 1]), False)):
+        out = held_check(fit, ["K_yz", "b_y"], ["K_yz"], {"K_yz": 0.6, "b_y": h0},
+                         {"K_yz": sd_cond})
+        move = S[0, 1] / S[1, 1] * (h0 - est["b_y"][0])
+        assert out["shift"]["K_yz"] == pytest.approx(-move, rel=1e-9)
+        assert out["chi2"] == pytest.approx(move ** 2 / (S[0, 1] ** 2 / S[1, 1]), rel=1e-9)
+        assert out["held_check"]["b_y"]["z"] == pytest.approx((h0 + 6.8) / np.sqrt(S[1, 1]))
+        assert out["passed"] == (not (out["p_value"] < 0.003 and abs(move) > MATERIAL * sd_cond))
+        assert out["passed"] == right

@@ -79,8 +79,9 @@ def _value(K, b, name):
     return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
 
 
-#: Joint fits: the sphere residual is re-linearised at each round's estimate (a slice's
-#: valley between b and K is curved: one linearisation at a wrong held value biases).
+#: Joint fits: at most this many rounds; the sphere residual is re-linearised at each round's
+#: estimate (a slice's valley between b and K is curved: one linearisation at a wrong held
+#: value biases).
 JOINT_ROUNDS = 4
 #: Stop the joint rounds after one that moved every estimate by less than this many σ
 #: (measured on the simulated slices: each round moves ~0.1× the previous one, so about

@@ -147,14 +147,22 @@ class LinkPairs:
         return len(self.a)
 
     def rotations(self, bias, gain) -> np.ndarray:
-        """(P,3,3) R_ab = Q_bᵀ Q_a from the corrected rates (1 + gain) ⊙ ω − bias."""
+        """(P,3,3) R_ab = Q_bᵀ Q_a from the corrected rates (1 + gain) ⊙ ω − bias (every fit
+        starts at zero bias and gain error: that one is kept)."""
+        zero = not (np.any(bias) or np.any(gain))
+        if zero and getattr(self, "_R0", None) is not None:
+            return self._R0
         rates = self.w_g * (1.0 + np.asarray(gain)) - np.asarray(bias)
         steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(self.t_g)[:, None]
         Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
         orient = Orientation(self.t_g, Q.as_quat(), steps)
         Qa = orient.at(self.t[self.a]).as_matrix()
         Qb = orient.at(self.t[self.b]).as_matrix()
-        return np.einsum("pji,pjk->pik", Qb, Qa)
+        R = np.einsum("pji,pjk->pik", Qb, Qa)
+        if zero:
+            R.flags.writeable = False
+            self._R0 = R
+        return R
 
     def rotation_steps(self) -> np.ndarray:
         """(N_GYRO,P,3,3) ∂R_ab/∂(bias, gain) at zero bias and gain error, central differences
