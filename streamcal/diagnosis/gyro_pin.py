@@ -45,9 +45,9 @@ from .held import jacobian, project
 
 #: Rule 1: link rms at most this fraction of the no-rotation rms.
 EXPLAINED = 0.5
-#: Rule 3: contiguous held-out time blocks.
+#: Rule 4: contiguous held-out time blocks.
 FOLDS = 4
-#: Rule 4: sphere rms with the pinned values at most this factor of the rms with them held.
+#: Rule 5: sphere rms with the pinned values at most this factor of the rms with them held.
 SPHERE_RISE = 1.05
 RULE = (f"pinned only when: the gyro explains the rotation (link rms ≤ {EXPLAINED:g} × the "
         f"no-rotation rms); each pinned σ ≤ the tolerance; {GUARD_RULE}; the link rms on "
