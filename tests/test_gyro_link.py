@@ -149,6 +149,21 @@ def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
     assert "b_y held at" in link["reason"] and "K_yz" in link["reason"]
 
 
+@pytest.mark.slow
+def test_the_guard_lets_the_same_pin_through_when_the_held_offsets_are_right():
+    """The same slice, offsets right and K_yz held 1.2 µT off: K_yz is pinned near the truth."""
+    res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
+    Ky = K.copy()
+    Ky[1, 2] += 1.2
+    d = _diagnose(res, Calibration(K=Ky, b=B.copy(), model=("hard_iron", "soft_iron")))
+    assert d.gyro_link["used"], d.gyro_link["reason"]
+    assert d.gyro_link["guard"]["passed"] and d.gyro_link["guard"]["p_value"] > P_GUARD
+    pinned = d.gyro_pinned["K_yz"]
+    assert pinned["held_value"] == pytest.approx(K[1, 2] + 1.2)
+    assert abs(pinned["value"] - K[1, 2]) <= 3 * pinned["sigma"]
+    assert {"b_x", "b_y"} <= set(d.held)
+
+
 def test_guard_shift_is_the_conditional_move_of_a_gaussian():
     """With the sandwich equal to H⁻¹ (independent pairs), holding h at h₀ moves p by
     Σ_ph Σ_hh⁻¹ (h₀ − ĥ) (the conditional mean of a Gaussian); the guard's shift is minus that
