@@ -7,6 +7,7 @@ import pytest
 import streamcal
 from streamcal.calibration import Calibration
 from streamcal.cli.diagnose import held_text
+from streamcal.diagnosis.gyro_guard import P_GUARD
 from streamcal.diagnosis.held import TOLERANCE, field_radius
 from streamcal.fitting.gyro_lag import gyro_rates
 from streamcal.fitting.gyro_link import LinkPairs, link_fit
@@ -112,3 +113,80 @@ def test_gyro_pins_a_wrong_held_offset_within_its_sigma():
     assert abs(pinned["value"] - B[0]) <= 3 * pinned["sigma"]
     assert abs(d.calibration.b[0] - B[0]) <= 3 * pinned["sigma"]
     assert "b_x" not in d.held
+    # the guard passed (b_x does not lean on b_y), and it says b_y is held at a wrong value
+    guard = d.gyro_link["guard"]
+    assert guard["passed"] and abs(guard["shift"]["b_x"]) < pinned["sigma"]
+    check = guard["held_check"]["b_y"]
+    assert check["held_value"] == pytest.approx(B[1] + 2.0)
+    assert check["z"] > 3 and abs(check["link_value"] - B[1]) <= 3 * check["link_sigma"]
+    assert "b_y" in held_text(d).split("pinned by the gyro")[1]
+
+
+@pytest.mark.slow
+def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
+    """Hovering (yaw ±30°, tilt ±15°, 120 s, σ 0.4 µT), every offset 2 µT off: the sphere
+    holds K_yz, K_zz, b_x, b_y; the link determines K_yz only with b_x, b_y held, and there it
+    pinned the value that fits the wrong offsets (1.78 ± 0.18 against 0.6) before the guard."""
+    res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
+    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron", "soft_iron")))
+    link = d.gyro_link
+    assert link["candidates"] == ["K_yz"]
+    assert not link["used"] and not d.gyro_pinned and "K_yz" in d.held
+    assert d.calibration.K[1, 2] == pytest.approx(K[1, 2])     # held at the given value
+    guard = link["guard"]
+    assert not guard["passed"] and guard["p_value"] < P_GUARD
+    assert abs(guard["shift"]["K_yz"]) > link["estimates"]["K_yz"]["sigma"]
+    # what the conditional fit would have pinned is off by more than 3 of its σ: the guard
+    # is what keeps it out; with every held parameter free the link's K_yz is within 3 σ
+    cond = link["estimates"]["K_yz"]
+    assert abs(cond["value"] - K[1, 2]) > 3 * cond["sigma"]
+    value, sd = guard["unconditional"]["K_yz"]
+    assert abs(value - K[1, 2]) <= 3 * sd
+    for i, name in ((0, "b_x"), (1, "b_y")):
+        c = guard["held_check"][name]
+        assert c["held_value"] == pytest.approx(B[i] + 2.0)
+        assert abs(c["link_value"] - B[i]) <= 3 * c["link_sigma"]
+    assert "b_y held at" in link["reason"] and "K_yz" in link["reason"]
+
+
+@pytest.mark.slow
+def test_the_guard_lets_the_same_pin_through_when_the_held_offsets_are_right():
+    """The same slice, offsets right and K_yz held 1.2 µT off: K_yz is pinned near the truth."""
+    res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
+    Ky = K.copy()
+    Ky[1, 2] += 1.2
+    d = _diagnose(res, Calibration(K=Ky, b=B.copy(), model=("hard_iron", "soft_iron")))
+    assert d.gyro_link["used"], d.gyro_link["reason"]
+    assert d.gyro_link["guard"]["passed"] and d.gyro_link["guard"]["p_value"] > P_GUARD
+    pinned = d.gyro_pinned["K_yz"]
+    assert pinned["held_value"] == pytest.approx(K[1, 2] + 1.2)
+    assert abs(pinned["value"] - K[1, 2]) <= 3 * pinned["sigma"]
+    assert {"b_x", "b_y"} <= set(d.held)
+
+
+def test_guard_shift_is_the_conditional_move_of_a_gaussian():
+    """With the sandwich equal to H⁻¹ (independent pairs), holding h at h₀ moves p by
+    Σ_ph Σ_hh⁻¹ (h₀ − ĥ) (the conditional mean of a Gaussian); the guard's shift is minus that
+    and its χ² that move over its own variance Σ_ph² / Σ_hh."""
+    from streamcal.diagnosis.gyro_guard import MATERIAL, held_check
+    from streamcal.fitting.gyro_link import LinkFit
+
+    rng = np.random.default_rng(3)
+    A = rng.standard_normal((3, 3))
+    H = A @ A.T + 0.5 * np.eye(3)       # (p, h, gyro-like nuisance)
+    S = np.linalg.inv(H)
+    est = {"K_yz": (0.4, float(np.sqrt(S[0, 0]))), "b_y": (-6.8, float(np.sqrt(S[1, 1])))}
+    fit = LinkFit(K=np.eye(3), b=np.zeros(3), estimated=est, gyro_bias=np.zeros(3),
+                  gyro_gain=np.zeros(3), rms=1.0, rms_still=2.0, sigma=1.0, tau=1.0, n_pairs=100,
+                  horizon_s=1.0, bread=H, meat=H)
+    sd_cond = 1 / np.sqrt(H[0, 0])
+    for h0, right in ((-6.8 + 0.1 * np.sqrt(S[1, 1]), True),
+                      (-6.8 + 5 * np.sqrt(S[1, 1]), False)):
+        out = held_check(fit, ["K_yz", "b_y"], ["K_yz"], {"K_yz": 0.6, "b_y": h0},
+                         {"K_yz": sd_cond})
+        move = S[0, 1] / S[1, 1] * (h0 - est["b_y"][0])
+        assert out["shift"]["K_yz"] == pytest.approx(-move, rel=1e-9)
+        assert out["chi2"] == pytest.approx(move ** 2 / (S[0, 1] ** 2 / S[1, 1]), rel=1e-9)
+        assert out["held_check"]["b_y"]["z"] == pytest.approx((h0 + 6.8) / np.sqrt(S[1, 1]))
+        assert out["passed"] == (not (out["p_value"] < 0.003 and abs(move) > MATERIAL * sd_cond))
+        assert out["passed"] == right

@@ -1,6 +1,6 @@
 """The gyro link measured against holding (issue #10): simulated slices and the real flight logs.
 
-    python3 tools/bench_gyro_link.py [--seeds N] [--flights]
+    python3 tools/bench_gyro_link.py [--seeds N] [--flights | --guard]
 
 Simulated (:func:`streamcal.sim.yaw_slice.yaw_slice`, a yaw-turning slice tilting ±25°,
 120 s, 100 Hz, true K and b fixed): the given calibration has K_zz 1 µT too large and is
@@ -12,6 +12,10 @@ and with it switched off (the track's gyro columns removed): held vs gyro.
 ``--flights``: each ArduPilot log of ../shared/data/real/flight against its autopilot
 calibration: what the gyro link did (``gyro_link`` of the diagnosis) and the time it took,
 beside the same diagnosis without gyro columns, in the same run.
+
+``--guard``: the guard of :mod:`streamcal.diagnosis.gyro_guard` on and off on three slices
+(every offset 2 µT off over 120 s at σ 0.4 µT — the case it was built for —, the same over
+300 s at σ 0.15 µT, and K_zz 1 µT off): what is pinned and its error from the truth in σ.
 """
 from __future__ import annotations
 
@@ -59,6 +63,43 @@ def simulated(seeds, noises):
                   f"| {', '.join(g.gyro_pinned) or '—'} | {g.gyro_link.get('reason', '')[:60]} |")
 
 
+def guard(seeds):
+    """The guard (streamcal/diagnosis/gyro_guard.py) on and off (P_GUARD = 0: never refuses):
+    what is pinned, its error from the truth in σ, and the guard's shift and p."""
+    from streamcal.diagnosis import gyro_guard
+
+    truth = {"K_xy": K[0, 1], "K_xz": K[0, 2], "K_yy": K[1, 1], "K_yz": K[1, 2],
+             "K_zz": K[2, 2], "b_x": B[0], "b_y": B[1], "b_z": B[2]}
+    Kg = K.copy()
+    Kg[2, 2] += 1.0
+    cases = {"offsets +2, 120 s σ 0.4 (misleading)": dict(duration=120, tilt=15, yaw=30,
+                                                        noise=0.4, K=K, b=B + 2.0),
+             "offsets +2, 300 s σ 0.15": dict(duration=300, tilt=15, yaw=30, noise=0.15,
+                                              K=K, b=B + 2.0),
+             "K_zz +1, 120 s σ 0.15": dict(duration=120, tilt=25, yaw=None, noise=0.15, K=Kg,
+                                           b=B)}
+    print("| case | seed | guard | pinned (error from truth, σ) | guard shift | p | reason |")
+    print("|---|---|---|---|---|---|---|")
+    p_guard = gyro_guard.P_GUARD
+    for label, c in cases.items():
+        for seed in seeds:
+            res = yaw_slice(c["duration"], seed=seed, K=K, b=B, tilt_deg=c["tilt"],
+                            yaw_deg=c["yaw"], noise_uT=c["noise"])
+            cal = Calibration(K=c["K"].copy(), b=c["b"].copy(),
+                              model=("hard_iron", "soft_iron"))
+            for on in (False, True):
+                gyro_guard.P_GUARD = p_guard if on else 0.0
+                d = streamcal.diagnose(res.track, calibration=cal, candidates=[], ladder=False)
+                link, g = d.gyro_link, d.gyro_link.get("guard", {})
+                pinned = ", ".join(f"{k} {v['value'] - truth[k]:+.2f} ± {v['sigma']:.2f} "
+                                   f"({(v['value'] - truth[k]) / v['sigma']:+.1f} σ)"
+                                   for k, v in d.gyro_pinned.items()) or "—"
+                shift = ", ".join(f"{k} {v:+.2f}" for k, v in g.get("shift", {}).items()) or "—"
+                print(f"| {label} | {seed} | {'on' if on else 'off'} | {pinned} | {shift} "
+                      f"| {g.get('p_value', float('nan')):.2g} | {link['reason'][:50]} |")
+    gyro_guard.P_GUARD = p_guard
+
+
 def flights():
     from streamcal.inputs import autopilot_calibration, read_recording
 
@@ -91,7 +132,11 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--flights", action="store_true")
+    ap.add_argument("--guard", action="store_true", help="only the guard on and off")
     args = ap.parse_args()
+    if args.guard:
+        guard(range(1, args.seeds + 1))
+        return
     simulated(range(1, args.seeds + 1), (0.15, 0.4))
     if args.flights:
         flights()

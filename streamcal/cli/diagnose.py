@@ -151,6 +151,11 @@ def _gyro_lines(d, unit: str) -> list[str]:
     lines = ["pinned by the gyro link (value ± σ, " + unit + "; " + link.get("rule", "") + ")"]
     lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g} (held value {v['held_value']:.5g})"
               for k, v in pinned.items()]
+    checks = (link.get("guard") or {}).get("held_check", {})
+    lines += [f"  the gyro link says {k} held at {c['held_value']:.5g} is off by "
+              f"{c['difference']:+.3g} ± {c['link_sigma']:.2g} ({c['z']:+.1f} σ; the pinned "
+              f"values do not depend on it)" for k, c in checks.items()
+              if c.get("z") is not None and abs(c["z"]) >= 3]
     return lines
 
 

@@ -69,6 +69,8 @@ CAUCHY_C = 2.385
 #: Sandwich blocks: this many horizons long, at least 1 s.
 BLOCK_HORIZONS = 2
 GN_ROUNDS, RTOL = 12, 1e-8
+#: Gauss–Newton also stops after a step below this fraction of every (independent-pairs) σ.
+STEP_STOP = 0.01
 NULL_RATIO = 1e-9
 #: Gaps longer than this many typical magnetometer periods break a pair.
 GAP_FACTOR = 3.0
@@ -145,14 +147,22 @@ class LinkPairs:
         return len(self.a)
 
     def rotations(self, bias, gain) -> np.ndarray:
-        """(P,3,3) R_ab = Q_bᵀ Q_a from the corrected rates (1 + gain) ⊙ ω − bias."""
+        """(P,3,3) R_ab = Q_bᵀ Q_a from the corrected rates (1 + gain) ⊙ ω − bias (every fit
+        starts at zero bias and gain error: that one is kept)."""
+        zero = not (np.any(bias) or np.any(gain))
+        if zero and getattr(self, "_R0", None) is not None:
+            return self._R0
         rates = self.w_g * (1.0 + np.asarray(gain)) - np.asarray(bias)
         steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(self.t_g)[:, None]
         Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
         orient = Orientation(self.t_g, Q.as_quat(), steps)
         Qa = orient.at(self.t[self.a]).as_matrix()
         Qb = orient.at(self.t[self.b]).as_matrix()
-        return np.einsum("pji,pjk->pik", Qb, Qa)
+        R = np.einsum("pji,pjk->pik", Qb, Qa)
+        if zero:
+            R.flags.writeable = False
+            self._R0 = R
+        return R
 
     def rotation_steps(self) -> np.ndarray:
         """(N_GYRO,P,3,3) ∂R_ab/∂(bias, gain) at zero bias and gain error, central differences
@@ -267,7 +277,9 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
         w = 1.0 / (1.0 + np.sum(r * r, 1) / tau ** 2)
         H = np.einsum("p,pik,pil->kl", w, J, J) / sig0 ** 2 + Fp
         g = np.einsum("p,pik,pi->k", w, J, r) / sig0 ** 2 + Fp @ (p - p0) - cp
-        dp = -_pinv(H) @ g
+        Hi = _pinv(H)
+        dp = -Hi @ g
+        small = bool(np.all(np.abs(dp) <= STEP_STOP * np.sqrt(np.maximum(np.diag(Hi), 0.0))))
         improved = False
         for _ in range(6):
             R_t, r_t = evaluate(p + dp)
@@ -277,7 +289,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
                 p, R, r, cost, improved = p + dp, R_t, r_t, c_t, True
                 break
             dp = dp / 4
-        if not improved or rel < RTOL:
+        if not improved or rel < RTOL or small:
             break
     rn = np.linalg.norm(r, axis=1)
     sigma = _width(rn)
