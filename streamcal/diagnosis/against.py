@@ -87,9 +87,9 @@ class HeldDiagnosis(Diagnosis):
         return out
 
     def candidate_dict(self, c) -> dict:
-        """As for a fresh diagnosis; a candidate whose field is implausible
-        (:func:`streamcal.diagnosis.held_check.implausible_effect`) is neither significant nor
-        material, and ``implausible`` says why."""
+        """As for a fresh diagnosis; an implausible candidate
+        (:func:`streamcal.diagnosis.effect_plausibility.implausible_effect`) is neither
+        significant nor material, and ``implausible`` says why."""
         out = super().candidate_dict(c)
         why = getattr(c, "implausible", "")
         if why:
