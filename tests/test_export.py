@@ -96,9 +96,58 @@ def test_ardupilot_motor_compensation_from_aux_interference():
     np.testing.assert_allclose(np.linalg.norm(f, axis=1), FIELD, rtol=1e-5)
     without = apply_ardupilot(dict(params, COMPASS_MOTCT=0), m * 10.0, current) / 10.0
     assert np.std(np.linalg.norm(without, axis=1)) > 1.0  # the motor term matters here
-    # PX4: not expressed, and said so
-    px4_text, px4_notes = export(cal, "px4")
-    assert any("battery_current_a" in n for n in px4_notes) and "NOT EXPRESSED" in px4_text
+
+
+def _aux_case(channel, a, g, a0, seed=5):
+    """Readings m = K x + b + g (a − a0) and the Calibration that models them."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[50.0, 2.0, -1.5], [0.0, 46.0, 3.0], [0.0, 0.0, 52.0]])
+    b = np.array([12.0, -30.0, 8.0])
+    x = rng.normal(size=(len(a), 3))
+    x /= np.linalg.norm(x, axis=1, keepdims=True)
+    m = x @ K.T + b + np.outer(a - a0, g)
+    cal = Calibration(K=K, b=b, field=FIELD, n=len(a),
+                      model=("hard_iron", "soft_iron", "aux_interference"),
+                      effects={"aux_interference": {"channels": {
+                          channel: {"a0": a0, "g": list(g)}}}})
+    return m, cal
+
+
+@pytest.mark.parametrize("channel, comp_type, to_power", [
+    ("battery_current_a", 2, lambda a: a / 1000.0),  # PX4's power signal: A × 0.001 = kA
+    ("throttle", 1, lambda a: a),                     # throttle 0..1 as it is
+])
+def test_px4_power_compensation_from_aux_interference(channel, comp_type, to_power):
+    """PX4's f = S (r + p·COMP − OFF) with p its power signal gives the constant |f| of
+    streamcal's model; without COMP the magnitude varies with the channel."""
+    rng = np.random.default_rng(7)
+    a = rng.uniform(0.0, 20.0, 2000) if comp_type == 2 else rng.uniform(0.0, 1.0, 2000)
+    g = np.array([0.8, -0.5, 1.2]) * (1.0 if comp_type == 2 else 15.0)  # µT/A, µT/throttle
+    m, cal = _aux_case(channel, a, g, a0=float(np.median(a)))
+    text, notes = export(cal, "px4")
+    params = _px4_params(text)
+    assert not notes and "NOT EXPRESSED" not in text
+    assert params["CAL_MAG_COMP_TYP"] == comp_type
+    comp = np.array([params[f"CAL_MAG0_{ax}COMP"] for ax in "XYZ"])
+    # unit and sign: G/kA = 10 × µT/A, G = µT/100, negated (PX4 adds it to the raw reading)
+    np.testing.assert_allclose(comp, -g * (10.0 if comp_type == 2 else 0.01), rtol=1e-6)
+    theirs = np.linalg.norm(apply_px4(params, m / 100.0, to_power(a)), axis=1) * 100.0
+    ours = np.linalg.norm(cal.apply_field(m, {channel: a}), axis=1)
+    np.testing.assert_allclose(ours, FIELD, rtol=1e-6)
+    np.testing.assert_allclose(theirs, ours, rtol=2e-6)
+    without = np.linalg.norm(apply_px4(dict(params, CAL_MAG_COMP_TYP=0), m / 100.0,
+                                       to_power(a)), axis=1) * 100.0
+    assert np.std(without) > 1.0  # the power term matters here
+    flipped = np.linalg.norm(apply_px4(params, m / 100.0, -to_power(a)), axis=1) * 100.0
+    assert np.std(flipped) > np.std(without)  # the wrong sign makes it worse
+
+
+def test_px4_second_or_unknown_channel_not_expressed():
+    a = np.linspace(0.0, 1.0, 200)
+    _, cal = _aux_case("motor_rpm", a, np.array([1.0, 0.0, 0.0]), a0=0.5)
+    text, notes = export(cal, "px4")
+    assert any("motor_rpm" in n for n in notes) and "NOT EXPRESSED" in text
+    assert "CAL_MAG_COMP_TYP" not in _px4_params(text)
 
 
 def test_c_header_exact_format(sim):

@@ -9,9 +9,11 @@ import pytest
 
 import streamcal
 from streamcal.diagnosis.held import field_radius
+from streamcal.diagnosis.effect_plausibility import BOUND
 from streamcal.diagnosis.held_check import SUSPICIOUS_SIGMAS, implausible_effect, plausible_range
 from streamcal.fitting.damped_lm import STATUSES
 from streamcal.inputs import autopilot_calibration, read_recording
+from streamcal.model.aux import AuxInterference
 from streamcal.model.nonlinear import AxisNonlinearity
 
 from .conftest import SHARED
@@ -62,6 +64,22 @@ def test_held_fit_status_and_recheck_reach_the_output(flight):
 
 
 @pytest.mark.slow
+def test_real_hidden_effects_stay_while_degenerate_fits_are_marked(flight):
+    """On both flights aux_interference (throttle, motor outputs) is found, plausible and
+    determined, and the ladder adds it; nothing the rule marks is added."""
+    _, d = flight
+    aux = [c for c in d.candidates if c.effect == "aux_interference"]
+    assert aux and aux[0].significant and not getattr(aux[0], "implausible", "")
+    added = [s.get("added") for s in d.ladder[1:]]
+    assert "aux_interference" in added
+    marked = {c.effect for c in d.candidates if getattr(c, "implausible", "")}
+    assert not marked & set(added)
+    # the cubic gain is a degenerate fit on both slices (and was added by the PXF ladder
+    # under the old rule: 9.87 µT rms, 0.42 r)
+    assert "axis_nonlinearity" in marked
+
+
+@pytest.mark.slow
 def test_cli_text_says_how_the_held_fit_ended(capsys):
     from streamcal.cli import main
 
@@ -81,6 +99,52 @@ def test_implausible_effect_flags_a_degenerate_cubic_gain():
     assert implausible_effect([(term, np.array([1e-5, 0.0, 0.0]))], u, {}, 25.0) == ""
     why = implausible_effect([(term, np.array([0.0, 2.8e8, 0.0]))], u, {}, 25.0)
     assert why.startswith("implausible") and "field radius" in why
+
+
+def _sphere(r, n=400, seed=0):
+    u = np.random.default_rng(seed).normal(size=(n, 3))
+    return u * (r / np.linalg.norm(u, axis=1, keepdims=True))
+
+
+def test_cubic_gain_that_the_old_rule_passed_is_implausible():
+    """The PXF ladder's third step under the old rule: a = (0.0004, 0.0034, −0.0009) µT⁻² at
+    r = 23.4 µT, a field of 0.42 r rms at the flight's points (0.76 r over the whole sphere),
+    below r (the old rule) but far above the axis_nonlinearity bound 0.05 r."""
+    u, r = _sphere(23.4), 23.4
+    theta = np.array([0.000411, 0.003433, -0.000899])
+    f = AxisNonlinearity(1.0).term(theta, u, {})
+    rms = np.sqrt(np.mean(np.sum(f ** 2, axis=1)))
+    assert BOUND["axis_nonlinearity"] * r < rms < r
+    assert "0.05 × the field radius" in implausible_effect([(AxisNonlinearity(1.0), theta)], u,
+                                                           {}, r)
+
+
+@pytest.mark.parametrize("fraction", [0.03, 0.5, 1.5])
+def test_size_bound_is_per_kind(fraction):
+    """An added field (aux_interference) is marked only above r, a cubic bend only above
+    0.05 r: the same rms (fraction · r) is judged by the kind's own bound."""
+    r, n = 40.0, 500
+    u = _sphere(r, n)
+    cov = {"throttle": np.random.default_rng(1).uniform(0.0, 1.0, n)}
+    cases = [(AuxInterference(("throttle",), [0.0], [1.0]), np.array([1.0, 0.5, -0.2])),
+             (AxisNonlinearity(1.0), np.array([1.0, -0.7, 0.4]) / r ** 2)]
+    for term, unit in cases:
+        f = term.term(unit, u, cov)
+        theta = unit * fraction * r / np.sqrt(np.mean(np.sum(f ** 2, axis=1)))  # linear in θ
+        why = implausible_effect([(term, theta)], u, cov, r)
+        assert bool(why) is (fraction > BOUND[term.name]), (term.name, fraction, why)
+
+
+def test_theta_not_determined_is_implausible():
+    u, r = _sphere(30.0), 30.0
+    term = AxisNonlinearity(1.0)
+    theta = np.array([1e-6, -2e-6, 1e-6])  # a tiny field: passes the size rule
+    assert implausible_effect([(term, theta)], u, {}, r) == ""
+    assert implausible_effect([(term, theta)], u, {}, r, np.abs(theta) / 10) == ""  # 10 σ
+    why = implausible_effect([(term, theta)], u, {}, r, np.abs(theta) * 2)  # Σ z² = 0.75 ≤ 3
+    assert "not determined" in why
+    assert "not determined" in implausible_effect([(term, theta)], u, {}, r,
+                                                  [1e-7, np.inf, 1e-7])
 
 
 def test_plausible_ranges():

@@ -31,7 +31,8 @@ from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
                    field_radius, held_fit, project)
 from .gyro_pin import confirm, gyro_pin, json_safe, pinned_model
-from .held_check import implausible_effect, settle
+from .effect_plausibility import implausible_effect, theta_sigmas
+from .held_check import settle
 from .noise import noise_floor
 from .rank_subset import RANK_MAX, rank_subset
 from .residuals import families
@@ -86,9 +87,9 @@ class HeldDiagnosis(Diagnosis):
         return out
 
     def candidate_dict(self, c) -> dict:
-        """As for a fresh diagnosis; a candidate whose field is implausible
-        (:func:`streamcal.diagnosis.held_check.implausible_effect`) is neither significant nor
-        material, and ``implausible`` says why."""
+        """As for a fresh diagnosis; an implausible candidate
+        (:func:`streamcal.diagnosis.effect_plausibility.implausible_effect`) is neither
+        significant nor material, and ``implausible`` says why."""
         out = super().candidate_dict(c)
         why = getattr(c, "implausible", "")
         if why:
@@ -311,8 +312,9 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                                cand.is_significant(before, after, p_value, floor), ev.cal)
             c.rms_before, c.residual, c._evaluated = before, "sensor", ev
             c.n_compared = int(both.sum())
-            c.implausible = implausible_effect([(term, ev.fit.thetas[-1])],
-                                               ref.x @ ref.fit.K.T, cov_r, field_radius(K0))
+            c.implausible = implausible_effect(
+                [(term, ev.fit.thetas[-1])], ref.x @ ref.fit.K.T, cov_r, field_radius(K0),
+                theta_sigmas(ev.fit.estimated, name, term.n_params()))
             if c.implausible:
                 c.significant, c.evidence = False, f"{c.implausible}; {c.evidence}"
             out.append(c)

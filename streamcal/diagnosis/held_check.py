@@ -26,6 +26,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from .effect_plausibility import implausible_effect  # noqa: F401  (re-exported)
 from .held import B_PARAMS, K_PARAMS, HeldFit, jacobian, predicted_errors, project
 
 #: A value further than this many of its own σ outside its plausible range is implausible.
@@ -118,20 +119,3 @@ def settle(fit_with: Callable[[list], HeldFit], free: Sequence[str], m, cov, hel
 
 def _public(entry: dict) -> dict:
     return {k: v for k, v in entry.items() if k != "score"}
-
-
-def implausible_effect(terms_thetas, u: np.ndarray, cov, r: float) -> str:
-    """Why an added effect is physically implausible, or "" when it is not: its field
-    Σ f(θ, u) evaluated at ``u`` (N,3), the *reference* model's field points (sensor unit),
-    has an rms above the field radius ``r``. ``terms_thetas``: [(term, θ)] of the candidate.
-
-    Why at the reference points: a candidate that drifts to a degenerate θ (a cubic gain of
-    10⁸ that lets the surface take any value along one axis) fits its *own* points with a
-    modest field, and its σ is then so wide that no multiple of it is out of range; moved back
-    to where the model without it puts the field, its field is that of the drift."""
-    f = sum(np.asarray(term.term(th, u, cov), float) for term, th in terms_thetas)
-    rms = float(np.sqrt(np.mean(np.sum(np.square(f), axis=1))))
-    if np.isfinite(rms) and rms <= r:
-        return ""
-    return (f"implausible: its field at the reference model's points is {rms:.3g} rms, above "
-            f"the field radius {r:.3g}")

@@ -1,39 +1,85 @@
 """PX4 parameters for the first magnetometer (``CAL_MAG0_*``), as a QGroundControl ``.params``
 file (tab-separated ``vehicle-id  component-id  name  value  type``).
 
-PX4 (``sensors`` Magnetometer calibration) corrects a reading ``r`` in gauss as
-``f = R · S · (r − o)``: ``o`` = CAL_MAG0_XOFF/YOFF/ZOFF (G, *subtracted*), ``S`` symmetric with
-diagonal CAL_MAG0_XSCALE/YSCALE/ZSCALE and off-diagonal CAL_MAG0_XODIAG = S12, YODIAG = S13,
-ZODIAG = S23; ``R`` the board or CAL_MAG0_ROT rotation (left as is). 1 G = 100 µT.
-Power compensation (CAL_MAG0_XCOMP..) is not written: its scaling is not exported by streamcal
-and any aux_interference term is said to be not expressed.
+PX4 (``sensors`` module, ``sensor_calibration`` Magnetometer) corrects a raw sensor-frame
+reading ``r`` in gauss as ``f = R · S · (r + p · c − o)``:
+
+* ``o`` = CAL_MAG0_XOFF/YOFF/ZOFF (G, *subtracted*);
+* ``S`` symmetric with diagonal CAL_MAG0_XSCALE/YSCALE/ZSCALE and off-diagonal
+  CAL_MAG0_XODIAG = S12, YODIAG = S13, ZODIAG = S23;
+* ``R`` the board or CAL_MAG0_ROT rotation (left as it is on the vehicle);
+* power compensation ``c`` = CAL_MAG0_XCOMP/YCOMP/ZCOMP, *added* to the raw reading in the
+  sensor frame, before the offset, scale and rotation, times the power signal ``p`` chosen by
+  CAL_MAG_COMP_TYP: 1 throttle (0..1, ``c`` in G), 2 battery current of battery_status
+  instance 0 in kA (the battery's A × 0.001, ``c`` in G/kA). PX4 sets ``p = 0`` while disarmed.
+
+Sources checked (facts only): PX4-Autopilot ``src/lib/sensor_calibration/Magnetometer.hpp``
+(the order and sign of the correction), ``src/modules/sensors/vehicle_magnetometer/
+VehicleMagnetometer.cpp`` (throttle as is, current × 0.001 → kA), ``sensor_params_mag0.c`` /
+``sensor_params_mag.c`` (units G and G/kA; CAL_MAG_COMP_TYP values), and the
+``mag_compensation.py`` identification script (fits raw sensor_mag in the sensor frame and
+writes the negated slope). The parameter text says "body frame axis", but the code adds the
+term before the rotation, so it is a sensor-frame vector like streamcal's ``g``.
+
+Streamcal's channel term ``g (a − a0)`` (µT per channel unit, sensor frame; ``g a0`` is folded
+into the offset) becomes ``c = −g / 100`` for throttle (G at full throttle) and
+``c = −10 g`` for current (µT/A → G/kA). 1 G = 100 µT. One channel only, as in ArduPilot.
 """
 from __future__ import annotations
 
 import numpy as np
 
 from ..calibration import Calibration
+from .ardupilot import CURRENT_CHANNELS, THROTTLE_CHANNELS
 from .common import correction, fmt
 
 UT_PER_GAUSS = 100.0
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
+INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
+COMP_THROTTLE, COMP_CURRENT0 = 1, 2  # CAL_MAG_COMP_TYP values
+KA_PER_A = 0.001
 
 
-def apply_px4(params: dict, r_gauss: np.ndarray) -> np.ndarray:
-    """PX4's documented correction (without the rotation) of readings (N,3) G: (N,3) G."""
+def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
+    """PX4's documented correction (without the rotation) of readings (N,3) G: (N,3) G.
+
+    ``power`` (N,) is PX4's power signal for CAL_MAG_COMP_TYP: throttle 0..1 (type 1) or the
+    battery current in kA (type 2/3); ignored when absent or the type is 0.
+    """
     S = np.diag([params[f"CAL_MAG0_{a}SCALE"] for a in "XYZ"])
     S[0, 1] = S[1, 0] = params["CAL_MAG0_XODIAG"]
     S[0, 2] = S[2, 0] = params["CAL_MAG0_YODIAG"]
     S[1, 2] = S[2, 1] = params["CAL_MAG0_ZODIAG"]
     off = np.array([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
-    return (np.asarray(r_gauss) - off) @ S.T
+    r = np.asarray(r_gauss, dtype=float)
+    if power is not None and params.get("CAL_MAG_COMP_TYP", 0):
+        comp = np.array([params[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])
+        r = r + np.asarray(power, dtype=float)[:, None] * comp
+    return (r - off) @ S.T
+
+
+def _compensation(corr, notes: list) -> tuple[int, str | None, np.ndarray | None]:
+    """(CAL_MAG_COMP_TYP, chosen channel, CAL_MAG0_*COMP (3,)) from the aux channels."""
+    comp_type, chosen, comp = 0, None, None
+    for name in corr.channels:
+        kind = (COMP_CURRENT0 if name in CURRENT_CHANNELS
+                else COMP_THROTTLE if name in THROTTLE_CHANNELS else 0)
+        if kind and chosen is None:
+            g = np.asarray(corr.channels[name], dtype=float)
+            # r + p c must cancel g a: p c = −g a / 100 (G), p = a (throttle) or a·0.001 (kA)
+            comp = -g / UT_PER_GAUSS / (KA_PER_A if kind == COMP_CURRENT0 else 1.0)
+            comp_type, chosen = kind, name
+        else:
+            notes.append(f"aux_interference on {name!r}: PX4 compensates one channel, "
+                         "throttle (0..1) or battery current (A, as kA)")
+    return comp_type, chosen, comp
 
 
 def export(cal: Calibration) -> tuple[str, list[str]]:
+    """(file text, notes on what PX4 cannot express)."""
     corr = correction(cal)
     S, notes = corr.S, list(corr.not_expressed)
-    notes += [f"aux_interference on {name!r}: PX4 power compensation (CAL_MAG0_*COMP) is not "
-              "exported" for name in corr.channels]
+    comp_type, chosen, comp = _compensation(corr, notes)
     params = {}
     for k, a in enumerate("XYZ"):
         params[f"CAL_MAG0_{a}OFF"] = corr.offset[k] / UT_PER_GAUSS
@@ -41,14 +87,25 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         params[f"CAL_MAG0_{a}SCALE"] = S[k, k]
     params["CAL_MAG0_XODIAG"], params["CAL_MAG0_YODIAG"], params["CAL_MAG0_ZODIAG"] = \
         S[0, 1], S[0, 2], S[1, 2]
+    if chosen is not None:
+        for k, a in enumerate("XYZ"):
+            params[f"CAL_MAG0_{a}COMP"] = comp[k]
     lines = [f"# streamcal calibration for PX4 (CAL_MAG0), {cal.created}",
-             "# PX4 corrects f = R S (r - CAL_MAG0_OFF), offsets in gauss; CAL_MAG0_ID and _ROT "
-             "are left as they are on the vehicle",
+             "# PX4 corrects f = R S (r + p CAL_MAG0_COMP - CAL_MAG0_OFF), offsets in gauss; "
+             "CAL_MAG0_ID and _ROT are left as they are on the vehicle",
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
              + ("" if corr.field_known else " (K's mean radius: field strength unknown)"),
              "# the rotation between streamcal's and this frame is unobservable from the "
-             "magnetometer alone and is not exported",
-             "# Vehicle-Id\tComponent-Id\tName\tValue\tType"]
+             "magnetometer alone and is not exported"]
+    if chosen is not None:
+        lines.append(f"# CAL_MAG0_*COMP from aux_interference on {chosen!r} (CAL_MAG_COMP_TYP "
+                     f"{comp_type}: "
+                     + ("battery_status instance 0 current in kA, G/kA" if comp_type == 2
+                        else "throttle 0..1, G at full throttle")
+                     + "; PX4 applies it only while armed)")
+    lines.append("# Vehicle-Id\tComponent-Id\tName\tValue\tType")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
     lines += [f"1\t1\t{name}\t{fmt(value)}\t{FLOAT_TYPE}" for name, value in params.items()]
+    if chosen is not None:
+        lines.append(f"1\t1\tCAL_MAG_COMP_TYP\t{comp_type}\t{INT_TYPE}")
     return "\n".join(lines) + "\n", notes

@@ -1,0 +1,85 @@
+"""Is a candidate effect's refit physical? (issue #10, diagnosis against a given calibration)
+
+A candidate refit on a slice of the sphere can drift to a θ that lowers the residual without
+being the effect: a cubic gain of 0.0034 µT⁻² (a bend of 190 % of the field at a field radius
+of 23 µT) fits the PXF flight's points better, and so does a gain of 10⁸ along an axis the
+slice does not see. :func:`implausible_effect` marks a candidate as implausible by two rules:
+
+1. **Size.** The rms over the recording's points of the effect's field ``f(θ, u)``, ``u`` the
+   *base* model's field points (sensor unit), is above ``BOUND[kind] · r``, ``r`` the field
+   radius of the given calibration. The bound per kind (fractions of r; the bounds are ours,
+   each with a wide margin over what the effect does in a working sensor):
+
+   ===================  =======  =====================================================
+   effect               bound    why
+   ===================  =======  =====================================================
+   aux_interference     1.0 r    an added field as large as the Earth's: the compass
+                                 would not point at all (ArduPilot's compassmot
+                                 already calls interference above 60 % of the field
+                                 unacceptable)
+   temperature_offset   1.0 r    an added field; as above
+   time_drift           1.0 r    an added field; as above
+   temperature_scale    0.25 r   a gain change of a quarter of the field within one
+                                 recording's temperatures; a sensor drifting that much
+                                 would need a calibration per temperature, the term is
+                                 taking up something else
+   axis_nonlinearity    0.05 r   a cubic bend of 5 % of the field at field-level
+                                 readings; magnetometer linearity is specified as a
+                                 fraction of full scale (order 0.1–1 % FS) and a cubic
+                                 error shrinks as (|u|/FS)² below it, and the Earth's
+                                 field is ~1 % of an AK8963's 4912 µT full scale
+   other kinds          1.0 r    the field radius itself
+   ===================  =======  =====================================================
+
+   Why at the base model's points: a candidate that drifts to a degenerate θ fits its *own*
+   points with a modest field; moved back to where the model without it puts the field, its
+   field is that of the drift.
+
+2. **Not determined.** θ is within its own errors of zero: Σₖ (θₖ/σₖ)² ≤ p (p = len θ, the
+   mean of that sum if θ were 0), σₖ the refit's error of θₖ; or some σₖ is not finite. Such a
+   θ is whatever the slice's free direction allowed, not a measurement of the effect.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: Largest plausible rms of an effect's field at the recording's points, as a fraction of the
+#: field radius r (module doc table). Kinds not listed use :data:`DEFAULT_BOUND`.
+BOUND = {"aux_interference": 1.0, "temperature_offset": 1.0, "time_drift": 1.0,
+         "temperature_scale": 0.25, "axis_nonlinearity": 0.05}
+DEFAULT_BOUND = 1.0
+
+
+def theta_sigmas(estimated: dict, name: str, n: int) -> np.ndarray:
+    """(n,) σ of the added effect ``name``'s θ from a held fit's ``estimated`` ({``name[k]``:
+    (value, σ)}); NaN where missing."""
+    return np.array([float(estimated.get(f"{name}[{k}]", (np.nan, np.nan))[1])
+                     for k in range(n)])
+
+
+def implausible_effect(terms_thetas, u: np.ndarray, cov, r: float, sigmas=None) -> str:
+    """Why an added effect is implausible (module doc, rules 1 and 2), or "" when it is not.
+
+    ``terms_thetas``: [(term, θ)] of the candidate (the first term names the kind); ``u`` (N,3)
+    the base model's field points and ``r`` the field radius (sensor unit); ``sigmas``: the
+    refit's σ of each θ, concatenated in the order of ``terms_thetas`` (rule 2 is skipped when
+    None)."""
+    f = sum(np.asarray(term.term(th, u, cov), float) for term, th in terms_thetas)
+    rms = float(np.sqrt(np.mean(np.sum(np.square(f), axis=1))))
+    kind = terms_thetas[0][0].name
+    frac = BOUND.get(kind, DEFAULT_BOUND)
+    reasons = []
+    if not (np.isfinite(rms) and rms <= frac * r):
+        reasons.append(f"its field at the reference model's points is {rms:.3g} rms, above "
+                       f"{frac:g} × the field radius {r:.3g} (the bound for {kind})")
+    if sigmas is not None:
+        theta = np.concatenate([np.ravel(th) for _, th in terms_thetas]).astype(float)
+        sd = np.asarray(sigmas, dtype=float)
+        if not np.all(np.isfinite(sd)) or not np.all(sd > 0):
+            reasons.append("its θ is not determined (σ not finite)")
+        else:
+            chi2 = float(np.sum((theta / sd) ** 2))
+            if not chi2 > len(theta):
+                reasons.append(f"its θ is not determined: Σ(θ/σ)² = {chi2:.3g} ≤ "
+                               f"{len(theta)} parameters")
+    return ("implausible: " + "; ".join(reasons)) if reasons else ""
