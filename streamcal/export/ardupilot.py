@@ -17,11 +17,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from .common import correction, fmt
+from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, correction, fmt
 
 MG_PER_UT = 10.0
-CURRENT_CHANNELS = ("battery_current_a", "motor_current", "current", "curr")
-THROTTLE_CHANNELS = ("throttle",)
 
 
 def apply_ardupilot(params: dict, r_mG: np.ndarray, c=None) -> np.ndarray:

@@ -20,6 +20,10 @@ from ..errors import InputError
 
 #: Effects that are part of the matrix and offsets themselves.
 CORE = ("hard_iron", "soft_iron", "scale")
+#: aux_interference channels the autopilots' motor compensation can take: battery current (A) or
+#: throttle (0..1).
+CURRENT_CHANNELS = ("battery_current_a", "motor_current", "current", "curr")
+THROTTLE_CHANNELS = ("throttle",)
 
 
 @dataclass

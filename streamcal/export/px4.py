@@ -30,8 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from .ardupilot import CURRENT_CHANNELS, THROTTLE_CHANNELS
-from .common import correction, fmt
+from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, correction, fmt
 
 UT_PER_GAUSS = 100.0
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
