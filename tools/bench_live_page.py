@@ -16,11 +16,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import socket
 import statistics
+import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 
@@ -45,42 +44,57 @@ class _Observer:
         self.page.close()
 
 
-def _client(url: str, counts: dict, stop: threading.Event) -> None:
+_CLIENT = r"""
+import socket, sys, time
+host, port = sys.argv[1], int(sys.argv[2])
+events = nbytes = 0
+with socket.create_connection((host, port), timeout=0.5) as s:
+    s.sendall(b"GET /events HTTP/1.1\r\nHost: bench\r\n\r\n")
+    sys.stdout.write("connected\n"); sys.stdout.flush()
+    while True:
+        try:
+            chunk = s.recv(1 << 16)
+        except socket.timeout:
+            continue
+        if not chunk:
+            break
+        events += chunk.count(b"\ndata: ") + chunk.startswith(b"data: ")
+        nbytes += len(chunk)
+print(events, nbytes)
+"""
+
+
+def _start_client(url: str) -> subprocess.Popen:
+    """An SSE reader in its own process, as a browser is: it takes no time of the daemon's
+    process (its CPU and the interpreter lock stay the daemon's)."""
     host, port = url.split("//")[1].rstrip("/").split(":")
-    with socket.create_connection((host, int(port)), timeout=0.5) as s:
-        s.sendall(b"GET /events HTTP/1.1\r\nHost: bench\r\n\r\n")
-        while not stop.is_set():
-            try:
-                chunk = s.recv(1 << 16)
-            except socket.timeout:
-                continue
-            if not chunk:
-                break
-            counts["events"] += chunk.count(b"\ndata: ") + chunk.startswith(b"data: ")
-            counts["bytes"] += len(chunk)
+    proc = subprocess.Popen([sys.executable, "-c", _CLIENT, host, port], stdout=subprocess.PIPE,
+                            text=True)
+    assert proc.stdout.readline().strip() == "connected"
+    return proc
 
 
 def one_run(track: str, laps: int, page: bool) -> dict:
     d = Path(tempfile.mkdtemp(prefix="sclp", dir="/tmp"))
     store = CalibrationStore(d / "state")
-    observers, counts, stop = [], {"events": 0, "bytes": 0}, threading.Event()
-    reader = None
+    observers, counts = [], {"events": 0, "bytes": 0}
+    reader = live = None
     if page:
         state = LiveState()
         live = LivePage(state, "127.0.0.1", 0).start()
         observers.append(_Observer(state, live))
-        reader = threading.Thread(target=_client, args=(live.url, counts, stop), daemon=True)
-        reader.start()
-        time.sleep(0.2)                      # the client is connected before the loop starts
+        reader = _start_client(live.url)
+        time.sleep(0.2)                      # the stream is open before the loop starts
     service = Service(lambda buffer=None: StreamingCalibrator(store=store), Laps(track, laps, []),
                       outputs=Outputs([]), notifier=Notifier(environ={}), log=lambda line: None,
                       observers=observers)
     t0, c0 = time.perf_counter(), time.process_time()
     service.run()
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    stop.set()
     if reader is not None:
-        reader.join(timeout=2)
+        live.close()              # (the service closed it already) the client prints its counts
+        events, nbytes = reader.communicate(timeout=10)[0].split()
+        counts.update(events=int(events), bytes=int(nbytes))
     return {"samples": service.stats.samples, "seconds": wall, "cpu_s": cpu,
             "rate": service.stats.samples / wall, "events": counts["events"],
             "events_per_s": counts["events"] / wall, "bytes": counts["bytes"]}
