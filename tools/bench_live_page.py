@@ -10,7 +10,11 @@ the paired runs (target ≥ 0.95), the process CPU time per sample with and with
 page adds, all its threads included, which other load on the machine does not blur) and the
 events the client received per wall second (the page must still update ≥ 2 per second).
 
-    python tools/bench_live_page.py [--track T.csv.gz] [--laps 1] [--repeats 5] [--json]
+    python tools/bench_live_page.py [--track T.csv.gz] [--laps 5] [--repeats 5] [--json]
+
+Five laps (90 000 samples, ~7 s a run) by default: the daemon runs for hours, and in a 1-lap run
+(1.3 s) the page's start and the first snapshot sent to a new client weigh several per cent
+(1-lap runs on an idle machine: 0.944–0.949; 5-lap runs: 0.963–0.985, RESULTS.md §5).
 """
 from __future__ import annotations
 
@@ -103,7 +107,7 @@ def one_run(track: str, laps: int, page: bool) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--track", default=str(REPO / "streamcal" / "data" / "demo_track.csv.gz"))
-    p.add_argument("--laps", type=int, default=1)
+    p.add_argument("--laps", type=int, default=5)
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--json", action="store_true")
     a = p.parse_args()
