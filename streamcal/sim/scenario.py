@@ -212,7 +212,7 @@ def simulate(duration_s: float = 300.0, seed: int = 0, effects: Mapping[str, Any
             "mag_rate_hz": f"{mag_rate_hz:g}", "imu_rate_hz": f"{imu_rate_hz:g}"}
     meta.update(metadata or {})
     aux = {"motor_current": current} if motor else {}
-    track = _assemble(t_mag, mag, t_imu, accel, gyro, temp, aux, meta)
+    track = assemble_track(t_mag, mag, t_imu, accel, gyro, temp, aux, meta)
 
     imu = dict(imu, accel_K=sensor.G * imu["accel_S"])
     truth = SimTruth(K=K, b=b, field_uT=float(field_uT), dip_deg=float(dip_deg),
@@ -381,7 +381,7 @@ def _unit(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=-1, keepdims=True)
 
 
-def _assemble(t_mag, mag, t_imu, accel, gyro, temp, aux: dict, metadata: dict):
+def assemble_track(t_mag, mag, t_imu, accel, gyro, temp, aux: dict, metadata: dict):
     """Merge mag rows and IMU rows by stamp into one track (NaN = not sampled)."""
     n_mag, n_imu = len(t_mag), len(t_imu)
     t = np.concatenate([t_mag, t_imu])

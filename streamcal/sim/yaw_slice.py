@@ -22,7 +22,7 @@ from .motion import smooth_noise
 
 #: Frequencies (Hz) of the bounded tilt/yaw wobble.
 WOBBLE_HZ = (0.1, 0.5)
-from .scenario import SimResult, SimTruth, _assemble
+from .scenario import SimResult, SimTruth, assemble_track
 from .sensor import earth_field
 
 
@@ -65,7 +65,7 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
     temp = np.full(len(t_imu), 25.0)
     meta = {"sensor": "mpu9250", "source": f"yaw slice seed {seed}", "simulated": "yes",
             "seed": str(seed), "mag_unit": "uT"}
-    track = _assemble(t_mag, mag, t_imu, accel, gyro, temp, {}, meta)
+    track = assemble_track(t_mag, mag, t_imu, accel, gyro, temp, {}, meta)
     truth = SimTruth(K=K, b=b, field_uT=float(field_uT), dip_deg=float(dip_deg),
                      field_world=f, effects={}, mag_lsb=np.zeros(3), noise_uT=float(noise_uT),
                      imu={"gyro_b": np.asarray(gyro_bias), "gyro_S": 1 + np.asarray(gyro_gain)},
