@@ -272,6 +272,9 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
 
     cost = total(r, p)
     it = 0
+    # Not fitting.damped_lm: entries the rotation does not see leave H singular by design, and
+    # their step must be zero (the pseudo-inverse step, halved until the cost falls), where
+    # damped_lm's λ·diag H regularisation would move them freely.
     for it in range(1, rounds + 1):
         J = jac(p)
         w = 1.0 / (1.0 + np.sum(r * r, 1) / tau ** 2)
