@@ -25,22 +25,8 @@ Each iteration (all vectorized over samples; no per-sample Python loop):
 Stops after ``max_iter`` iterations or when the relative cost change falls below ``rtol``
 (§III-A: 300 and 1e-6).
 
-How the blocks are computed (same numbers, fewer operations). The Triggs correction is folded
-into a per-sample weight matrix (:func:`~streamcal.fitting.kernels.triggs_weights`):
-J̃ᵀJ̃ = Jᵀ W J and J̃ᵀr̃ = γ Jᵀr with W = w I + e r rᵀ. With A_j = J_xj (I − x_j x_jᵀ) the projected
-direction Jacobian and B_j = A_jᵀ W_j (3×3):
-
-    H_xj = 2 B_j A_j + x_j x_jᵀ,   g_xj = 2γ_j A_jᵀ r_j,   H_pxjᵀ = 2 B_j J_pj,
-    S = Σ J_pjᵀ Q_j J_pj + λI,  Q_j = 2W_j − 4 B_jᵀ H̃_xj⁻¹ B_j,   rhs = Σ J_pjᵀ (−2γ_j r_j + 2 C_jᵀ g_xj),
-    Δx_j = −H̃_xj⁻¹ g_xj − 2 C_j (J_pj Δp),   C_j = H̃_xj⁻¹ B_j,
-
-so only 3×3 per-sample matrices are formed, stored structure-of-arrays ((3,3,N), (6,N) for the
-unique entries of symmetric ones, contiguous along the samples) so every numpy call is one long
-vectorized loop. For the core model (no effect, or effects with no ∂f/∂u) J_x = K; with no
-effect J_pj = (x̄_jᵀ ⊗ I) E (x̄ = [x; 1], E selects the entries of [K b] that the structure frees),
-so Σ J_pjᵀ Q_j J_pj = Eᵀ(Σ x̄_j x̄_jᵀ ⊗ Q_j)E is one (10,N)·(N,6) product and J_pj Δp = ΔK x_j + Δb:
-the (N,3,P) Jacobian is never formed. The samples are processed in blocks of ``BLOCK`` (each
-block's share of S and rhs summed, then its Δx) so the per-sample arrays stay in cache.
+The per-sample algebra lives in :mod:`streamcal.fitting.lm_blocks` (numpy, every model) and
+:mod:`streamcal.fitting.lm_fused` (compiled, the core model under the default fit's kernels).
 ``tests/test_lm_equivalence.py`` checks the result against a literal transcription of steps 1–5.
 """
 from __future__ import annotations
@@ -50,35 +36,10 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, Cauchy, GemanMcClure, triggs_weights
+from .kernels import L2, Cauchy, GemanMcClure
+from .lm_blocks import BLOCK, K_ENTRIES, NumpyEngine  # noqa: F401  (BLOCK, K_ENTRIES re-exported)
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
-#: Entries of K (row, column) for each structure of the sensor matrix.
-K_ENTRIES = {
-    "full": ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)),
-    "diag": ((0, 0), (1, 1), (2, 2)),
-    "sphere": ((0, 0),),
-}
-
-# Symmetric 3×3 per-sample matrices are kept as their 6 unique entries, rows in this order.
-_SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
-_SYM_I = np.array([i for i, _ in _SYM])
-_SYM_J = np.array([j for _, j in _SYM])
-_SYM_OF_FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])        # row of _SYM for flat (a, b)
-_FULL_OF_SYM = np.array([3 * i + j for i, j in _SYM])          # flat (a, b) of each _SYM row
-_SYM_EYE = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])[:, None]
-# cofactors of a symmetric [[a b c] [b d f'] [c f' g]] in _SYM order: co = H[P1]H[P2] − H[P3]H[P4]
-_CO = np.array([[3, 5, 4, 4], [2, 4, 1, 5], [1, 4, 2, 3], [0, 5, 2, 2], [1, 2, 0, 4], [0, 3, 1, 1]]).T
-# pairs (c, c') of x̄ = [x0 x1 x2 1] for Σ x̄ x̄ᵀ ⊗ Q, and the (12,12) index maps into them
-_XBAR = tuple((c, d) for c in range(4) for d in range(c, 4))
-_XBAR_I = np.array([c for c, _ in _XBAR])
-_XBAR_J = np.array([d for _, d in _XBAR])
-_PAIR4 = {**{p: n for n, p in enumerate(_XBAR)}, **{(d, c): n for n, (c, d) in enumerate(_XBAR)}}
-_PAIR3 = {**{p: n for n, p in enumerate(_SYM)}, **{(j, i): n for n, (i, j) in enumerate(_SYM)}}
-_GRAM_C = np.array([[_PAIR4[f // 3, g // 3] for g in range(12)] for f in range(12)])
-_GRAM_I = np.array([[_PAIR3[f % 3, g % 3] for g in range(12)] for f in range(12)])
-# (fancy indexing costs ~4x np.take on these small arrays: ~10 % of an LM iteration at N = 1000)
-_GRAM_FLAT = _GRAM_C * len(_SYM) + _GRAM_I
 
 
 @dataclass
@@ -195,132 +156,6 @@ class _Model:
         return Jp, Jx
 
 
-def _inv_sym(H6: np.ndarray) -> np.ndarray:
-    """Inverses (6,N) of symmetric 3×3 matrices given by their unique entries H6 (6,N)."""
-    co = H6.take(_CO[0], axis=0) * H6.take(_CO[1], axis=0)
-    co -= H6.take(_CO[2], axis=0) * H6.take(_CO[3], axis=0)
-    det = np.einsum("ik,ik->k", H6[:3], co[:3])
-    co /= det
-    return co
-
-
-def _full(M6: np.ndarray) -> np.ndarray:
-    """(3,3,N) symmetric matrices from their unique entries (6,N)."""
-    return M6.take(_SYM_OF_FULL, axis=0).reshape(3, 3, -1)
-
-
-def _sym(M9: np.ndarray) -> np.ndarray:
-    """Unique entries (6,N) of (3,3,N) matrices known to be symmetric."""
-    return M9.reshape(9, -1).take(_FULL_OF_SYM, axis=0)
-
-
-#: Samples per block: one block's per-sample arrays ((3,3,8192) doubles = 0.6 MB each) stay in
-#: cache between the numpy calls (at N = 1e5: ~25 % less time per iteration than unblocked).
-BLOCK = 8192
-
-
-_CORE_MAPS: dict = {}
-
-
-def _core_map(structure: str, fit_b: bool) -> np.ndarray:
-    """E (12,P): column f = 3c + i of the full map is ∂r/∂K[i, c] (c < 3) or ∂r/∂b[i] (c = 3);
-    E picks (or, for K = kI, sums) the columns the structure frees. Built once per
-    (structure, fit_b), read-only."""
-    E = _CORE_MAPS.get((structure, fit_b))
-    if E is None:
-        E = _CORE_MAPS[structure, fit_b] = _build_core_map(structure, fit_b)
-        E.setflags(write=False)
-    return E
-
-
-def _build_core_map(structure: str, fit_b: bool) -> np.ndarray:
-    eye = np.eye(12)
-    if structure == "sphere":
-        cols = [eye[0] + eye[4] + eye[8]]
-    else:
-        cols = [eye[3 * j + i] for i, j in K_ENTRIES[structure]]
-    if fit_b:
-        cols.extend(eye[9:12])
-    return np.column_stack(cols)
-
-
-class _CoreJacobian:
-    """J_pj = (x̄_jᵀ ⊗ I) E of the core model (no effect), x̄ = [x; 1], never formed."""
-
-    def __init__(self, E: np.ndarray, x: np.ndarray):
-        self.E, self.x = E, x
-        self.xbar = np.vstack([x, np.ones((1, x.shape[1]))])
-        self.xx = self.xbar.take(_XBAR_I, axis=0) * self.xbar.take(_XBAR_J, axis=0)
-
-    def gram(self, Q6: np.ndarray) -> np.ndarray:
-        """Σ J_pjᵀ Q_j J_pj (P,P) for symmetric Q (6,n)."""
-        M = self.xx @ Q6.T
-        return self.E.T @ M.take(_GRAM_FLAT) @ self.E
-
-    def project(self, y: np.ndarray) -> np.ndarray:
-        """Σ J_pjᵀ y_j (P,) for y (3,n)."""
-        return self.E.T @ (self.xbar @ y.T).reshape(12)
-
-    def apply(self, dp: np.ndarray) -> np.ndarray:
-        """J_pj Δp = ΔK x_j + Δb, (3,n)."""
-        full = self.E @ dp
-        return full[:9].reshape(3, 3).T @ self.x + full[9:, None]
-
-
-class _StackedJacobian:
-    """J_p given as a stack (3,P,n) (models with effects)."""
-
-    def __init__(self, Jp: np.ndarray):
-        self.Jp = Jp
-
-    def gram(self, Q6: np.ndarray) -> np.ndarray:
-        QJ = np.einsum("abk,bpk->apk", _full(Q6), self.Jp)
-        return np.einsum("apk,aqk->pq", self.Jp, QJ)
-
-    def project(self, y: np.ndarray) -> np.ndarray:
-        return np.einsum("apk,ak->p", self.Jp, y)
-
-    def apply(self, dp: np.ndarray) -> np.ndarray:
-        return np.einsum("apk,p->ak", self.Jp, dp)
-
-
-class _Block:
-    """One iteration's direction blocks for a run of samples (module docstring): built once per
-    iteration, then :meth:`reduce` and :meth:`step` per damping trial."""
-
-    def __init__(self, x, u, r, w, e, gw, K, Jx, jac, beta):
-        if Jx is None:                                       # J_x = K, so J_x x = u
-            A = K[:, :, None] - u[:, None, :] * x[None, :, :]
-        else:
-            A = Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]
-        h = np.einsum("abk,ak->bk", A, r)                    # Aᵀ r
-        self.B = w * A.transpose(1, 0, 2) + (e * h)[:, None, :] * r[None, :, :]   # Aᵀ W
-        self.H6 = _sym(np.einsum("ack,cbk->abk", self.B, A))
-        self.H6 *= 2.0
-        self.H6 += beta * (x.take(_SYM_I, axis=0) * x.take(_SYM_J, axis=0))
-        self.W2 = (2.0 * e) * (r.take(_SYM_I, axis=0) * r.take(_SYM_J, axis=0))
-        self.W2 += 2.0 * w * _SYM_EYE
-        self.gx = (2.0 * gw) * h
-        self.y_r = (-2.0 * gw) * r
-        self.jac = jac
-
-    def reduce(self, lam: float):
-        """This block's share of the Schur system at damping λ: (S (P,P), rhs (P,))."""
-        self.Hinv = _full(_inv_sym(self.H6 + lam * _SYM_EYE))
-        self.C = np.einsum("ack,cbk->abk", self.Hinv, self.B)          # H̃_x⁻¹ B
-        Q6 = _sym(np.einsum("cak,cbk->abk", self.B, self.C))
-        Q6 *= -4.0
-        Q6 += self.W2
-        y = self.y_r + 2.0 * np.einsum("abk,ak->bk", self.C, self.gx)
-        return self.jac.gram(Q6), self.jac.project(y)
-
-    def step(self, dp: np.ndarray) -> np.ndarray:
-        """Δx (3,n) of the last :meth:`reduce`'s damping for the global step Δp."""
-        dx = np.einsum("abk,bk->ak", self.C, self.jac.apply(dp))
-        dx *= -2.0
-        dx -= np.einsum("abk,bk->ak", self.Hinv, self.gx)
-        return dx
-
 
 #: A failed step that raises the cost by at most this fraction is rounding at the optimum.
 FLAT = 1e-9
@@ -330,7 +165,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
            structure: str = "full", fit_b: bool = True, effects: Sequence = (),
            covariates: Mapping[str, np.ndarray] | None = None, thetas: Sequence | None = None,
            max_iter: int = 300, rtol: float = 1e-6, lam0: float = 10.0, max_trials: int = 12,
-           beta: float = 1.0) -> LMResult:
+           beta: float = 1.0, engine: str = "auto") -> LMResult:
     """Algorithm 2: robust LM over (K, b, θ, x_1…x_N) starting from a stage-1 model.
 
     Args:
@@ -342,9 +177,12 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         fit_b: estimate b (else it stays as given).
         effects, covariates, thetas: extra effect terms, their covariates ((N,) arrays at the
             samples) and starting parameters (default ``effect.initial()``).
+        engine: ``"numpy"``, ``"fused"`` (compiled, :mod:`streamcal.fitting.lm_fused`: the core
+            model under Cauchy or Geman–McClure, with numba installed) or ``"auto"``: numpy
+            until this process has done :data:`BREAK_EVEN_WORK` of the fused engine's work,
+            the fused engine after (where it applies). Both give the same result to rounding.
     """
     kernel = kernel or L2()
-    rho = getattr(kernel, "rho", None) or (lambda s_: kernel.evaluate(s_)[0])
     m = np.asarray(m, dtype=float)
     cov = covariates or {}
     model = _Model(m, structure, fit_b, effects, cov)
@@ -354,21 +192,8 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     # structure of arrays: samples along the last axis
     m_t = np.ascontiguousarray(m.T)
     x = np.array(np.asarray(x, dtype=float).T, order="C")
-    n = x.shape[1]
-    blocks = [slice(i, min(i + BLOCK, n)) for i in range(0, n, BLOCK)]
-    eye_p = np.eye(model.n_params)
-    E = _core_map(structure, fit_b) if not model.effects else None
-
-    def cost_of(K_, b_, th_, x_):
-        u_ = K_ @ x_
-        r_ = u_ - m_t
-        r_ += b_[:, None]
-        for effect, theta in zip(model.effects, th_):
-            r_ += effect.term(theta, u_.T, cov).T
-        s_ = np.einsum("ak,ak->k", r_, r_)
-        return float(np.sum(rho(s_))), r_, u_, s_
-
-    f, r, u, s = cost_of(K, b, thetas, x)
+    engine = _engine(model, m_t, kernel, beta, engine)
+    f, state = engine.cost(K, b, thetas, x)
     early = isinstance(kernel, (Cauchy, GemanMcClure))
     lam = lam0
     history = [f]
@@ -376,42 +201,25 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     iterations = 0
     status = "max_iter"
     for iterations in range(1, max_iter + 1):
-        _, d1, d2 = kernel.evaluate(s)
-        w, e, gw = triggs_weights(s, d1, d2)
-        Jp = Jx = None
-        if E is None:
-            Jp, Jx = model.jacobians(K, thetas, x.T, u.T)
-            Jp = np.ascontiguousarray(Jp.transpose(1, 2, 0))
-            Jx = None if Jx.strides[0] == 0 else np.ascontiguousarray(Jx.transpose(1, 2, 0))
-        parts = [_Block(x[:, sl], u[:, sl], r[:, sl], w[sl], e[sl], gw[sl], K,
-                        None if Jx is None else Jx[:, :, sl],
-                        _CoreJacobian(E, x[:, sl]) if Jp is None else _StackedJacobian(Jp[:, :, sl]),
-                        beta) for sl in blocks]
+        engine.linearize(K, b, thetas, x, state)
         improved = False
         for _ in range(max_trials):
-            S, rhs = lam * eye_p, 0.0
-            for part in parts:
-                S_part, rhs_part = part.reduce(lam)
-                S = S + S_part
-                rhs = rhs + rhs_part
+            S, rhs = engine.reduce(lam)
             try:
-                dp = np.linalg.solve(S, rhs)
+                dp = engine.solve(S, rhs)
             except np.linalg.LinAlgError:
                 lam = min(10 * lam, LAMBDA_MAX)
                 continue
-            x_new = np.empty_like(x)
-            for sl, part in zip(blocks, parts):
-                np.add(x[:, sl], part.step(dp), out=x_new[:, sl])
-            x_new /= np.sqrt(np.einsum("ak,ak->k", x_new, x_new))
+            x_new = engine.step(x, dp)
             dk, db, dth = model.split(dp)
             K_new = K + _k_matrix(dk, structure)
             b_new = b + db if fit_b else b
             th_new = [t + d for t, d in zip(thetas, dth)]
-            f_new, r_new, u_new, s_new = cost_of(K_new, b_new, th_new, x_new)
+            f_new, state_new = engine.cost(K_new, b_new, th_new, x_new)
             if np.isfinite(f_new) and f_new < f:
                 improved = True
                 rel = (f - f_new) / max(f, 1e-300)
-                K, b, thetas, x, f, r, u, s = K_new, b_new, th_new, x_new, f_new, r_new, u_new, s_new
+                K, b, thetas, x, f, state = K_new, b_new, th_new, x_new, f_new, state_new
                 lam = max(lam / 10, LAMBDA_MIN)
                 break
             if early and np.isfinite(f_new) and f_new - f <= FLAT * f:
@@ -429,6 +237,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             converged = True
             status = "stalled" if not improved else "converged"
             break
+    r, s = engine.residuals(K, b, thetas, x, state)
     weights = kernel.evaluate(s)[1]
     return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
                     residuals=np.ascontiguousarray(r.T), weights=weights, cost=f,
@@ -436,6 +245,40 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
                     message={"stalled": f"no step lowered the cost in {max_trials} trials",
                              "converged": f"relative cost decrease below {rtol:g}",
                              "max_iter": f"{max_iter} iterations used"}[status])
+
+
+#: Tiering of ``engine="auto"`` (ski rental): the compiled engine costs about 0.4 s once per
+#: process (numba's import and loading its cached machine code) and saves about 0.4 µs per
+#: sample per iteration at N = 1000 (``tools/bench_fit_speed.py``). So ``auto`` runs numpy until
+#: the numpy engine has done this many sample-iterations of work the compiled engine covers
+#: (≈ the one-off cost), then compiles: a process that fits once never pays more than about
+#: twice the cheaper choice, one that fits all day runs compiled. Counted in work, not time, so
+#: the same calls give the same engines (and the same last bits) on every run.
+BREAK_EVEN_WORK = 1_000_000
+_numpy_work = 0
+
+
+def _engine(model, m_t, kernel, beta, name):
+    global _numpy_work
+    if name not in ("auto", "numpy", "fused"):
+        raise ValueError(f"unknown LM engine {name!r}; choose auto, numpy or fused")
+    if name == "fused" or (name == "auto" and _numpy_work >= BREAK_EVEN_WORK):
+        from . import lm_fused
+
+        reason = lm_fused.why_not(model, kernel)
+        if not reason:
+            return lm_fused.FusedEngine(model, m_t, kernel, beta)
+        if name == "fused":
+            raise ValueError(f"the compiled LM engine does not apply here: {reason}")
+    engine = NumpyEngine(model, m_t, kernel, beta)
+    if name == "auto" and not model.effects and isinstance(kernel, (Cauchy, GemanMcClure)):
+        engine.on_iteration = _count_numpy_work
+    return engine
+
+
+def _count_numpy_work(n: int) -> None:
+    global _numpy_work
+    _numpy_work += n
 
 
 def optimal_directions(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int = 8) -> np.ndarray:
