@@ -31,8 +31,8 @@ import numpy as np
 
 from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
-from .ellipsoid import (directions_from_model, ellipsoid_to_model, fit_l1_ellipsoid,
-                        fit_l2_ellipsoid, spread_subset)
+from .ellipsoid import (directions_and_residuals, directions_from_model, ellipsoid_to_model,
+                        fit_l1_ellipsoid, fit_l2_ellipsoid, spread_subset)
 from .kernels import EFFICIENCY_TAU, WIDTH_KERNELS, make_kernel
 from .lm import LMResult, refine
 from .mixture_polish import mixture_polish
@@ -153,9 +153,8 @@ def _clean_start_all(m_n: np.ndarray):
         return None
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(b))):
         return None
-    x = directions_from_model(K, b, m_n)
-    r = np.linalg.norm(x @ K.T + b - m_n, axis=1)
-    return None if _looks_contaminated(r, radial_error(K, b, m_n)) else (K, b, x, r)
+    x, r, relative = directions_and_residuals(K, b, m_n)
+    return None if _looks_contaminated(r, relative) else (K, b, x, r)
 
 
 def _shaped(K: np.ndarray, b: np.ndarray, structure: str, fit_b: bool):
