@@ -67,11 +67,6 @@ _ENTRY_INDEX = {name: (np.array([i for i, _ in e]), np.array([j for _, j in e]))
 _CELL_CENTRES: dict = {}
 
 
-def _information(x, K, structure, fit_b):
-    at = _rows_t(x, K, structure, fit_b)
-    return at @ at.T / max(at.shape[1], 1)
-
-
 def coverage_fraction(x: np.ndarray, n_cells: int = 100) -> float:
     """Fraction of ``n_cells`` equal-area cells (nearest Fibonacci centre) holding a direction."""
     x = np.asarray(x, dtype=float)
@@ -110,8 +105,11 @@ def assess(x: np.ndarray, structure: str = "full", fit_b: bool = True, K: np.nda
     K = K / float(np.abs(np.linalg.det(K)) ** (1 / 3))  # the ratio below is scale-free
     if _UNIFORM_DIRECTIONS is None:
         _UNIFORM_DIRECTIONS = fibonacci_sphere(UNIFORM_COUNT)
-    S = _information(x, K, structure, fit_b)
-    U = _information(_UNIFORM_DIRECTIONS, K, structure, fit_b)
+    # the samples' rows and the uniform directions' rows in one pass, then each Gram matrix
+    n = len(x)
+    at = _rows_t(np.concatenate([x, _UNIFORM_DIRECTIONS]), K, structure, fit_b)
+    S = at[:, :n] @ at[:, :n].T / max(n, 1)
+    U = at[:, n:] @ at[:, n:].T / UNIFORM_COUNT
     Linv = np.linalg.inv(np.linalg.cholesky(U))
     info = float(max(np.linalg.eigvalsh(Linv @ S @ Linv.T)[0], 0.0))
     cover = coverage_fraction(x)
