@@ -173,9 +173,10 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
         K, b, x, inliers, weights = res.K, res.b, res.x, res.inliers, res.weights
         residual_norm = np.linalg.norm(res.residuals, axis=1)
         effect_params = {e.name: e.to_physical(t, res.scale) for e, t in zip(effects, res.thetas)}
-        obs = assess(x[inliers], structure, fit_b, K)
+        seen = x if inliers.all() else x[inliers]  # no copy on clean data
+        obs = assess(seen, structure, fit_b, K)
         if not obs.ok:  # the measurements only name the plane in the message
-            obs = assess(x[inliers], structure, fit_b, K, m=m[inliers])
+            obs = assess(seen, structure, fit_b, K, m=m[inliers])
         used_kernel = kernel
         sigma, tau_used = res.sigma, res.tau
         solver = res.solver
