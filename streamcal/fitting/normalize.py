@@ -15,10 +15,12 @@ def normalize(m: np.ndarray):
     """
     m = np.asarray(m, dtype=float)
     center = column_medians(m)
-    scale = float(np.sqrt(np.mean((m - center) ** 2)))
+    centred = m - center
+    scale = float(np.sqrt(np.mean(centred ** 2)))
     if not np.isfinite(scale) or scale <= 0:
         scale = 1.0
-    return (m - center) / scale, center, scale
+    centred /= scale
+    return centred, center, scale
 
 
 def denormalize_model(K_n: np.ndarray, b_n: np.ndarray, center: np.ndarray, scale: float):

@@ -36,29 +36,35 @@ def fibonacci_sphere(n: int) -> np.ndarray:
     return np.column_stack([rho * np.cos(phi), rho * np.sin(phi), z])
 
 
-def _rows(x: np.ndarray, K: np.ndarray, structure: str, fit_b: bool) -> np.ndarray:
-    # n_j ∝ K⁻ᵀx_j, i.e. the rows of x K⁻¹ (one 3×3 inverse instead of a solve per call:
-    # a batched solve costs ~10x the product at N = 2000)
-    n = x @ np.linalg.inv(K)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
+def _rows_t(x: np.ndarray, K: np.ndarray, structure: str, fit_b: bool) -> np.ndarray:
+    """The rows a_j as columns, (p, N): samples along the fast axis, so that every step below
+    is a contiguous pass (half the cost of the (N, p) layout at N = 1000)."""
+    # n_j ∝ K⁻ᵀx_j (one 3×3 inverse instead of a solve per call: a batched solve costs ~10x
+    # the product at N = 2000)
+    xt = x.T
+    nt = np.linalg.inv(K).T @ xt
+    nt /= np.sqrt(np.einsum("ij,ij->j", nt, nt))
     if structure == "sphere":
-        k = np.einsum("ij,ij->i", n, x)[:, None]
-    else:
-        rows, cols = _ENTRY_INDEX[structure]
-        k = n.take(rows, axis=1) * x.take(cols, axis=1)
-    return np.concatenate([k, n], axis=1) if fit_b else k
+        k = np.einsum("ij,ij->j", nt, xt)[None, :]
+        return np.concatenate([k, nt]) if fit_b else k
+    rows, cols = _ENTRY_INDEX[structure]
+    at = np.empty((len(rows) + 3 * fit_b, x.shape[0]))
+    np.multiply(nt[rows], xt[cols], out=at[:len(rows)])
+    if fit_b:
+        at[len(rows):] = nt
+    return at
 
 
+#: Uniform directions of the reference information. Against 2000, 300 Fibonacci directions
+#: change the relative information by at most 0.054 % (6 models K × full/diag/sphere × with and
+#: without b × 29 direction sets: caps 30–120°, bands ±5–45°, a plane, a sphere, freeimucal), far
+#: inside the margins of the decisions (75° cap 0.0015, 60° cap 0.0002 vs MIN_INFORMATION).
+UNIFORM_COUNT = 300
 _UNIFORM_DIRECTIONS = None
-#: (rows, columns) of the free entries of K per structure, for :func:`_rows`.
+#: (rows, columns) of the free entries of K per structure, for :func:`_rows_t`.
 _ENTRY_INDEX = {name: (np.array([i for i, _ in e]), np.array([j for _, j in e]))
                 for name, e in K_ENTRIES.items()}
 _CELL_CENTRES: dict = {}
-
-
-def _information(x, K, structure, fit_b):
-    a = _rows(x, K, structure, fit_b)
-    return a.T @ a / max(len(a), 1)
 
 
 def coverage_fraction(x: np.ndarray, n_cells: int = 100) -> float:
@@ -98,9 +104,12 @@ def assess(x: np.ndarray, structure: str = "full", fit_b: bool = True, K: np.nda
     K = np.eye(3) if K is None else np.asarray(K, dtype=float)
     K = K / float(np.abs(np.linalg.det(K)) ** (1 / 3))  # the ratio below is scale-free
     if _UNIFORM_DIRECTIONS is None:
-        _UNIFORM_DIRECTIONS = fibonacci_sphere(2000)
-    S = _information(x, K, structure, fit_b)
-    U = _information(_UNIFORM_DIRECTIONS, K, structure, fit_b)
+        _UNIFORM_DIRECTIONS = fibonacci_sphere(UNIFORM_COUNT)
+    # the samples' rows and the uniform directions' rows in one pass, then each Gram matrix
+    n = len(x)
+    at = _rows_t(np.concatenate([x, _UNIFORM_DIRECTIONS]), K, structure, fit_b)
+    S = at[:, :n] @ at[:, :n].T / max(n, 1)
+    U = at[:, n:] @ at[:, n:].T / UNIFORM_COUNT
     Linv = np.linalg.inv(np.linalg.cholesky(U))
     info = float(max(np.linalg.eigvalsh(Linv @ S @ Linv.T)[0], 0.0))
     cover = coverage_fraction(x)

@@ -60,4 +60,12 @@ def column_medians(m: np.ndarray) -> np.ndarray:
     m = np.asarray(m)
     if m.ndim != 2 or m.dtype != np.float64 or m.shape[0] == 0:
         return np.median(m, axis=0)
-    return np.array([median(np.ascontiguousarray(m[:, j])) for j in range(m.shape[1])])
+    if not np.isfinite(m).all():
+        return np.array([median(np.ascontiguousarray(m[:, j])) for j in range(m.shape[1])])
+    # every column at once: one partition of mᵀ along its rows, the points and arithmetic of
+    # :func:`median` (a third of the cost of three separate calls at N = 1000)
+    n, half = m.shape[0], m.shape[0] // 2
+    if n % 2:
+        return 0.0 + np.partition(m.T, sorted({half, n - 1}), axis=1)[:, half]
+    part = np.partition(m.T, sorted({half - 1, half, n - 1}), axis=1)
+    return (0.0 + part[:, half - 1] + part[:, half]) / 2.0
