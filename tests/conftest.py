@@ -27,17 +27,3 @@ def real_tracks_dir() -> Path:
 def flight_dir() -> Path:
     return _shared_dir(REAL_FLIGHTS, "flight logs")
 
-
-@pytest.fixture(scope="session", autouse=True)
-def _compiled_lm_from_the_start():
-    """Tests share a process with many others: ``refine(engine="auto")`` would switch from the
-    numpy to the compiled LM engine at a point that depends on which tests ran before (the two
-    agree to rounding, not to the last bit). The suite runs past the break-even from its start;
-    the numpy engine has its own tests (tests/test_lm_fused.py, test_lm_equivalence.py), and the
-    CLI tests' subprocesses start on it like any fresh process."""
-    from streamcal.fitting import lm
-
-    before = lm._numpy_work
-    lm._numpy_work = lm.BREAK_EVEN_WORK
-    yield
-    lm._numpy_work = before

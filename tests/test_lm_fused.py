@@ -41,30 +41,33 @@ def test_compiled_engine_refuses_what_it_does_not_cover():
         lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="jit")
 
 
-def test_auto_tiers_up_after_the_break_even_work(monkeypatch):
-    """auto: numpy until BREAK_EVEN_WORK sample-iterations of covered work, compiled after;
-    work the compiled engine does not cover (other kernels) is not counted."""
+def test_auto_is_one_choice_per_environment(monkeypatch):
+    """auto: the compiled engine wherever it applies, whatever ran before; STREAMCAL_LM_ENGINE=numpy
+    keeps numpy (and numba unimported) for the whole process; other kernels always run numpy."""
     m, K0, b0, x0, _ = problem("full")
     used = []
     real_numpy, real_fused = lm.NumpyEngine, lm_fused.FusedEngine
     monkeypatch.setattr(lm, "NumpyEngine", lambda *a: used.append("numpy") or real_numpy(*a))
     monkeypatch.setattr(lm_fused, "FusedEngine", lambda *a: used.append("fused") or real_fused(*a))
-    monkeypatch.setattr(lm, "_numpy_work", 0)
-    monkeypatch.setattr(lm, "BREAK_EVEN_WORK", 3 * len(m))
-    lm.refine(m, K0, b0, x0, kernel=Huber(0.03))
-    assert lm._numpy_work == 0
+    monkeypatch.delenv(lm.ENGINE_ENV, raising=False)
     first = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
-    assert lm._numpy_work == first.iterations * len(m) >= 3 * len(m)
-    second = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
-    assert used == ["numpy", "numpy", "fused"]
-    np.testing.assert_allclose(second.K, first.K, rtol=1e-10)
+    lm.refine(m, K0, b0, x0, kernel=Huber(0.03))
+    again = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    monkeypatch.setenv(lm.ENGINE_ENV, "numpy")
+    pinned = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    assert used == ["fused", "numpy", "fused", "numpy"]
+    np.testing.assert_array_equal(again.K, first.K)
+    np.testing.assert_allclose(pinned.K, first.K, rtol=1e-10)
+    monkeypatch.setenv(lm.ENGINE_ENV, "fast")
+    with pytest.raises(ValueError, match="STREAMCAL_LM_ENGINE='fast'"):
+        lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
 
 
 def test_without_numba_auto_and_the_pipeline_use_numpy(monkeypatch):
     m, K0, b0, x0, _ = problem("full")
     monkeypatch.setattr(lm_fused, "_COMPILED", None)
     monkeypatch.setattr(lm_fused, "_numba", lambda: None)
-    monkeypatch.setattr(lm, "_numpy_work", lm.BREAK_EVEN_WORK)
+    monkeypatch.delenv(lm.ENGINE_ENV, raising=False)
     assert lm_fused.why_not(lm._Model(m, "full", True, (), {}), Cauchy(0.03)) == "numba is not installed"
     res = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
     ref = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="numpy")

@@ -31,6 +31,7 @@ The per-sample algebra lives in :mod:`streamcal.fitting.lm_blocks` (numpy, every
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
 
@@ -178,9 +179,9 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         effects, covariates, thetas: extra effect terms, their covariates ((N,) arrays at the
             samples) and starting parameters (default ``effect.initial()``).
         engine: ``"numpy"``, ``"fused"`` (compiled, :mod:`streamcal.fitting.lm_fused`: the core
-            model under Cauchy or Geman–McClure, with numba installed) or ``"auto"``: numpy
-            until this process has done :data:`BREAK_EVEN_WORK` of the fused engine's work,
-            the fused engine after (where it applies). Both give the same result to rounding.
+            model under Cauchy or Geman–McClure, with numba installed) or ``"auto"``: the
+            fused engine where it applies unless :data:`ENGINE_ENV` says ``numpy``. Both give
+            the same result to rounding (not to the last bit).
     """
     kernel = kernel or L2()
     m = np.asarray(m, dtype=float)
@@ -247,22 +248,21 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
                              "max_iter": f"{max_iter} iterations used"}[status])
 
 
-#: Tiering of ``engine="auto"`` (ski rental): the compiled engine costs about 0.4 s once per
-#: process (numba's import and loading its cached machine code) and saves about 0.4 µs per
-#: sample per iteration at N = 1000 (``tools/bench_fit_speed.py``). So ``auto`` runs numpy until
-#: the numpy engine has done this many sample-iterations of work the compiled engine covers
-#: (≈ the one-off cost), then compiles: a process that fits once never pays more than about
-#: twice the cheaper choice, one that fits all day runs compiled. Counted in work, not time, so
-#: the same calls give the same engines (and the same last bits) on every run.
-BREAK_EVEN_WORK = 1_000_000
-_numpy_work = 0
+#: Environment variable choosing ``engine="auto"``'s engine for the whole process: ``numpy``
+#: keeps numpy everywhere (no numba import, ~0.4 s, on the first fit); unset or ``auto``: the
+#: compiled engine wherever it applies. One choice per environment, never per call history: a
+#: batch on worker processes and a serial run give the same numbers to the last bit.
+ENGINE_ENV = "STREAMCAL_LM_ENGINE"
 
 
 def _engine(model, m_t, kernel, beta, name):
-    global _numpy_work
-    if name not in ("auto", "numpy", "fused"):
+    if name == "auto":
+        name = os.environ.get(ENGINE_ENV, "auto").strip().lower() or "auto"
+        if name not in ("auto", "numpy"):
+            raise ValueError(f"{ENGINE_ENV}={os.environ[ENGINE_ENV]!r}: choose auto or numpy")
+    elif name not in ("numpy", "fused"):
         raise ValueError(f"unknown LM engine {name!r}; choose auto, numpy or fused")
-    if name == "fused" or (name == "auto" and _numpy_work >= BREAK_EVEN_WORK):
+    if name != "numpy":
         from . import lm_fused
 
         reason = lm_fused.why_not(model, kernel)
@@ -270,15 +270,7 @@ def _engine(model, m_t, kernel, beta, name):
             return lm_fused.FusedEngine(model, m_t, kernel, beta)
         if name == "fused":
             raise ValueError(f"the compiled LM engine does not apply here: {reason}")
-    engine = NumpyEngine(model, m_t, kernel, beta)
-    if name == "auto" and not model.effects and isinstance(kernel, (Cauchy, GemanMcClure)):
-        engine.on_iteration = _count_numpy_work
-    return engine
-
-
-def _count_numpy_work(n: int) -> None:
-    global _numpy_work
-    _numpy_work += n
+    return NumpyEngine(model, m_t, kernel, beta)
 
 
 def optimal_directions(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int = 8) -> np.ndarray:

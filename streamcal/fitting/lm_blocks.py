@@ -203,13 +203,8 @@ class NumpyEngine:
         s = np.einsum("ak,ak->k", r, r)
         return float(np.sum(self.rho(s))), (r, u, s)
 
-    #: called with N after each linearization (``lm``'s tiering counts the work done)
-    on_iteration = None
-
     def linearize(self, K, b, thetas, x, state) -> None:
         r, u, s = state
-        if self.on_iteration is not None:
-            self.on_iteration(s.shape[0])
         _, d1, d2 = self.kernel.evaluate(s)
         w, e, gw = triggs_weights(s, d1, d2)
         jp = jx = None
