@@ -58,7 +58,7 @@ def _compiled():
         numba = _numba()
         if numba is None:
             return None
-        jit = numba.njit(cache=True, nogil=True, fastmath=True)
+        jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # 0-division → inf/nan, as numpy
         _COMPILED = (jit(_reduce_core), jit(_step_core), jit(_cost_core), jit(_solve))
     return _COMPILED
 
@@ -204,6 +204,26 @@ def _reduce_core(m, x, K, b, kid, t2, beta, lam, C, Hg, T, G):
         T[k // 6, k % 6] = acc[k]
     for k in range(12):
         G[k // 3, k % 3] = acc[60 + k]
+
+
+def warm_up() -> bool:
+    """Compile (or load from numba's cache) every loop now, on a tiny problem; False without
+    numba. The first compilation after installation takes a few seconds; CI does it once before
+    the tests so that no test waits for it."""
+    compiled = _compiled()
+    if compiled is None:
+        return False
+    reduce_core, step_core, cost_core, solve = compiled
+    n = 4
+    m = np.array([[1.0, 0.0, 0.0, 0.6], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.8]])
+    K, b = np.eye(3), np.zeros(3)
+    C, Hg, T, G = np.empty((n, 9)), np.empty((n, 3)), np.empty((10, 6)), np.empty((4, 3))
+    for kid in (0, 1):
+        cost_core(m, m, K, b, kid, 1.0)
+        reduce_core(m, m, K, b, kid, 1.0, 1.0, 1.0, C, Hg, T, G)
+    step_core(m, C, Hg, K, b, np.empty_like(m))
+    solve(np.eye(3), b)
+    return True
 
 
 class FusedEngine:
