@@ -12,8 +12,10 @@ Why not scipy.optimize.least_squares: it has no Schur elimination of the N direc
 (its Jacobian would be (3N, 3N + 9)), and the Triggs-corrected kernels and the paper's damping
 schedule are part of the method's published behaviour (``tests/test_lm_equivalence.py``).
 
-numba is imported on first use (its import costs ~0.4 s); the kernels are cached on disk after
-their first compilation. Without numba the numpy engine runs (same results to rounding).
+Chosen with ``STREAMCAL_LM_ENGINE=compiled`` (:data:`streamcal.fitting.lm.ENGINE_ENV`). numba is
+imported on first use (with loading the cached code ~0.4 s and ~100 MB resident); the loops are
+compiled once (a few seconds) and cached on disk. Without numba the numpy engine runs (same
+results to rounding).
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from .lm_blocks import _GRAM_FLAT, _core_map
 #: Kernel ids inside the compiled loops.
 _KERNEL_IDS = {Cauchy: 0, GemanMcClure: 1}
 _COMPILED = None
+NO_NUMBA = "numba is not installed"
 
 
 def _numba():
@@ -47,7 +50,7 @@ def why_not(model, kernel) -> str:
     if type(kernel) not in _KERNEL_IDS:
         return f"kernel {getattr(kernel, 'name', kernel)!r} (only cauchy and gm are compiled)"
     if _compiled() is None:
-        return "numba is not installed"
+        return NO_NUMBA
     return ""
 
 
