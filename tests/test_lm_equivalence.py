@@ -223,12 +223,12 @@ def test_two_effects_and_damping_retries_match_reference():
 @pytest.mark.parametrize("effect", (None, "temperature_scale"))
 def test_blocks_of_samples_match_reference(monkeypatch, effect):
     """Samples processed in several blocks (a short last one too) give the same result."""
-    from streamcal.fitting import lm
+    from streamcal.fitting import lm_blocks
     from streamcal.model import build_effects
 
     monkeypatch.setattr(lm, "BLOCK", 70)
     m, K0, b0, x0, cov = problem("full", seed=5)
-    assert len(m) % lm.BLOCK and len(m) > 2 * lm.BLOCK
+    assert len(m) % lm_blocks.BLOCK and len(m) > 2 * lm_blocks.BLOCK
     effects = build_effects([effect], cov) if effect else ()
     kernel = make("cauchy")
     got = refine(m, K0, b0, x0, kernel=kernel, effects=effects, covariates=cov)

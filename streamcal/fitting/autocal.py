@@ -135,25 +135,11 @@ def _looks_contaminated(r: np.ndarray, relative: np.ndarray) -> bool:
                 or quantile(relative, KEEP) > RELATIVE_LIMIT)
 
 
-def _clean_l2_start(subset: np.ndarray):
-    """(K, b) of the algebraic L2 ellipsoid fit of ``subset`` when its residuals show no
-    outliers (:func:`_looks_contaminated`), else None. On clean data the L1 fit (a conic
-    program, ~50× the cost) only gives the LM another start near the same optimum."""
-    try:
-        K, b = ellipsoid_to_model(*fit_l2_ellipsoid(subset))
-    except InsufficientDataError:
-        return None
-    if not (np.all(np.isfinite(K)) and np.all(np.isfinite(b))):
-        return None
-    x = directions_from_model(K, b, subset)
-    r = np.linalg.norm(x @ K.T + b - subset, axis=1)
-    return None if _looks_contaminated(r, radial_error(K, b, subset)) else (K, b)
-
-
-def _clean_start_all(m_n: np.ndarray):
-    """(K, b, x, r) of the algebraic L2 ellipsoid of every sample m_n (N,3) — directions x
+def _clean_l2_start(m_n: np.ndarray):
+    """(K, b, x, r) of the algebraic L2 ellipsoid of the samples m_n (N,3) — directions x
     (N,3) and residual norms r (N,) at it — when its residuals show no outliers
-    (:func:`_looks_contaminated` on every sample), else None."""
+    (:func:`_looks_contaminated`), else None. On clean data the L1 fit (a conic program, ~50×
+    the cost) only gives the LM another start near the same optimum."""
     try:
         K, b = ellipsoid_to_model(*fit_l2_ellipsoid(m_n))
     except InsufficientDataError:
@@ -183,7 +169,7 @@ def stage1(m_n: np.ndarray, structure: str = "full", fit_b: bool = True, method:
     subset = m_n[spread_subset(m_n, stage1_max)]
     start = _clean_l2_start(subset) if method == "l1" and clean_start else None
     try:
-        K, b = start or ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
+        K, b = start[:2] if start else ellipsoid_to_model(*(fit_l1_ellipsoid if method == "l1" else fit_l2_ellipsoid)(subset))
     except InsufficientDataError:
         if method != "l1":
             raise
@@ -224,7 +210,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
     clean_start = kernel in ("cauchy", "gm") and stage1_method == "l1"
     start = None
     if initial is None and clean_start and len(m_n) <= CLEAN_START_ROWS:
-        start = _clean_start_all(m_n)
+        start = _clean_l2_start(m_n)
     try:
         if initial is not None:
             K0, b0 = np.asarray(initial[0]) / scale, (np.asarray(initial[1]) - center) / scale

@@ -39,7 +39,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .kernels import L2, Cauchy, GemanMcClure
-from .lm_blocks import BLOCK, K_ENTRIES, NumpyEngine  # noqa: F401  (BLOCK, K_ENTRIES re-exported)
+from .lm_blocks import K_ENTRIES, NumpyEngine
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
 
