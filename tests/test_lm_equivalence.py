@@ -12,7 +12,7 @@ import os
 import numpy as np
 import pytest
 
-from streamcal.fitting import kernels, lm_fused
+from streamcal.fitting import kernels, lm, lm_fused
 from streamcal.fitting.lm import K_ENTRIES, LAMBDA_MAX, LAMBDA_MIN, refine
 
 RTOL = 1e-10
@@ -226,12 +226,14 @@ def test_blocks_of_samples_match_reference(monkeypatch, effect):
     from streamcal.fitting import lm_blocks
     from streamcal.model import build_effects
 
-    monkeypatch.setattr(lm, "BLOCK", 70)
+    monkeypatch.setattr(lm_blocks, "BLOCK", 70)
     m, K0, b0, x0, cov = problem("full", seed=5)
     assert len(m) % lm_blocks.BLOCK and len(m) > 2 * lm_blocks.BLOCK
     effects = build_effects([effect], cov) if effect else ()
     kernel = make("cauchy")
-    got = refine(m, K0, b0, x0, kernel=kernel, effects=effects, covariates=cov)
+    engine = lm_blocks.NumpyEngine(lm._Model(m, "full", True, effects, cov), m.T.copy(), kernel, 1.0)
+    assert len(engine.slices) > 2            # the refine below does run in several blocks
+    got = refine(m, K0, b0, x0, kernel=kernel, effects=effects, covariates=cov, engine="numpy")
     ref = reference_refine(m, K0, b0, x0, kernel=kernel, effects=effects, cov=cov)
     assert_same(got, ref)
 
