@@ -203,7 +203,7 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
 
 
 def _fit_reference(m, method, structure, *, max_iter=300, rtol=1e-6):
-    from .ellipsoid import directions_from_model, ellipsoid_to_model, fit_l1_ellipsoid, fit_l2_ellipsoid
+    from .ellipsoid import ellipsoid_to_model, fit_l1_ellipsoid, fit_l2_ellipsoid
 
     m_n, center, scale = normalize(m)
     if method in ("l1_ellipsoid", "l2_ellipsoid"):
