@@ -50,14 +50,21 @@ def _diagnose(res, cal):
     return streamcal.diagnose(track, calibration=cal, candidates=[], ladder=False)
 
 
+def _soft_iron_cal(entry=None, delta=0.0, b_delta=0.0):
+    """A hard+soft-iron calibration of the true K, B with K[entry] off by ``delta`` (µT) and
+    every offset off by ``b_delta``."""
+    Kc = K.copy()
+    if entry is not None:
+        Kc[entry] += delta
+    return Calibration(K=Kc, b=B + b_delta, model=("hard_iron", "soft_iron"))
+
+
 @pytest.mark.slow
 def test_gyro_pins_a_wrong_held_K_zz_and_the_offset_follows():
     """A yaw-turning slice (±25° tilt) leaves K_zz to trade against b_z on the sphere: K_zz is
     held at the calibration's wrong value (+1 µT) and b_z bends by ≈ 1 µT to match it."""
     res = yaw_slice(120, seed=2, K=K, b=B, tilt_deg=25, noise_uT=0.15)
-    Kg = K.copy()
-    Kg[2, 2] += 1.0
-    d = _diagnose(res, Calibration(K=Kg, b=B.copy(), model=("hard_iron", "soft_iron")))
+    d = _diagnose(res, _soft_iron_cal((2, 2), 1.0))
     out = d.to_dict()
     json.dumps(out, allow_nan=False, default=lambda v: None)
     assert out["gyro_link"]["used"], out["gyro_link"]["reason"]
@@ -93,9 +100,7 @@ def test_not_pinned_when_the_rotation_does_not_determine_it():
 @pytest.mark.slow
 def test_noisy_gyro_is_not_used():
     res = yaw_slice(120, seed=2, K=K, b=B, tilt_deg=25, noise_uT=0.15, gyro_noise=0.5)
-    Kg = K.copy()
-    Kg[2, 2] += 1.0
-    d = _diagnose(res, Calibration(K=Kg, b=B.copy(), model=("hard_iron", "soft_iron")))
+    d = _diagnose(res, _soft_iron_cal((2, 2), 1.0))
     assert not d.gyro_pinned and not d.gyro_link["used"]
     assert "K_zz" in d.held
 
@@ -105,7 +110,7 @@ def test_gyro_pins_a_wrong_held_offset_within_its_sigma():
     """Hovering (yaw ±30°, tilt ±15°, 300 s, σ 0.15 µT), calibration 2 µT off on every offset:
     the sphere re-estimates b_z but holds b_x and b_y; the link determines b_x."""
     res = yaw_slice(300, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.15)
-    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron", "soft_iron")))
+    d = _diagnose(res, _soft_iron_cal(b_delta=2.0))
     assert d.gyro_link["used"], d.gyro_link["reason"]
     pinned = d.gyro_pinned["b_x"]
     assert pinned["held_value"] == pytest.approx(B[0] + 2.0)
@@ -128,7 +133,7 @@ def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
     holds K_yz, K_zz, b_x, b_y; the link determines K_yz only with b_x, b_y held, and there it
     pinned the value that fits the wrong offsets (1.78 ± 0.18 against 0.6) before the guard."""
     res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
-    d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron", "soft_iron")))
+    d = _diagnose(res, _soft_iron_cal(b_delta=2.0))
     link = d.gyro_link
     assert link["candidates"] == ["K_yz"]
     assert not link["used"] and not d.gyro_pinned and "K_yz" in d.held
@@ -153,9 +158,7 @@ def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
 def test_the_guard_lets_the_same_pin_through_when_the_held_offsets_are_right():
     """The same slice, offsets right and K_yz held 1.2 µT off: K_yz is pinned near the truth."""
     res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
-    Ky = K.copy()
-    Ky[1, 2] += 1.2
-    d = _diagnose(res, Calibration(K=Ky, b=B.copy(), model=("hard_iron", "soft_iron")))
+    d = _diagnose(res, _soft_iron_cal((1, 2), 1.2))
     assert d.gyro_link["used"], d.gyro_link["reason"]
     assert d.gyro_link["guard"]["passed"] and d.gyro_link["guard"]["p_value"] > P_GUARD
     pinned = d.gyro_pinned["K_yz"]
