@@ -38,11 +38,6 @@ def _numba():
     return numba
 
 
-def applies(model, kernel) -> bool:
-    """Whether the compiled engine covers this model and kernel (and numba is installed)."""
-    return not why_not(model, kernel)
-
-
 def why_not(model, kernel) -> str:
     """Why the compiled engine does not apply ('' when it does)."""
     if model.effects:
@@ -61,7 +56,8 @@ def _compiled():
         numba = _numba()
         if numba is None:
             return None
-        jit = numba.njit(cache=True, nogil=True, error_model="numpy")  # 0-division → inf/nan, as numpy
+        # error_model "numpy": a division by zero gives inf/nan (a rejected step), as in numpy
+        jit = numba.njit(cache=True, nogil=True, error_model="numpy")
         _COMPILED = (jit(_reduce_core), jit(_step_core), jit(_cost_core), jit(_solve))
     return _COMPILED
 
@@ -95,7 +91,8 @@ def _step_core(x, C, Hg, dK, db, x_out):
             jd[a] = dK[a, 0] * x[0, j] + dK[a, 1] * x[1, j] + dK[a, 2] * x[2, j] + db[a]
         norm = 0.0
         for a in range(3):
-            v = x[a, j] - 2.0 * (C[j, 3 * a] * jd[0] + C[j, 3 * a + 1] * jd[1] + C[j, 3 * a + 2] * jd[2]) - Hg[j, a]
+            cj = C[j, 3 * a] * jd[0] + C[j, 3 * a + 1] * jd[1] + C[j, 3 * a + 2] * jd[2]
+            v = x[a, j] - 2.0 * cj - Hg[j, a]
             x_out[a, j] = v
             norm += v * v
         norm = np.sqrt(norm)
