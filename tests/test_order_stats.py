@@ -3,7 +3,7 @@ included), and spread_subset / normalize built on them pick the same samples as 
 import numpy as np
 import pytest
 
-from streamcal.fitting.order_stats import column_medians, median, quantile, quantiles
+from streamcal.fitting.order_stats import column_medians, median, quantile, quantiles, sorted_median
 
 
 def _same(a, b) -> bool:
@@ -45,3 +45,11 @@ def test_column_medians_match_numpy():
     for t in range(300):
         m = np.round(rng.standard_normal((int(rng.integers(1, 2000)), 3)) * (1 + t % 5), t % 2)
         assert _same(column_medians(m), np.median(m, axis=0))
+
+
+def test_sorted_median_of_every_prefix_matches_numpy():
+    rng = np.random.default_rng(5)
+    for t in range(100):
+        ordered = np.sort(np.round(rng.standard_normal(int(rng.integers(1, 300))), t % 3))
+        for k in range(1, len(ordered) + 1):
+            assert _same(sorted_median(ordered, k), np.median(ordered[:k]))

@@ -23,22 +23,12 @@ SQRT2 = np.sqrt(2.0)
 
 def design_matrix(m: np.ndarray) -> np.ndarray:
     """Φ (N,10) such that Φ v = mᵀCm + 2dᵀm + e for every sample (m (N,3), normalized)."""
-    x, y, z = np.asarray(m, dtype=float).T
-    one = np.ones_like(x)
-    return np.column_stack([x * x, y * y, z * z, 2 * x * y, 2 * x * z, 2 * y * z,
-                            2 * x, 2 * y, 2 * z, one])
+    return np.ascontiguousarray(_design_rows(m).T)
 
 
-def unpack(v: np.ndarray):
-    """(C (3,3), d (3,), e) from the 10-vector v."""
-    c11, c22, c33, c12, c13, c23, d1, d2, d3, e = v
-    C = np.array([[c11, c12, c13], [c12, c22, c23], [c13, c23, c33]])
-    return C, np.array([d1, d2, d3]), float(e)
-
-
-def _scatter(m: np.ndarray) -> np.ndarray:
-    """Φᵀ Φ (10,10) of :func:`design_matrix`, built as Φᵀ (10,N) row by contiguous row (half
-    the cost of the (N,10) column stack at N = 1000; the same numbers)."""
+def _design_rows(m: np.ndarray) -> np.ndarray:
+    """Φᵀ (10,N) built row by contiguous row (half the cost of an (N,10) column stack at
+    N = 1000): x², y², z², 2xy, 2xz, 2yz, 2x, 2y, 2z, 1."""
     mt = np.ascontiguousarray(np.asarray(m, dtype=float).T)
     x, y, z = mt
     pt = np.empty((10, mt.shape[1]))
@@ -49,6 +39,19 @@ def _scatter(m: np.ndarray) -> np.ndarray:
     pt[3:6] *= 2
     np.multiply(mt, 2, out=pt[6:9])
     pt[9] = 1.0
+    return pt
+
+
+def unpack(v: np.ndarray):
+    """(C (3,3), d (3,), e) from the 10-vector v."""
+    c11, c22, c33, c12, c13, c23, d1, d2, d3, e = v
+    C = np.array([[c11, c12, c13], [c12, c22, c23], [c13, c23, c33]])
+    return C, np.array([d1, d2, d3]), float(e)
+
+
+def _scatter(m: np.ndarray) -> np.ndarray:
+    """Φᵀ Φ (10,10) of :func:`design_matrix`."""
+    pt = _design_rows(m)
     return pt @ pt.T
 
 

@@ -55,6 +55,15 @@ def median(a: np.ndarray) -> float:
     return (0.0 + float(part[half - 1]) + float(part[half])) / 2.0
 
 
+def sorted_median(ordered: np.ndarray, k: int) -> float:
+    """``median(ordered[:k])`` for an ascending 1-D array (k ≥ 1): no partition needed, so a
+    caller that sorts once can take the median of any prefix."""
+    half = k // 2
+    if k % 2:
+        return 0.0 + float(ordered[half])
+    return (0.0 + float(ordered[half - 1]) + float(ordered[half])) / 2.0
+
+
 def column_medians(m: np.ndarray) -> np.ndarray:
     """``np.median(m, axis=0)`` for an (N,k) array, column by column (k,)."""
     m = np.asarray(m)
