@@ -10,7 +10,8 @@ import pytest
 import streamcal
 from streamcal.diagnosis.held import field_radius
 from streamcal.diagnosis.effect_plausibility import BOUND
-from streamcal.diagnosis.held_check import SUSPICIOUS_SIGMAS, implausible_effect, plausible_range
+from streamcal.diagnosis.effect_plausibility import implausible_effect
+from streamcal.diagnosis.held_check import SUSPICIOUS_SIGMAS, plausible_range
 from streamcal.fitting.damped_lm import STATUSES
 from streamcal.inputs import autopilot_calibration, read_recording
 from streamcal.model.aux import AuxInterference

@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from ..fitting.gyro_link import NULL_RATIO, LinkFit
+from ..fitting.gyro_link import NULL_RATIO, LinkFit, pseudo_inverse
 
 #: Significance of the shift test (1).
 P_GUARD = 0.003
@@ -39,12 +39,6 @@ MATERIAL = 1.0
 RULE = (f"the pinned values would not move significantly (χ² test at p {P_GUARD:g}) and by "
         f"more than {MATERIAL:g} σ were the still-held parameters set to the link's joint "
         f"estimate")
-
-
-def _pinv(H):
-    ev, V = np.linalg.eigh(H)
-    null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
-    return (V * np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))) @ V.T
 
 
 def held_check(joint: LinkFit, names: Sequence[str], pinned: Sequence[str],
@@ -78,15 +72,15 @@ def held_check(joint: LinkFit, names: Sequence[str], pinned: Sequence[str],
     ci = [k for k in range(n) if k not in hi]
     pi = [ci.index(names.index(p)) for p in pinned]
     H = joint.bread
-    A = -_pinv(H[np.ix_(ci, ci)]) @ H[np.ix_(ci, hi)]
-    Hinv = _pinv(H)
+    A = -pseudo_inverse(H[np.ix_(ci, ci)])[0] @ H[np.ix_(ci, hi)]
+    Hinv = pseudo_inverse(H)[0]
     cov = Hinv @ joint.meat @ Hinv
     S_hh = cov[np.ix_(hi, hi)]
     dh = np.array([check[h]["difference"] for h in seen])
     d = (A @ dh)[pi]
     C = (A @ S_hh @ A.T)[np.ix_(pi, pi)]
     ev, V = np.linalg.eigh(C)
-    keep = ev > max(ev[-1], 1e-300) * 1e-9
+    keep = ev > max(ev[-1], 1e-300) * NULL_RATIO
     z = V[:, keep].T @ d
     stat = float(np.sum(z ** 2 / ev[keep]))
     dof = int(keep.sum())

@@ -36,15 +36,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
+from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
-from ..fitting.gyro_lag import gyro_rates
+from ..fitting.gyro_lag import EXPLAINED, gyro_rates
 from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
 from .gyro_guard import RULE as GUARD_RULE
 from .gyro_guard import disagreement, held_check
 from .held import jacobian, project
 
-#: Rule 1: link rms at most this fraction of the no-rotation rms.
-EXPLAINED = 0.5
+#: Rule 1: link rms at most EXPLAINED (gyro_lag's rule: the gyro explains the rotation) × the
+#: no-rotation rms.
 #: Rule 4: contiguous held-out time blocks.
 FOLDS = 4
 #: Rule 5: sphere rms with the pinned values at most this factor of the rms with them held.
@@ -215,7 +216,7 @@ def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, 
             R = pairs.rotations(f.gyro_bias, f.gyro_gain)[test]
             res.append((np.linalg.norm(pairs.residual(f.K, f.b, R, test), axis=1), f.tau))
         (rh, tau), (rp, _) = res
-        keep = (rh <= 2 * tau) | (rp <= 2 * tau)
+        keep = (rh <= OUTLIER_WIDTHS * tau) | (rp <= OUTLIER_WIDTHS * tau)
         sq_h.append(rh[keep] ** 2)
         sq_p.append(rp[keep] ** 2)
     return (float(np.sqrt(np.mean(np.concatenate(sq_h)))),

@@ -26,7 +26,6 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .effect_plausibility import implausible_effect  # noqa: F401  (re-exported)
 from .held import B_PARAMS, K_PARAMS, HeldFit, jacobian, predicted_errors, project
 
 #: A value further than this many of its own σ outside its plausible range is implausible.

@@ -55,6 +55,7 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
 from ..quaternion import cumulative_rotation
 from .gyro_lag import Orientation, fresh, saturated
@@ -236,7 +237,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
     sel = np.arange(len(pairs)) if sel is None else np.asarray(sel)
     p = np.concatenate([[_get(K0, b0, n) for n in names], np.zeros(N_GYRO)])
     nk = len(names)
-    steps = np.concatenate([np.full(nk, 1e-4 * r_scale), np.full(N_GYRO, 1e-5)])
+    steps = np.full(nk, 1e-4 * r_scale)   # central-difference steps of the K/b entries
 
     def rot(q):
         return pairs.rotations(q[nk:nk + 3], q[nk + 3:])
@@ -280,7 +281,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
         w = 1.0 / (1.0 + np.sum(r * r, 1) / tau ** 2)
         H = np.einsum("p,pik,pil->kl", w, J, J) / sig0 ** 2 + Fp
         g = np.einsum("p,pik,pi->k", w, J, r) / sig0 ** 2 + Fp @ (p - p0) - cp
-        Hi = _pinv(H)
+        Hi = pseudo_inverse(H)[0]
         dp = -Hi @ g
         small = bool(np.all(np.abs(dp) <= STEP_STOP * np.sqrt(np.maximum(np.diag(Hi), 0.0))))
         improved = False
@@ -301,7 +302,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
     w = 1.0 / (1.0 + rn ** 2 / tau ** 2)
     sd, bread, meat = _errors(J, w, r, pairs.t[pairs.a[sel]], pairs.horizon, sigma, Fp)
     K, b = _set(K0, b0, names, p[:nk])
-    inl = rn <= 2 * tau
+    inl = rn <= OUTLIER_WIDTHS * tau
     r_still = pairs.residual(K, b, np.broadcast_to(np.eye(3), (len(sel), 3, 3)), sel)
     return LinkFit(K=K, b=b, estimated={n: (float(v), float(e)) for n, v, e in
                                          zip(names, p[:nk], sd[:nk])},
@@ -327,10 +328,15 @@ def _jacobian(p, nk, steps, R, res, dR, h_a, K):
     return np.stack(cols, axis=2)
 
 
-def _pinv(H):
-    w, V = np.linalg.eigh(H)
-    inv = np.where(w > max(w[-1], 1e-300) * NULL_RATIO, 1.0 / np.where(w > 0, w, 1.0), 0.0)
-    return (V * inv) @ V.T
+def pseudo_inverse(H: np.ndarray):
+    """(H⁺ (P,P), on_null (P,) bool) of a symmetric H: the eigen pseudo-inverse without the
+    eigenvalues ≤ NULL_RATIO × the largest, and the parameters with a share (component² >
+    1e-6) in those dropped directions — the ones the data do not determine."""
+    ev, V = np.linalg.eigh(H)
+    null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
+    Hinv = (V * np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))) @ V.T
+    on_null = (V[:, null] ** 2).sum(axis=1) > 1e-6 if null.any() else np.zeros(len(H), bool)
+    return Hinv, on_null
 
 
 def _prior(sphere, names, n):
@@ -350,11 +356,7 @@ def _errors(J, w, r, t_pair, horizon, sigma, F) -> np.ndarray:
     """Standard errors (module doc): max(block sandwich, naive); inf on unobservable ones. The
     link in χ² units (÷ σ̂²) plus the sphere's information F."""
     H = np.einsum("p,pik,pil->kl", w, J, J) / sigma ** 2 + F
-    ev, V = np.linalg.eigh(H)
-    null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
-    inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))
-    Hinv = (V * inv) @ V.T
-    on_null = (V[:, null] ** 2).sum(axis=1) > 1e-6 if null.any() else np.zeros(len(H), bool)
+    Hinv, on_null = pseudo_inverse(H)
     scores = np.einsum("p,pik,pi->pk", w, J, r) / sigma ** 2
     block = max(BLOCK_HORIZONS * horizon, 1.0)
     ids = np.floor((t_pair - t_pair.min()) / block).astype(int)
@@ -379,13 +381,10 @@ def subset_errors(fit: LinkFit, keep: Sequence[int], sandwich: bool = False) -> 
     whose held values are wrong the residuals, hence the meat, carry that error."""
     keep = list(keep)
     H, M = fit.bread[np.ix_(keep, keep)], fit.meat[np.ix_(keep, keep)]
-    ev, V = np.linalg.eigh(H)
-    null = ev <= max(ev[-1], 1e-300) * NULL_RATIO
-    Hinv = (V * np.where(null, 0.0, 1.0 / np.where(null, 1.0, ev))) @ V.T
+    Hinv, on_null = pseudo_inverse(H)
     var = np.diag(Hinv)
     if sandwich:
         var = np.maximum(np.diag(Hinv @ M @ Hinv), var)
     sd = np.sqrt(np.maximum(var, 0.0))
-    if null.any():
-        sd[(V[:, null] ** 2).sum(axis=1) > 1e-6] = np.inf
+    sd[on_null] = np.inf
     return sd

@@ -105,10 +105,13 @@ def mixture_polish(result, sigma: float, refine_with: Callable):
     samples, structure and effects). Returns ``(LMResult, σ)``: the input unchanged when the
     mixture model does not describe the residuals (:func:`mixture_fit` returns None) or fewer
     than SHARE of them lie beyond TAIL σ (:func:`heavy_tail`)."""
-    if not heavy_tail(np.linalg.norm(result.residuals, axis=1), sigma):
+    r_norm = np.linalg.norm(result.residuals, axis=1)
+    if not heavy_tail(r_norm, sigma):
         return result, sigma
-    for _ in range(ROUNDS):
-        found = mixture_fit(np.linalg.norm(result.residuals, axis=1), sigma)
+    for round_ in range(ROUNDS):
+        if round_:
+            r_norm = np.linalg.norm(result.residuals, axis=1)
+        found = mixture_fit(r_norm, sigma)
         if found is None:
             break
         new_sigma, kappa, _ = found

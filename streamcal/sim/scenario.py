@@ -7,8 +7,7 @@ changes the data by exactly that effect's term while the motion and the noise st
 Sampling: the sensors sample on their own regular clocks (mag ``mag_rate_hz``, IMU
 ``imu_rate_hz``); the host stamps each sample with a small jitter; mag and IMU samples go to
 separate rows with empty cells (NaN) for the columns not sampled (docs/tracks_and_inputs.md).
-Temperature and the
-``motor_current`` auxiliary channel ride on the IMU rows.
+Temperature and the ``motor_current`` auxiliary channel ride on the IMU rows.
 """
 from __future__ import annotations
 
