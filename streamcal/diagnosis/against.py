@@ -285,13 +285,16 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     else:
         names_c = [c for c in check_known(candidates) if c in TERMS and c not in model]
 
+    radius = field_radius(K0)
+
     def rank(ref: _Eval, added: tuple, pool) -> list:
         out = []
+        u_fit, u_cal = ref.x @ ref.fit.K.T, ref.x @ ref.cal.K.T     # the same for every candidate
         for name in pool:
             try:
                 term = build_effects([name], cov_r)[0]
                 prior = list(zip(ref.terms, ref.fit.thetas))
-                start = linear_start(term, ref.s, ref.normal, ref.x @ ref.fit.K.T, cov_r,
+                start = linear_start(term, ref.s, ref.normal, u_fit, cov_r,
                                      ref.fit.tau)
                 ev = evaluate([*prior, (term, start)], ref, m_r, cov_r)
                 if np.any(start != term.initial()) and not ev.rms <= ref.rms * 10:
@@ -306,14 +309,13 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
             after = float(np.sqrt(np.mean(ev.rss[both])))
             p_value = cand.f_test(float(ref.rss[both].sum()), float(ev.rss[both].sum()),
                                   max(ev.p - ref.p, 1), cand.effective_n(ev.r[both]), ev.p)
-            text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov_r,
-                                 ref.inliers)
+            text = cand.evidence(name, term, ref.s, ref.normal, u_cal, cov_r, ref.inliers)
             c = cand.Candidate(name, after, p_value, text, ev.p - ref.p,
                                cand.is_significant(before, after, p_value, floor), ev.cal)
             c.rms_before, c.residual, c._evaluated = before, "sensor", ev
             c.n_compared = int(both.sum())
             c.implausible = implausible_effect(
-                [(term, ev.fit.thetas[-1])], ref.x @ ref.fit.K.T, cov_r, field_radius(K0),
+                [(term, ev.fit.thetas[-1])], u_fit, cov_r, radius,
                 theta_sigmas(ev.fit.estimated, name, term.n_params()))
             if c.implausible:
                 c.significant, c.evidence = False, f"{c.implausible}; {c.evidence}"

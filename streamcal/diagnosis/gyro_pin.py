@@ -39,10 +39,12 @@ import numpy as np
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
 from ..fitting.gyro_lag import EXPLAINED, gyro_rates
-from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
+from ..fitting.gyro_link import (B_INDEX, K_INDEX, N_GYRO, LinkPairs, SpherePrior, link_fit,
+                                 subset_errors)
 from .gyro_guard import RULE as GUARD_RULE
 from .gyro_guard import disagreement, held_check
 from .held import jacobian, project
+from .residuals import rms
 
 #: Rule 1: link rms at most EXPLAINED (gyro_lag's rule: the gyro explains the rotation) × the
 #: no-rotation rms.
@@ -59,12 +61,10 @@ RULE = (f"pinned only when: the gyro explains the rotation (link rms ≤ {EXPLAI
 @dataclass
 class GyroPin:
     """``used``: the pinned values replace the held ones; ``pinned`` {name: {value, sigma,
-    held_value}}; ``K``, ``b`` the given model with the pinned values; ``report`` the JSON-able
-    summary (key ``gyro_link`` of the diagnosis)."""
+    held_value}} (:func:`pinned_model` applies them); ``report`` the JSON-able summary (key
+    ``gyro_link`` of the diagnosis)."""
 
     used: bool
-    K: np.ndarray
-    b: np.ndarray
     pinned: dict = field(default_factory=dict)
     report: dict = field(default_factory=dict)
 
@@ -114,7 +114,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     residual (:func:`sphere_prior`), so a free parameter the wrong held value bent is bent back."""
     K, b = np.asarray(fit.K, float), np.asarray(fit.b, float)
     free = list(free)
-    out = GyroPin(False, K, b, report={"used": False, "rule": RULE, "residual": "gyro_link",
+    out = GyroPin(False, report={"used": False, "rule": RULE, "residual": "gyro_link",
                                        "tolerance": tol})
     if not held:
         return out.reject("no parameter is held")
@@ -188,7 +188,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     if not pinned_ho < held_ho:
         return out.reject(f"held-out link rms not lower with the gyro's values "
                           f"({pinned_ho:.4g} vs {held_ho:.4g} held)")
-    out.used, out.K, out.b = True, fit.K, fit.b
+    out.used = True
     out.pinned = {n_: {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1],
                        "held_value": _value(K, b, n_)} for n_ in names}
     out.report.update(used=True, reason="every rule passed")
@@ -225,7 +225,6 @@ def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, 
 
 def pinned_model(K, b, pin: GyroPin) -> tuple[np.ndarray, np.ndarray]:
     """The given model ``K``, ``b`` with the pinned values substituted (copies)."""
-    from ..fitting.gyro_link import B_INDEX, K_INDEX
     K, b = np.array(K, float), np.array(b, float)
     for name, entry in pin.pinned.items():
         if name in K_INDEX:
@@ -235,11 +234,6 @@ def pinned_model(K, b, pin: GyroPin) -> tuple[np.ndarray, np.ndarray]:
     return K, b
 
 
-def _sphere_rms(fit) -> float:
-    rss = np.sum(np.square(fit.r), axis=1)
-    return float(np.sqrt(np.mean(rss[fit.inliers]))) if fit.inliers.any() else float("nan")
-
-
 def confirm(pin: GyroPin, held_fit_, refit: Callable):
     """Rule 5: ``refit()`` (the settled sphere fit with the pinned values held) against
     ``held_fit_`` (with them at the given values). Returns the refit when it passes, else None
@@ -247,7 +241,7 @@ def confirm(pin: GyroPin, held_fit_, refit: Callable):
     if not pin.used:
         return None
     new = refit()
-    before, after = _sphere_rms(held_fit_), _sphere_rms(new.fit)
+    before, after = rms(held_fit_.r, held_fit_.inliers), rms(new.fit.r, new.fit.inliers)
     pin.report.update(sphere_rms_held=before, sphere_rms_pinned=after)
     if not after <= SPHERE_RISE * before:
         pin.reject(f"the sphere rms rose from {before:.4g} to {after:.4g} with the gyro's "

@@ -166,7 +166,9 @@ def decode(data: bytes, fmt: Format, offsets: np.ndarray) -> dict:
         raise ValueError(f"FMT of {fmt.name}: format {fmt.format!r} is {dtype.itemsize} bytes "
                          f"but the message length is {fmt.length} − 3 header bytes")
     buf = np.frombuffer(data, dtype=np.uint8)
-    rows = buf[offsets[:, None] + (3 + np.arange(dtype.itemsize))]
+    # each message's payload through a strided window view: no (n, itemsize) index array
+    rows = (np.lib.stride_tricks.sliding_window_view(buf, dtype.itemsize)[offsets + 3]
+            if len(offsets) else np.empty((0, dtype.itemsize), np.uint8))
     rec = np.ascontiguousarray(rows).view(dtype).reshape(len(offsets))
     out = {}
     for i, column in enumerate(fmt.columns[:len(fmt.format)]):
