@@ -8,7 +8,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL
+from ..calibration import DEFAULT_MODEL, RESIDUALS
 from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import StreamcalError
 from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
@@ -32,8 +32,9 @@ SUBSET_MAX = 6000
 QUICK_TIED_RTOL = 1e-4
 #: Most effects the ladder adds.
 LADDER_STEPS = 3
-#: The residual families an rms can be on (``_Evaluated.kind`` → name in the JSON).
-RESIDUALS = {None: "sensor", "gravity": "gravity_tied", "gyro": "gyro_tied"}
+#: ``_Evaluated.kind`` → the residual family (:data:`streamcal.calibration.RESIDUALS`, in its
+#: order: sensor, gravity-tied, gyro-tied) named in the JSON.
+RESIDUAL_OF_KIND = dict(zip((None, "gravity", "gyro"), RESIDUALS))
 #: How each residual family is called in text and pictures.
 RESIDUAL_LABELS = {"sensor": "sensor", "gravity_tied": "gravity-tied", "gyro_tied": "gyro-tied"}
 
@@ -326,7 +327,7 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             text = f"{ev.kind}-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
         c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
                            cand.is_significant(ref.rms, ev.rms, p_value, ctx.material_floor), ev.cal)
-        c.rms_before, c.residual = ref.rms, RESIDUALS[ev.kind]
+        c.rms_before, c.residual = ref.rms, RESIDUAL_OF_KIND[ev.kind]
         c._evaluated = ev
         out.append(c)
     # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
@@ -446,14 +447,14 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     cov = ctx.cov
     base = (_Evaluated(calibration, m, cov, nf.floor) if calibration is not None and not _tied(model)
             else ctx.evaluate(model, calibration))
-    residual = RESIDUALS[base.kind]
+    residual = RESIDUAL_OF_KIND[base.kind]
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
                                                   residual)
     ctx.material_floor = nf.floor if reliable else float("nan")
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
-    steps = [{"model": list(model), "rms": base.rms, "residual": RESIDUALS[base.kind]}]
+    steps = [{"model": list(model), "rms": base.rms, "residual": RESIDUAL_OF_KIND[base.kind]}]
     current, cur_model, cur_ranked = base, tuple(model), ranked
     spans_from, spans_model = base, tuple(model)
     while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
@@ -462,7 +463,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         # rms_before: the previous model on this step's residual (another residual than the
         # previous step's rms when the step is the first gravity- or gyro-tied one).
         steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
-                      "rms_before": top.rms_before, "residual": RESIDUALS[current.kind],
+                      "rms_before": top.rms_before, "residual": RESIDUAL_OF_KIND[current.kind],
                       "p_value": top.p_value, "gravity_tied": current.kind == "gravity",
                       "gyro_tied": current.kind == "gyro"})
         if not current.tied:
@@ -483,7 +484,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         noise_floor=nf.floor if reliable else float("nan"), verdict=verdict, candidates=ranked,
         noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
         outlier_spans=outlier_spans(t, outliers), ladder=steps,
-        residual=RESIDUALS[base.kind], outliers_model=spans_model, outliers=outliers,
+        residual=RESIDUAL_OF_KIND[base.kind], outliers_model=spans_model, outliers=outliers,
         residual_families=_families(ctx, base, model),
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used, "measured": nf.measured,
