@@ -274,7 +274,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     # the floor the verdict and the materiality test use: the same rule as a fresh diagnosis
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
                                                   "sensor")
-    floor = nf.floor if reliable else float("nan")
+    floor = verdict_mod.reported_floor(nf.floor, reliable)
     idx = rank_subset(m, base.fit.b, t, rank_max)
     m_r, cov_r = (m, cov) if idx is None else (m[idx], {k: v[idx] for k, v in cov.items()})
     base_r = base if idx is None else evaluate([], base, m_r, cov_r)

@@ -450,7 +450,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     residual = RESIDUAL_OF_KIND[base.kind]
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
                                                   residual)
-    ctx.material_floor = nf.floor if reliable else float("nan")
+    ctx.material_floor = floor = verdict_mod.reported_floor(nf.floor, reliable)
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
@@ -481,7 +481,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     return Diagnosis(
         model=tuple(model), n=len(m), n_outliers=int((~np.asarray(base.inliers, bool)).sum()),
         n_outliers_model=int(outliers.sum()), rms=base.rms,
-        noise_floor=nf.floor if reliable else float("nan"), verdict=verdict, candidates=ranked,
+        noise_floor=floor, verdict=verdict, candidates=ranked,
         noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
         outlier_spans=outlier_spans(t, outliers), ladder=steps,
         residual=RESIDUAL_OF_KIND[base.kind], outliers_model=spans_model, outliers=outliers,

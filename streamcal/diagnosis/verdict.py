@@ -52,6 +52,13 @@ def floor_reliable(floor: float, reliable: bool, reason: str, rms: float, residu
     return True, ""
 
 
+def reported_floor(floor: float, reliable: bool) -> float:
+    """The noise floor (sensor unit) as reported and used for materiality: ``floor`` when
+    ``reliable`` (the first value of :func:`floor_reliable`), else NaN — a floor that is not
+    reliable is not measured."""
+    return floor if reliable else float("nan")
+
+
 def decide(rms: float, residual: str, floor: float, reliable: bool, ranked,
            factor: float = FLOOR_FACTOR) -> str:
     """The verdict from the base model's ``rms`` on ``residual``, the noise ``floor`` (sensor
