@@ -13,7 +13,7 @@ from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import StreamcalError
 from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
 from ..model.build import check_known
-from ..fitting.registration import gravity_reference, registration_fit
+from ..fitting.registration import RTOL, gravity_reference, registration_fit
 from . import candidates as cand
 from . import misfit as misfit_mod
 from . import verdict as verdict_mod
@@ -289,7 +289,7 @@ class _Context:
             gref = self.gref if self.track.has("accel") else None   # else gyro-tied
             reg = registration_fit(self.track, model, kernel=self.kernel, initial=initial,
                                    gref=gref, rows=rows,
-                                   **({"rtol": QUICK_TIED_RTOL} if rows is not None else {}))
+                                   rtol=QUICK_TIED_RTOL if rows is not None else RTOL)
             return _Evaluated(reg.calibration, self.m, self.cov, self.floor, reg)
         track = self.subset[1] if quick and self.subset is not None else self.track
         if self._warm and initial is not None:
