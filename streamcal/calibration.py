@@ -210,7 +210,7 @@ class Calibration:
             "model": list(self.model),
             "K": [[float(v) for v in row] for row in self.K],
             "b": [float(v) for v in self.b],
-            "effects": _jsonable(self.effects),
+            "effects": jsonable(self.effects),
             "rms": _finite_or_none(self.rms),
             "residual": self.residual,
             "n": int(self.n),
@@ -225,7 +225,7 @@ class Calibration:
         if self.field is not None:
             out["field_uT" if self.unit == "uT" else "field"] = float(self.field)
         for key, value in self.extra.items():
-            out.setdefault(key, _jsonable(value))
+            out.setdefault(key, jsonable(value))
         return out
 
     def to_json(self, indent: int | None = 2) -> str:
@@ -297,16 +297,25 @@ def _finite_or_none(value):
     return value if math.isfinite(value) else None
 
 
-def _jsonable(value):
+def jsonable(value, *, keep_nonfinite: bool = False):
+    """``value`` in plain JSON types: a mapping → dict with str keys, a list, tuple or array →
+    list, a numpy number or bool → the Python one, recursively; anything else as it is. A
+    non-finite float (NaN, ±inf: an unobservable σ, an unknown rms) → None (JSON null), as the
+    calibration file and the diagnosis JSON need (written with ``allow_nan=False``); with
+    ``keep_nonfinite`` it stays a float (``streamcal replay --json`` prints NaN and Infinity as
+    ``json.dumps`` does)."""
     if isinstance(value, Mapping):
-        return {str(k): _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_jsonable(v) for v in np.asarray(value, dtype=object).tolist()] \
-            if isinstance(value, np.ndarray) else [_jsonable(v) for v in value]
+        return {str(k): jsonable(v, keep_nonfinite=keep_nonfinite) for k, v in value.items()}
+    if isinstance(value, np.ndarray):   # nested lists of Python scalars (0-d: the scalar)
+        return jsonable(np.asarray(value, dtype=object).tolist(), keep_nonfinite=keep_nonfinite)
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v, keep_nonfinite=keep_nonfinite) for v in value]
     if isinstance(value, (np.floating, float)):
-        return _finite_or_none(value)
-    if isinstance(value, (np.integer,)):
+        return float(value) if keep_nonfinite else _finite_or_none(value)
+    if isinstance(value, np.integer):
         return int(value)
+    if isinstance(value, np.bool_):
+        return bool(value)
     return value
 
 

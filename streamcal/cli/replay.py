@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL
+from ..calibration import DEFAULT_MODEL, jsonable
 from ._common import RECORDING_HELP, add_input_options, recording_chunks
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
@@ -116,7 +116,7 @@ def run(args) -> int:
     if calibrator.calibration is None:
         summary["why"] = _why_none(calibrator, refusals, _mag_sample(args, calibrator.n_ingested))
     if args.json:
-        print(json.dumps(summary, default=_jsonable))
+        print(json.dumps(jsonable(summary, keep_nonfinite=True)))
     else:
         print(summary["message"])
     if calibrator.calibration is None:
@@ -150,7 +150,7 @@ def _mag_sample(args, n: int, most: int = 200_000):
 def _printer(as_json: bool):
     def emit(event, bar):
         if as_json:
-            line = json.dumps(event.to_dict(), default=_jsonable)
+            line = json.dumps(jsonable(event.to_dict(), keep_nonfinite=True))
         else:
             when = f"{event.t:9.2f} s" if event.t is not None and math.isfinite(event.t) else " " * 11
             line = f"[{when}] {event.kind:<12} {event.message}"
@@ -247,11 +247,3 @@ def _why_none(calibrator, refusals: dict, m) -> str:
                      "too little to tell the environments apart, and no one environment has "
                      "the coverage a calibration needs")
     return "; ".join(parts)
-
-
-def _jsonable(value):
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    raise TypeError(f"not JSON serializable: {type(value).__name__}")

@@ -18,7 +18,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL, Calibration
+from ..calibration import DEFAULT_MODEL, Calibration, jsonable
 from ..errors import InputError, InsufficientDataError, StreamcalError
 from ..model import (REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns,
                      terms_from_params)
@@ -30,7 +30,7 @@ from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
 from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
                    field_radius, held_fit, project)
-from .gyro_pin import confirm, gyro_pin, json_safe, pinned_model
+from .gyro_pin import confirm, gyro_pin, pinned_model
 from .effect_plausibility import implausible_effect, theta_sigmas
 from .held_check import settle
 from .noise import noise_floor
@@ -82,8 +82,8 @@ class HeldDiagnosis(Diagnosis):
         out["fit_status"] = dict(self.fit_status)
         out["held_after_fit"] = list(self.held_after_fit)
         out["suspicious"] = dict(self.suspicious)
-        out["gyro_pinned"] = json_safe(self.gyro_pinned)
-        out["gyro_link"] = json_safe(self.gyro_link)
+        out["gyro_pinned"] = jsonable(self.gyro_pinned)
+        out["gyro_link"] = jsonable(self.gyro_link)
         return out
 
     def candidate_dict(self, c) -> dict:

@@ -248,14 +248,3 @@ def confirm(pin: GyroPin, held_fit_, refit: Callable):
                    f"values (more than {SPHERE_RISE - 1:.0%})")
         return None
     return new
-
-
-def json_safe(obj):
-    """``obj`` with every non-finite float (an unobservable σ = inf) replaced by None."""
-    if isinstance(obj, dict):
-        return {k: json_safe(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [json_safe(v) for v in obj]
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None
-    return obj
