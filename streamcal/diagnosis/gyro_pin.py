@@ -39,8 +39,8 @@ import numpy as np
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
 from ..fitting.gyro_lag import EXPLAINED, gyro_rates
-from ..fitting.gyro_link import (B_INDEX, K_INDEX, N_GYRO, LinkPairs, SpherePrior, link_fit,
-                                 subset_errors)
+from ..fitting.entries import entry, with_entries
+from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
 from .gyro_guard import RULE as GUARD_RULE
 from .gyro_guard import disagreement, held_check
 from .held import jacobian, project
@@ -73,11 +73,6 @@ class GyroPin:
         self.report.update(used=False, reason=reason)
         self.used, self.pinned = False, {}
         return self
-
-
-def _value(K, b, name):
-    from ..fitting.gyro_link import B_INDEX, K_INDEX
-    return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
 
 
 #: Joint fits: at most this many rounds; the sphere residual is re-linearised at each round's
@@ -137,7 +132,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
         for _ in range(rounds):
             prior = sphere_prior(Kc, bc, sfit, est, m, cov, held_terms)
             f = link_fit(pairs, Kc, bc, est, sel=sel, scale=r, sphere=prior)
-            moved = max((abs(f.estimated[n_][0] - _value(Kc, bc, n_)) / f.estimated[n_][1]
+            moved = max((abs(f.estimated[n_][0] - entry(Kc, bc, n_)) / f.estimated[n_][1]
                          for n_ in est), default=0.0)
             Kc, bc = f.K, f.b
             if moved < JOINT_STOP:   # the next linearisation point would barely move
@@ -157,7 +152,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
         keep = [allp.index(n_) for n_ in [*free, *names]] + gyro
         sd = dict(zip([*free, *names], subset_errors(start, keep)))
         for n_ in names:
-            tried[n_] = {"value": _value(K, b, n_), "sigma_predicted": float(sd[n_])}
+            tried[n_] = {"value": entry(K, b, n_), "sigma_predicted": float(sd[n_])}
         worst = max(names, key=lambda n_: sd[n_])
         if sd[worst] <= tol:
             fit = joint([*free, *names])
@@ -176,7 +171,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     # rule 3 (the guard) before the held-out folds: it is the cheaper (one joint fit, none
     # when every held parameter is a candidate) and refuses the misleading case
     all_fit = fit if len(names) == len(held) else joint(allp)
-    guard = held_check(all_fit, allp, names, {h: _value(K, b, h) for h in held},
+    guard = held_check(all_fit, allp, names, {h: entry(K, b, h) for h in held},
                        {n_: fit.estimated[n_][1] for n_ in names})
     guard["unconditional"] = {n_: list(all_fit.estimated[n_]) for n_ in names}
     out.report.update(candidates=list(names), guard=guard)
@@ -190,7 +185,7 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
                           f"({pinned_ho:.4g} vs {held_ho:.4g} held)")
     out.used = True
     out.pinned = {n_: {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1],
-                       "held_value": _value(K, b, n_)} for n_ in names}
+                       "held_value": entry(K, b, n_)} for n_ in names}
     out.report.update(used=True, reason="every rule passed")
     return out
 
@@ -225,13 +220,7 @@ def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, 
 
 def pinned_model(K, b, pin: GyroPin) -> tuple[np.ndarray, np.ndarray]:
     """The given model ``K``, ``b`` with the pinned values substituted (copies)."""
-    K, b = np.array(K, float), np.array(b, float)
-    for name, entry in pin.pinned.items():
-        if name in K_INDEX:
-            K[K_INDEX[name]] = entry["value"]
-        else:
-            b[B_INDEX[name]] = entry["value"]
-    return K, b
+    return with_entries(K, b, list(pin.pinned), [e["value"] for e in pin.pinned.values()])
 
 
 def confirm(pin: GyroPin, held_fit_, refit: Callable):
