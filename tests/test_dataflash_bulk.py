@@ -32,7 +32,7 @@ def test_bulk_track_equals_pymavlink_track(flight_dir, name):
     DFReader give the same Track."""
     path = flight_dir / name
     bulk = dataflash.read_dataflash(path)
-    reference = dataflash.read_dataflash(path, _parser=dataflash._parse_pymavlink)
+    reference = dataflash.read_dataflash_pymavlink(path)
     _assert_same_track(bulk, reference)
     assert len(bulk.t_mag) > 1000 and "read_warnings" not in bulk.metadata
 

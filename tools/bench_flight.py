@@ -38,10 +38,10 @@ TARGET_S = 10.0
 def _alternate_reads(log: str, repeats: int) -> tuple[list, list]:
     """Wall times (s) of the bulk read and the pymavlink read, alternated A, B, A, B."""
     from streamcal.inputs import read_recording
-    from streamcal.inputs.dataflash import _parse_pymavlink, read_dataflash
+    from streamcal.inputs.dataflash import read_dataflash_pymavlink
 
     def pymav():
-        read_dataflash(log, _parser=_parse_pymavlink)
+        read_dataflash_pymavlink(log)
 
     pymav()  # warm-up (imports pymavlink)
     bulk, base = [], []

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration, jsonable
 from ..errors import InputError, InsufficientDataError, StreamcalError
+from ..fitting.entries import B_PARAMS
 from ..model import (REGISTRATION_EFFECTS, TERMS, build_effects, missing_columns,
                      terms_from_params)
 from ..model.build import check_known
@@ -28,8 +29,8 @@ from . import misfit as misfit_mod
 from . import verdict as verdict_mod
 from .aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS, Diagnosis
-from .held import (B_PARAMS, OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params,
-                   field_radius, held_fit, project)
+from .held import (OUTLIER_WIDTHS, TOLERANCE, HeldFit, choose_free, core_params, field_radius,
+                   held_fit, project)
 from .gyro_pin import confirm, gyro_pin, pinned_model
 from .effect_plausibility import implausible_effect, theta_sigmas
 from .held_check import settle

@@ -39,8 +39,8 @@ import numpy as np
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
 from ..fitting.gyro_lag import EXPLAINED, gyro_rates
-from ..fitting.gyro_link import (B_INDEX, K_INDEX, N_GYRO, LinkPairs, SpherePrior, link_fit,
-                                 subset_errors)
+from ..fitting.entries import entry, with_entries
+from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
 from .gyro_guard import RULE as GUARD_RULE
 from .gyro_guard import disagreement, held_check
 from .held import jacobian, project
@@ -73,11 +73,6 @@ class GyroPin:
         self.report.update(used=False, reason=reason)
         self.used, self.pinned = False, {}
         return self
-
-
-def _value(K, b, name):
-    from ..fitting.gyro_link import B_INDEX, K_INDEX
-    return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
 
 
 #: Joint fits: at most this many rounds; the sphere residual is re-linearised at each round's
@@ -132,14 +127,21 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     if not base.rms <= EXPLAINED * base.rms_still:
         return out.reject(f"the gyro does not explain the rotation: link rms {base.rms:.3g} "
                           f"> {EXPLAINED:g} × the no-rotation rms {base.rms_still:.3g}")
-    def joint(est, sel=None, start=None, rounds=JOINT_ROUNDS):
+    def prior_at(est, start=None):
+        """The sphere prior over ``est`` at ``start``'s K, b (default the held point)."""
+        Kc, bc = (K, b) if start is None else (start.K, start.b)
+        return sphere_prior(Kc, bc, sfit, est, m, cov, held_terms)
+
+    def joint(est, sel=None, start=None, rounds=JOINT_ROUNDS, prior=None):
+        """``prior``: :func:`prior_at` (est, start), when the caller already has it."""
         Kc, bc = (K, b) if start is None else (start.K, start.b)
         for _ in range(rounds):
-            prior = sphere_prior(Kc, bc, sfit, est, m, cov, held_terms)
+            if prior is None:
+                prior = sphere_prior(Kc, bc, sfit, est, m, cov, held_terms)
             f = link_fit(pairs, Kc, bc, est, sel=sel, scale=r, sphere=prior)
-            moved = max((abs(f.estimated[n_][0] - _value(Kc, bc, n_)) / f.estimated[n_][1]
+            moved = max((abs(f.estimated[n_][0] - entry(Kc, bc, n_)) / f.estimated[n_][1]
                          for n_ in est), default=0.0)
-            Kc, bc = f.K, f.b
+            Kc, bc, prior = f.K, f.b, None
             if moved < JOINT_STOP:   # the next linearisation point would barely move
                 break
         return f
@@ -149,18 +151,18 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
     # evaluation), then fit the chosen set; one whose sandwich error at the fitted point is
     # above the tolerance is dropped and the rest refitted
     allp = [*free, *names]
-    start = link_fit(pairs, K, b, allp, scale=r, rounds=0,
-                     sphere=sphere_prior(K, b, sfit, allp, m, cov, held_terms))
+    prior_all = prior_at(allp)
+    start = link_fit(pairs, K, b, allp, scale=r, rounds=0, sphere=prior_all)
     gyro = list(range(len(allp), len(allp) + N_GYRO))
     tried = {}
     while names:
         keep = [allp.index(n_) for n_ in [*free, *names]] + gyro
         sd = dict(zip([*free, *names], subset_errors(start, keep)))
         for n_ in names:
-            tried[n_] = {"value": _value(K, b, n_), "sigma_predicted": float(sd[n_])}
+            tried[n_] = {"value": entry(K, b, n_), "sigma_predicted": float(sd[n_])}
         worst = max(names, key=lambda n_: sd[n_])
         if sd[worst] <= tol:
-            fit = joint([*free, *names])
+            fit = joint([*free, *names], prior=prior_all if len(names) == len(held) else None)
             worst = max(names, key=lambda n_: fit.estimated[n_][1])
             for n_ in names:
                 tried[n_].update(value=fit.estimated[n_][0], sigma=fit.estimated[n_][1])
@@ -175,14 +177,14 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
                           for k, v in tried.items()) + ")")
     # rule 3 (the guard) before the held-out folds: it is the cheaper (one joint fit, none
     # when every held parameter is a candidate) and refuses the misleading case
-    all_fit = fit if len(names) == len(held) else joint(allp)
-    guard = held_check(all_fit, allp, names, {h: _value(K, b, h) for h in held},
+    all_fit = fit if len(names) == len(held) else joint(allp, prior=prior_all)
+    guard = held_check(all_fit, allp, names, {h: entry(K, b, h) for h in held},
                        {n_: fit.estimated[n_][1] for n_ in names})
     guard["unconditional"] = {n_: list(all_fit.estimated[n_]) for n_ in names}
     out.report.update(candidates=list(names), guard=guard)
     if not guard["passed"]:
         return out.reject(disagreement(guard))
-    held_ho, pinned_ho = _held_out(pairs, free, names, joint, fit)
+    held_ho, pinned_ho = _held_out(pairs, free, names, joint, prior_at, fit)
     out.report.update(candidates=list(names), rms_heldout_held=held_ho,
                       rms_heldout_pinned=pinned_ho, rms_link=fit.rms)
     if not pinned_ho < held_ho:
@@ -190,17 +192,21 @@ def gyro_pin(track, m: np.ndarray, t: np.ndarray, cov, held_terms, fit, free: Se
                           f"({pinned_ho:.4g} vs {held_ho:.4g} held)")
     out.used = True
     out.pinned = {n_: {"value": fit.estimated[n_][0], "sigma": fit.estimated[n_][1],
-                       "held_value": _value(K, b, n_)} for n_ in names}
+                       "held_value": entry(K, b, n_)} for n_ in names}
     out.report.update(used=True, reason="every rule passed")
     return out
 
 
-def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, float]:
+def _held_out(pairs: LinkPairs, free, names, joint, prior_at,
+              pinned_fit) -> tuple[float, float]:
     """Pooled held-out link rms (rule 4) with ``names`` held and fitted (``free`` fitted in
-    both, by ``joint(est, sel)``: the sphere residual from every reading, the link from the
-    training blocks; each started from the all-data estimate, :data:`HELD_OUT_ROUNDS`
-    rounds)."""
+    both, by ``joint(est, sel, start, rounds, prior)``: the sphere residual from every reading,
+    the link from the training blocks; each started from the all-data estimate,
+    :data:`HELD_OUT_ROUNDS` rounds). The sphere prior at a start, ``prior_at(est, start)``,
+    does not depend on the fold: built once per start."""
     starts = (joint(list(free)) if free else None, pinned_fit)
+    variants = list(zip((list(free), [*free, *names]), starts))
+    priors = [prior_at(est, start) for est, start in variants]
     t_pair = pairs.t[pairs.a]
     edges = np.quantile(t_pair, np.linspace(0, 1, FOLDS + 1))
     fold = np.clip(np.searchsorted(edges, t_pair, side="right") - 1, 0, FOLDS - 1)
@@ -211,8 +217,8 @@ def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, 
         train = np.flatnonzero((fold != k) & ((pairs.t[pairs.b] < edges[k]) |
                                               (t_pair > edges[k + 1])))
         res = []
-        for est, start in zip((list(free), [*free, *names]), starts):
-            f = joint(est, train, start, HELD_OUT_ROUNDS)
+        for (est, start), prior in zip(variants, priors):
+            f = joint(est, train, start, HELD_OUT_ROUNDS, prior)
             R = pairs.rotations(f.gyro_bias, f.gyro_gain)[test]
             res.append((np.linalg.norm(pairs.residual(f.K, f.b, R, test), axis=1), f.tau))
         (rh, tau), (rp, _) = res
@@ -225,13 +231,7 @@ def _held_out(pairs: LinkPairs, free, names, joint, pinned_fit) -> tuple[float, 
 
 def pinned_model(K, b, pin: GyroPin) -> tuple[np.ndarray, np.ndarray]:
     """The given model ``K``, ``b`` with the pinned values substituted (copies)."""
-    K, b = np.array(K, float), np.array(b, float)
-    for name, entry in pin.pinned.items():
-        if name in K_INDEX:
-            K[K_INDEX[name]] = entry["value"]
-        else:
-            b[B_INDEX[name]] = entry["value"]
-    return K, b
+    return with_entries(K, b, list(pin.pinned), [e["value"] for e in pin.pinned.values()])
 
 
 def confirm(pin: GyroPin, held_fit_, refit: Callable):

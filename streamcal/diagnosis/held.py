@@ -30,12 +30,9 @@ import numpy as np
 
 from ..errors import InsufficientDataError
 from ..fitting.damped_lm import CONVERGED, MAX_ITER as STATUS_MAX_ITER, STALLED
+from ..fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry, shifted
 from .residuals import GN_ITERATIONS, closest_point
 
-#: Core parameter names: (name, kind, index) — kind "K" with (row, col), or "b" with axis.
-K_PARAMS = (("K_xx", (0, 0)), ("K_xy", (0, 1)), ("K_xz", (0, 2)), ("K_yy", (1, 1)),
-            ("K_yz", (1, 2)), ("K_zz", (2, 2)))
-B_PARAMS = (("b_x", 0), ("b_y", 1), ("b_z", 2))
 #: A parameter is re-estimated when its predicted (Cramér–Rao) standard error is below this
 #: fraction of the field radius r (0.5 % of r: 0.24 µT at 48 µT).
 TOLERANCE = 0.005
@@ -76,15 +73,14 @@ def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
 def jacobian(free: Sequence[str], terms, x, normal, D, cov, u) -> np.ndarray:
     """Rows a_j = n_jᵀ ∂g(x_j)/∂p (N,P) for the named core parameters ``free`` then every θ of
     ``terms`` (the derivative of s_j is −a_j); ``u`` = K x (N,3)."""
-    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
     nD = np.einsum("ni,nik->nk", normal, D)            # nᵀ ∂g/∂u
     cols = []
     for name in free:
-        if name in K_idx:
-            i, j = K_idx[name]
+        if name in K_INDEX:
+            i, j = K_INDEX[name]
             cols.append(nD[:, i] * x[:, j])
         else:
-            cols.append(normal[:, B_idx[name]])
+            cols.append(normal[:, B_INDEX[name]])
     for term, theta in terms:
         cols.extend(np.einsum("ni,nip->np", normal, term.jac_theta(theta, u, cov)).T)
     return np.column_stack(cols) if cols else np.zeros((len(x), 0))
@@ -150,17 +146,6 @@ class HeldFit:
     message: str = ""
 
 
-def _set(K, b, free, p):
-    K, b = K.copy(), b.copy()
-    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
-    for name, v in zip(free, p):
-        if name in K_idx:
-            K[K_idx[name]] += v
-        else:
-            b[B_idx[name]] += v
-    return K, b
-
-
 def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequence[str],
              held_terms=(), new_terms=(), sigma0: float | None = None) -> HeldFit:
     """Robust fit of the core parameters ``free`` and the θ of ``new_terms`` ([(term, θ0)]),
@@ -175,7 +160,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
         raise InsufficientDataError(f"{len(m)} samples cannot determine {P} parameters")
 
     def unpack(p):
-        K, b = _set(K0, b0, free, p[:nf])
+        K, b = shifted(K0, b0, free, p[:nf])
         out, k = [], nf
         for (term, _), t0, size in zip(new_terms, thetas0, sizes):
             out.append((term, t0 + p[k:k + size]))
@@ -241,7 +226,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
             sd = sigma * np.sqrt(np.maximum(np.diag(Hinv), 0.0))
         except np.linalg.LinAlgError:
             sd = np.full(P, np.inf)
-        values = [*(_value(K, b, n) for n in free)]
+        values = [entry(K, b, n) for n in free]
         for (term, th) in terms[len(held_terms):]:
             values += list(th)
         labels = [*free]
@@ -252,8 +237,3 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     return HeldFit(K=K, b=b, thetas=[t for _, t in terms[len(held_terms):]], r=r, x=x, s=s,
                    normal=normal, inliers=rn <= OUTLIER_WIDTHS * tau, sigma=sigma, tau=tau,
                    estimated=estimated, iterations=it, status=status, message=message)
-
-
-def _value(K, b, name):
-    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
-    return K[K_idx[name]] if name in K_idx else b[B_idx[name]]

@@ -26,7 +26,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from .held import B_PARAMS, K_PARAMS, HeldFit, jacobian, predicted_errors, project
+from ..fitting.entries import B_INDEX, K_INDEX
+from .held import HeldFit, jacobian, predicted_errors, project
 
 #: A value further than this many of its own σ outside its plausible range is implausible.
 SUSPICIOUS_SIGMAS = 3.0
@@ -37,11 +38,10 @@ DIAG_RANGE = (0.5, 2.0)
 def plausible_range(name: str, r: float, b_given: np.ndarray) -> tuple[float, float]:
     """(low, high) of a physically plausible value of core parameter ``name`` (sensor unit),
     ``r`` the field radius of the given calibration and ``b_given`` (3,) its offset."""
-    K_idx, B_idx = dict(K_PARAMS), dict(B_PARAMS)
-    if name in B_idx:
-        c = float(b_given[B_idx[name]])
+    if name in B_INDEX:
+        c = float(b_given[B_INDEX[name]])
         return c - r, c + r
-    i, j = K_idx[name]
+    i, j = K_INDEX[name]
     if i == j:
         return DIAG_RANGE[0] * r, DIAG_RANGE[1] * r
     return -r, r

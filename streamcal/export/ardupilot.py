@@ -17,9 +17,11 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, correction, fmt
+from .common import correction, fmt, motor_channel
 
 MG_PER_UT = 10.0
+#: COMPASS_MOTCT of each motor-compensation channel kind.
+MOTCT = {"throttle": 1, "current": 2}
 
 
 def apply_ardupilot(params: dict, r_mG: np.ndarray, c=None) -> np.ndarray:
@@ -47,14 +49,10 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         params[f"COMPASS_DIA_{a}"] = S[k, k]
     params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"], params["COMPASS_ODI_Z"] = \
         S[0, 1], S[0, 2], S[1, 2]
-    motct, chosen = 0, None
-    for name in corr.channels:
-        kind = 2 if name in CURRENT_CHANNELS else 1 if name in THROTTLE_CHANNELS else 0
-        if kind and chosen is None:
-            motct, chosen = kind, name
-        else:
-            notes.append(f"aux_interference on {name!r}: ArduPilot compensates one channel, "
-                         "battery current (A) or throttle (0..1)")
+    chosen, kind, others = motor_channel(corr.channels)
+    motct = MOTCT.get(kind, 0)
+    notes += [f"aux_interference on {name!r}: ArduPilot compensates one channel, "
+              "battery current (A) or throttle (0..1)" for name in others]
     if chosen is not None:
         mot = -MG_PER_UT * (S @ corr.channels[chosen])
         for k, a in enumerate("XYZ"):

@@ -87,6 +87,22 @@ def correction(cal: Calibration) -> Correction:
                       channels=channels, not_expressed=notes)
 
 
+def motor_channel(channels) -> tuple[str | None, str | None, list[str]]:
+    """The aux channel an autopilot's one motor compensation takes: the first of ``channels``
+    (names, in order) that is a battery current (:data:`CURRENT_CHANNELS`) or throttle
+    (:data:`THROTTLE_CHANNELS`). Returns (its name, ``"current"`` or ``"throttle"``, the other
+    channels in order); (None, None, all of them) when none is."""
+    chosen, kind, others = None, None, []
+    for name in channels:
+        k = "current" if name in CURRENT_CHANNELS else "throttle" if name in THROTTLE_CHANNELS \
+            else None
+        if k and chosen is None:
+            chosen, kind = name, k
+        else:
+            others.append(name)
+    return chosen, kind, others
+
+
 def fmt(value: float) -> str:
     """A parameter value: shortest round-tripping decimal of a float32-precise number."""
     return f"{float(value) + 0.0:.7g}"  # + 0.0 turns -0.0 into 0.0

@@ -30,7 +30,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, correction, fmt
+from .common import correction, fmt, motor_channel
 
 UT_PER_GAUSS = 100.0
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
@@ -59,18 +59,15 @@ def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
 
 def _compensation(corr, notes: list) -> tuple[int, str | None, np.ndarray | None]:
     """(CAL_MAG_COMP_TYP, chosen channel, CAL_MAG0_*COMP (3,)) from the aux channels."""
-    comp_type, chosen, comp = 0, None, None
-    for name in corr.channels:
-        kind = (COMP_CURRENT0 if name in CURRENT_CHANNELS
-                else COMP_THROTTLE if name in THROTTLE_CHANNELS else 0)
-        if kind and chosen is None:
-            g = np.asarray(corr.channels[name], dtype=float)
-            # r + p c must cancel g a: p c = −g a / 100 (G), p = a (throttle) or a·0.001 (kA)
-            comp = -g / UT_PER_GAUSS / (KA_PER_A if kind == COMP_CURRENT0 else 1.0)
-            comp_type, chosen = kind, name
-        else:
-            notes.append(f"aux_interference on {name!r}: PX4 compensates one channel, "
-                         "throttle (0..1) or battery current (A, as kA)")
+    chosen, kind, others = motor_channel(corr.channels)
+    notes.extend(f"aux_interference on {name!r}: PX4 compensates one channel, "
+                 "throttle (0..1) or battery current (A, as kA)" for name in others)
+    if chosen is None:
+        return 0, None, None
+    comp_type = COMP_CURRENT0 if kind == "current" else COMP_THROTTLE
+    g = np.asarray(corr.channels[chosen], dtype=float)
+    # r + p c must cancel g a: p c = −g a / 100 (G), p = a (throttle) or a·0.001 (kA)
+    comp = -g / UT_PER_GAUSS / (KA_PER_A if comp_type == COMP_CURRENT0 else 1.0)
     return comp_type, chosen, comp
 
 

@@ -33,7 +33,7 @@ magnetometer is modelled (see :mod:`streamcal.fitting.gyro_lag`).
 The fit and its uncertainty
 ---------------------------
 Gauss–Newton on (1) over the chosen entries (named as in
-:mod:`streamcal.diagnosis.held`: ``K_xx … K_zz`` upper-triangular, ``b_x b_y b_z``) and the six
+:mod:`streamcal.fitting.entries`: ``K_xx … K_zz`` upper-triangular, ``b_x b_y b_z``) and the six
 gyro nuisances, every other entry fixed at its given value; central-difference Jacobian (for
 the nuisances, ∂R/∂(c, g) once per pair set at c = g = 0, :meth:`LinkPairs.rotation_steps`);
 at most :data:`MAX_PAIRS` pairs, evenly spaced. With a :class:`SpherePrior` the sphere
@@ -58,11 +58,9 @@ from scipy.spatial.transform import Rotation
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
 from ..quaternion import cumulative_rotation
+from .entries import B_INDEX, K_INDEX, entry, with_entries
 from .gyro_lag import Orientation, fresh, saturated
 
-K_INDEX = {"K_xx": (0, 0), "K_xy": (0, 1), "K_xz": (0, 2), "K_yy": (1, 1), "K_yz": (1, 2),
-           "K_zz": (2, 2)}
-B_INDEX = {"b_x": 0, "b_y": 1, "b_z": 2}
 #: Seconds between the two readings of a pair (0: consecutive readings).
 HORIZON_S = 1.0
 #: Cauchy width in σ̂ (per axis) of the pair residual.
@@ -186,20 +184,6 @@ class LinkPairs:
         return (self.m[bb] - b) - np.einsum("ij,pjk,pk->pi", K, R, h_a)
 
 
-def _set(K, b, names, values):
-    K, b = np.array(K, float), np.array(b, float)
-    for name, v in zip(names, values):
-        if name in K_INDEX:
-            K[K_INDEX[name]] = v
-        else:
-            b[B_INDEX[name]] = v
-    return K, b
-
-
-def _get(K, b, name):
-    return float(K[K_INDEX[name]] if name in K_INDEX else b[B_INDEX[name]])
-
-
 def _width(rn):
     """Per-axis σ̂ from the median pair-residual norm (χ₃ median 1.538 σ)."""
     return max(float(np.median(rn)) / 1.538, 1e-12)
@@ -235,7 +219,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
             raise ValueError(f"unknown parameter {n!r}")
     r_scale = scale or float(np.prod(np.abs(np.diag(K0))) ** (1 / 3))
     sel = np.arange(len(pairs)) if sel is None else np.asarray(sel)
-    p = np.concatenate([[_get(K0, b0, n) for n in names], np.zeros(N_GYRO)])
+    p = np.concatenate([[entry(K0, b0, n) for n in names], np.zeros(N_GYRO)])
     nk = len(names)
     steps = np.full(nk, 1e-4 * r_scale)   # central-difference steps of the K/b entries
 
@@ -243,7 +227,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
         return pairs.rotations(q[nk:nk + 3], q[nk + 3:])
 
     def res(q, R):
-        K, b = _set(K0, b0, names, q[:nk])
+        K, b = with_entries(K0, b0, names, q[:nk])
         return pairs.residual(K, b, R, sel)
 
     def evaluate(q):
@@ -261,7 +245,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
     dR = pairs.rotation_steps()[:, sel]
 
     def jac(q):
-        K, b = _set(K0, b0, names, q[:nk])
+        K, b = with_entries(K0, b0, names, q[:nk])
         h_a = np.linalg.solve(K, (pairs.m[pairs.a[sel]] - b).T).T
         return _jacobian(q, nk, steps, R, res, dR, h_a, K)
 
@@ -301,7 +285,7 @@ def link_fit(pairs: LinkPairs, K0, b0, names: Sequence[str], sel=None,
     J = jac(p)
     w = 1.0 / (1.0 + rn ** 2 / tau ** 2)
     sd, bread, meat = _errors(J, w, r, pairs.t[pairs.a[sel]], pairs.horizon, sigma, Fp)
-    K, b = _set(K0, b0, names, p[:nk])
+    K, b = with_entries(K0, b0, names, p[:nk])
     inl = rn <= OUTLIER_WIDTHS * tau
     r_still = pairs.residual(K, b, np.broadcast_to(np.eye(3), (len(sel), 3, 3)), sel)
     return LinkFit(K=K, b=b, estimated={n: (float(v), float(e)) for n, v, e in

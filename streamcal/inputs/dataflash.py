@@ -1,6 +1,7 @@
 """ArduPilot DataFlash logs (``.bin``) → Track, decoded in bulk by :mod:`.dataflash_bulk` (a
 header walk + a numpy structured dtype per message type; values identical to
-:mod:`pymavlink.DFReader`'s, which stays callable as ``_parse_pymavlink``: ~10× slower).
+:mod:`pymavlink.DFReader`'s, which stays callable as :func:`read_dataflash_pymavlink`, about
+45× slower by ``tools/bench_flight.py``).
 
 What is taken (message layouts differ between firmware versions, so fields are found by name):
 
@@ -322,15 +323,24 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
     return out
 
 
-def read_dataflash(path, *, skip_bad_rows: bool = False, _parser=_parse) -> Track:
+def read_dataflash(path, *, skip_bad_rows: bool = False) -> Track:
     """Read an ArduPilot DataFlash ``.bin`` log into a Track (see the module docstring).
 
     Raises :class:`InputError` naming the file and the message when the log is truncated
     (unless ``skip_bad_rows``), has no MAG messages or a layout without the needed fields.
-    ``_parser=_parse_pymavlink`` reads through pymavlink instead (equivalence test, benchmark).
     """
     path = Path(path)
-    msgs = _parser(path, skip_bad_rows)
+    return _track(_parse(path, skip_bad_rows), path)
+
+
+def read_dataflash_pymavlink(path, *, skip_bad_rows: bool = False) -> Track:
+    """:func:`read_dataflash` with the messages decoded by pymavlink's DFReader instead of the
+    bulk decoder (much slower): the reference of the equivalence test and the read benchmark."""
+    path = Path(path)
+    return _track(_parse_pymavlink(path, skip_bad_rows), path)
+
+
+def _track(msgs: _Messages, path: Path) -> Track:
     meta = {"sensor": "ardupilot compass (instance 0)", "source": f"ArduPilot DataFlash log {path.name}",
             "input_format": "ardupilot-dataflash", "mag_unit": "uT",
             "mag_axes": "body frame (ArduPilot rotates by COMPASS_ORIENT/AHRS_ORIENTATION "

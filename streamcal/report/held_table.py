@@ -7,9 +7,7 @@ import html
 
 import numpy as np
 
-from ..diagnosis.held import B_PARAMS, K_PARAMS
-
-_INDEX = {**dict(K_PARAMS), **dict(B_PARAMS)}
+from ..fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry
 
 
 def _num(v, fmt: str = ".4g") -> str:
@@ -18,11 +16,6 @@ def _num(v, fmt: str = ".4g") -> str:
     except (TypeError, ValueError):
         return "–"
     return format(v, fmt) if np.isfinite(v) else "–"
-
-
-def _value(cal, name: str):
-    idx = _INDEX[name]
-    return np.asarray(cal.K)[idx] if name.startswith("K_") else np.asarray(cal.b)[idx]
 
 
 def held_section(d, unit: str) -> str:
@@ -37,11 +30,11 @@ def held_section(d, unit: str) -> str:
         est = d.estimated.get(name) or pin
         status = "pinned by the gyro link" if pin else "re-estimated" if est else (
             "held after the fit" if name in after else "held")
-        value = est["value"] if est else _value(d.calibration, name)
+        value = est["value"] if est else entry(d.calibration.K, d.calibration.b, name)
         sigma = _num(est["sigma"]) if est else "–"
         rows.append((name, status, _num(value), sigma, _num(d.predicted_sigma.get(name)), unit))
     rows += [(e(n), "held", "as in the calibration", "–", "–", "") for n in d.held
-             if n not in _INDEX]
+             if n not in K_INDEX and n not in B_INDEX]
     head = "".join(f"<th>{h}</th>" for h in ("parameter", "status", "value", "σ (this recording)",
                                              "predicted σ (Cramér–Rao)", "unit"))
     body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
