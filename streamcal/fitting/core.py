@@ -171,7 +171,7 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
                       check_coverage=check_coverage,
                       initial=None if initial is None else (initial.K, initial.b))
         K, b, x, inliers, weights = res.K, res.b, res.x, res.inliers, res.weights
-        residual_norm = np.linalg.norm(res.residuals, axis=1)
+        residual_norm = res.residual_norms
         effect_params = {e.name: e.to_physical(t, res.scale) for e, t in zip(effects, res.thetas)}
         seen = x if inliers.all() else x[inliers]  # no copy on clean data
         obs = assess(seen, structure, fit_b, K)

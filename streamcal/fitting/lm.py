@@ -53,6 +53,7 @@ class LMResult:
     x: np.ndarray            # (N,3) unit directions
     thetas: list             # per effect, (P_e,) arrays
     residuals: np.ndarray    # (N,3) r_j at the solution
+    residual_norms: np.ndarray  # (N,) ‖r_j‖, from the engine's own ‖r_j‖² (no second pass)
     weights: np.ndarray      # (N,) ρ′(s_j) — 1 for inliers, → 0 for outliers
     cost: float
     iterations: int
@@ -63,6 +64,9 @@ class LMResult:
     #: it always was) or ``max_iter``; ``message`` in words.
     status: str = "max_iter"
     message: str = ""
+    #: the damping λ the run ended with (after its last accepted step's decrease, or the last
+    #: one tried): where a follow-on run from this solution may start
+    lam: float = float("nan")
 
 
 def _k_vector(K: np.ndarray, structure: str) -> np.ndarray:
@@ -242,11 +246,12 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     r, s = engine.residuals(K, b, thetas, x, state)
     weights = kernel.evaluate(s)[1]
     return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
-                    residuals=np.ascontiguousarray(r.T), weights=weights, cost=f,
+                    residuals=np.ascontiguousarray(r.T), residual_norms=np.sqrt(s),
+                    weights=weights, cost=f,
                     iterations=iterations, converged=converged, history=history, status=status,
                     message={"stalled": f"no step lowered the cost in {max_trials} trials",
                              "converged": f"relative cost decrease below {rtol:g}",
-                             "max_iter": f"{max_iter} iterations used"}[status])
+                             "max_iter": f"{max_iter} iterations used"}[status], lam=lam)
 
 
 #: Environment variable choosing the LM engine of the whole process: unset or ``numpy``, the

@@ -105,12 +105,12 @@ def mixture_polish(result, sigma: float, refine_with: Callable):
     samples, structure and effects). Returns ``(LMResult, σ)``: the input unchanged when the
     mixture model does not describe the residuals (:func:`mixture_fit` returns None) or fewer
     than SHARE of them lie beyond TAIL σ (:func:`heavy_tail`)."""
-    r_norm = np.linalg.norm(result.residuals, axis=1)
+    r_norm = result.residual_norms
     if not heavy_tail(r_norm, sigma):
         return result, sigma
     for round_ in range(ROUNDS):
         if round_:
-            r_norm = np.linalg.norm(result.residuals, axis=1)
+            r_norm = result.residual_norms
         found = mixture_fit(r_norm, sigma)
         if found is None:
             break
