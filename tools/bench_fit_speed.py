@@ -18,6 +18,12 @@
 5. Real data: the first 1,000 rows of ``freeimucal_mag_data.txt`` through ``streamcal.fit``
    (default autocal) against the algebraic L2 ellipsoid fit of the same rows, same run
    (target ≤ 3 ms and ≤ 8 × the L2 fit). ``--freeimucal-only`` runs just this row.
+   Beside it, as context (no target): the PyPI calibrators a user would choose (magcal,
+   circuitpython-mag-cal, magyc's two ellipsoid fits; optional, ``pip install
+   magcal circuitpython-mag-cal magyc`` = the ``peers`` extra, skipped with the reason when
+   absent) and a textbook algebraic L2 calibration, alternated with ``streamcal.fit`` in the
+   same run, each with its deviation under 10 % appended outliers (``_bench_peers.py`` gives
+   the calls and the one convention all are compared in).
 
 Items 2–4 run in subprocesses once with the default BLAS threading and once with
 ``OPENBLAS_NUM_THREADS=1`` (plus OMP/MKL = 1).
@@ -35,6 +41,7 @@ import warnings
 import numpy as np
 
 from _bench_common import REPO, median_seconds, run_stamp
+from _bench_peers import peers_table
 
 PAPER_TABLE_VI = {"l2_ellipsoid": 0.002, "dorveaux": 0.035, "kok_schon": 3.891, "vasconcelos": 0.014,
                   "magical": 0.032, "l1_ellipsoid": 0.177, "autocal/l1": 1.086, "autocal/cauchy": 0.303,
@@ -210,6 +217,7 @@ def freeimucal_row(repeats: int) -> None:
               f"{TARGETS['freeimucal_vs_l2']:.0f}x: "
               f"{'PASS' if ours <= TARGETS['freeimucal_vs_l2'] * base else 'FAIL'}; "
               f"{ours / plain_s:.1f}x the plain SVD fit)")
+    peers_table(m, repeats, median_seconds)
 
 
 def main(argv=None) -> int:
