@@ -344,10 +344,9 @@ def test_open_bus_specs():
 
 
 def test_source_over_a_fake_track_file(tmp_path):
-    track_mod = pytest.importorskip("streamcal.inputs.track")
     tr = make_track(600)
     path = tmp_path / "log.csv"
-    track_mod.Track.from_arrays(tr["t"], mag=tr["mag"], accel=tr["accel"], gyro=tr["gyro"],
+    Track.from_arrays(tr["t"], mag=tr["mag"], accel=tr["accel"], gyro=tr["gyro"],
                                 temp=tr["temp"]).write(path)
     src = open_i2c_source(f"fake:{path}", block_size=64, read_track=Track.read,
                           fake_kwargs={"faults": Faults(nack_rate=0.02)})
@@ -378,9 +377,8 @@ def test_real_track_replayed_through_the_driver(real_tracks_dir):
     """A recorded mixed-rate track (75 Hz mag, 100 Hz IMU) through fake bus + driver + source:
     every magnetometer sample comes back, each channel within half an LSB of the track value
     the chip would hold at that instant."""
-    track_mod = pytest.importorskip("streamcal.inputs.track")
     path = real_tracks_dir / "sunsided_set2_fullsphere.csv.gz"
-    track = track_mod.Track.read(path)
+    track = Track.read(path)
     src = open_i2c_source(f"fake:{path}", block_size=500, read_track=Track.read)
     blocks = list(src)
     d = src.driver

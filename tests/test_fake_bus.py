@@ -197,9 +197,8 @@ def test_context_manager_closes():
 
 
 def test_from_track():
-    track_mod = pytest.importorskip("streamcal.inputs.track")
     tr = make_track()
-    track = track_mod.Track.from_arrays(tr["t"], mag=tr["mag"], accel=tr["accel"],
+    track = Track.from_arrays(tr["t"], mag=tr["mag"], accel=tr["accel"],
                                         gyro=tr["gyro"], temp=tr["temp"])
     bus = FakeMPU9250Bus.from_track(track)
     direct = FakeMPU9250Bus(**tr)

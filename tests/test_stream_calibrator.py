@@ -196,9 +196,6 @@ def test_accepted_calibration_is_stored_and_reloaded(tmp_path):
 
 
 def test_with_the_real_batch_fit():
-    fit_mod = pytest.importorskip("streamcal.fit")
-    if not hasattr(fit_mod, "fit"):
-        pytest.skip("streamcal.fitting.fit is not there yet")
     K = np.array([[50.0, 2.0, -1.0], [0.0, 46.0, 1.5], [0.0, 0.0, 53.0]])
     t, m = spiral_track(70.0)
     m = (m - B_TRUE) / RADIUS @ K.T + B_TRUE          # soft iron

@@ -2,12 +2,9 @@
 import json
 
 import numpy as np
-import pytest
 
+import streamcal.inputs.track as track_mod
 from streamcal.cli import main
-
-track_mod = pytest.importorskip("streamcal.inputs.track")
-pytest.importorskip("streamcal.fitting")
 
 
 def _write_track(path, duration, seed=0, cap=None):
