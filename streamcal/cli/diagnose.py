@@ -6,6 +6,7 @@ import importlib
 import json
 import sys
 
+from ..calibration import jsonable
 from ..errors import InputError
 from ._common import RECORDING_HELP, add_input_options, read_track
 from ._location import add_location_options, location_reference
@@ -78,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         out = result.to_dict()
         out["reference_field"] = local
-        print(json.dumps(out, allow_nan=False, default=lambda v: None))
+        print(json.dumps(jsonable(out), allow_nan=False))
         if plots:   # stdout stays one JSON object
             print(plots, file=sys.stderr)
         return 0
