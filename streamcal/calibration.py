@@ -297,21 +297,19 @@ def _finite_or_none(value):
     return value if math.isfinite(value) else None
 
 
-def jsonable(value, *, keep_nonfinite: bool = False):
+def jsonable(value):
     """``value`` in plain JSON types: a mapping → dict with str keys, a list, tuple or array →
     list, a numpy number or bool → the Python one, recursively; anything else as it is. A
-    non-finite float (NaN, ±inf: an unobservable σ, an unknown rms) → None (JSON null), as the
-    calibration file and the diagnosis JSON need (written with ``allow_nan=False``); with
-    ``keep_nonfinite`` it stays a float (``streamcal replay --json`` prints NaN and Infinity as
-    ``json.dumps`` does)."""
+    non-finite float (NaN, ±inf: an unobservable σ, an unknown rms) → None (JSON null): every
+    JSON streamcal writes is strict (``allow_nan=False``), so that any parser reads it."""
     if isinstance(value, Mapping):
-        return {str(k): jsonable(v, keep_nonfinite=keep_nonfinite) for k, v in value.items()}
+        return {str(k): jsonable(v) for k, v in value.items()}
     if isinstance(value, np.ndarray):   # nested lists of Python scalars (0-d: the scalar)
-        return jsonable(np.asarray(value, dtype=object).tolist(), keep_nonfinite=keep_nonfinite)
+        return jsonable(np.asarray(value, dtype=object).tolist())
     if isinstance(value, (list, tuple)):
-        return [jsonable(v, keep_nonfinite=keep_nonfinite) for v in value]
+        return [jsonable(v) for v in value]
     if isinstance(value, (np.floating, float)):
-        return float(value) if keep_nonfinite else _finite_or_none(value)
+        return _finite_or_none(value)
     if isinstance(value, np.integer):
         return int(value)
     if isinstance(value, np.bool_):

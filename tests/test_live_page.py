@@ -100,7 +100,14 @@ def test_sse_delivers_json_with_coverage_growing(daemon):
     assert len(events) >= 6, up
     assert gaps[len(gaps) // 2] <= 0.5, up           # at least twice a second
     assert gaps[0] >= 0.25 - 0.02, up                # captures at most every 0.25 s
+    # not measured (null, with the reason as the hint) until the running sphere frames the
+    # directions; from then on a number that grows
     cov = [e["coverage"] for e in events]
+    first = next(i for i, c in enumerate(cov) if c is not None)
+    assert all(e["hint"].startswith("coverage not measured") and e["gap"] is None
+               and "1" not in e["occupied"] for e in events[:first]), events[:first]
+    cov = cov[first:]
+    assert None not in cov and len(cov) >= 4, cov
     assert all(b >= a - 0.05 for a, b in zip(cov, cov[1:])), cov
     assert cov[-1] > cov[0], cov
     last = events[-1]

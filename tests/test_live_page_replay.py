@@ -37,8 +37,8 @@ def test_replay_realtime_serves_the_page(tmp_path):
         proc.terminate()
         proc.wait(timeout=30)
     assert len(events) >= 6, [e["uptime_s"] for e in events]
-    cov = [e["coverage"] for e in events]
-    assert cov[-1] > cov[0], cov
+    cov = [e["coverage"] for e in events if e["coverage"] is not None]   # null: not framed yet
+    assert len(cov) >= 4 and cov[-1] > cov[0], [e["coverage"] for e in events]
     last = events[-1]
     assert last["device"]["state"] == "replaying" and last["device"]["samples_per_s"] > 0
     assert last["reference"]["source"] == "WMM2025"

@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
+from ..stream.coverage import coverage_words
 from .diagnose import candidate_table, residual_name
 
 DEFAULT_REPORT = "streamcal-demo-report.html"
@@ -93,7 +94,7 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
         from ..errors import InsufficientDataError
         raise InsufficientDataError(f"{track_path}: the driver produced no samples")
     say(f"\n{calibrator.n_ingested} magnetometer samples from the driver, {calibrator.n_fits} "
-        f"fits, {len(accepted)} accepted; final coverage {100 * calibrator.buffer.fraction:.0f}%")
+        f"fits, {len(accepted)} accepted; final {coverage_words(calibrator.buffer.measured_fraction)}")
     from ..report import coverage_view
     say(coverage_view(calibrator.buffer))
 

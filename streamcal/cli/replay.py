@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, jsonable
+from ..stream.coverage import coverage_words
 from ._common import RECORDING_HELP, add_input_options, recording_chunks
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
@@ -116,7 +117,7 @@ def run(args) -> int:
     if calibrator.calibration is None:
         summary["why"] = _why_none(calibrator, refusals, _mag_sample(args, calibrator.n_ingested))
     if args.json:
-        print(json.dumps(jsonable(summary, keep_nonfinite=True)))
+        print(json.dumps(jsonable(summary), allow_nan=False))
     else:
         print(summary["message"])
     if calibrator.calibration is None:
@@ -150,7 +151,7 @@ def _mag_sample(args, n: int, most: int = 200_000):
 def _printer(as_json: bool):
     def emit(event, bar):
         if as_json:
-            line = json.dumps(jsonable(event.to_dict(), keep_nonfinite=True))
+            line = json.dumps(jsonable(event.to_dict()), allow_nan=False)
         else:
             when = f"{event.t:9.2f} s" if event.t is not None and math.isfinite(event.t) else " " * 11
             line = f"[{when}] {event.kind:<12} {event.message}"
@@ -184,7 +185,7 @@ def _summary(calibrator, counts, track, args) -> dict:
            "rejected": counts.get("rejected", 0), "failed": counts.get("fit_failed", 0),
            "drift": counts.get("drift", 0), "disturbances": counts.get("disturbance", 0),
            "environments": calibrator.environment_summary(),
-           "coverage": round(report.fraction, 4),
+           "coverage": round(report.fraction, 4) if report.measured else None,
            "hint": report.hint, "state_dir": args.state_dir}
     if cal is not None:
         out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
@@ -198,8 +199,8 @@ def _summary(calibrator, counts, track, args) -> dict:
     out["message"] = (f"replayed {calibrator.n_ingested} magnetometer samples of {args.track}: "
                       f"{out['fits']} fits, {out['accepted']} accepted, {out['rejected']} rejected, "
                       f"{out['failed']} failed, {out['drift']} drift, "
-                      f"{out['disturbances']} transient disturbances; coverage "
-                      f"{100 * report.fraction:.0f}%; {result}"
+                      f"{out['disturbances']} transient disturbances; "
+                      f"{coverage_words(out['coverage'])}; {result}"
                       + (f"; state in {args.state_dir}" if args.state_dir else ""))
     return out
 

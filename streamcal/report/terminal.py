@@ -93,6 +93,10 @@ def coverage_view(buffer, report=None, rows: int = 7, ascii: bool = False,
     when it was taken earlier, so that map and figures agree); the hint is wrapped to ``width``
     columns."""
     report = report if report is not None else buffer.report()
+    if not report.measured:     # no map: the frame places no direction yet
+        return "\n".join([f"coverage not measured ({report.n_samples} samples stored)",
+                          textwrap.fill(f"hint: {report.hint}", width=width,
+                                        subsequent_indent="      ")])
     occupied = buffer.occupied if occupied is None else occupied
     gap = report.empty_cap_center if report.empty_cap_deg >= 20.0 else None
     head = (f"coverage {100 * report.fraction:.0f}% of the sphere "

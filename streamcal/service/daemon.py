@@ -32,6 +32,7 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable
 
+from ..stream.coverage import coverage_words
 from .notify import Notifier
 from .output import Outputs
 from .sources import SourceUnavailable
@@ -253,9 +254,9 @@ class Service:
 
     def _status_text(self, extra: str = "") -> str:
         cal = self.calibrator.calibration if self.calibrator is not None else None
-        cov = self.calibrator.buffer.fraction if self.calibrator is not None else 0.0
+        cov = self.calibrator.buffer.measured_fraction if self.calibrator is not None else 0.0
         parts = [f"device {self.device_state}" + (f" ({extra})" if extra else ""),
-                 f"coverage {100 * cov:.0f}%"]
+                 coverage_words(cov)]
         if cal is not None:
             from ..units import display_unit
 
@@ -283,10 +284,14 @@ class Service:
                "events": dict(self.stats.events), "ingest_errors": self.stats.ingest_errors,
                "outages": self.stats.outages, "reloads": self.stats.reloads,
                "cal_version": self.cal_version, "output_lines": self.outputs.lines,
-               "coverage": round(float(self.calibrator.buffer.fraction), 4)
+               "coverage": _rounded(self.calibrator.buffer.measured_fraction)
                if self.calibrator is not None else 0.0,
                "source": self.source.counters()}
         if cal is not None:
             out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
                         "rms": float(cal.rms) if math.isfinite(cal.rms) else None})
         return out
+
+
+def _rounded(fraction: float | None) -> float | None:
+    return None if fraction is None else round(float(fraction), 4)

@@ -161,6 +161,7 @@ class LiveState:
         return {
             "now": now, "stored": buf.stored_mag(), "center": buf.center.copy(),
             "A": buf.A.copy(), "occupied": buf.occupied, "fraction": float(buf.fraction),
+            "unframed": buf.unframed,
             "cells": buf.cells, "calibration": c, "cal_version": service.cal_version,
             "stale": bool(getattr(cal, "stale", False)), "in_flight": bool(cal.fit_in_flight),
             "event_counts": dict(service.stats.events), "samples": service.stats.samples,
@@ -232,14 +233,19 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
                  "unit": c.unit, "field": _num(c.field), "coverage": _num(c.coverage),
                  "method": c.method, "model": list(c.model), "created": c.created,
                  "stale": cap["stale"]}
+    framed = not cap["unframed"]
+    if not framed:      # the directions mean nothing yet: no coverage, no seen cells, no gap
+        occupied = np.zeros_like(occupied)
     return {
         "seq": seq, "uptime_s": round(now - start, 2),
-        "coverage": round(cap["fraction"], 4), "n_samples": int(len(m)),
+        "coverage": round(cap["fraction"], 4) if framed else None, "n_samples": int(len(m)),
         "cells": {"counts": cells.counts.tolist(),
                   "z_edges": [round(float(z), 6) for z in cells.z_edges]},
         "occupied": "".join("1" if o else "0" for o in occupied.tolist()),
-        "gap": {"deg": round(radius, 1), "center": [round(float(v), 3) for v in center]},
-        "hint": hint(center, radius, cap["fraction"]),
+        "gap": {"deg": round(radius, 1), "center": [round(float(v), 3) for v in center]}
+        if framed else None,
+        "hint": hint(center, radius, cap["fraction"]) if framed
+        else f"coverage not measured: {cap['unframed']}",
         "magnitude": {"t": [round(r[0] - now, 2) for r in keep],
                       "raw": [round(r[1], 3) for r in keep],
                       "calibrated": [None if r[2] is None else round(r[2], 3) for r in keep],

@@ -46,7 +46,7 @@ from .guard import AcceptanceGuard
 from .policy import RecalPolicy
 from .recall import Recaller
 from .reference import Reference
-from .running_sphere import RunningSphere, sphere_of_samples
+from .running_sphere import NO_ESTIMATE, RunningSphere, sphere_of_samples
 from .staging import Stage
 from .tracker import DisturbanceTracker
 
@@ -121,6 +121,7 @@ class StreamingCalibrator:
         self.coarse_judge_coverage = float(coarse_judge_coverage)
         self._cal_ref: Reference | None = None
         self.environments = EnvironmentLog()
+        self.buffer.unframed = NO_ESTIMATE.format(n=self.sphere.min_n)
         if store is not None:
             self._load()
 
@@ -274,7 +275,7 @@ class StreamingCalibrator:
                 self._check(ref, events)
             if self.recaller.remembered and self.stale:
                 self._check_recall(m, t, events)
-        if self.milestones.passed(self.buffer.fraction):
+        if not self.buffer.unframed and self.milestones.passed(self.buffer.fraction):
             events.append(ev.coverage(self.buffer.report(), self.clock.t_last))
         events += self._collect()
         if self._job is None:
@@ -292,7 +293,11 @@ class StreamingCalibrator:
         if found is None:
             return
         c, R = found
-        if moved or self.stale and self._frame_is_cal:
+        reframe = moved or self.stale and self._frame_is_cal
+        if reframe or not self._frame_is_cal:
+            # the coverage is shown only once the estimate is a sphere through the samples
+            self.buffer.unframed = self.sphere.frame_problem(self.buffer.stored_mag())
+        if reframe:
             self._set_frame(c, np.eye(3) / R, from_cal=False)
         if self.tracker.open is None and not self._frame_is_cal \
                 and self.buffer.fraction >= self.coarse_judge_coverage:
@@ -315,7 +320,10 @@ class StreamingCalibrator:
                                        self.policy.drift_limit(cal.rms, R), self._support,
                                        cal if cal.effects else None, True)
         self._frame_is_cal = from_cal
-        self.milestones.rebase(self.buffer.fraction)
+        if from_cal:
+            self.buffer.unframed = ""
+        # while unframed no milestone is reported: the first framed one reports where it is
+        self.milestones.rebase(0.0 if self.buffer.unframed else self.buffer.fraction)
 
     def _hold_back(self, m, t, cov, events) -> None:
         """With a calibration in force: samples that disagree with it are held back (module

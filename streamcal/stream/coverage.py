@@ -20,6 +20,12 @@ import numpy as np
 from ..sphere_cells import SphereCells, hint, largest_empty_cap
 
 
+def coverage_words(fraction: float | None) -> str:
+    """``coverage 93%``, or ``coverage not measured`` for None (an unframed buffer:
+    :attr:`CoverageBuffer.measured_fraction`)."""
+    return "coverage not measured" if fraction is None else f"coverage {100 * fraction:.0f}%"
+
+
 @dataclass(frozen=True)
 class CoverageReport:
     """How well the stored samples cover the sphere of directions.
@@ -33,6 +39,9 @@ class CoverageReport:
         hint: what to do, in plain language.
         occupied: (n_cells,) bool, the cells holding a stored sample when the figures were
             taken (for a map that agrees with them), or None.
+        unframed: why the stored samples cannot be placed on the sphere of directions yet
+            ("" when they can): then fraction, gap and cells are not measured (the buffer's
+            frame is no sphere through them) and ``hint`` says what to do.
     """
 
     fraction: float
@@ -42,8 +51,25 @@ class CoverageReport:
     empty_cap_center: np.ndarray = field(repr=False)
     hint: str = ""
     occupied: np.ndarray | None = field(default=None, repr=False, compare=False)
+    unframed: str = ""
+
+    @property
+    def measured(self) -> bool:
+        """The directions (fraction, gap, cells) mean something: the frame is a sphere model."""
+        return not self.unframed
+
+    def text(self) -> str:
+        """``coverage 93% of the sphere; largest gap 12°: <hint>`` or ``coverage not measured:
+        <why and what to do>``."""
+        if not self.measured:
+            return f"coverage not measured: {self.hint}"
+        return (f"coverage {100 * self.fraction:.0f}% of the sphere; largest gap "
+                f"{self.empty_cap_deg:.0f}°: {self.hint}")
 
     def to_dict(self) -> dict:
+        if not self.measured:
+            return {"coverage": None, "n_samples": self.n_samples, "n_cells": self.n_cells,
+                    "empty_cap_deg": None, "empty_cap_center": None, "hint": self.hint}
         return {"coverage": round(self.fraction, 4), "n_samples": self.n_samples,
                 "n_cells": self.n_cells, "empty_cap_deg": round(self.empty_cap_deg, 1),
                 "empty_cap_center": [round(float(v), 3) for v in self.empty_cap_center],
@@ -125,6 +151,9 @@ class CoverageBuffer:
         self._n_occupied = 0
         self.center = np.zeros(3)
         self.A = np.eye(3)
+        #: why the frame places no direction yet ("" when it does: a calibration, or a sphere
+        #: that the stored samples fit); set by whoever frames the buffer
+        self.unframed = ""
 
     # -- frame ----------------------------------------------------------------------------------
     def directions(self, m: np.ndarray) -> np.ndarray:
@@ -291,8 +320,18 @@ class CoverageBuffer:
         return Snapshot(self._m[c, s].copy(), self._t[c, s].copy(), cov, c.copy())
 
     # -- figures --------------------------------------------------------------------------------
+    @property
+    def measured_fraction(self) -> float | None:
+        """:attr:`fraction` when the frame places directions (:attr:`unframed` empty), else None."""
+        return None if self.unframed else self.fraction
+
     def report(self, n_probe: int = 1000) -> CoverageReport:
-        """Coverage figures: occupied fraction, the largest empty cap and a hint."""
+        """Coverage figures: occupied fraction, the largest empty cap and a hint — or, while
+        the frame places no direction (:attr:`unframed`), that they are not measured and why."""
+        if self.unframed:
+            return CoverageReport(float("nan"), self.n_samples, self.cells.n_cells, float("nan"),
+                                  np.full(3, np.nan), self.unframed,
+                                  np.zeros(self.cells.n_cells, bool), self.unframed)
         d = self._d[self._used]
         center, radius = largest_empty_cap(d, n_probe)
         return CoverageReport(self.fraction, len(d), self.cells.n_cells, radius, center,

@@ -75,8 +75,7 @@ def verdict(cand, decision, unit: str, t: float) -> Event:
 
 def coverage(report, t: float) -> Event:
     """A coverage milestone (``report``: a :class:`~.coverage.CoverageReport`)."""
-    return Event("coverage", f"coverage {100 * report.fraction:.0f}% of the sphere; largest gap "
-                 f"{report.empty_cap_deg:.0f}°: {report.hint}", report.to_dict(), t, report)
+    return Event("coverage", report.text(), report.to_dict(), t, report)
 
 
 def loaded(result) -> list:

@@ -22,6 +22,14 @@ TOL, MAX_ITER = 1e-6, 8
 #: (MAD_TO_SIGMA × median |‖m − c‖/R − 1|): soft iron leaves a few percent; a sphere through a
 #: noise cluster (a board at rest) or through two environments leaves far more.
 MAX_SPREAD = 0.05
+#: Above this relative spread the estimate does not even frame directions: the stored samples
+#: are no sphere (a board at rest: its noise cluster leaves 0.39–0.47 at σ = 0.1–1 µT), and
+#: the coverage they would show is not measured. Soft iron stays below it (0.22 on a full sphere
+#: with axes 1.5 : 1; a cap leaves less).
+FRAME_SPREAD = 0.3
+#: Why the buffer is unframed before the first estimate.
+NO_ESTIMATE = ("no sphere through the readings yet (the first estimate needs {n} samples): "
+               "keep rotating the board through many orientations")
 
 
 def sphere_of(stats: SphereStats, min_n: int):
@@ -100,15 +108,32 @@ class RunningSphere:
         bool, with its limit ``drift_limit(rms, R)`` from how well the stored samples
         ``stored`` (n,3) fit it; None without an estimate or when they fit it worse than
         :data:`MAX_SPREAD` (a sphere fitted to a cluster of noise, or to a mixture)."""
-        if self.estimate is None:
+        spread = self.spread(stored)
+        if spread is None or spread > MAX_SPREAD:
             return None
         c, R = self.estimate
-        spread = MAD_TO_SIGMA * float(np.median(np.abs(np.linalg.norm(stored - c, axis=1) / R
-                                                       - 1.0)))
-        if spread > MAX_SPREAD:
-            return None
         return Reference(c, np.eye(3) / R, R, spread * R, drift_limit(spread * R, R),
                          occupied.copy(), None, False)
+
+    def spread(self, stored: np.ndarray) -> float | None:
+        """Relative spread MAD_TO_SIGMA × median |‖m − c‖/R − 1| of the samples ``stored``
+        (n,3) about the estimate; None without an estimate or samples."""
+        if self.estimate is None or not len(stored):
+            return None
+        c, R = self.estimate
+        return MAD_TO_SIGMA * float(np.median(np.abs(np.linalg.norm(stored - c, axis=1) / R
+                                                     - 1.0)))
+
+    def frame_problem(self, stored: np.ndarray) -> str:
+        """Why the estimate cannot frame the directions of ``stored`` (n,3) ("" when it can)."""
+        spread = self.spread(stored)
+        if spread is None:
+            return NO_ESTIMATE.format(n=self.min_n)
+        if spread > FRAME_SPREAD:
+            return (f"the readings lie on no sphere yet (relative spread {spread:.0%} about the "
+                    f"best one, more than {FRAME_SPREAD:.0%}: a board at rest, or turned too "
+                    "little): rotate the board slowly through many orientations")
+        return ""
 
     def calibration(self, unit: str) -> Calibration | None:
         """The estimate as a hard-iron-only :class:`Calibration` (None without one)."""
