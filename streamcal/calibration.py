@@ -132,7 +132,7 @@ class Calibration:
         """A few lines for a reader: sensor and model, K's diagonal and b with units, the rms
         with its residual, samples, outliers and coverage (the file has everything:
         :meth:`to_json`)."""
-        from .units import display_unit, effect_params, quantity
+        from .units import effect_params, quantity
 
         u = self.unit
         lines = [f"Calibration of {self.sensor} ({self.method}"

@@ -18,7 +18,6 @@ import contextlib
 import html
 import importlib.resources
 import math
-import sys
 import tempfile
 import time
 from pathlib import Path
