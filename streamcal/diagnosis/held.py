@@ -67,7 +67,8 @@ def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
     if x is None:
         x = np.linalg.solve(cal.K, (m - cal.b).T).T
     r, x, s, normal, J = closest_point(cal, terms, m, cov, x, iters)
-    return r, x, s, normal, J @ np.linalg.inv(cal.K)
+    # one product when J is the same for every sample, then a (read-only) broadcast view
+    return r, x, s, normal, np.broadcast_to(J @ np.linalg.inv(cal.K), (len(x), 3, 3))
 
 
 def jacobian(free: Sequence[str], terms, x, normal, D, cov, u) -> np.ndarray:

@@ -70,7 +70,8 @@ def closest_point(cal, terms, m: np.ndarray, cov: Mapping[str, np.ndarray], x: n
     [(effect term, θ)] in sensor units) to each reading ``m`` (N,3), by ``iters`` Gauss–Newton
     steps on the unit sphere from the directions ``x`` (N,3). Returns ``r`` (N,3) = g(x̂) − m,
     ``x̂`` (N,3), the signed distance ``s`` (N,) along the outward unit normal, that normal
-    (N,3) and ∂g/∂x at x̂ (N,3,3).
+    (N,3) and ∂g/∂x at x̂: (3,3) when no term depends on u (the same for every sample, not
+    expanded), else (N,3,3).
 
     The 2×2 normal equations in the tangent plane are written out per component (no batched
     matmul or einsum over tiny matrices: issue #13 item 2, whole-recording spans)."""
@@ -91,7 +92,6 @@ def closest_point(cal, terms, m: np.ndarray, cov: Mapping[str, np.ndarray], x: n
     g, J = _model(cal, terms, x, cov)
     if J.ndim == 2:
         normal = np.linalg.solve(J.T, x.T).T
-        J = np.broadcast_to(J, (len(x), 3, 3))
     else:
         normal = np.linalg.solve(np.swapaxes(J, 1, 2), x[..., None])[..., 0]
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)

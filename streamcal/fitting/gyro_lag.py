@@ -144,6 +144,35 @@ def saturated(w: np.ndarray) -> np.ndarray:
     return at.any(axis=1) if top > 0 and at.sum() >= SATURATED_ROWS else np.zeros(len(w), bool)
 
 
+def horizon_pairs(t: np.ndarray, horizon: float) -> tuple[np.ndarray, np.ndarray]:
+    """Sample indices (a, b), each (P,): for every sample a of the stamps ``t`` (N,) s, b the
+    first sample at least ``horizon`` s after it (the next one when that is later; irregular
+    sampling allowed). The last samples, with no such b, have no pair."""
+    n = len(t)
+    a = np.arange(n)
+    b = np.maximum(np.searchsorted(t, t + horizon), a + 1)
+    return a[b < n], b[b < n]
+
+
+def clear_of_saturation(t_g: np.ndarray, w: np.ndarray, t_from: np.ndarray,
+                        t_to: np.ndarray) -> np.ndarray:
+    """(P,) True where no saturated gyro row (:func:`saturated`; rows at ``t_g`` (G,) s, rates
+    ``w`` (G,3) rad/s) lies within [``t_from``, ``t_to``] (P,) s."""
+    sat = np.concatenate([[0], np.cumsum(saturated(w))])      # saturated rows before
+    lo = np.searchsorted(t_g, t_from)
+    hi = np.searchsorted(t_g, t_to, side="right")
+    return sat[np.minimum(hi, len(t_g))] == sat[np.minimum(lo, len(t_g))]
+
+
+def integrate_rates(t_g: np.ndarray, rates: np.ndarray) -> "Orientation":
+    """Q (body → gyro-following frame, Q = I at the first row) on the gyro rows ``t_g`` (G,) s
+    from the body rates ``rates`` (G,3) rad/s: midpoint rule, Q_{i+1} = Q_i exp(ω̄_i Δt_i) with
+    ω̄_i the average of rows i and i+1."""
+    steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(t_g)[:, None]
+    Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
+    return Orientation(t_g, Q.as_quat(), steps)
+
+
 def _interp_rows(t_query: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
     """Linear interpolation of ``values`` (G, …) given at ``t`` (G,) to ``t_query`` (N,)."""
     i = np.clip(np.searchsorted(t, t_query) - 1, 0, len(t) - 2)
@@ -172,18 +201,13 @@ class GyroPairs:
         self.t_g, self.w = t_g, w
         n = len(self.t)
         period = float(np.median(np.diff(self.t))) if n > 1 else 1.0
-        # b: the first sample at least H after a (irregular sampling allowed)
-        a = np.arange(n)
-        b = np.maximum(np.searchsorted(self.t, self.t + horizon), a + 1)
-        a, b = a[b < n], b[b < n]
+        a, b = horizon_pairs(self.t, horizon)
         span = self.t[b] - self.t[a]
         inside = (self.t[a] - MAX_LAG - 2 * LAG_STEP >= t_g[0]) & \
                  (self.t[b] + MAX_LAG + 2 * LAG_STEP <= t_g[-1])
         ok = (span > 0) & (span <= GAP_FACTOR * max(horizon, period)) & inside
-        sat = np.concatenate([[0], np.cumsum(saturated(w))])      # saturated rows before
-        lo = np.searchsorted(t_g, self.t[a] - MAX_LAG - 2 * LAG_STEP)
-        hi = np.searchsorted(t_g, self.t[b] + MAX_LAG + 2 * LAG_STEP, side="right")
-        ok &= sat[np.minimum(hi, len(t_g))] == sat[np.minimum(lo, len(t_g))]
+        ok &= clear_of_saturation(t_g, w, self.t[a] - MAX_LAG - 2 * LAG_STEP,
+                                  self.t[b] + MAX_LAG + 2 * LAG_STEP)
         self.a, self.b = a[ok], b[ok]
         self.period = period
         #: median time between the samples of a pair (s)
@@ -232,10 +256,7 @@ class GyroPairs:
         ω' = M ω + c, integrated on the gyro rows."""
 
         M, c = p[:9].reshape(3, 3), p[9:12]
-        rates = self.w @ M.T + c
-        steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(self.t_g)[:, None]
-        Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
-        return Orientation(self.t_g, Q.as_quat(), steps)
+        return integrate_rates(self.t_g, self.w @ M.T + c)
 
     # -- the residual (2) --------------------------------------------------------------------
     def residual(self, Q: "Orientation", lag_s: float, sel=None) -> np.ndarray:

@@ -53,13 +53,11 @@ from dataclasses import dataclass, field
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
-from ..quaternion import cumulative_rotation
 from .entries import B_INDEX, K_INDEX, entry, with_entries
-from .gyro_lag import Orientation, fresh, saturated
+from .gyro_lag import clear_of_saturation, fresh, horizon_pairs, integrate_rates
 
 #: Seconds between the two readings of a pair (0: consecutive readings).
 HORIZON_S = 1.0
@@ -110,7 +108,8 @@ class LinkPairs:
     """Pairs (a, b) of magnetometer readings ``m`` (N,3) at ``t`` (N,) s about ``horizon`` apart
     and the gyro rows ``t_g`` (G,) s, ``w_g`` (G,3) rad/s (magnetometer frame) that link them.
     A pair is dropped when it spans a gap, leaves the gyro's span, crosses a saturated gyro
-    row, or either reading is a sample-and-hold repeat."""
+    row, or either reading is a sample-and-hold repeat (the pairing, saturation test and
+    integration are :mod:`.gyro_lag`'s, shared with :class:`~.gyro_lag.GyroPairs`)."""
 
     def __init__(self, m, t, t_g, w_g, horizon: float = HORIZON_S):
         self.m, self.t = np.asarray(m, float), np.asarray(t, float)
@@ -120,16 +119,11 @@ class LinkPairs:
             raise InsufficientDataError("the gyro link needs at least 3 magnetometer readings "
                                         "and 3 gyro rows")
         period = float(np.median(np.diff(self.t)))
-        idx = np.arange(n)
-        b = np.maximum(np.searchsorted(self.t, self.t + horizon), idx + 1)
-        a, b = idx[b < n], b[b < n]
+        a, b = horizon_pairs(self.t, horizon)
         gaps = np.concatenate([[0], np.cumsum(np.diff(self.t) > GAP_FACTOR * period)])
         ok = gaps[b] == gaps[a]
         ok &= (self.t[a] >= self.t_g[0]) & (self.t[b] <= self.t_g[-1])
-        sat = np.concatenate([[0], np.cumsum(saturated(self.w_g))])
-        lo = np.searchsorted(self.t_g, self.t[a])
-        hi = np.searchsorted(self.t_g, self.t[b], side="right")
-        ok &= sat[np.minimum(hi, len(self.t_g))] == sat[lo]
+        ok &= clear_of_saturation(self.t_g, self.w_g, self.t[a], self.t[b])
         fr = fresh(self.m)
         ok &= fr[a] & fr[b]
         a, b = a[ok], b[ok]
@@ -151,10 +145,7 @@ class LinkPairs:
         zero = not (np.any(bias) or np.any(gain))
         if zero and getattr(self, "_R0", None) is not None:
             return self._R0
-        rates = self.w_g * (1.0 + np.asarray(gain)) - np.asarray(bias)
-        steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(self.t_g)[:, None]
-        Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
-        orient = Orientation(self.t_g, Q.as_quat(), steps)
+        orient = integrate_rates(self.t_g, self.w_g * (1.0 + np.asarray(gain)) - np.asarray(bias))
         Qa = orient.at(self.t[self.a]).as_matrix()
         Qb = orient.at(self.t[self.b]).as_matrix()
         R = np.einsum("pji,pjk->pik", Qb, Qa)

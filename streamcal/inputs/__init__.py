@@ -14,13 +14,16 @@ naming the file and what is wrong or missing.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Mapping
+from typing import TYPE_CHECKING, Mapping
 
 from ..errors import InputError, TrackError
 from .track import Track
 from .autopilot_cal import calibration_from_ardupilot
 from .columns import parse_columns, parse_unit
 from .detect import FORMATS, detect
+
+if TYPE_CHECKING:   # for the return annotation of autopilot_calibration only
+    from ..calibration import Calibration
 
 __all__ = ["read_recording", "detect", "FORMATS", "autopilot_calibration",
            "calibration_from_ardupilot"]

@@ -84,7 +84,7 @@ def iter_track_chunks(path: str | os.PathLike, rows: int = 100_000,
         raise ValueError(f"rows must be a positive number, got {rows}")
     where = os.fspath(path)
     pieces = _line_pieces(where, int(rows))
-    text, line_no, at_end = "", 1, False
+    text, at_end = "", False
     # the preamble: read on until the header line is complete (or the file ends)
     while True:
         try:

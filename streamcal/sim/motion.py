@@ -160,7 +160,14 @@ def hand_motion(t0: float, t1: float, rng: np.random.Generator, *, coverage: str
     # Body rate from the orientation path: ω_k ≈ log(R_kᵀ R_{k+1}) / dt, centred.
     conj = q[:-1] * np.array([-1.0, -1.0, -1.0, 1.0])
     step = Rotation.from_quat(qmul(conj, q[1:])).as_rotvec() / dt
-    omega = np.empty((n, 3))
+    return Motion(t, Rotation.from_quat(q), rate_at_nodes(step), accel, env)
+
+
+def rate_at_nodes(step: np.ndarray) -> np.ndarray:
+    """(G,3) body rate (rad/s) at the grid instants from the mean rates over the G−1 steps
+    between them (G−1,3): the average of the two steps around an inner instant (centred), the
+    one step at either end."""
+    omega = np.empty((len(step) + 1, 3))
     omega[1:-1] = 0.5 * (step[:-1] + step[1:])
     omega[0], omega[-1] = step[0], step[-1]
-    return Motion(t, Rotation.from_quat(q), omega, accel, env)
+    return omega

@@ -16,9 +16,9 @@ rotation is about the body z axis only.
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation, Slerp
+from scipy.spatial.transform import Rotation
 
-from .motion import smooth_noise
+from .motion import Motion, rate_at_nodes, smooth_noise
 
 #: Frequencies (Hz) of the bounded tilt/yaw wobble.
 WOBBLE_HZ = (0.1, 0.5)
@@ -46,22 +46,22 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
         psi = _wobble(tg, np.radians(yaw_deg), rng)
     tilt = np.column_stack([_wobble(tg, np.radians(tilt_deg), rng) for _ in range(2)])
     rot = Rotation.from_euler("ZYX", np.column_stack([psi, tilt[:, 1], tilt[:, 0]]))
-    q = rot.as_quat()
+    # scipy's composition here, not motion.py's quaternion product: that one differs in the
+    # last bits (≈ 1e-13 rad/s), and the seeds' tracks are kept as they were
     step = (rot[:-1].inv() * rot[1:]).as_rotvec() / dt
-    omega = np.empty((n, 3))
-    omega[1:-1] = 0.5 * (step[:-1] + step[1:])
-    omega[0], omega[-1] = step[0], step[-1]
-    slerp = Slerp(tg, Rotation.from_quat(q))
+    motion = Motion(tg, Rotation.from_quat(rot.as_quat()), rate_at_nodes(step),
+                    np.zeros((n, 3)), np.ones(n))
 
     t_mag = np.arange(0.0, duration_s, 1.0 / mag_rate_hz)
     t_imu = np.arange(0.0, duration_s, 1.0 / imu_rate_hz) + 0.25 / imu_rate_hz
+    to_body_mag = motion.at(t_mag)[0].inv()
+    to_world_imu, w, _ = motion.at(t_imu)
     f = earth_field(field_uT, dip_deg)
-    h = slerp(t_mag).inv().apply(f / field_uT)
+    h = to_body_mag.apply(f / field_uT)
     mag = h @ K.T + b + noise_uT * rng.standard_normal(h.shape)
-    w = np.stack([np.interp(t_imu, tg, omega[:, i]) for i in range(3)], 1)
     gyro = w * (1.0 + np.asarray(gyro_gain)) + np.asarray(gyro_bias) + \
         gyro_noise * rng.standard_normal(w.shape)
-    accel = slerp(t_imu).inv().apply([0.0, 0.0, 9.80665])
+    accel = to_world_imu.inv().apply([0.0, 0.0, 9.80665])
     temp = np.full(len(t_imu), 25.0)
     meta = {"sensor": "mpu9250", "source": f"yaw slice seed {seed}", "simulated": "yes",
             "seed": str(seed), "mag_unit": "uT"}
@@ -71,7 +71,7 @@ def yaw_slice(duration_s: float = 60.0, seed: int = 0, *, K, b, noise_uT: float 
                      imu={"gyro_b": np.asarray(gyro_bias), "gyro_S": 1 + np.asarray(gyro_gain)},
                      outlier_spans=np.empty((0, 2)), seed=int(seed), t_mag=t_mag,
                      t_sample=t_mag, directions=h, directions_body=h,
-                     up_body=slerp(t_mag).inv().apply([0.0, 0.0, 1.0]), mag_clean=h @ K.T + b,
+                     up_body=to_body_mag.apply([0.0, 0.0, 1.0]), mag_clean=h @ K.T + b,
                      disturbance=np.zeros_like(h), temp=np.full(len(t_mag), 25.0),
                      motor_current=np.zeros(len(t_mag)))
     return SimResult(track, truth)
