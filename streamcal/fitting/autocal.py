@@ -60,10 +60,8 @@ SHARED_SHAPE_CHECK = 3000
 #: only cost iterations (4 → 3 on freeimucal N = 1000).
 CLEAN_LAM0 = 1.0
 #: The Geman–McClure polish starts at the damping the Cauchy pass ended at, but no lower than
-#: this. It starts at that pass's optimum, so refine's default λ0 = 10 only shortened its
-#: steps: on freeimucal N = 1000 it took 4 iterations (relative decreases 5e-6, 5e-6, 2e-6,
-#: 2e-8) and now 2; on clean paper-protocol data it stopped one damped step short of its
-#: optimum (up to 1.8e-5 of eq. 39 error away from the polish run to rtol 1e-13), now within 1e-6.
+#: this: it starts at that pass's optimum, where refine's default λ0 = 10 only shortens the
+#: first steps (on clean data the polish then stopped one damped step short of its optimum).
 POLISH_LAM_MIN = 1e-3
 #: Up to this many samples the default fit's clean algebraic start is the L2 ellipsoid of every
 #: sample (a (10,N) design matrix, 1.6 MB at the cap); above it, of the stage-1 spread subset as

@@ -58,15 +58,15 @@ class LMResult:
     cost: float
     iterations: int
     converged: bool
+    #: the damping λ the run ended with (after its last accepted step's decrease, or the last
+    #: one tried): where a follow-on run from this solution may start
+    lam: float
     history: list = field(default_factory=list)
     #: :data:`streamcal.fitting.damped_lm.STATUSES`: ``converged`` (relative decrease below
     #: rtol), ``stalled`` (no trial step lowered the cost; ``converged`` is also True then, as
     #: it always was) or ``max_iter``; ``message`` in words.
     status: str = "max_iter"
     message: str = ""
-    #: the damping λ the run ended with (after its last accepted step's decrease, or the last
-    #: one tried): where a follow-on run from this solution may start
-    lam: float = float("nan")
 
 
 def _k_vector(K: np.ndarray, structure: str) -> np.ndarray:
