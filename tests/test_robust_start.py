@@ -21,7 +21,8 @@ from streamcal.fitting.autocal import _looks_contaminated, stage1
 from streamcal.fitting.ellipsoid import directions_from_model, spread_subset
 from streamcal.fitting.normalize import normalize
 from streamcal.fitting.shared_shape import shift_start
-from streamcal.fitting.robust_start import (coherent_start, contiguous_bad_chunks, fit_sphere,
+from streamcal.fitting.robust_start import (MAX_ANISOTROPY, anisotropy, coherent_start,
+                                        contiguous_bad_chunks, fit_sphere,
                                         longest_run_probability, lqs_score, radial_error,
                                         robust_start)
 from streamcal.sim import paper_protocol
@@ -315,3 +316,30 @@ def test_a_disturbance_with_slight_soft_iron_does_not_worsen_the_fit(monkeypatch
     support_only = fit(m, check_coverage=False)
     assert (model_error(whole.K, whole.b, K_TRUE, B_TRUE)
             <= model_error(support_only.K, support_only.b, K_TRUE, B_TRUE) + 0.002)
+
+
+# --- the robust start never picks a shell no magnetometer has -------------------------------
+
+def test_a_thin_shell_through_the_outliers_is_not_a_start():
+    # σ = 2, 30 % outliers, seed 70: a concentration run threaded a long thin ellipsoid
+    # (cond(K) ≫ 3) through the outlier cloud with a lower 20 % radial quantile than the true
+    # shell's, and the default fit ended 1 046 % off (every kernel did)
+    m, K, b, inliers = paper_protocol(1000, 2.0, 0.30, 70)
+    m_n, center, scale = normalize(m)
+    K0, b0 = stage1(m_n, clean_start=True)
+    K1, b1 = robust_start(K0, b0, m_n)
+    assert anisotropy(K1) <= MAX_ANISOTROPY
+    assert model_error(K1, b1, K / scale, (b - center) / scale) < 0.1
+    cal = fit(m, check_coverage=False)
+    oracle = fit(m[inliers], kernel="l2", check_coverage=False)
+    assert model_error(cal.K, cal.b, K, b) < 1.5 * model_error(oracle.K, oracle.b, K, b)
+
+
+def test_without_a_plausible_concentration_the_start_stands():
+    # every run from a plain cloud of points ends implausible or not: the start is returned
+    # unchanged when none is plausible (a sphere start on isotropic noise stays a sphere)
+    rng = np.random.default_rng(1)
+    m = rng.normal(size=(600, 3)) * np.array([1.0, 0.2, 0.05])     # a flat cloud, no shell
+    K0, b0 = np.eye(3), np.zeros(3)
+    K1, b1 = robust_start(K0, b0, m)
+    assert anisotropy(K1) <= MAX_ANISOTROPY

@@ -28,6 +28,16 @@ def radial_error(K: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:
     return np.abs(np.linalg.norm(np.linalg.solve(K, (m - b).T), axis=0) - 1.0)
 
 
+#: cond(K) above which a start is implausible for a magnetometer.
+MAX_ANISOTROPY = 3.0
+
+
+def anisotropy(K: np.ndarray) -> float:
+    """cond(K): the ratio of the sensor matrix's largest to smallest singular value."""
+    s = np.linalg.svd(K, compute_uv=False)
+    return float(s[0] / max(s[-1], 1e-300))
+
+
 def lqs_score(K: np.ndarray, b: np.ndarray, m: np.ndarray) -> float:
     """The SCORE_QUANTILE quantile of the radial errors (lower is better)."""
     return float(np.quantile(radial_error(K, b, m), SCORE_QUANTILE))
@@ -50,7 +60,8 @@ def concentrate(K: np.ndarray, b: np.ndarray, m: np.ndarray, steps: int = 20):
 
 
 def robust_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray, n_max: int = 2000):
-    """Best (K, b) by :func:`lqs_score` over concentration runs from scaled copies of (K0, b0).
+    """Best (K, b) by :func:`lqs_score` over concentration runs from scaled copies of (K0, b0),
+    among those a magnetometer could have (cond(K) ≤ MAX_ANISOTROPY); (K0, b0) when none is.
 
     Works on at most ``n_max`` samples spread over directions: a board resting in one pose
     gives a dense cluster that any thin shell through it would "fit" with a tiny score."""
@@ -58,9 +69,14 @@ def robust_start(K0: np.ndarray, b0: np.ndarray, m: np.ndarray, n_max: int = 200
     best = None
     for scale in SCALES:
         K, b = concentrate(K0 * scale, b0, m)
+        if anisotropy(K) > MAX_ANISOTROPY:
+            # the scale-free score favours a long thin shell threaded through the outliers
+            continue
         score = lqs_score(K, b, m)
         if best is None or score < best[0]:
             best = (score, K, b)
+    if best is None:
+        return K0, b0
     return best[1], best[2]
 
 
@@ -105,8 +121,6 @@ HETEROGENEITY = 0.5
 #: disturbed chunks only part-inside, so their fractions can differ from the rest's by little
 #: more than the binomial spread; their contiguity is what gives the disturbance away.
 CONTIGUOUS_SPREAD, RUN_SHARE, RUN_P = 0.3, 0.25, 1e-3
-#: cond(K) above which a start is implausible for a magnetometer.
-MAX_ANISOTROPY = 3.0
 #: A chunk yields a sphere when its points spread (std along the 2nd and 3rd principal axes)
 #: over at least these fractions of the sphere's radius.
 MIN_SPREAD, MIN_DEPTH = 0.15, 0.02
@@ -154,11 +168,6 @@ def trimmed_sphere(m: np.ndarray, steps: int = 4):
             return None
         model = fit_sphere(near)
     return model
-
-
-def anisotropy(K: np.ndarray) -> float:
-    s = np.linalg.svd(K, compute_uv=False)
-    return float(s[0] / max(s[-1], 1e-300))
 
 
 def _chunk_fractions(e: np.ndarray, chunk: np.ndarray, n_chunks: int, delta: float):
