@@ -9,7 +9,7 @@ from streamcal.calibration import Calibration
 from streamcal.cli.diagnose import held_text
 from streamcal.diagnosis.gyro_guard import P_GUARD
 from streamcal.diagnosis.held import TOLERANCE, field_radius
-from streamcal.fitting.gyro_lag import gyro_rates
+from streamcal.fitting.gyro_rates import gyro_rates
 from streamcal.fitting.gyro_link import LinkPairs, link_fit
 from streamcal.inputs.track import Track
 from streamcal.sim.yaw_slice import yaw_slice

@@ -38,7 +38,8 @@ import numpy as np
 
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
-from ..fitting.gyro_lag import EXPLAINED, gyro_rates
+from ..fitting.gyro_lag import EXPLAINED
+from ..fitting.gyro_rates import gyro_rates
 from ..fitting.entries import entry, with_entries
 from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
 from .gyro_guard import RULE as GUARD_RULE

@@ -59,7 +59,7 @@ Robust weights and the rms
 --------------------------
 Pairs are weighted by the fit's kernel (width from the median residual after the grid, as in
 :mod:`streamcal.fitting.registration`, then held fixed so the robust cost stays one function);
-pairs across a saturated gyro reading (:func:`saturated`) are dropped, and so are
+pairs across a saturated gyro reading (:func:`.gyro_rates.saturated`) are dropped, and so are
 sample-and-hold repeats of the magnetometer (:func:`fresh`); a pair is an inlier when both samples are inliers of the
 free-direction fit and ‖r_ab‖ ≤ 2 kernel widths. ``rms`` is sqrt(mean ‖r_ab‖²) over inlier pairs,
 in the sensor unit — computed the same way with and without the lag (same pairs, same 12
@@ -80,9 +80,10 @@ from scipy.spatial.transform import Rotation
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError, MissingColumnsError
 from ..model.build import check_known, terms_from_params
-from ..quaternion import cumulative_rotation, qmul
 from .core import fit_core
 from .damped_lm import damped_lm, lag_grid, search_lag, trimmed_cost
+from .gyro_rates import (Orientation, clear_of_saturation, fresh, gyro_rates, horizon_pairs,
+                         integrate_rates)
 from .kernels import kernel_weights, width_from_residuals
 from .registration_result import RegistrationFit
 
@@ -104,73 +105,10 @@ GAP_FACTOR = 1.5
 #: The gyro must predict the direction H later this much better (rms over the pairs) than
 #: assuming no rotation, else it does not explain the direction changes (refused).
 EXPLAINED = 0.5
-#: A gyro full-scale value reached on this many rows marks saturation (pairs across it dropped).
-SATURATED_ROWS = 3
 #: Singular values of the fitted gyro map M outside this range mean the gyro does not explain
 #: the direction changes (saturated, or not on the magnetometer's board): the fit is refused.
 GAIN_RANGE = (0.7, 1.4)
 N_GYRO_PARAMS = 12
-
-
-def gyro_rates(track) -> tuple[np.ndarray, np.ndarray]:
-    """IMU instants (G,) s, strictly increasing, and the gyro readings there (G,3) rad/s."""
-    if not track.has("gyro"):
-        raise MissingColumnsError("the gyro-tied lag needs gyroscope columns (gx, gy, gz), "
-                                  "which the track lacks")
-    t = np.asarray(track.t[track.gyro_rows], dtype=float)
-    w = np.asarray(track.gyro, dtype=float)
-    keep = np.r_[True, np.diff(t) > 0]
-    if keep.sum() < 10:
-        raise InsufficientDataError(f"{int(keep.sum())} gyro samples are too few for the "
-                                    "gyro-tied lag")
-    return t[keep], w[keep]
-
-
-def fresh(m: np.ndarray) -> np.ndarray:
-    """(N,) False for a magnetometer reading (N,3) identical on all three axes to the one
-    before: a sample-and-hold repeat logged faster than the sensor updates. Its stamp is later
-    than its sampling instant, which would read as lag, so the pairs leave repeats out."""
-    out = np.ones(len(m), bool)
-    out[1:] = ~np.all(m[1:] == m[:-1], axis=1)
-    return out
-
-
-def saturated(w: np.ndarray) -> np.ndarray:
-    """(G,) True where a gyro reading (G,3) rad/s sits at the full-scale value: an axis exactly
-    at the largest |ω| of the track, that value read on at least :data:`SATURATED_ROWS` rows
-    (a clipped rate says nothing of the rotation; a smooth peak is not repeated exactly)."""
-    top = float(np.max(np.abs(w))) if len(w) else 0.0
-    at = np.abs(w) == top
-    return at.any(axis=1) if top > 0 and at.sum() >= SATURATED_ROWS else np.zeros(len(w), bool)
-
-
-def horizon_pairs(t: np.ndarray, horizon: float) -> tuple[np.ndarray, np.ndarray]:
-    """Sample indices (a, b), each (P,): for every sample a of the stamps ``t`` (N,) s, b the
-    first sample at least ``horizon`` s after it (the next one when that is later; irregular
-    sampling allowed). The last samples, with no such b, have no pair."""
-    n = len(t)
-    a = np.arange(n)
-    b = np.maximum(np.searchsorted(t, t + horizon), a + 1)
-    return a[b < n], b[b < n]
-
-
-def clear_of_saturation(t_g: np.ndarray, w: np.ndarray, t_from: np.ndarray,
-                        t_to: np.ndarray) -> np.ndarray:
-    """(P,) True where no saturated gyro row (:func:`saturated`; rows at ``t_g`` (G,) s, rates
-    ``w`` (G,3) rad/s) lies within [``t_from``, ``t_to``] (P,) s."""
-    sat = np.concatenate([[0], np.cumsum(saturated(w))])      # saturated rows before
-    lo = np.searchsorted(t_g, t_from)
-    hi = np.searchsorted(t_g, t_to, side="right")
-    return sat[np.minimum(hi, len(t_g))] == sat[np.minimum(lo, len(t_g))]
-
-
-def integrate_rates(t_g: np.ndarray, rates: np.ndarray) -> "Orientation":
-    """Q (body → gyro-following frame, Q = I at the first row) on the gyro rows ``t_g`` (G,) s
-    from the body rates ``rates`` (G,3) rad/s: midpoint rule, Q_{i+1} = Q_i exp(ω̄_i Δt_i) with
-    ω̄_i the average of rows i and i+1."""
-    steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(t_g)[:, None]
-    Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
-    return Orientation(t_g, Q.as_quat(), steps)
 
 
 def _interp_rows(t_query: np.ndarray, t: np.ndarray, values: np.ndarray) -> np.ndarray:
@@ -282,23 +220,6 @@ class GyroPairs:
         return np.einsum("ij,pkj->pik", self.K, back)
 
 
-class Orientation:
-    """Q(t) from quaternions ``quat`` (G,4, scalar last) at the gyro rows ``t`` (G,) s and the
-    rotation vectors ``steps`` (G−1,3) rad between them (Q_{i+1} = Q_i exp(steps_i)): at an
-    instant inside row i's interval, Q_i exp(f·steps_i) — the slerp, without scipy's slow
-    composition."""
-
-    def __init__(self, t, quat, steps):
-        self.t, self.quat, self.steps = t, quat, steps
-
-    def at(self, t_query: np.ndarray) -> Rotation:
-
-        i = np.clip(np.searchsorted(self.t, t_query) - 1, 0, len(self.t) - 2)
-        f = np.clip((t_query - self.t[i]) / (self.t[i + 1] - self.t[i]), 0.0, 1.0)
-        part = Rotation.from_rotvec(f[:, None] * self.steps[i]).as_quat()
-        return Rotation.from_quat(qmul(self.quat[i], part))
-
-
 def _skew(v: np.ndarray) -> np.ndarray:
     """(N,3,3) cross-product matrices [v]×."""
     z = np.zeros(len(v))
@@ -345,7 +266,7 @@ def fit_gyro_tied(pairs: GyroPairs, *, fit_lag: bool, kernel: str = "cauchy",
     width = width_from_residuals(kernel, np.linalg.norm(r, axis=1))   # fixed: one robust cost
 
     def linearize(state, aux):   # IRLS: this round's weights define the merit
-        (p, lag_s), (Q, r) = state, aux
+        (_, lag_s), (Q, r) = state, aux
         rn = np.linalg.norm(r, axis=1)
         w = kernel_weights(kernel, rn, width)
         J = pairs.map_jacobian(Q, lag_s, use)

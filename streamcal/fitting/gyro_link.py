@@ -57,7 +57,7 @@ import numpy as np
 from ..constants import OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
 from .entries import B_INDEX, K_INDEX, entry, with_entries
-from .gyro_lag import clear_of_saturation, fresh, horizon_pairs, integrate_rates
+from .gyro_rates import clear_of_saturation, fresh, horizon_pairs, integrate_rates
 
 #: Seconds between the two readings of a pair (0: consecutive readings).
 HORIZON_S = 1.0
@@ -109,7 +109,7 @@ class LinkPairs:
     and the gyro rows ``t_g`` (G,) s, ``w_g`` (G,3) rad/s (magnetometer frame) that link them.
     A pair is dropped when it spans a gap, leaves the gyro's span, crosses a saturated gyro
     row, or either reading is a sample-and-hold repeat (the pairing, saturation test and
-    integration are :mod:`.gyro_lag`'s, shared with :class:`~.gyro_lag.GyroPairs`)."""
+    integration are :mod:`.gyro_rates`'s, shared with :class:`~.gyro_lag.GyroPairs`)."""
 
     def __init__(self, m, t, t_g, w_g, horizon: float = HORIZON_S):
         self.m, self.t = np.asarray(m, float), np.asarray(t, float)
