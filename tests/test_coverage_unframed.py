@@ -2,6 +2,7 @@
 at rest (a cluster of noise) has no directions, so its coverage is "not measured", never a
 percentage (it read 93 % with "coverage is good: no action needed" before)."""
 import json
+import re
 
 import numpy as np
 
@@ -46,19 +47,35 @@ def test_before_the_first_estimate_nothing_is_measured():
     sc = StreamingCalibrator(synchronous=True)
     t, m = spiral_track(0.5)                          # 50 samples: no sphere estimate yet
     feed(sc, t, m)
-    assert not sc.coverage.measured and "first estimate" in sc.coverage.hint
+    assert not sc.coverage.measured and "an estimate comes every" in sc.coverage.hint
+
+
+def test_one_large_block_is_framed_by_its_own_samples():
+    # the frame is judged after the block joins the buffer (it was judged before: a whole
+    # recording fed at once stayed "not measured")
+    sc = StreamingCalibrator(synchronous=True)
+    feed(sc, *spiral_track(20.0), block=2000)
+    assert sc.coverage.measured and sc.coverage.fraction > 0.1
 
 
 def test_replay_of_a_board_at_rest_says_not_measured(tmp_path, capsys):
     path = tmp_path / "rest.csv"
-    Track.from_arrays(*_at_rest()[0:1], mag=_at_rest()[1]).write(path)
+    t, m = _at_rest()
+    Track.from_arrays(t, mag=m).write(path)
     assert main(["replay", str(path), "--json"]) == 1         # no calibration
     lines = capsys.readouterr().out.splitlines()
     parsed = [json.loads(line, parse_constant=lambda c: (_ for _ in ()).throw(ValueError(c)))
               for line in lines]                               # strict JSON: no NaN
     summary = parsed[-1]
     assert summary["event"] == "summary" and summary["coverage"] is None
-    assert "coverage not measured" in summary["message"] and "93%" not in summary["message"]
+    assert "coverage not measured" in summary["message"]
+    # no percentage anywhere: the summary's why, its environments, the fits started
+    assert not re.search(r"cover \d+%", summary["why"]) and "not measured" in summary["why"]
+    assert all(e["coverage"] is None for e in summary["environments"])
+    started = [e for e in parsed if e["event"] == "fit_started"]
+    assert started and all(e["coverage"] is None and "coverage not measured" in e["message"]
+                           for e in started)
+    assert not any(e["event"] == "coverage" for e in parsed)
 
 
 def test_coverage_words():

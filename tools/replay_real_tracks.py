@@ -85,7 +85,7 @@ def per_track(paths) -> list[dict]:
         cal = sc.calibration
         row = {"name": path.name.split(".")[0], "n": int(track.mag_rows.sum()),
                "unit": track.mag_unit.split(" ")[0], "wall": wall, "counts": counts,
-               "coverage": sc.buffer.fraction, "batch": note, "cal": cal, "ref": ref}
+               "coverage": sc.buffer.measured_fraction, "batch": note, "cal": cal, "ref": ref}
         if cal is not None and ref is not None:
             row["dev"] = cal.model_error(ref)
             m = track.mag
@@ -184,8 +184,9 @@ def table(rows) -> list[str]:
         else:
             dev = f"{r['dev']:.4f}"
             err = f"{r['err_stream']:.3g} / {r['err_batch']:.3g}"
+        cov = "not measured" if r["coverage"] is None else f"{100 * r['coverage']:.0f}%"
         out.append(f"| {r['name']} | {r['n']} | {r['unit']} | {fits} | {c.get('drift', 0)} | "
-                   f"{c.get('disturbance', 0)} | {100 * r['coverage']:.0f}% | {r['batch']} | {dev} | {err} | "
+                   f"{c.get('disturbance', 0)} | {cov} | {r['batch']} | {dev} | {err} | "
                    f"{r['wall']:.2f} s |")
     return out
 

@@ -153,10 +153,10 @@ def _event(event, calibrator, accepted, maps_done, say, coverage_view) -> None:
     if event.kind == "accepted":
         cal = calibrator.calibration
         field = cal.field or cal.radius
-        coverage = event.data.get("coverage_at_fit", cal.coverage) or 0.0
+        coverage = event.data.get("coverage_at_fit", cal.coverage)
         accepted.append({"t": event.t, "coverage": coverage, "rms": cal.rms, "field": field,
                          "b": np.asarray(cal.b).tolist()})
-        say(f"{when} calibration #{len(accepted)} accepted: coverage {100 * coverage:3.0f}%, "
+        say(f"{when} calibration #{len(accepted)} accepted: {coverage_words(coverage)}, "
             f"rms {cal.rms:.3f} {_unit(cal.unit)}, field {field:.2f} {_unit(cal.unit)}")
     elif event.kind == "coverage":
         frac = calibrator.buffer.fraction
@@ -226,9 +226,12 @@ def _stream_html(accepted, unit: str) -> str:
     u = _unit(unit)
     if not accepted:
         return "<p>The streaming calibrator accepted no calibration during the replay.</p>"
-    rows = "".join(f"<tr><td class=\"num\">{a['t']:.1f}</td><td class=\"num\">"
-                   f"{100 * a['coverage']:.0f}%</td><td class=\"num\">{a['rms']:.3f}</td>"
-                   f"<td class=\"num\">{a['field']:.2f}</td></tr>" for a in accepted)
+    def cells(a):
+        cov = "not measured" if a["coverage"] is None else f"{100 * a['coverage']:.0f}%"
+        return (f"<tr><td class=\"num\">{a['t']:.1f}</td><td class=\"num\">{cov}</td>"
+                f"<td class=\"num\">{a['rms']:.3f}</td><td class=\"num\">{a['field']:.2f}</td></tr>")
+
+    rows = "".join(cells(a) for a in accepted)
     return ("<h2>Streaming: calibrations accepted as coverage grew</h2><p>The track was replayed "
             "through the MPU-9250 driver on a simulated I²C bus into the streaming calibrator.</p>"
             f"<table><thead><tr><th>t (s)</th><th>coverage</th><th>rms ({html.escape(u)})</th>"

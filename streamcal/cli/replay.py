@@ -230,13 +230,17 @@ def _why_none(calibrator, refusals: dict, m) -> str:
     envs = calibrator.environment_summary()
     cover = ", ".join(
         f"t={e['start']:.1f}–" + (f"{e['end']:.1f}" if e["end"] is not None else "end")
-        + f" s: {100 * e['coverage']:.0f}%" for e in envs if e["start"] is not None)
+        + f" s: {_percent(e['coverage'])}" for e in envs if e["start"] is not None)
     if len(envs) > 1:
         parts.append(f"the field changed {len(envs) - 1} time(s); coverage per environment: "
                      f"{cover}, each short of the {100 * calibrator.policy.min_coverage:.0f}% "
                      "a first fit needs")
     else:
-        parts.append(f"the stored samples cover {100 * envs[-1]['coverage']:.0f}% of the "
+        parts.append(f"the stored samples' coverage of the sphere: "
+                     f"{_percent(envs[-1]['coverage'])} "
+                     f"({100 * calibrator.policy.min_coverage:.0f}% needed)"
+                     if envs[-1]["coverage"] is None else
+                     f"the stored samples cover {100 * envs[-1]['coverage']:.0f}% of the "
                      f"sphere ({100 * calibrator.policy.min_coverage:.0f}% needed)")
     from ..fitting.sphere_stream import sphere_spread
 
@@ -248,3 +252,8 @@ def _why_none(calibrator, refusals: dict, m) -> str:
                      "too little to tell the environments apart, and no one environment has "
                      "the coverage a calibration needs")
     return "; ".join(parts)
+
+
+def _percent(fraction: float | None) -> str:
+    """``93%``, or ``not measured`` (an environment whose directions no sphere framed)."""
+    return "not measured" if fraction is None else f"{100 * fraction:.0f}%"

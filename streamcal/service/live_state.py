@@ -55,6 +55,7 @@ import numpy as np
 
 from ..geomag import NO_LOCATION, compare, dip_deg
 from ..sphere_cells import hint, largest_empty_cap
+from ..stream.coverage import not_measured
 
 #: The residual the calibration's ``rms`` is computed on.
 RMS_RESIDUAL = "sensor estimation error over inliers (paper eq. 41)"
@@ -194,6 +195,8 @@ class LiveState:
         """The largest empty cap of the captured directions, recomputed only when the occupied
         cells changed and at most every ``gap_every_s`` (it costs O(probes × stored samples),
         tens of ms on a busy Pi; the terminal report computes the same figure)."""
+        if cap["unframed"]:     # not shown: the directions mean nothing yet
+            return np.full(3, np.nan), float("nan")
         key = np.packbits(np.asarray(cap["occupied"], bool)).tobytes()
         if self._gap is not None and (self._gap[0] == key
                                       or cap["now"] - self._gap[1] < self.gap_every_s):
@@ -245,7 +248,7 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
         "gap": {"deg": round(radius, 1), "center": [round(float(v), 3) for v in center]}
         if framed else None,
         "hint": hint(center, radius, cap["fraction"]) if framed
-        else f"coverage not measured: {cap['unframed']}",
+        else not_measured(cap["unframed"]),
         "magnitude": {"t": [round(r[0] - now, 2) for r in keep],
                       "raw": [round(r[1], 3) for r in keep],
                       "calibrated": [None if r[2] is None else round(r[2], 3) for r in keep],

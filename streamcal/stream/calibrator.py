@@ -121,7 +121,7 @@ class StreamingCalibrator:
         self.coarse_judge_coverage = float(coarse_judge_coverage)
         self._cal_ref: Reference | None = None
         self.environments = EnvironmentLog()
-        self.buffer.unframed = NO_ESTIMATE.format(n=self.sphere.min_n)
+        self.buffer.unframed = NO_ESTIMATE.format(n=self.sphere.every)
         if store is not None:
             self._load()
 
@@ -270,6 +270,8 @@ class StreamingCalibrator:
             if due:         # the estimate frames directions until a calibration is in use
                 self._update_coarse()
             stored, new_cells = self.buffer.insert(m, t, cov)
+            if due and not self._frame_is_cal:
+                self._update_unframed()
             self.policy.note(stored, new_cells)
             if ref is not None:
                 self._check(ref, events)
@@ -293,11 +295,7 @@ class StreamingCalibrator:
         if found is None:
             return
         c, R = found
-        reframe = moved or self.stale and self._frame_is_cal
-        if reframe or not self._frame_is_cal:
-            # the coverage is shown only once the estimate is a sphere through the samples
-            self.buffer.unframed = self.sphere.frame_problem(self.buffer.stored_mag())
-        if reframe:
+        if moved or self.stale and self._frame_is_cal:
             self._set_frame(c, np.eye(3) / R, from_cal=False)
         if self.tracker.open is None and not self._frame_is_cal \
                 and self.buffer.fraction >= self.coarse_judge_coverage:
@@ -311,6 +309,15 @@ class StreamingCalibrator:
                     self.policy.reset_window()
                 self.sphere.reference = ref
 
+    def _update_unframed(self) -> None:
+        """Coverage is shown only while the running estimate is a sphere through the stored
+        samples (:meth:`.running_sphere.RunningSphere.frame_problem`); the first time it is,
+        the coverage reached is reported as a milestone."""
+        was = self.buffer.unframed
+        self.buffer.unframed = self.sphere.frame_problem(self.buffer.stored_mag())
+        if was and not self.buffer.unframed:
+            self.milestones.rebase(0.0)
+
     def _set_frame(self, center, A, from_cal: bool) -> None:
         self.buffer.set_frame(center, A)
         if from_cal:
@@ -322,8 +329,7 @@ class StreamingCalibrator:
         self._frame_is_cal = from_cal
         if from_cal:
             self.buffer.unframed = ""
-        # while unframed no milestone is reported: the first framed one reports where it is
-        self.milestones.rebase(0.0 if self.buffer.unframed else self.buffer.fraction)
+        self.milestones.rebase(self.buffer.fraction)
 
     def _hold_back(self, m, t, cov, events) -> None:
         """With a calibration in force: samples that disagree with it are held back (module
@@ -368,11 +374,11 @@ class StreamingCalibrator:
             self._job.obsolete = True
 
     def _close_environment(self, end: float) -> None:
-        self.environments.close(end, self.buffer.fraction, self.buffer.n_samples)
+        self.environments.close(end, self.buffer.measured_fraction, self.buffer.n_samples)
 
     def environment_summary(self) -> list:
         """The environments seen (:meth:`.environments.EnvironmentLog.summary`)."""
-        return self.environments.summary(self.buffer.fraction, self.buffer.n_samples,
+        return self.environments.summary(self.buffer.measured_fraction, self.buffer.n_samples,
                                          self._cal is not None and not self.stale)
 
     def _forget(self, onset: float, events, why: str, held=None) -> None:
@@ -385,6 +391,8 @@ class StreamingCalibrator:
             self.buffer.insert(*held)
         kept = self.buffer.snapshot()
         self.sphere.reset(kept.m)
+        if not self._frame_is_cal:
+            self.buffer.unframed = NO_ESTIMATE.format(n=self.sphere.every)
         self.policy.restart()
         self.milestones.rebase(self.buffer.fraction)
         events.append(ev.forgot(dropped, len(kept), n_held, onset, why, self.clock.t_last))
@@ -412,7 +420,7 @@ class StreamingCalibrator:
     def _submit(self, request, t_now) -> list:
         snap = self.buffer.snapshot()
         held = (np.arange(len(snap)) + self.n_fits) % self.holdout_every == 0
-        job = FitJob(snap.subset(~held), snap.subset(held), self.buffer.fraction, t_now,
+        job = FitJob(snap.subset(~held), snap.subset(held), self.buffer.measured_fraction, t_now,
                    self.buffer.occupied)
         self.n_fits += 1
         self._job = job
@@ -443,7 +451,8 @@ class StreamingCalibrator:
             return [ev.discarded("environment_changed", t)]
         if job.error is not None:
             return [ev.fit_failed(job.error, t)]
-        cand = job.result.replace(unit=self.unit, coverage=round(float(job.coverage), 4))
+        cand = job.result.replace(unit=self.unit, coverage=job.result.coverage
+                                  if job.coverage is None else round(float(job.coverage), 4))
         if self.coarse is None or self._frame_is_cal:
             # the guard's reference radius, on demand
             found = sphere_of_samples(self.buffer.stored_mag(), self.sphere.min_n)

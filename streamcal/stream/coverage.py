@@ -20,6 +20,11 @@ import numpy as np
 from ..sphere_cells import SphereCells, hint, largest_empty_cap
 
 
+def not_measured(why: str) -> str:
+    """``coverage not measured: <why and what to do>`` (an unframed buffer's reason)."""
+    return f"coverage not measured: {why}"
+
+
 def coverage_words(fraction: float | None) -> str:
     """``coverage 93%``, or ``coverage not measured`` for None (an unframed buffer:
     :attr:`CoverageBuffer.measured_fraction`)."""
@@ -62,7 +67,7 @@ class CoverageReport:
         """``coverage 93% of the sphere; largest gap 12°: <hint>`` or ``coverage not measured:
         <why and what to do>``."""
         if not self.measured:
-            return f"coverage not measured: {self.hint}"
+            return not_measured(self.hint)
         return (f"coverage {100 * self.fraction:.0f}% of the sphere; largest gap "
                 f"{self.empty_cap_deg:.0f}°: {self.hint}")
 

@@ -19,8 +19,9 @@ class EnvironmentLog:
         if math.isnan(self.start):
             self.start = float(t)
 
-    def close(self, end: float, coverage: float, n_samples: int) -> None:
-        """The current environment ends at ``end`` (s) with ``coverage`` (sphere fraction) and
+    def close(self, end: float, coverage: float | None, n_samples: int) -> None:
+        """The current environment ends at ``end`` (s) with ``coverage`` (sphere fraction; None:
+        not measured) and
         ``n_samples`` stored; the next begins then, not calibrated."""
         self._closed.append(self._entry(end, coverage, n_samples, self.calibrated))
         self.start, self.calibrated = end, False
@@ -33,5 +34,6 @@ class EnvironmentLog:
 
     def _entry(self, end, coverage, n_samples, calibrated) -> dict:
         start = self.start if math.isfinite(self.start) else None
-        return {"start": start, "end": end, "coverage": round(coverage, 4),
+        return {"start": start, "end": end,
+                "coverage": None if coverage is None else round(coverage, 4),
                 "n_samples": n_samples, "calibrated": calibrated}

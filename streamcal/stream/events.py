@@ -56,10 +56,14 @@ def recalled(found, t: float) -> Event:
 
 def fit_started(number: int, request, job, t: float) -> Event:
     """Fit ``number`` started for ``request`` (a :class:`~.policy.FitRequest`) on ``job``."""
+    coverage = ("coverage not measured (the buffer's cells filled about a running sphere that "
+                "the samples do not fit)" if job.coverage is None
+                else f"coverage {100 * job.coverage:.0f}%")
     return Event("fit_started", f"fit #{number} started ({request.reason}): {len(job.fit_set)} "
-                 f"samples, {len(job.holdout)} held out, coverage {100 * job.coverage:.0f}%",
+                 f"samples, {len(job.holdout)} held out, {coverage}",
                  {"reason": request.reason, "fit": number, "n_fit": len(job.fit_set),
-                  "n_holdout": len(job.holdout), **request.data}, t)
+                  "n_holdout": len(job.holdout), **request.data,
+                  "coverage": None if job.coverage is None else round(job.coverage, 4)}, t)
 
 
 def verdict(cand, decision, unit: str, t: float) -> Event:

@@ -23,12 +23,13 @@ TOL, MAX_ITER = 1e-6, 8
 #: noise cluster (a board at rest) or through two environments leaves far more.
 MAX_SPREAD = 0.05
 #: Above this relative spread the estimate does not even frame directions: the stored samples
-#: are no sphere (a board at rest: its noise cluster leaves 0.39–0.47 at σ = 0.1–1 µT), and
-#: the coverage they would show is not measured. Soft iron stays below it (0.22 on a full sphere
-#: with axes 1.5 : 1; a cap leaves less).
+#: are no sphere and the coverage they would show is not measured. A board at rest (its noise
+#: cluster) leaves 0.45 whatever the noise (σ = 0.1–1 µT, 30 s through the calibrator); soft iron
+#: with axes 1.5 : 1 about 0.2 on a full sphere and 0.03 on the cap the first 20 s of turning
+#: cover (axes 2 : 1: 0.34 on a full sphere, by when a first calibration frames them).
 FRAME_SPREAD = 0.3
 #: Why the buffer is unframed before the first estimate.
-NO_ESTIMATE = ("no sphere through the readings yet (the first estimate needs {n} samples): "
+NO_ESTIMATE = ("no sphere through the readings yet (an estimate comes every {n} samples): "
                "keep rotating the board through many orientations")
 
 
@@ -128,7 +129,7 @@ class RunningSphere:
         """Why the estimate cannot frame the directions of ``stored`` (n,3) ("" when it can)."""
         spread = self.spread(stored)
         if spread is None:
-            return NO_ESTIMATE.format(n=self.min_n)
+            return NO_ESTIMATE.format(n=self.every)
         if spread > FRAME_SPREAD:
             return (f"the readings lie on no sphere yet (relative spread {spread:.0%} about the "
                     f"best one, more than {FRAME_SPREAD:.0%}: a board at rest, or turned too "
