@@ -335,11 +335,15 @@ def test_a_thin_shell_through_the_outliers_is_not_a_start():
     assert model_error(cal.K, cal.b, K, b) < 1.5 * model_error(oracle.K, oracle.b, K, b)
 
 
-def test_without_a_plausible_concentration_the_start_stands():
-    # every run from a plain cloud of points ends implausible or not: the start is returned
-    # unchanged when none is plausible (a sphere start on isotropic noise stays a sphere)
-    rng = np.random.default_rng(1)
-    m = rng.normal(size=(600, 3)) * np.array([1.0, 0.2, 0.05])     # a flat cloud, no shell
+def test_without_a_plausible_concentration_the_start_stands(monkeypatch):
+    # every concentration run ends on a shell no magnetometer has: the start is returned
+    import streamcal.fitting.robust_start as rs
+
+    thin = np.diag([5.0, 1.0, 0.5])
+    monkeypatch.setattr(rs, "concentrate", lambda K, b, m, steps=20: (thin, b + 1.0))
+    m, _, _, _ = paper_protocol(600, 1.0, 0.0, 2)
+    m_n = normalize(m)[0]
     K0, b0 = np.eye(3), np.zeros(3)
-    K1, b1 = robust_start(K0, b0, m)
-    assert anisotropy(K1) <= MAX_ANISOTROPY
+    K1, b1 = robust_start(K0, b0, m_n)
+    assert K1 is K0 and b1 is b0
+    assert anisotropy(thin) > MAX_ANISOTROPY

@@ -14,7 +14,7 @@ import json
 import os
 import sys
 
-from ..calibration import DEFAULT_MODEL
+from ..calibration import DEFAULT_MODEL, jsonable
 from ._common import add_skip_bad_rows
 
 DEFAULT_STATE_DIR = "~/.local/state/streamcal"
@@ -217,6 +217,6 @@ def run(args) -> int:
         raise
     service.install_signal_handlers()
     code = service.run()
-    print(json.dumps(service.summary()), file=sys.stderr if args.json_lines else sys.stdout,
+    print(json.dumps(jsonable(service.summary()), allow_nan=False), file=sys.stderr if args.json_lines else sys.stdout,
           flush=True)
     return code

@@ -5,7 +5,7 @@ import json
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL
+from ..calibration import DEFAULT_MODEL, jsonable
 from ..model.catalog import EFFECT_NAMES
 from ._common import RECORDING_HELP, add_input_options, read_track
 
@@ -77,7 +77,7 @@ def run(args) -> int:
         out = cal.to_dict()
         if sensor is not None:
             out["rms_sensor"] = sensor
-        print(json.dumps(out))
+        print(json.dumps(jsonable(out), allow_nan=False))
     else:
         print(format_calibration(cal, args.track, residual, sensor))
         if args.output:

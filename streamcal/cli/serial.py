@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import sys
 
+from ..calibration import jsonable
 from ._common import add_skip_bad_rows
 from .daemon import add_service_options, build
 from ._selfcal import board_self_cal, format_board_self_cal
@@ -115,7 +116,7 @@ def run(args) -> int:
         summary["board_self_cal"] = board
         if not args.json_lines:
             print(format_board_self_cal(board), flush=True)
-    print(json.dumps(summary), file=sys.stderr if args.json_lines else sys.stdout, flush=True)
+    print(json.dumps(jsonable(summary), allow_nan=False), file=sys.stderr if args.json_lines else sys.stdout, flush=True)
     return code
 
 

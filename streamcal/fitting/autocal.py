@@ -59,10 +59,11 @@ SHARED_SHAPE_CHECK = 3000
 #: start (else refine's 10): the start is near the optimum, so the heavily damped first steps
 #: only cost iterations (4 → 3 on freeimucal N = 1000).
 CLEAN_LAM0 = 1.0
-#: The Geman–McClure polish starts at the damping the Cauchy pass ended at, but no lower than
-#: this: it starts at that pass's optimum, where refine's default λ0 = 10 only shortens the
-#: first steps (on clean data the polish then stopped one damped step short of its optimum).
-POLISH_LAM_MIN = 1e-3
+#: The Geman–McClure polish starts at the damping the Cauchy pass ended at, within
+#: [POLISH_LAM_MIN, refine's default 10]: it starts at that pass's optimum, where λ0 = 10 only
+#: shortens the first steps (on clean data the polish then stopped one damped step short of its
+#: optimum); a pass that ended stalled (λ raised on every refused trial) starts it at 10 as before.
+POLISH_LAM_MIN, POLISH_LAM_MAX = 1e-3, 10.0
 #: Up to this many samples the default fit's clean algebraic start is the L2 ellipsoid of every
 #: sample (a (10,N) design matrix, 1.6 MB at the cap); above it, of the stage-1 spread subset as
 #: before, which bounds the weight of a long dwell in one orientation (long streamed or logged
@@ -303,7 +304,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
             res = refine(m_n, res.K, res.b, res.x, kernel=make_kernel("gm", tau_cur),
                          structure=structure, fit_b=fit_b, effects=effects, covariates=covariates,
                          thetas=res.thetas, max_iter=max_iter, rtol=rtol,
-                         lam0=max(res.lam, POLISH_LAM_MIN))
+                         lam0=min(max(res.lam, POLISH_LAM_MIN), POLISH_LAM_MAX))
         return res, sig, tau_cur
 
     def _shared_shape(part, sigma_part, span, support, x_part):

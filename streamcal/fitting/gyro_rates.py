@@ -68,8 +68,8 @@ def clear_of_saturation(t_g: np.ndarray, w: np.ndarray, t_from: np.ndarray,
 
 def integrate_rates(t_g: np.ndarray, rates: np.ndarray) -> "Orientation":
     """Q (body → gyro-following frame, Q = I at the first row) on the gyro rows ``t_g`` (G,) s
-    from the body rates ``rates`` (G,3) rad/s: midpoint rule, Q_{i+1} = Q_i exp(ω̄_i Δt_i) with
-    ω̄_i the average of rows i and i+1."""
+    from the body rates ``rates`` (G,3) rad/s: Q_{i+1} = Q_i exp(ω̄_i Δt_i) with ω̄_i the
+    average of rows i and i+1 (the trapezoidal rule on the rates)."""
     steps = 0.5 * (rates[1:] + rates[:-1]) * np.diff(t_g)[:, None]
     Q = cumulative_rotation(Rotation.from_rotvec(np.vstack([np.zeros(3), steps])))
     return Orientation(t_g, Q.as_quat(), steps)

@@ -58,8 +58,8 @@ class LMResult:
     cost: float
     iterations: int
     converged: bool
-    #: the damping λ the run ended with (after its last accepted step's decrease, or the last
-    #: one tried): where a follow-on run from this solution may start
+    #: the damping λ the run ended with (lowered after its last accepted step, or raised after
+    #: its last refused trial): where a follow-on run from this solution may start
     lam: float
     history: list = field(default_factory=list)
     #: :data:`streamcal.fitting.damped_lm.STATUSES`: ``converged`` (relative decrease below
