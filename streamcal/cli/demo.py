@@ -156,7 +156,8 @@ def _event(event, calibrator, accepted, maps_done, say, coverage_view) -> None:
         coverage = event.data.get("coverage_at_fit", cal.coverage)
         accepted.append({"t": event.t, "coverage": coverage, "rms": cal.rms, "field": field,
                          "b": np.asarray(cal.b).tolist()})
-        say(f"{when} calibration #{len(accepted)} accepted: {coverage_words(coverage)}, "
+        shown = "coverage not measured" if coverage is None else f"coverage {100 * coverage:3.0f}%"
+        say(f"{when} calibration #{len(accepted)} accepted: {shown}, "
             f"rms {cal.rms:.3f} {_unit(cal.unit)}, field {field:.2f} {_unit(cal.unit)}")
     elif event.kind == "coverage":
         frac = calibrator.buffer.fraction
