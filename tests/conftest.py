@@ -28,7 +28,6 @@ def flight_dir() -> Path:
     return _shared_dir(REAL_FLIGHTS, "flight logs")
 
 
-
 @pytest.fixture(scope="session")
 def real_data_dir() -> Path:
     return _shared_dir(SHARED / "data" / "real", "real data")
