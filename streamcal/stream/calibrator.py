@@ -34,7 +34,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, Calibration
-from .coverage import CoverageBuffer, CoverageReport, Snapshot
+from .coverage import CoverageBuffer, CoverageReport
 from .blocks import apply_block, disagreement
 from .clock import MonotoneClock
 from .disturbance import DisturbanceRule
@@ -460,7 +460,7 @@ class StreamingCalibrator:
                 self.sphere.estimate = found
         current = self._cal if self._cal is not None else self.sphere.calibration(self.unit)
         ref_R = self.coarse[1] if self.coarse is not None else None
-        decision = self.guard.check(cand, job.holdout.m, _cov_with_t(job.holdout), current, ref_R)
+        decision = self.guard.check(cand, job.holdout.m, job.holdout.columns(), current, ref_R)
         if not decision.accepted:
             return [ev.verdict(cand, decision, self.unit, t)]
         events = []
@@ -498,7 +498,3 @@ class StreamingCalibrator:
     def _drain_pending(self) -> list:
         out, self._pending = self._pending, []
         return out
-
-
-def _cov_with_t(snap: Snapshot) -> dict:
-    return {"t": snap.t, **snap.covariates}

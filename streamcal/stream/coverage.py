@@ -94,6 +94,10 @@ class Snapshot:
     def __len__(self) -> int:
         return len(self.t)
 
+    def columns(self) -> dict:
+        """``{"t": t, **covariates}``: the per-sample columns a check of the samples reads."""
+        return {"t": self.t, **self.covariates}
+
     def subset(self, mask) -> "Snapshot":
         return Snapshot(self.m[mask], self.t[mask],
                         {k: v[mask] for k, v in self.covariates.items()}, self.cells[mask])
