@@ -33,6 +33,7 @@ from streamcal.samples import SampleBlock  # noqa: E402
 from streamcal.errors import StreamcalError  # noqa: E402
 from streamcal.fitting import fit  # noqa: E402
 from streamcal.stream import CalibrationStore, CoverageBuffer, StreamingCalibrator  # noqa: E402
+from streamcal.stream.coverage import percent  # noqa: E402
 from streamcal.stream.guard import holdout_error  # noqa: E402
 from streamcal.inputs.track import Track  # noqa: E402
 
@@ -184,9 +185,8 @@ def table(rows) -> list[str]:
         else:
             dev = f"{r['dev']:.4f}"
             err = f"{r['err_stream']:.3g} / {r['err_batch']:.3g}"
-        cov = "not measured" if r["coverage"] is None else f"{100 * r['coverage']:.0f}%"
         out.append(f"| {r['name']} | {r['n']} | {r['unit']} | {fits} | {c.get('drift', 0)} | "
-                   f"{c.get('disturbance', 0)} | {cov} | {r['batch']} | {dev} | {err} | "
+                   f"{c.get('disturbance', 0)} | {percent(r['coverage'])} | {r['batch']} | {dev} | {err} | "
                    f"{r['wall']:.2f} s |")
     return out
 

@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL
-from ..stream.coverage import coverage_words
+from ..stream.coverage import coverage_words, percent
 from .diagnose import candidate_table, residual_name
 
 DEFAULT_REPORT = "streamcal-demo-report.html"
@@ -156,8 +156,7 @@ def _event(event, calibrator, accepted, maps_done, say, coverage_view) -> None:
         coverage = event.data.get("coverage_at_fit", cal.coverage)
         accepted.append({"t": event.t, "coverage": coverage, "rms": cal.rms, "field": field,
                          "b": np.asarray(cal.b).tolist()})
-        shown = "coverage not measured" if coverage is None else f"coverage {100 * coverage:3.0f}%"
-        say(f"{when} calibration #{len(accepted)} accepted: {shown}, "
+        say(f"{when} calibration #{len(accepted)} accepted: coverage {percent(coverage, 3)}, "
             f"rms {cal.rms:.3f} {_unit(cal.unit)}, field {field:.2f} {_unit(cal.unit)}")
     elif event.kind == "coverage":
         frac = calibrator.buffer.fraction
@@ -227,12 +226,9 @@ def _stream_html(accepted, unit: str) -> str:
     u = _unit(unit)
     if not accepted:
         return "<p>The streaming calibrator accepted no calibration during the replay.</p>"
-    def cells(a):
-        cov = "not measured" if a["coverage"] is None else f"{100 * a['coverage']:.0f}%"
-        return (f"<tr><td class=\"num\">{a['t']:.1f}</td><td class=\"num\">{cov}</td>"
-                f"<td class=\"num\">{a['rms']:.3f}</td><td class=\"num\">{a['field']:.2f}</td></tr>")
-
-    rows = "".join(cells(a) for a in accepted)
+    rows = "".join(f"<tr><td class=\"num\">{a['t']:.1f}</td><td class=\"num\">"
+                   f"{percent(a['coverage'])}</td><td class=\"num\">{a['rms']:.3f}</td>"
+                   f"<td class=\"num\">{a['field']:.2f}</td></tr>" for a in accepted)
     return ("<h2>Streaming: calibrations accepted as coverage grew</h2><p>The track was replayed "
             "through the MPU-9250 driver on a simulated I²C bus into the streaming calibrator.</p>"
             f"<table><thead><tr><th>t (s)</th><th>coverage</th><th>rms ({html.escape(u)})</th>"

@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, jsonable
-from ..stream.coverage import coverage_words
+from ..stream.coverage import coverage_words, percent
 from ._common import RECORDING_HELP, add_input_options, recording_chunks
 
 #: Relative spread about one fitted sphere beyond which the samples are probably not one
@@ -230,14 +230,14 @@ def _why_none(calibrator, refusals: dict, m) -> str:
     envs = calibrator.environment_summary()
     cover = ", ".join(
         f"t={e['start']:.1f}–" + (f"{e['end']:.1f}" if e["end"] is not None else "end")
-        + f" s: {_percent(e['coverage'])}" for e in envs if e["start"] is not None)
+        + f" s: {percent(e['coverage'])}" for e in envs if e["start"] is not None)
     if len(envs) > 1:
         parts.append(f"the field changed {len(envs) - 1} time(s); coverage per environment: "
                      f"{cover}, each short of the {100 * calibrator.policy.min_coverage:.0f}% "
                      "a first fit needs")
     else:
         parts.append(f"the stored samples' coverage of the sphere: "
-                     f"{_percent(envs[-1]['coverage'])} "
+                     f"{percent(envs[-1]['coverage'])} "
                      f"({100 * calibrator.policy.min_coverage:.0f}% needed)"
                      if envs[-1]["coverage"] is None else
                      f"the stored samples cover {100 * envs[-1]['coverage']:.0f}% of the "
@@ -252,8 +252,3 @@ def _why_none(calibrator, refusals: dict, m) -> str:
                      "too little to tell the environments apart, and no one environment has "
                      "the coverage a calibration needs")
     return "; ".join(parts)
-
-
-def _percent(fraction: float | None) -> str:
-    """``93%``, or ``not measured`` (an environment whose directions no sphere framed)."""
-    return "not measured" if fraction is None else f"{100 * fraction:.0f}%"

@@ -25,10 +25,15 @@ def not_measured(why: str) -> str:
     return f"coverage not measured: {why}"
 
 
+def percent(fraction: float | None, width: int = 0) -> str:
+    """``93%`` (the number right-aligned in ``width``), or ``not measured`` for None (an
+    unframed buffer: :attr:`CoverageBuffer.measured_fraction`)."""
+    return "not measured" if fraction is None else f"{100 * fraction:{width}.0f}%"
+
+
 def coverage_words(fraction: float | None) -> str:
-    """``coverage 93%``, or ``coverage not measured`` for None (an unframed buffer:
-    :attr:`CoverageBuffer.measured_fraction`)."""
-    return "coverage not measured" if fraction is None else f"coverage {100 * fraction:.0f}%"
+    """``coverage 93%``, or ``coverage not measured`` for None."""
+    return f"coverage {percent(fraction)}"
 
 
 @dataclass(frozen=True)
