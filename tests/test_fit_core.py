@@ -216,6 +216,32 @@ def test_triggs_identities(name):
         assert np.linalg.eigvalsh(H_t[~free]).min() > -1e-9
 
 
+@pytest.mark.parametrize("name", KERNEL_NAMES)
+def test_triggs_weights_are_the_corrected_products(name):
+    """The folded weights (w, e, gw) reproduce J̃ᵀJ̃ = Jᵀ(wI + e rrᵀ)J and J̃ᵀr̃ = gw Jᵀr of the
+    explicit correction, clamped or not, over residuals from 1e-7 to 3e4 widths (the smallest
+    below the floor s ≤ 1e-12, where the correction leaves r rᵀ out)."""
+    rng = np.random.default_rng(2)
+    n, P = 600, 4
+    r = rng.standard_normal((n, 3)) * np.geomspace(1e-7, 3e4, n)[:, None]
+    J = rng.standard_normal((n, 3, P))
+    k = kernels.make_kernel(name, 1.0 if name in kernels.WIDTH_KERNELS else None)
+    s = np.einsum("ij,ij->i", r, r)
+    assert (s <= 1e-12).sum() >= 5
+    _, d1, d2 = k.evaluate(s)
+    r_scale, j_alpha, sqrt_d1 = kernels.triggs_correction(s, d1, d2)
+    Jt = sqrt_d1[:, None, None] * (J - (j_alpha[:, None] * r)[:, :, None] * (r[:, None, :] @ J))
+    w, e, gw = kernels.triggs_weights(s, d1, d2)
+    W = w[:, None, None] * np.eye(3) + e[:, None, None] * r[:, :, None] * r[:, None, :]
+    H_t, H = Jt.transpose(0, 2, 1) @ Jt, J.transpose(0, 2, 1) @ W @ J
+    scale = np.abs(H_t).max(axis=(1, 2))[:, None, None]
+    np.testing.assert_allclose(H / scale, H_t / scale, atol=1e-9)
+    g_t = np.einsum("nip,ni->np", Jt, r_scale[:, None] * r)
+    np.testing.assert_allclose(gw[:, None] * np.einsum("nip,ni->np", J, r), g_t, rtol=1e-9, atol=1e-300)
+    if hasattr(k, "derivatives"):
+        np.testing.assert_allclose(np.array(k.derivatives(s)), np.array([d1, d2]), rtol=1e-14)
+
+
 # -- recovery and canonical form ---------------------------------------------------------------
 FIT_CASES = [("autocal", {})] + [("autocal", {"kernel": k}) for k in KERNEL_NAMES] + \
     [(mt, {"method": mt}) for mt in METHODS if mt not in ("autocal", "sphere_stream")]

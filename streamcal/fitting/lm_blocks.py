@@ -188,6 +188,7 @@ class NumpyEngine:
     def __init__(self, model, m_t: np.ndarray, kernel, beta: float):
         self.model, self.m_t, self.kernel, self.beta = model, m_t, kernel, beta
         self.rho = getattr(kernel, "rho", None) or (lambda s_: kernel.evaluate(s_)[0])
+        self.derivatives = getattr(kernel, "derivatives", None) or (lambda s_: kernel.evaluate(s_)[1:])
         self.E = _core_map(model.structure, model.fit_b) if not model.effects else None
         n = m_t.shape[1]
         self.slices = [slice(i, min(i + BLOCK, n)) for i in range(0, n, BLOCK)]
@@ -205,7 +206,7 @@ class NumpyEngine:
 
     def linearize(self, K, b, thetas, x, state) -> None:
         r, u, s = state
-        _, d1, d2 = self.kernel.evaluate(s)
+        d1, d2 = self.derivatives(s)
         w, e, gw = triggs_weights(s, d1, d2)
         jp = jx = None
         if self.E is None:

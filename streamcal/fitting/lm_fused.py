@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels import Cauchy, GemanMcClure
+from .kernels import D_MIN, Cauchy, GemanMcClure
 from .lm_blocks import _GRAM_FLAT, _core_map
 
 #: Kernel ids inside the compiled loops.
@@ -128,14 +128,11 @@ def _reduce_core(m, x, K, b, kid, t2, beta, lam, C, Hg, T, G):
             qq = t2 + s
             d1, d2 = t2 * t2 / (qq * qq), -2.0 * t2 * t2 / (qq * qq * qq)
         # Triggs weights (kernels.triggs_weights): W = w I + e r rᵀ, gradient scale gw
-        d1 = max(d1, 1e-300)
-        sq = np.sqrt(d1)
-        alpha = 1.0 - np.sqrt(max(1.0 + 2.0 * s * d2 / d1, 0.25))
-        ja = alpha / s if s > 1e-12 else 0.0
-        w = sq * sq
-        jas = ja * s
-        e = -w * ja * (2.0 - jas)
-        gw = sq * (sq / (1.0 - alpha)) * (1.0 - jas)
+        w = max(d1, 1e-300)
+        if s > 1e-12:
+            e, gw = max(2.0 * d2, (D_MIN - 1.0) * w / s), w
+        else:
+            e, gw = 0.0, w / np.sqrt(max(1.0 + 2.0 * s * d2 / w, D_MIN))
         # A = K − u xᵀ, h = Aᵀ r
         a00, a01, a02 = k00 - u0 * x0, k01 - u0 * x1, k02 - u0 * x2
         a10, a11, a12 = k10 - u1 * x0, k11 - u1 * x1, k12 - u1 * x2
