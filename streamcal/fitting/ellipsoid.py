@@ -12,8 +12,11 @@ so the algebraic residuals of all samples are ``g = Φ v`` with the design matri
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import scipy.sparse as sp
+from scipy.linalg.lapack import dsyevr
 
 from ..errors import InsufficientDataError
 from .order_stats import column_medians
@@ -58,8 +61,11 @@ def _scatter(m: np.ndarray) -> np.ndarray:
 def fit_l2_ellipsoid(m: np.ndarray):
     """Algebraic least-squares ellipsoid: the right singular vector of Φ for its smallest
     singular value; returns (C, d, e) scaled to trace(C) = 1."""
-    # Φᵀ Φ (10×10) has the same right singular vectors; cheaper than an SVD of (N,10).
-    w, V = np.linalg.eigh(_scatter(m))
+    # Φᵀ Φ (10×10) has the same right singular vectors; cheaper than an SVD of (N,10). Only the
+    # smallest eigenpair, from LAPACK's dsyevr directly (half the time of np.linalg.eigh here).
+    _, V, _, _, info = dsyevr(_scatter(m), range="I", il=1, iu=1)
+    if info:
+        raise InsufficientDataError(f"the algebraic ellipsoid fit failed (LAPACK dsyevr info {info})")
     v = V[:, 0]
     C, d, e = unpack(v)
     tr = np.trace(C)
@@ -171,19 +177,36 @@ def ellipsoid_to_model(C: np.ndarray, d: np.ndarray, e: float):
 
     Raises :class:`InsufficientDataError` when (C, d, e) is not a real ellipsoid.
     """
-    C = 0.5 * (C + C.T)
-    try:
-        L = np.linalg.cholesky(C)
-    except np.linalg.LinAlgError:
+    # 3×3 by hand, in floats: numpy's cholesky, solve and inverse cost ~10 µs each in call
+    # overhead, ten times their arithmetic
+    (c00, c01, c02), (c10, c11, c12), (c20, c21, c22) = np.asarray(C, dtype=float).tolist()
+    d0, d1, d2 = np.asarray(d, dtype=float).tolist()
+    # C = L Lᵀ (Cholesky of the symmetric part; a pivot ≤ 0 or NaN: not positive definite)
+    l00 = math.sqrt(c00) if c00 > 0 else math.nan
+    l10, l20 = 0.5 * (c01 + c10) / l00, 0.5 * (c02 + c20) / l00
+    p11 = c11 - l10 * l10
+    l11 = math.sqrt(p11) if p11 > 0 else math.nan
+    l21 = (0.5 * (c12 + c21) - l20 * l10) / l11
+    p22 = c22 - l20 * l20 - l21 * l21
+    l22 = math.sqrt(p22) if p22 > 0 else math.nan
+    if not (l00 > 0 and l11 > 0 and l22 > 0):
         raise InsufficientDataError(
             "the fitted quadric is not an ellipsoid (C is not positive definite): the data do "
-            "not outline an ellipsoid — rotate the sensor through more orientations") from None
-    b = -np.linalg.solve(C, d)
-    mu = float(-b @ d - e)
-    if not np.isfinite(mu) or mu <= 0:
+            "not outline an ellipsoid — rotate the sensor through more orientations")
+    # L⁻¹ (lower triangular), then b = −C⁻¹d = −L⁻ᵀ(L⁻¹d) and K = √μ L⁻ᵀ (upper triangular)
+    i00, i11, i22 = 1.0 / l00, 1.0 / l11, 1.0 / l22
+    i10 = -l10 * i00 * i11
+    i21 = -l21 * i11 * i22
+    i20 = -(l20 * i00 + l21 * i10) * i22
+    y0, y1, y2 = i00 * d0, i10 * d0 + i11 * d1, i20 * d0 + i21 * d1 + i22 * d2
+    b = np.array([-(i00 * y0 + i10 * y1 + i20 * y2), -(i11 * y1 + i21 * y2), -(i22 * y2)])
+    mu = -(b[0] * d0 + b[1] * d1 + b[2] * d2) - float(e)
+    if not math.isfinite(mu) or mu <= 0:
         raise InsufficientDataError("the fitted quadric is empty or imaginary (μ ≤ 0)")
-    K = np.sqrt(mu) * np.linalg.inv(L.T)
-    return np.triu(K), b
+    root = math.sqrt(mu)
+    K = np.array([[i00, i10, i20], [0.0, i11, i21], [0.0, 0.0, i22]])
+    K *= root
+    return K, b
 
 
 def directions_from_model(K: np.ndarray, b: np.ndarray, m: np.ndarray) -> np.ndarray:

@@ -69,17 +69,19 @@ class LMResult:
     message: str = ""
 
 
+#: Flat positions in a 3×3 K of each structure's free entries (K = kI puts k on the diagonal).
+_K_FLAT = {name: np.array([3 * i + j for i, j in entries]) for name, entries in K_ENTRIES.items()}
+_K_FLAT["sphere"] = np.array([0, 4, 8])
+
+
 def _k_vector(K: np.ndarray, structure: str) -> np.ndarray:
-    return np.array([K[i, j] for i, j in K_ENTRIES[structure]])
+    return np.asarray(K, dtype=float).reshape(9)[_K_FLAT[structure][:len(K_ENTRIES[structure])]]
 
 
 def _k_matrix(k: np.ndarray, structure: str) -> np.ndarray:
-    K = np.zeros((3, 3))
-    if structure == "sphere":
-        return np.eye(3) * k[0]
-    for value, (i, j) in zip(k, K_ENTRIES[structure]):
-        K[i, j] = value
-    return K
+    K = np.zeros(9)
+    K[_K_FLAT[structure]] = k
+    return K.reshape(3, 3)
 
 
 def _jac_k(x: np.ndarray, structure: str) -> np.ndarray:
@@ -244,7 +246,8 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             status = "stalled" if not improved else "converged"
             break
     r, s = engine.residuals(K, b, thetas, x, state)
-    weights = kernel.evaluate(s)[1]
+    derivatives = getattr(kernel, "derivatives", None)
+    weights = derivatives(s)[0] if derivatives else kernel.evaluate(s)[1]
     return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
                     residuals=np.ascontiguousarray(r.T), residual_norms=np.sqrt(s),
                     weights=weights, cost=f,

@@ -21,6 +21,7 @@ block's share of S and rhs summed, then its Δx) so the per-sample arrays stay i
 from __future__ import annotations
 
 import numpy as np
+from scipy.linalg.lapack import dgesv
 
 from .kernels import triggs_weights
 
@@ -106,7 +107,9 @@ class _CoreJacobian:
 
     def __init__(self, E: np.ndarray, x: np.ndarray):
         self.E, self.x = E, x
-        self.xbar = np.vstack([x, np.ones((1, x.shape[1]))])
+        self.xbar = np.empty((4, x.shape[1]))
+        self.xbar[:3] = x
+        self.xbar[3] = 1.0
         self.xx = self.xbar.take(_XBAR_I, axis=0) * self.xbar.take(_XBAR_J, axis=0)
 
     def gram(self, Q6: np.ndarray) -> np.ndarray:
@@ -141,42 +144,95 @@ class _StackedJacobian:
         return np.einsum("apk,p->ak", self.Jp, dp)
 
 
-class _Block:
-    """One iteration's direction blocks for a run of samples (module docstring): built once per
-    iteration, then :meth:`reduce` and :meth:`step` per damping trial."""
+def _tangent_basis(x: np.ndarray) -> np.ndarray:
+    """Orthonormal tangent vectors T (3,2,N) at unit directions x (3,N), T[:, i] ⟂ x: the
+    branch-free basis of Duff et al., "Building an orthonormal basis, revisited" (JCGT 2017)."""
+    x0, x1, x2 = x
+    sg = np.copysign(1.0, x2)
+    a = -1.0 / (sg + x2)
+    bb = x0 * x1 * a
+    sx = sg * x0
+    T = np.empty((3, 2, x.shape[1]))
+    np.multiply(sx * x0, a, out=T[0, 0])
+    T[0, 0] += 1.0
+    np.multiply(sg, bb, out=T[1, 0])
+    np.negative(sx, out=T[2, 0])
+    T[0, 1] = bb
+    np.multiply(x1 * x1, a, out=T[1, 1])
+    T[1, 1] += sg
+    np.negative(x1, out=T[2, 1])
+    return T
 
-    def __init__(self, x, u, r, w, e, gw, K, Jx, jac, beta):
-        if Jx is None:                                       # J_x = K, so J_x x = u
-            A = K[:, :, None] - u[:, None, :] * x[None, :, :]
+
+# (2,2) symmetric per-sample matrices as their unique entries (11, 12, 22)
+_T2_I, _T2_J = np.array([0, 0, 1]), np.array([0, 1, 1])
+_EYE2 = np.array([1.0, 0.0, 1.0])[:, None]
+_INV2, _INV2_SIGN = np.array([2, 1, 1, 0]), np.array([1.0, -1.0, -1.0, 1.0])[:, None]
+
+
+class _Block:
+    """One iteration's direction blocks for a run of samples, in each direction's tangent plane
+    (module docstring): built once per iteration, then :meth:`reduce` and :meth:`step` per
+    damping trial."""
+
+    def __init__(self, x, u, r, w, e, gw, K, Jx, jac):
+        self.T = T = _tangent_basis(x)
+        n = x.shape[1]
+        if Jx is None:                                       # J_x = K
+            D = (K @ T.reshape(3, 2 * n)).reshape(3, 2, n)
         else:
-            A = Jx - np.einsum("abk,bk->ak", Jx, x)[:, None, :] * x[None, :, :]
-        h = np.einsum("abk,ak->bk", A, r)                    # Aᵀ r
-        self.B = w * A.transpose(1, 0, 2) + (e * h)[:, None, :] * r[None, :, :]   # Aᵀ W
-        self.H6 = _sym(np.einsum("ack,cbk->abk", self.B, A))
-        self.H6 *= 2.0
-        self.H6 += beta * (x.take(_SYM_I, axis=0) * x.take(_SYM_J, axis=0))
+            D = np.einsum("abk,bik->aik", Jx, T)
+        Dr = np.einsum("aik,ak->ik", D, r)                   # Dᵀ r (2,n)
+        H3 = np.einsum("aik,aik->ik", D.take(_T2_I, axis=1), D.take(_T2_J, axis=1))
+        H3 *= 2.0 * w
+        H3 += (2.0 * e) * (Dr.take(_T2_I, axis=0) * Dr.take(_T2_J, axis=0))
+        self.H3 = H3                                         # 2 Dᵀ W D (3,n)
+        self.F = w * D + (e * r)[:, None, :] * Dr[None, :, :]    # W D (3,2,n)
         self.W2 = (2.0 * e) * (r.take(_SYM_I, axis=0) * r.take(_SYM_J, axis=0))
         self.W2 += 2.0 * w * _SYM_EYE
-        self.gx = (2.0 * gw) * h
+        self.gt = (2.0 * gw) * Dr                            # Tᵀ g_x
         self.y_r = (-2.0 * gw) * r
         self.jac = jac
 
     def reduce(self, lam: float):
         """This block's share of the Schur system at damping λ: (S (P,P), rhs (P,))."""
-        self.Hinv = _full(_inv_sym(self.H6 + lam * _SYM_EYE))
-        self.C = np.einsum("ack,cbk->abk", self.Hinv, self.B)          # H̃_x⁻¹ B
-        Q6 = _sym(np.einsum("cak,cbk->abk", self.B, self.C))
+        H = self.H3 + lam * _EYE2
+        det = H[0] * H[2]
+        det -= H[1] * H[1]
+        Hinv = H.take(_INV2, axis=0)
+        Hinv *= _INV2_SIGN
+        Hinv /= det
+        Hinv = Hinv.reshape(2, 2, -1)                        # H_t⁻¹ (2,2,n)
+        self.C = np.einsum("ijk,ajk->iak", Hinv, self.F)     # H_t⁻¹ Fᵀ (2,3,n)
+        self.z = np.einsum("ijk,jk->ik", Hinv, self.gt)      # H_t⁻¹ Tᵀ g_x (2,n)
+        Q6 = np.einsum("cik,ick->ck", self.F.take(_SYM_I, axis=0), self.C.take(_SYM_J, axis=1))
         Q6 *= -4.0
         Q6 += self.W2
-        y = self.y_r + 2.0 * np.einsum("abk,ak->bk", self.C, self.gx)
+        y = np.einsum("aik,ik->ak", self.F, self.z)
+        y *= 2.0
+        y += self.y_r
         return self.jac.gram(Q6), self.jac.project(y)
 
     def step(self, dp: np.ndarray) -> np.ndarray:
         """Δx (3,n) of the last :meth:`reduce`'s damping for the global step Δp."""
-        dx = np.einsum("abk,bk->ak", self.C, self.jac.apply(dp))
-        dx *= -2.0
-        dx -= np.einsum("abk,bk->ak", self.Hinv, self.gx)
+        dt = np.einsum("iak,ak->ik", self.C, self.jac.apply(dp))
+        dt *= 2.0
+        dt += self.z
+        dx = np.einsum("aik,ik->ak", self.T, dt)
+        np.negative(dx, out=dx)
         return dx
+
+
+_EYES: dict = {}
+
+
+def _eye(n: int) -> np.ndarray:
+    """np.eye(n), built once per size, read-only."""
+    eye = _EYES.get(n)
+    if eye is None:
+        eye = _EYES[n] = np.eye(n)
+        eye.setflags(write=False)
+    return eye
 
 
 class NumpyEngine:
@@ -192,7 +248,7 @@ class NumpyEngine:
         self.E = _core_map(model.structure, model.fit_b) if not model.effects else None
         n = m_t.shape[1]
         self.slices = [slice(i, min(i + BLOCK, n)) for i in range(0, n, BLOCK)]
-        self.eye_p = np.eye(model.n_params)
+        self.eye_p = _eye(model.n_params)
 
     def cost(self, K, b, thetas, x):
         """(Σ ρ(‖r_j‖²), state) at directions x (3,N); the state is (r (3,N), u (3,N), s (N,))."""
@@ -216,7 +272,7 @@ class NumpyEngine:
         self.parts = [_Block(x[:, sl], u[:, sl], r[:, sl], w[sl], e[sl], gw[sl], K,
                              None if jx is None else jx[:, :, sl],
                              _CoreJacobian(self.E, x[:, sl]) if jp is None
-                             else _StackedJacobian(jp[:, :, sl]), self.beta)
+                             else _StackedJacobian(jp[:, :, sl]))
                       for sl in self.slices]
 
     def reduce(self, lam: float):
@@ -230,8 +286,12 @@ class NumpyEngine:
 
     @staticmethod
     def solve(S, rhs):
-        """Δp (P,) of the damped system; LinAlgError when S is singular."""
-        return np.linalg.solve(S, rhs)
+        """Δp (P,) of the damped system; LinAlgError when S is singular. LAPACK's dgesv (the
+        routine np.linalg.solve runs) called directly: numpy's wrapper costs ~4× the solve."""
+        _, _, dp, info = dgesv(S, rhs)
+        if info:
+            raise np.linalg.LinAlgError(f"the damped Schur system is singular (dgesv info {info})")
+        return dp
 
     def step(self, x, dp):
         """Directions (3,N) after the global step Δp and its Δx, retracted to the sphere."""

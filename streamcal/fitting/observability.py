@@ -16,6 +16,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dsygv
 
 from .lm import K_ENTRIES
 
@@ -110,8 +111,12 @@ def assess(x: np.ndarray, structure: str = "full", fit_b: bool = True, K: np.nda
     at = _rows_t(np.concatenate([x, _UNIFORM_DIRECTIONS]), K, structure, fit_b)
     S = at[:, :n] @ at[:, :n].T / max(n, 1)
     U = at[:, n:] @ at[:, n:].T / UNIFORM_COUNT
-    Linv = np.linalg.inv(np.linalg.cholesky(U))
-    info = float(max(np.linalg.eigvalsh(Linv @ S @ Linv.T)[0], 0.0))
+    # the generalized eigenvalues of (S, U) by LAPACK's dsygv (Cholesky of U, then the
+    # symmetric problem): one call instead of numpy's four
+    w, _, status = dsygv(S, U, jobz="N")
+    if status:
+        raise np.linalg.LinAlgError(f"the reference information is singular (dsygv info {status})")
+    info = float(max(w[0], 0.0))
     cover = coverage_fraction(x)
     if info >= min_information:
         return Observability(info, cover, True, "")
