@@ -231,7 +231,7 @@ def test_blocks_of_samples_match_reference(monkeypatch, effect):
     assert len(m) % lm_blocks.BLOCK and len(m) > 2 * lm_blocks.BLOCK
     effects = build_effects([effect], cov) if effect else ()
     kernel = make("cauchy")
-    engine = lm_blocks.NumpyEngine(lm._Model(m, "full", True, effects, cov), m.T.copy(), kernel, 1.0)
+    engine = lm_blocks.NumpyEngine(lm._Model(m, "full", True, effects, cov), m.T.copy(), kernel)
     assert len(engine.slices) > 2            # the refine below does run in several blocks
     got = refine(m, K0, b0, x0, kernel=kernel, effects=effects, covariates=cov, engine="numpy")
     ref = reference_refine(m, K0, b0, x0, kernel=kernel, effects=effects, cov=cov)
@@ -292,4 +292,28 @@ def test_compiled_engine_matches_reference(structure, name):
     got = refine(m, K0, b0, x0, kernel=kernel, structure=structure, engine="compiled")
     ref = reference_refine(m, K0, b0, x0, kernel=kernel, structure=structure)
     assert ref[5] > 2
+    assert_same(got, ref)
+
+
+def test_tangent_basis_is_orthonormal_and_perpendicular():
+    """T (3,2,N) at unit x: TᵀT = I and Tᵀx = 0, at the poles and across z = ±0 included."""
+    from streamcal.fitting.lm_blocks import _tangent_basis
+
+    rng = np.random.default_rng(3)
+    x = rng.standard_normal((3, 500))
+    x[:, :6] = [[0, 0, 1, 1, 0, 1e-9], [0, 0, 0, 0, 1, 1], [1, -1, 0.0, -0.0, 0, 1e-12]]
+    x /= np.linalg.norm(x, axis=0)
+    T = _tangent_basis(x)
+    gram = np.einsum("aik,ajk->ijk", T, T)
+    np.testing.assert_allclose(gram, np.broadcast_to(np.eye(2)[:, :, None], gram.shape), atol=1e-14)
+    np.testing.assert_allclose(np.einsum("aik,ak->ik", T, x), 0.0, atol=1e-14)
+
+
+@pytest.mark.parametrize("beta", (0.5, 4.0))
+def test_the_gauge_weight_does_not_change_the_step(beta):
+    """The literal 3×3 algebra at another β reaches what the tangent-plane engine reaches: the
+    step has no component along x_j, so β (the gauge) drops out."""
+    m, K0, b0, x0, _ = problem("full", seed=7)
+    got = refine(m, K0, b0, x0, kernel=make("cauchy"), engine="numpy")
+    ref = reference_refine(m, K0, b0, x0, kernel=make("cauchy"), beta=beta)
     assert_same(got, ref)

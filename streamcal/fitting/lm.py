@@ -185,6 +185,9 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         fit_b: estimate b (else it stays as given).
         effects, covariates, thetas: extra effect terms, their covariates ((N,) arrays at the
             samples) and starting parameters (default ``effect.initial()``).
+        beta: weight of the gauge term β x_j x_jᵀ in the paper's direction blocks (its 1). The
+            step has no component along x_j, so β only enters the compiled engine's 3×3
+            algebra, not the result (the numpy engine solves in the tangent plane).
         engine: ``"numpy"``, ``"compiled"`` (:mod:`streamcal.fitting.lm_fused`: the core model
             under Cauchy or Geman–McClure, with numba installed) or ``"auto"``: as
             :data:`ENGINE_ENV` says (numpy by default; ``compiled`` where it applies). Both give
@@ -289,7 +292,7 @@ def _engine(model, m_t, kernel, beta, name):
             _warned_no_numba = True
             warnings.warn(f"{ENGINE_ENV}=compiled but {reason} (pip install 'streamcal[fast]'): "
                           "the numpy engine runs", RuntimeWarning, stacklevel=3)
-    return NumpyEngine(model, m_t, kernel, beta)
+    return NumpyEngine(model, m_t, kernel)
 
 
 def optimal_directions(K: np.ndarray, b: np.ndarray, m: np.ndarray, iters: int = 8) -> np.ndarray:

@@ -1,22 +1,30 @@
 """The per-sample block algebra of stage 2's LM in numpy (:class:`NumpyEngine`), for every
 model; :mod:`streamcal.fitting.lm` runs the iterations.
 
-How the blocks are computed (same numbers, fewer operations). The Triggs correction is folded
-into a per-sample weight matrix (:func:`~streamcal.fitting.kernels.triggs_weights`):
-J̃ᵀJ̃ = Jᵀ W J and J̃ᵀr̃ = γ Jᵀr with W = w I + e r rᵀ. With A_j = J_xj (I − x_j x_jᵀ) the projected
-direction Jacobian and B_j = A_jᵀ W_j (3×3):
+How the blocks are computed (same numbers as the paper's 3×3 blocks, fewer operations). The
+Triggs correction is folded into a per-sample weight matrix
+(:func:`~streamcal.fitting.kernels.triggs_weights`): J̃ᵀJ̃ = Jᵀ W J and J̃ᵀr̃ = γ Jᵀr with
+W = w I + e r rᵀ. With A_j = J_xj (I − x_j x_jᵀ) the projected direction Jacobian, the paper's
+direction block is H̃_xj = 2 A_jᵀ W_j A_j + β x_j x_jᵀ + λI, its gradient g_xj = 2γ_j A_jᵀ r_j and
+the coupling H_pxjᵀ = 2 A_jᵀ W_j J_pj. Since A_j x_j = 0, H̃_xj maps x_j to (β + λ) x_j and the
+tangent plane to itself, while g_xj and H_pxjᵀ lie in the tangent plane: the step has no
+component along x_j, and everything is solved in an orthonormal tangent basis T_j (3×2, from
+:func:`_tangent_basis`), with D_j = J_xj T_j and F_j = W_j D_j (3×2):
 
-    H_xj = 2 B_j A_j + x_j x_jᵀ,   g_xj = 2γ_j A_jᵀ r_j,   H_pxjᵀ = 2 B_j J_pj,
-    S = Σ J_pjᵀ Q_j J_pj + λI,  Q_j = 2W_j − 4 B_jᵀ H̃_xj⁻¹ B_j,   rhs = Σ J_pjᵀ (−2γ_j r_j + 2 C_jᵀ g_xj),
-    Δx_j = −H̃_xj⁻¹ g_xj − 2 C_j (J_pj Δp),   C_j = H̃_xj⁻¹ B_j,
+    H_tj = 2 D_jᵀ W_j D_j + λI (2×2),   g_tj = 2γ_j D_jᵀ r_j,
+    S = Σ J_pjᵀ Q_j J_pj + λI,  Q_j = 2W_j − 4 F_j H_tj⁻¹ F_jᵀ,   rhs = Σ J_pjᵀ (−2γ_j r_j + 2 F_j z_j),
+    Δx_j = −T_j (z_j + 2 C_j (J_pj Δp)),   z_j = H_tj⁻¹ g_tj,   C_j = H_tj⁻¹ F_jᵀ,
 
-so only 3×3 per-sample matrices are formed, stored structure-of-arrays ((3,3,N), (6,N) for the
-unique entries of symmetric ones, contiguous along the samples) so every numpy call is one long
-vectorized loop. For the core model (no effect, or effects with no ∂f/∂u) J_x = K; with no
-effect J_pj = (x̄_jᵀ ⊗ I) E (x̄ = [x; 1], E selects the entries of [K b] that the structure frees),
-so Σ J_pjᵀ Q_j J_pj = Eᵀ(Σ x̄_j x̄_jᵀ ⊗ Q_j)E is one (10,N)·(N,6) product and J_pj Δp = ΔK x_j + Δb:
-the (N,3,P) Jacobian is never formed. The samples are processed in blocks of ``BLOCK`` (each
-block's share of S and rhs summed, then its Δx) so the per-sample arrays stay in cache.
+exactly the paper's Schur complement (eq. 33–34) with 2×2 inverses in place of 3×3 ones (β,
+the gauge along x_j, drops out). Per-sample matrices are stored structure-of-arrays ((3,2,N),
+(3,N) for a symmetric 2×2, (6,N) for a symmetric 3×3, contiguous along the samples) so every
+numpy call is one long vectorized loop. For the core model (no effect, or effects with no
+∂f/∂u) J_x = K; with no effect J_pj = (x̄_jᵀ ⊗ I) E (x̄ = [x; 1], E selects the entries of [K b]
+that the structure frees), so Σ J_pjᵀ Q_j J_pj = Eᵀ(Σ x̄_j x̄_jᵀ ⊗ Q_j)E is one (10,N)·(N,6)
+product and J_pj Δp = ΔK x_j + Δb: the (N,3,P) Jacobian is never formed. The samples are
+processed in blocks of ``BLOCK`` (each block's share of S and rhs summed, then its Δx) so the
+per-sample arrays stay in cache. ``tests/test_lm_equivalence.py`` checks every model against a
+literal transcription of the paper's 3×3 algebra.
 """
 from __future__ import annotations
 
@@ -241,8 +249,8 @@ class NumpyEngine:
     ``cost`` evaluates a state; ``linearize`` builds the direction blocks at the accepted
     state; ``reduce(λ)`` returns the damped Schur system; ``step`` the retracted directions."""
 
-    def __init__(self, model, m_t: np.ndarray, kernel, beta: float):
-        self.model, self.m_t, self.kernel, self.beta = model, m_t, kernel, beta
+    def __init__(self, model, m_t: np.ndarray, kernel):
+        self.model, self.m_t, self.kernel = model, m_t, kernel
         self.rho = getattr(kernel, "rho", None) or (lambda s_: kernel.evaluate(s_)[0])
         self.derivatives = getattr(kernel, "derivatives", None) or (lambda s_: kernel.evaluate(s_)[1:])
         self.E = _core_map(model.structure, model.fit_b) if not model.effects else None
