@@ -191,7 +191,8 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
         sigma, tau_used = float(np.sqrt(np.mean(residual_norm ** 2) / 3)), None
     if check_coverage and not obs.ok:
         raise InsufficientDataError(obs.message)
-    rms = float(np.sqrt(np.mean(residual_norm[inliers] ** 2))) if inliers.any() else float("nan")
+    kept = residual_norm if inliers.all() else residual_norm[inliers]
+    rms = float(np.sqrt(np.mean(kept * kept))) if len(kept) else float("nan")
     field = GRAVITY if sensor == "accel" else (field_radius(K) if unit == "uT" else None)
     extra_keys = {"noise_sigma": sigma}
     if tau_used is not None:

@@ -18,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.lapack import dsygv
 
+from ..calibration import field_radius
 from .lm import K_ENTRIES
 
 #: Below this relative information the fit is refused. Calibrated so that a 75° cap (0.0015) or a
@@ -103,7 +104,7 @@ def assess(x: np.ndarray, structure: str = "full", fit_b: bool = True, K: np.nda
     global _UNIFORM_DIRECTIONS
     x = np.asarray(x, dtype=float)
     K = np.eye(3) if K is None else np.asarray(K, dtype=float)
-    K = K / float(np.abs(np.linalg.det(K)) ** (1 / 3))  # the ratio below is scale-free
+    K = K / field_radius(K)  # the ratio below is scale-free
     if _UNIFORM_DIRECTIONS is None:
         _UNIFORM_DIRECTIONS = fibonacci_sphere(UNIFORM_COUNT)
     # the samples' rows and the uniform directions' rows in one pass, then each Gram matrix
