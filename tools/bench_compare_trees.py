@@ -1,0 +1,64 @@
+"""Paired timing of ``streamcal.fit`` in two source trees, for before/after figures of a change.
+
+    python tools/bench_compare_trees.py BEFORE_TREE AFTER_TREE [--rounds 6]
+
+Each round runs one fresh process per tree (order alternating), each timing the median of 31
+default fits of the first 1,000 rows of ``freeimucal_mag_data.txt`` after 10 warm-up fits; the
+figure is the median over rounds of the per-round ratio after ÷ before. Pairing matters on a
+shared machine whose speed drifts within minutes: the two trees of a round ran back to back, so
+their ratio is steadier than either time. A tree is a checkout or an exported commit
+(``git worktree add /tmp/before <commit>``); each process imports streamcal from its tree.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from _bench_common import SHARED
+
+PROBE = r"""
+import sys, time
+import numpy as np
+from streamcal.fitting import fit
+m = np.loadtxt(sys.argv[1], max_rows=1000, usecols=(0, 1, 2))
+for _ in range(10):
+    fit(m)
+times = []
+for _ in range(31):
+    t = time.perf_counter()
+    fit(m)
+    times.append(time.perf_counter() - t)
+print(np.median(times))
+"""
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("before")
+    p.add_argument("after")
+    p.add_argument("--rounds", type=int, default=6)
+    args = p.parse_args()
+    data = str(SHARED / "data" / "real" / "freeimucal_mag_data.txt")
+    times = {args.before: [], args.after: []}
+    for r in range(args.rounds):
+        for tree in (args.before, args.after) if r % 2 == 0 else (args.after, args.before):
+            env = {**os.environ, "PYTHONPATH": os.path.abspath(tree), "OPENBLAS_NUM_THREADS": "1"}
+            out = subprocess.run([sys.executable, "-c", PROBE, data], env=env, cwd="/", check=True,
+                                 capture_output=True, text=True).stdout
+            times[tree].append(float(out.split()[-1]))
+    before, after = np.array(times[args.before]), np.array(times[args.after])
+    ratio = after / before
+    print(f"freeimucal N = 1000, streamcal.fit default, {args.rounds} paired rounds")
+    print(f"  before {args.before}: median {np.median(before) * 1e3:.2f} ms "
+          f"(rounds {' '.join(f'{v * 1e3:.2f}' for v in before)})")
+    print(f"  after  {args.after}: median {np.median(after) * 1e3:.2f} ms "
+          f"(rounds {' '.join(f'{v * 1e3:.2f}' for v in after)})")
+    print(f"  after ÷ before: median {np.median(ratio):.3f} (rounds {ratio.min():.3f}–{ratio.max():.3f})")
+
+
+if __name__ == "__main__":
+    main()
