@@ -65,7 +65,24 @@ def test_freeimucal_takes_three_lm_iterations(real_data_dir, monkeypatch):
     m = np.loadtxt(real_data_dir / "freeimucal_mag_data.txt", max_rows=1000, usecols=(0, 1, 2))
     iterations = []
     original = autocal.refine
-    monkeypatch.setattr(autocal, "refine", lambda *a, **k: iterations.append(
-        original(*a, **k).iterations) or original(*a, **k))
+
+    def counted(*args, **kwargs):
+        result = original(*args, **kwargs)
+        iterations.append(result.iterations)
+        return result
+
+    monkeypatch.setattr(autocal, "refine", counted)
     fit(m)
     assert sum(iterations) == 3            # 1 Cauchy step + 2 polish iterations (was 4)
+
+
+def test_the_gate_also_holds_for_a_start_fitted_on_the_spread_subset(monkeypatch):
+    """Above CLEAN_START_ROWS the start is fitted on the stage-1 subset; the gate reads the
+    residuals of every sample at it, as for a short recording."""
+    monkeypatch.setattr(autocal, "CLEAN_START_ROWS", 500)
+    calls = _cauchy_passes(monkeypatch)
+    fit(paper_protocol(2000, 1.0, 0.0, 4)[0], check_coverage=False)
+    assert calls[0] == 1
+    del calls[:]
+    fit(paper_protocol(2000, 1.0, 0.01, 4)[0], check_coverage=False)
+    assert calls and 1 not in calls

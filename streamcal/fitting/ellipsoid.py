@@ -63,7 +63,10 @@ def fit_l2_ellipsoid(m: np.ndarray):
     singular value; returns (C, d, e) scaled to trace(C) = 1."""
     # Φᵀ Φ (10×10) has the same right singular vectors; cheaper than an SVD of (N,10). Only the
     # smallest eigenpair, from LAPACK's dsyevr directly (half the time of np.linalg.eigh here).
-    _, V, _, _, info = dsyevr(_scatter(m), range="I", il=1, iu=1)
+    scatter = _scatter(m)
+    if not np.isfinite(scatter).all():  # dsyevr would return a zero vector without an error
+        raise InsufficientDataError("the algebraic ellipsoid fit needs finite samples")
+    _, V, _, _, info = dsyevr(scatter, range="I", il=1, iu=1)
     if info:
         raise InsufficientDataError(f"the algebraic ellipsoid fit failed (LAPACK dsyevr info {info})")
     v = V[:, 0]
@@ -189,7 +192,7 @@ def ellipsoid_to_model(C: np.ndarray, d: np.ndarray, e: float):
     l21 = (0.5 * (c12 + c21) - l20 * l10) / l11
     p22 = c22 - l20 * l20 - l21 * l21
     l22 = math.sqrt(p22) if p22 > 0 else math.nan
-    if not (l00 > 0 and l11 > 0 and l22 > 0):
+    if not (l00 > 0 and l11 > 0 and l22 > 0 and math.isfinite(l00 * l11 * l22)):
         raise InsufficientDataError(
             "the fitted quadric is not an ellipsoid (C is not positive definite): the data do "
             "not outline an ellipsoid — rotate the sensor through more orientations")

@@ -3,8 +3,8 @@
 Each kernel is a small immutable object whose ``evaluate(s)`` returns ρ, ρ′, ρ″ at once
 (vectorized over samples), as in scipy's ``_lsq/least_squares.py`` loss functions and Ceres'
 ``LossFunction``; ``rho(s)`` returns ρ alone (the same numbers as ``evaluate(s)[0]``, for the
-LM's trial-step cost) and, for the default fit's kernels, ``derivatives(s)`` ρ′ and ρ″ alone
-(equal to ``evaluate(s)[1:]`` to rounding, for the LM's linearization). Robustness is applied by rescaling residuals and Jacobians (Triggs
+LM's trial-step cost) and, for the default fit's kernels, ``derivatives(s)`` ρ′ and ρ″
+alone (equal to ``evaluate(s)[1:]`` to rounding, for the LM's linearization). Robustness is applied by rescaling residuals and Jacobians (Triggs
 correction, :func:`triggs_correction`), so the LM never knows which kernel it runs.
 
 The width τ is in the unit of the residual (the LM passes the normalized width).

@@ -45,10 +45,7 @@ _SYM = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _SYM_I = np.array([i for i, _ in _SYM])
 _SYM_J = np.array([j for _, j in _SYM])
 _SYM_OF_FULL = np.array([0, 1, 2, 1, 3, 4, 2, 4, 5])        # row of _SYM for flat (a, b)
-_FULL_OF_SYM = np.array([3 * i + j for i, j in _SYM])          # flat (a, b) of each _SYM row
 _SYM_EYE = np.array([1.0, 0.0, 0.0, 1.0, 0.0, 1.0])[:, None]
-# cofactors of a symmetric [[a b c] [b d f'] [c f' g]] in _SYM order: co = H[P1]H[P2] − H[P3]H[P4]
-_CO = np.array([[3, 5, 4, 4], [2, 4, 1, 5], [1, 4, 2, 3], [0, 5, 2, 2], [1, 2, 0, 4], [0, 3, 1, 1]]).T
 # pairs (c, c') of x̄ = [x0 x1 x2 1] for Σ x̄ x̄ᵀ ⊗ Q, and the (12,12) index maps into them
 _XBAR = tuple((c, d) for c in range(4) for d in range(c, 4))
 _XBAR_I = np.array([c for c, _ in _XBAR])
@@ -61,23 +58,9 @@ _GRAM_I = np.array([[_PAIR3[f % 3, g % 3] for g in range(12)] for f in range(12)
 _GRAM_FLAT = _GRAM_C * len(_SYM) + _GRAM_I
 
 
-def _inv_sym(H6: np.ndarray) -> np.ndarray:
-    """Inverses (6,N) of symmetric 3×3 matrices given by their unique entries H6 (6,N)."""
-    co = H6.take(_CO[0], axis=0) * H6.take(_CO[1], axis=0)
-    co -= H6.take(_CO[2], axis=0) * H6.take(_CO[3], axis=0)
-    det = np.einsum("ik,ik->k", H6[:3], co[:3])
-    co /= det
-    return co
-
-
 def _full(M6: np.ndarray) -> np.ndarray:
     """(3,3,N) symmetric matrices from their unique entries (6,N)."""
     return M6.take(_SYM_OF_FULL, axis=0).reshape(3, 3, -1)
-
-
-def _sym(M9: np.ndarray) -> np.ndarray:
-    """Unique entries (6,N) of (3,3,N) matrices known to be symmetric."""
-    return M9.reshape(9, -1).take(_FULL_OF_SYM, axis=0)
 
 
 #: Samples per block: one block's per-sample arrays ((3,3,8192) doubles = 0.6 MB each) stay in

@@ -116,7 +116,10 @@ def assess(x: np.ndarray, structure: str = "full", fit_b: bool = True, K: np.nda
     # symmetric problem): one call instead of numpy's four
     w, _, status = dsygv(S, U, jobz="N")
     if status:
-        raise np.linalg.LinAlgError(f"the reference information is singular (dsygv info {status})")
+        raise np.linalg.LinAlgError(
+            f"the reference information is singular (dsygv info {status})" if status > len(S)
+            else f"the information's eigenvalues did not converge (dsygv info {status}; "
+                 f"finite directions: {bool(np.isfinite(x).all())})")
     info = float(max(w[0], 0.0))
     cover = coverage_fraction(x)
     if info >= min_information:
