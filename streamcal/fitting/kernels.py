@@ -4,8 +4,10 @@ Each kernel is a small immutable object whose ``evaluate(s)`` returns ρ, ρ′,
 (vectorized over samples), as in scipy's ``_lsq/least_squares.py`` loss functions and Ceres'
 ``LossFunction``; ``rho(s)`` returns ρ alone (the same numbers as ``evaluate(s)[0]``, for the
 LM's trial-step cost) and, for the default fit's kernels, ``derivatives(s)`` ρ′ and ρ″
-alone (equal to ``evaluate(s)[1:]`` to rounding, for the LM's linearization). Robustness is applied by rescaling residuals and Jacobians (Triggs
-correction, :func:`triggs_correction`), so the LM never knows which kernel it runs.
+alone (equal to ``evaluate(s)[1:]`` to rounding, for the LM's linearization;
+:func:`derivatives_of` falls back to ``evaluate`` for the others). Robustness is applied by
+rescaling residuals and Jacobians (Triggs correction, :func:`triggs_correction`), so the LM never
+knows which kernel it runs.
 
 The width τ is in the unit of the residual (the LM passes the normalized width).
 """
@@ -122,6 +124,11 @@ class GemanMcClure:
         f = t2 / (t2 + np.asarray(s, dtype=float))
         d1 = f * f
         return d1, (-2.0 / t2) * (d1 * f)
+
+
+def derivatives_of(kernel):
+    """The kernel's ``derivatives`` (s ↦ (ρ′, ρ″)), or the same read off ``evaluate``."""
+    return getattr(kernel, "derivatives", None) or (lambda s: kernel.evaluate(s)[1:])
 
 
 #: τ / σ giving each width kernel 95 % asymptotic efficiency under Gaussian noise.

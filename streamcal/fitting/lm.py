@@ -38,7 +38,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, Cauchy, GemanMcClure
+from .kernels import L2, Cauchy, GemanMcClure, derivatives_of
 from .lm_blocks import K_ENTRIES, NumpyEngine
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
@@ -249,8 +249,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             status = "stalled" if not improved else "converged"
             break
     r, s = engine.residuals(K, b, thetas, x, state)
-    derivatives = getattr(kernel, "derivatives", None)
-    weights = derivatives(s)[0] if derivatives else kernel.evaluate(s)[1]
+    weights = derivatives_of(kernel)(s)[0]
     return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
                     residuals=np.ascontiguousarray(r.T), residual_norms=np.sqrt(s),
                     weights=weights, cost=f,

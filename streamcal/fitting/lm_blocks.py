@@ -31,7 +31,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.linalg.lapack import dgesv
 
-from .kernels import triggs_weights
+from .kernels import derivatives_of, triggs_weights
 
 #: Entries of K (row, column) for each structure of the sensor matrix.
 K_ENTRIES = {
@@ -235,7 +235,7 @@ class NumpyEngine:
     def __init__(self, model, m_t: np.ndarray, kernel):
         self.model, self.m_t, self.kernel = model, m_t, kernel
         self.rho = getattr(kernel, "rho", None) or (lambda s_: kernel.evaluate(s_)[0])
-        self.derivatives = getattr(kernel, "derivatives", None) or (lambda s_: kernel.evaluate(s_)[1:])
+        self.derivatives = derivatives_of(kernel)
         self.E = _core_map(model.structure, model.fit_b) if not model.effects else None
         n = m_t.shape[1]
         self.slices = [slice(i, min(i + BLOCK, n)) for i in range(0, n, BLOCK)]
