@@ -20,10 +20,14 @@ ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
 
 def _coverage(page) -> tuple[float, str, int]:
     """(data-value, shown text, SSE events received) of the page as it is now."""
-    el = page.locator("#coverage")
-    value, text = float(el.get_attribute("data-value")), el.text_content()
+    # one evaluate: two separate reads could straddle an update of the page (both fields are
+    # set in the same handler, so one read sees them together)
+    value, text, events = page.evaluate(
+        "() => { const e = document.getElementById('coverage'); "
+        "return [e.dataset.value, e.textContent, document.body.dataset.events || 0]; }")
+    value = float(value)
     assert abs(100 * value - float(text.rstrip("%"))) < 0.06      # the shown text is the value
-    return value, text, int(page.evaluate("document.body.dataset.events || 0"))
+    return value, text, int(events)
 
 
 @pytest.mark.slow
