@@ -7,7 +7,8 @@ default fits of the first 1,000 rows of ``freeimucal_mag_data.txt`` after 10 war
 figure is the median over rounds of the per-round ratio after ÷ before. A second table times
 the LM alone, µs per sample·iteration: ``refine`` with the Geman–McClure kernel, 5 iterations
 from the algebraic start of a clean paper-protocol track (σ = 1), at N = 1000 and 1e5, with the
-numpy engine and the compiled one (where numba is installed). Pairing matters on a
+numpy engine and the compiled one (where it applies in that tree: numba before the C engine,
+the built extension after). Pairing matters on a
 shared machine whose speed drifts within minutes: the two trees of a round ran back to back, so
 their ratio is steadier than either time. A tree is a checkout or an exported commit
 (``git worktree add /tmp/before <commit>``); each process imports streamcal from its tree.
@@ -57,7 +58,7 @@ for n in (1000, 100_000):
                              engine=engine)
         try:
             res = run()
-        except ValueError:                      # no numba: the compiled engine does not apply
+        except ValueError:                      # the compiled engine does not apply in this tree
             print(n, engine, "nan")
             continue
         times = []

@@ -26,7 +26,7 @@ Stops after ``max_iter`` iterations or when the relative cost change falls below
 (§III-A: 300 and 1e-6).
 
 The per-sample algebra lives in :mod:`streamcal.fitting.lm_blocks` (numpy, every model) and
-:mod:`streamcal.fitting.lm_fused` (compiled, the core model under the default fit's kernels).
+:mod:`streamcal.fitting.lm_compiled` (C, the core model under the default fit's kernels).
 ``tests/test_lm_equivalence.py`` checks the result against a literal transcription of steps 1–5.
 """
 from __future__ import annotations
@@ -39,6 +39,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from .kernels import L2, Cauchy, GemanMcClure, derivatives_of
+from . import lm_compiled
 from .lm_blocks import K_ENTRIES, NumpyEngine
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
@@ -173,7 +174,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
            structure: str = "full", fit_b: bool = True, effects: Sequence = (),
            covariates: Mapping[str, np.ndarray] | None = None, thetas: Sequence | None = None,
            max_iter: int = 300, rtol: float = 1e-6, lam0: float = 10.0, max_trials: int = 12,
-           beta: float = 1.0, engine: str = "auto") -> LMResult:
+           engine: str = "auto") -> LMResult:
     """Algorithm 2: robust LM over (K, b, θ, x_1…x_N) starting from a stage-1 model.
 
     Args:
@@ -185,13 +186,10 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
         fit_b: estimate b (else it stays as given).
         effects, covariates, thetas: extra effect terms, their covariates ((N,) arrays at the
             samples) and starting parameters (default ``effect.initial()``).
-        beta: weight of the gauge term β x_j x_jᵀ in the paper's direction blocks (its 1). The
-            step has no component along x_j, so β only enters the compiled engine's 3×3
-            algebra, not the result (the numpy engine solves in the tangent plane).
-        engine: ``"numpy"``, ``"compiled"`` (:mod:`streamcal.fitting.lm_fused`: the core model
-            under Cauchy or Geman–McClure, with numba installed) or ``"auto"``: as
-            :data:`ENGINE_ENV` says (numpy by default; ``compiled`` where it applies). Both give
-            the same result to rounding (not to the last bit).
+        engine: ``"numpy"``, ``"compiled"`` (:mod:`streamcal.fitting.lm_compiled`: the core
+            model under Cauchy or Geman–McClure, where the C extension was built) or ``"auto"``:
+            as :data:`ENGINE_ENV` says (by default compiled where it applies, numpy elsewhere).
+            Both give the same result to rounding (not to the last bit).
     """
     kernel = kernel or L2()
     m = np.asarray(m, dtype=float)
@@ -203,7 +201,7 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
     # structure of arrays: samples along the last axis
     m_t = np.ascontiguousarray(m.T)
     x = np.array(np.asarray(x, dtype=float).T, order="C")
-    engine = _engine(model, m_t, kernel, beta, engine)
+    engine = _engine(model, m_t, kernel, engine)
     f, state = engine.cost(K, b, thetas, x)
     early = isinstance(kernel, (Cauchy, GemanMcClure))
     lam = lam0
@@ -259,38 +257,35 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
                              "max_iter": f"{max_iter} iterations used"}[status], lam=lam)
 
 
-#: Environment variable choosing the LM engine of the whole process: unset or ``numpy``, the
-#: numpy engine; ``compiled``, the compiled one (:mod:`streamcal.fitting.lm_fused`) wherever it
-#: applies — about 2× faster fits, at a one-off ~0.4 s and ~100 MB of resident memory (numba and
-#: LLVM) per process, which is why it is not the default (a Raspberry Pi daemon). One choice per
-#: environment, never per call history: a batch on worker processes and a serial run in the same
-#: environment give the same numbers to the last bit.
+#: Environment variable choosing the LM engine of the whole process: unset, the compiled engine
+#: (:mod:`streamcal.fitting.lm_compiled`) wherever it applies and numpy elsewhere; ``numpy``,
+#: numpy everywhere; ``compiled``, as unset but with a warning when the extension was not built.
+#: One choice per environment, never per call history: a batch on worker processes and a serial
+#: run in the same environment give the same numbers to the last bit.
 ENGINE_ENV = "STREAMCAL_LM_ENGINE"
 ENGINES = ("numpy", "compiled")
-_warned_no_numba = False
+_warned_not_built = False
 
 
-def _engine(model, m_t, kernel, beta, name):
-    global _warned_no_numba
+def _engine(model, m_t, kernel, name):
+    global _warned_not_built
     explicit = name != "auto"
     if not explicit:
-        name = os.environ.get(ENGINE_ENV, "").strip().lower() or "numpy"
-        if name not in ENGINES:
+        name = os.environ.get(ENGINE_ENV, "").strip().lower() or "auto"
+        if name not in ENGINES + ("auto",):
             raise ValueError(f"{ENGINE_ENV}={os.environ[ENGINE_ENV]!r}: choose numpy or compiled")
     elif name not in ENGINES:
         raise ValueError(f"unknown LM engine {name!r}; choose auto, numpy or compiled")
-    if name == "compiled":
-        from . import lm_fused
-
-        reason = lm_fused.why_not(model, kernel)
+    if name != "numpy":
+        reason = lm_compiled.why_not(model, kernel)
         if not reason:
-            return lm_fused.FusedEngine(model, m_t, kernel, beta)
+            return lm_compiled.CompiledEngine(model, m_t, kernel)
         if explicit:
             raise ValueError(f"the compiled LM engine does not apply here: {reason}")
-        if reason == lm_fused.NO_NUMBA and not _warned_no_numba:
-            _warned_no_numba = True
-            warnings.warn(f"{ENGINE_ENV}=compiled but {reason} (pip install 'streamcal[fast]'): "
-                          "the numpy engine runs", RuntimeWarning, stacklevel=3)
+        if name == "compiled" and reason == lm_compiled.NOT_BUILT and not _warned_not_built:
+            _warned_not_built = True
+            warnings.warn(f"{ENGINE_ENV}=compiled but {reason}: the numpy engine runs",
+                          RuntimeWarning, stacklevel=3)
     return NumpyEngine(model, m_t, kernel)
 
 

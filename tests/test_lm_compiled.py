@@ -1,0 +1,144 @@
+"""The compiled LM engine (streamcal.fitting.lm_compiled, the C loops of _lmcore) and how
+``refine`` picks it."""
+from __future__ import annotations
+
+import os
+import warnings
+
+import numpy as np
+import pytest
+
+from streamcal.fitting import lm, lm_blocks, lm_compiled
+from streamcal.fitting.kernels import Cauchy, GemanMcClure, Huber
+from streamcal.model.build import build_effects
+
+from tests.test_lm_equivalence import problem
+
+if not lm_compiled.available() and not os.environ.get("CI"):
+    pytest.skip("the C extension was not built (no C compiler at install); CI builds it",
+                allow_module_level=True)
+
+
+def test_the_extension_is_built_in_ci():
+    """CI installs a C compiler: a build that failed there must not pass as a numpy run."""
+    assert lm_compiled.available()
+
+
+def _both(structure="full", kernel=Cauchy(0.03), **kw):
+    m, K0, b0, x0, _ = problem(structure, seed=5, n=400, eta=0.2)
+    a = lm.refine(m, K0, b0, x0, kernel=kernel, structure=structure, engine="numpy", **kw)
+    f = lm.refine(m, K0, b0, x0, kernel=kernel, structure=structure, engine="compiled", **kw)
+    return a, f
+
+
+@pytest.mark.parametrize("structure", ("full", "diag", "sphere"))
+@pytest.mark.parametrize("kw", [{}, {"fit_b": False}, {"lam0": 1e-3}, {"max_iter": 2}])
+def test_compiled_engine_equals_numpy_engine(structure, kw):
+    a, f = _both(structure, kernel=GemanMcClure(0.05), **kw)
+    assert a.iterations == f.iterations and a.status == f.status
+    np.testing.assert_allclose(f.K, a.K, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(f.b, a.b, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(f.x, a.x, atol=1e-10)
+    np.testing.assert_allclose(f.residuals, a.residuals, atol=1e-10)
+    np.testing.assert_allclose(f.weights, a.weights, atol=1e-10)
+    assert f.cost == pytest.approx(a.cost, rel=1e-10)
+
+
+@pytest.mark.parametrize("kernel", (Cauchy(0.03), GemanMcClure(0.05)))
+def test_one_iteration_matches_the_numpy_blocks(kernel):
+    """cost, the damped Schur system and the retracted step of one iteration, term by term (a
+    sample exactly at its model point exercises the s ≤ floor branch of the Triggs weights)."""
+    m, K0, b0, x0, _ = problem("full", seed=3, n=300, eta=0.2)
+    m = m.copy()
+    m[0] = K0 @ x0[0] + b0
+    model = lm._Model(m, "full", True, (), {})
+    m_t, x = np.ascontiguousarray(m.T), np.ascontiguousarray(x0.T)
+    ref, got = lm_blocks.NumpyEngine(model, m_t, kernel), lm_compiled.CompiledEngine(model, m_t, kernel)
+    f_ref, state = ref.cost(K0, b0, [], x)
+    f_got, _ = got.cost(K0, b0, [], x)
+    assert f_got == pytest.approx(f_ref, rel=1e-13)
+    ref.linearize(K0, b0, [], x, state)
+    got.linearize(K0, b0, [], x, None)
+    for lam in (1e-3, 10.0):
+        S_ref, rhs_ref = ref.reduce(lam)
+        S_got, rhs_got = got.reduce(lam)
+        np.testing.assert_allclose(S_got, S_ref, rtol=1e-12, atol=1e-12 * np.abs(S_ref).max())
+        np.testing.assert_allclose(rhs_got, rhs_ref, rtol=1e-12, atol=1e-12 * np.abs(rhs_ref).max())
+        dp = ref.solve(S_ref, rhs_ref)
+        np.testing.assert_allclose(got.step(x, dp), ref.step(x, dp), atol=1e-13)
+    r_ref, s_ref = ref.residuals(K0, b0, [], x, state)
+    r_got, s_got = got.residuals(K0, b0, [], x, None)
+    np.testing.assert_allclose(r_got, r_ref, atol=1e-14)
+    np.testing.assert_allclose(s_got, s_ref, atol=1e-14)
+
+
+def test_the_loops_refuse_arrays_of_the_wrong_size_or_type():
+    from streamcal.fitting import _lmcore
+
+    m = np.zeros((3, 4))
+    K, b = np.eye(3), np.zeros(3)
+    with pytest.raises(ValueError, match="x holds 9 values, expected 12"):
+        _lmcore.cost(m, np.zeros((3, 3)), K, b, 4, 0, 1.0)
+    with pytest.raises(TypeError, match="K must hold float64"):
+        _lmcore.cost(m, m, np.eye(3, dtype=np.float32), b, 4, 0, 1.0)
+    with pytest.raises(ValueError, match="not C-contiguous"):
+        _lmcore.cost(m, np.zeros((4, 3)).T, K, b, 4, 0, 1.0)
+    with pytest.raises(ValueError, match="work holds"):
+        _lmcore.reduce(m, m, K, b, 4, 0, 1.0, 1.0, np.zeros((4, 13)), np.zeros(72))
+    read_only = np.zeros((3, 4))
+    read_only.setflags(write=False)
+    with pytest.raises(ValueError, match="read-only"):              # out must be writable
+        _lmcore.step(m, 4, np.zeros((4, 14)), K, b, read_only)
+
+
+def test_compiled_engine_refuses_what_it_does_not_cover():
+    m, K0, b0, x0, cov = problem("full")
+    with pytest.raises(ValueError, match="cauchy and gm"):
+        lm.refine(m, K0, b0, x0, kernel=Huber(0.03), engine="compiled")
+    effects = build_effects(["temperature_offset"], cov)
+    with pytest.raises(ValueError, match="effect terms"):
+        lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), effects=effects, covariates=cov, engine="compiled")
+    with pytest.raises(ValueError, match="unknown LM engine"):
+        lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="jit")
+
+
+def test_the_environment_chooses_the_engine_for_the_whole_process(monkeypatch):
+    """unset: compiled wherever it applies (other kernels on numpy); numpy: numpy everywhere;
+    the same choice on every call, whatever ran before."""
+    m, K0, b0, x0, _ = problem("full")
+    used = []
+    real_numpy, real_compiled = lm.NumpyEngine, lm_compiled.CompiledEngine
+    monkeypatch.setattr(lm, "NumpyEngine", lambda *a: used.append("numpy") or real_numpy(*a))
+    monkeypatch.setattr(lm_compiled, "CompiledEngine",
+                        lambda *a: used.append("compiled") or real_compiled(*a))
+    monkeypatch.delenv(lm.ENGINE_ENV, raising=False)
+    first = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    lm.refine(m, K0, b0, x0, kernel=Huber(0.03))
+    again = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    monkeypatch.setenv(lm.ENGINE_ENV, "numpy")
+    forced = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    monkeypatch.setenv(lm.ENGINE_ENV, "compiled")
+    lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    assert used == ["compiled", "numpy", "compiled", "numpy", "compiled"]
+    np.testing.assert_array_equal(again.K, first.K)
+    np.testing.assert_allclose(forced.K, first.K, rtol=1e-10)
+    monkeypatch.setenv(lm.ENGINE_ENV, "fast")
+    with pytest.raises(ValueError, match="STREAMCAL_LM_ENGINE='fast'"):
+        lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+
+
+def test_without_the_extension_numpy_runs_and_compiled_warns_once(monkeypatch):
+    m, K0, b0, x0, _ = problem("full")
+    monkeypatch.setattr(lm_compiled, "_lmcore", None)
+    monkeypatch.setattr(lm, "_warned_not_built", False)
+    monkeypatch.delenv(lm.ENGINE_ENV, raising=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                              # the default: no warning
+        quiet = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    ref = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="numpy")
+    np.testing.assert_array_equal(quiet.K, ref.K)
+    monkeypatch.setenv(lm.ENGINE_ENV, "compiled")
+    with pytest.warns(RuntimeWarning, match="was not built"):
+        lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
+    with pytest.raises(ValueError, match="was not built"):
+        lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="compiled")
