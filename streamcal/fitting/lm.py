@@ -38,7 +38,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, Cauchy, GemanMcClure, derivatives_of
+from .kernels import L2, Cauchy, GemanMcClure
 from . import lm_compiled
 from .lm_blocks import K_ENTRIES, NumpyEngine
 
@@ -246,11 +246,9 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             converged = True
             status = "stalled" if not improved else "converged"
             break
-    r, s = engine.residuals(K, b, thetas, x, state)
-    weights = derivatives_of(kernel)(s)[0]
-    return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas,
-                    residuals=np.ascontiguousarray(r.T), residual_norms=np.sqrt(s),
-                    weights=weights, cost=f,
+    r, norms, weights = engine.final(K, b, thetas, x, state)
+    return LMResult(K=K, b=b, x=np.ascontiguousarray(x.T), thetas=thetas, residuals=r,
+                    residual_norms=norms, weights=weights, cost=f,
                     iterations=iterations, converged=converged, history=history, status=status,
                     message={"stalled": f"no step lowered the cost in {max_trials} trials",
                              "converged": f"relative cost decrease below {rtol:g}",

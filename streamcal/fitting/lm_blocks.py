@@ -230,7 +230,8 @@ class NumpyEngine:
     """One LM iteration's per-sample algebra in numpy, for any model (effects included).
 
     ``cost`` evaluates a state; ``linearize`` builds the direction blocks at the accepted
-    state; ``reduce(λ)`` returns the damped Schur system; ``step`` the retracted directions."""
+    state; ``reduce(λ)`` returns the damped Schur system; ``step`` the retracted directions;
+    ``final`` the residuals, their norms and weights at the end."""
 
     def __init__(self, model, m_t: np.ndarray, kernel):
         self.model, self.m_t, self.kernel = model, m_t, kernel
@@ -292,6 +293,7 @@ class NumpyEngine:
         x_new /= np.sqrt(np.einsum("ak,ak->k", x_new, x_new))
         return x_new
 
-    def residuals(self, K, b, thetas, x, state):
-        """(r (3,N), s (N,)) of the state."""
-        return state[0], state[2]
+    def final(self, K, b, thetas, x, state):
+        """(r (N,3), ‖r‖ (N,), ρ′(‖r‖²) (N,)) of the state."""
+        r, _, s = state
+        return np.ascontiguousarray(r.T), np.sqrt(s), self.derivatives(s)[0]

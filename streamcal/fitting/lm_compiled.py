@@ -21,21 +21,22 @@ import numpy as np
 from .kernels import Cauchy, GemanMcClure
 from .lm_blocks import _GRAM_FLAT, NumpyEngine, _core_map, _eye
 
-try:
-    from . import _lmcore
-except ImportError:  # built by `pip install` where a C compiler is found; numpy runs otherwise
-    _lmcore = None
+try:  # built by `pip install` where a C compiler is found; numpy runs otherwise
+    from ._lmcore import cost as _cost, reduce as _reduce, residuals as _residuals, step as _step
+    BUILT = True
+except ImportError:
+    BUILT = False
 
 #: Kernel ids inside the compiled loops.
 _KERNEL_IDS = {Cauchy: 0, GemanMcClure: 1}
 NOT_BUILT = "the compiled extension streamcal.fitting._lmcore was not built (no C compiler at install)"
-#: Per-sample scratch between reduce and step: T (3,2), C (2,3), z (2,).
+#: Per-sample scratch between reduce and step, a row of N each: T (3,2), C (2,3), z (2,).
 _WORK = 14
 
 
 def available() -> bool:
     """Whether the extension was built."""
-    return _lmcore is not None
+    return BUILT
 
 
 def why_not(model, kernel) -> str:
@@ -44,7 +45,7 @@ def why_not(model, kernel) -> str:
         return "the model has effect terms"
     if type(kernel) not in _KERNEL_IDS:
         return f"kernel {getattr(kernel, 'name', kernel)!r} (only cauchy and gm are compiled)"
-    if _lmcore is None:
+    if not BUILT:
         return NOT_BUILT
     return ""
 
@@ -60,34 +61,33 @@ class CompiledEngine:
         self.kid = _KERNEL_IDS[type(kernel)]
         self.t2 = float(kernel.tau) * float(kernel.tau)
         self.E = _core_map(model.structure, model.fit_b)
-        self.work = np.empty((self.n, _WORK))
+        self.work = np.empty((_WORK, self.n))
         self.acc = np.empty(72)
         self.eye_p = _eye(model.n_params)
 
     def cost(self, K, b, thetas, x):
         """(Σ ρ(‖r_j‖²), None) at directions x (3,N)."""
-        return _lmcore.cost(self.m_t, x, np.ascontiguousarray(K), b, self.n, self.kid, self.t2), None
+        return _cost(self.m_t, x, np.ascontiguousarray(K), b, self.n, self.kid, self.t2), None
 
     def linearize(self, K, b, thetas, x, state) -> None:
         self.K, self.b, self.x = np.ascontiguousarray(K), b, x
 
     def reduce(self, lam: float):
         """(S + λI (P,P), rhs (P,)) of the Schur system at damping λ."""
-        _lmcore.reduce(self.m_t, self.x, self.K, self.b, self.n, self.kid, self.t2, float(lam),
-                       self.work, self.acc)
+        _reduce(self.m_t, self.x, self.K, self.b, self.n, self.kid, self.t2, float(lam),
+                self.work, self.acc)
         S = self.E.T @ self.acc[:60].take(_GRAM_FLAT) @ self.E
         return lam * self.eye_p + S, self.E.T @ self.acc[60:]
 
     def step(self, x, dp):
         """Directions (3,N) after the global step Δp, retracted to the sphere."""
-        full = self.E @ dp
         x_new = np.empty_like(x)
-        _lmcore.step(x, self.n, self.work, np.ascontiguousarray(full[:9].reshape(3, 3).T),
-                     full[9:].copy(), x_new)
+        _step(x, self.n, self.work, self.E @ dp, x_new)
         return x_new
 
-    def residuals(self, K, b, thetas, x, state):
-        """(r (3,N), s (N,)) at the state."""
-        r = K @ x - self.m_t
-        r += b[:, None]
-        return r, np.einsum("ak,ak->k", r, r)
+    def final(self, K, b, thetas, x, state):
+        """(r (N,3), ‖r‖ (N,), ρ′(‖r‖²) (N,)) at the state, in one pass."""
+        r, norm, weight = np.empty((self.n, 3)), np.empty(self.n), np.empty(self.n)
+        _residuals(self.m_t, x, np.ascontiguousarray(K), b, self.n, self.kid, self.t2, r, norm,
+                   weight)
+        return r, norm, weight
