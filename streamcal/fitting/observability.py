@@ -19,6 +19,7 @@ import numpy as np
 from scipy.linalg.lapack import dsygv
 
 from ..calibration import field_radius
+from .ellipsoid import inverse3
 from .lm import K_ENTRIES
 
 #: Below this relative information the fit is refused. Calibrated so that a 75° cap (0.0015) or a
@@ -44,7 +45,7 @@ def _rows_t(x: np.ndarray, K: np.ndarray, structure: str, fit_b: bool) -> np.nda
     # n_j ∝ K⁻ᵀx_j (one 3×3 inverse instead of a solve per call: a batched solve costs ~10x
     # the product at N = 2000)
     xt = x.T
-    nt = np.linalg.inv(K).T @ xt
+    nt = inverse3(K).T @ xt
     nt /= np.sqrt(np.einsum("ij,ij->j", nt, nt))
     if structure == "sphere":
         k = np.einsum("ij,ij->j", nt, xt)[None, :]
