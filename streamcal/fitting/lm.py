@@ -31,6 +31,7 @@ The per-sample algebra lives in :mod:`streamcal.fitting.lm_blocks` (numpy, every
 """
 from __future__ import annotations
 
+import math
 import os
 import warnings
 from dataclasses import dataclass, field
@@ -225,13 +226,13 @@ def refine(m: np.ndarray, K: np.ndarray, b: np.ndarray, x: np.ndarray, *, kernel
             b_new = b + db if fit_b else b
             th_new = [t + d for t, d in zip(thetas, dth)]
             f_new, state_new = engine.cost(K_new, b_new, th_new, x_new)
-            if np.isfinite(f_new) and f_new < f:
+            if math.isfinite(f_new) and f_new < f:
                 improved = True
                 rel = (f - f_new) / max(f, 1e-300)
                 K, b, thetas, x, f, state = K_new, b_new, th_new, x_new, f_new, state_new
                 lam = max(lam / 10, LAMBDA_MIN)
                 break
-            if early and np.isfinite(f_new) and f_new - f <= FLAT * f:
+            if early and math.isfinite(f_new) and f_new - f <= FLAT * f:
                 # the step leaves the cost unchanged to rounding: at the optimum, stop instead
                 # of trying max_trials λ. Only for the default fit's kernels (Cauchy,
                 # Geman–McClure); L1's kink can hide a decrease behind a damped step, and L2 /

@@ -50,6 +50,21 @@ def why_not(model, kernel) -> str:
     return ""
 
 
+_PICKS: dict = {}
+
+
+def _picks(structure: str, fit_b: bool):
+    """(indices of Eᵀ G E in the 60 sums (P,P), the columns E picks (P,)) when every column of
+    E picks one entry of [K b] (not for K = kI, whose column sums three), else None."""
+    key = (structure, fit_b)
+    if key not in _PICKS:
+        E = _core_map(structure, fit_b)
+        single = (E.sum(axis=0) == 1).all()
+        cols = np.argmax(E, axis=0) if single else None
+        _PICKS[key] = None if cols is None else (_GRAM_FLAT[np.ix_(cols, cols)], cols)
+    return _PICKS[key]
+
+
 class CompiledEngine:
     """:class:`~streamcal.fitting.lm_blocks.NumpyEngine`'s interface over the compiled loops."""
 
@@ -61,6 +76,7 @@ class CompiledEngine:
         self.kid = _KERNEL_IDS[type(kernel)]
         self.t2 = float(kernel.tau) * float(kernel.tau)
         self.E = _core_map(model.structure, model.fit_b)
+        self.picks = _picks(model.structure, model.fit_b)
         self.work = np.empty((_WORK, self.n))
         self.acc = np.empty(72)
         self.eye_p = _eye(model.n_params)
@@ -76,8 +92,13 @@ class CompiledEngine:
         """(S + λI (P,P), rhs (P,)) of the Schur system at damping λ."""
         _reduce(self.m_t, self.x, self.K, self.b, self.n, self.kid, self.t2, float(lam),
                 self.work, self.acc)
-        S = self.E.T @ self.acc[:60].take(_GRAM_FLAT) @ self.E
-        return lam * self.eye_p + S, self.E.T @ self.acc[60:]
+        if self.picks is None:
+            S = self.E.T @ self.acc[:60].take(_GRAM_FLAT) @ self.E
+            return lam * self.eye_p + S, self.E.T @ self.acc[60:]
+        gram, cols = self.picks                  # E picks columns: Eᵀ G E is a gather
+        S = self.acc[:60].take(gram)
+        S += lam * self.eye_p
+        return S, self.acc[60:].take(cols)
 
     def step(self, x, dp):
         """Directions (3,N) after the global step Δp, retracted to the sphere."""
