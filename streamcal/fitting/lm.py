@@ -39,8 +39,8 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from .kernels import L2, Cauchy, GemanMcClure
 from . import lm_compiled
+from .kernels import L2, Cauchy, GemanMcClure
 from .lm_blocks import K_ENTRIES, NumpyEngine
 
 LAMBDA_MIN, LAMBDA_MAX = 1e-14, 1e14
