@@ -430,3 +430,18 @@ def test_cli_fit_accelerometer_recovers_scale_and_offset(tmp_path, capsys):
     K, b = np.array(out["K"]), np.array(out["b"])
     assert model_error(K, b, K_true, b_true) < 3 * crlb(K_true, b_true, g_dir, 0.01)
     assert np.abs(np.diag(K) / GRAVITY - np.diag(S)).max() < 1e-3
+
+
+def test_inverse3_equals_numpy_and_refuses_a_singular_matrix():
+    from streamcal.fitting.observability import inverse3
+
+    rng = np.random.default_rng(8)
+    for _ in range(200):
+        upper = np.triu(rng.normal(size=(3, 3))) + np.diag(rng.uniform(0.5, 2.0, 3))
+        general = rng.normal(size=(3, 3)) + 2 * np.eye(3)
+        for K in (upper, general):
+            np.testing.assert_allclose(inverse3(K) @ K, np.eye(3), atol=1e-12)
+            np.testing.assert_allclose(inverse3(K), np.linalg.inv(K), rtol=1e-12, atol=1e-14)
+    for singular in (np.triu(np.ones((3, 3))) - np.diag([0.0, 1.0, 0.0]), np.ones((3, 3))):
+        with pytest.raises(np.linalg.LinAlgError):
+            inverse3(singular)
