@@ -51,4 +51,3 @@ def test_the_algebraic_fit_refuses_non_finite_samples():
     m[7, 1] = np.nan
     with pytest.raises(InsufficientDataError, match="finite"):
         fit_l2_ellipsoid(m)
-

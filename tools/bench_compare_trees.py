@@ -37,6 +37,11 @@ for _ in range(31):
     fit(m)
     times.append(time.perf_counter() - t)
 print(np.median(times))
+try:
+    from streamcal.fitting import lm_compiled
+    print("C-built" if lm_compiled.available() else "C-not-built")
+except ImportError:                             # a tree from before the C engine
+    print("no-C-engine")
 import streamcal
 print(streamcal.__file__)
 """
@@ -70,6 +75,14 @@ for n in (1000, 100_000):
 """
 
 
+def _env(tree: str) -> dict:
+    """The probe's environment: the tree first on the path, one BLAS thread, and no engine
+    choice inherited from the caller (each tree runs its own default)."""
+    env = {**os.environ, "PYTHONPATH": os.path.abspath(tree), "OPENBLAS_NUM_THREADS": "1"}
+    env.pop("STREAMCAL_LM_ENGINE", None)
+    return env
+
+
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("before")
@@ -78,17 +91,19 @@ def main() -> None:
     args = p.parse_args()
     data = str(SHARED / "data" / "real" / "freeimucal_mag_data.txt")
     times = {args.before: [], args.after: []}
+    built = {}
     for r in range(args.rounds):
         for tree in (args.before, args.after) if r % 2 == 0 else (args.after, args.before):
-            env = {**os.environ, "PYTHONPATH": os.path.abspath(tree), "OPENBLAS_NUM_THREADS": "1"}
-            out = subprocess.run([sys.executable, "-c", PROBE, data], env=env, cwd="/", check=True,
+            out = subprocess.run([sys.executable, "-c", PROBE, data], env=_env(tree), cwd="/", check=True,
                                  capture_output=True, text=True).stdout.split()
             if not out[-1].startswith(os.path.abspath(tree)):   # not the tree's own streamcal
                 raise SystemExit(f"{tree}: streamcal was imported from {out[-1]}")
-            times[tree].append(float(out[-2]))
+            times[tree].append(float(out[-3]))
+            built[tree] = out[-2]
     before, after = np.array(times[args.before]), np.array(times[args.after])
     ratio = after / before
     print(f"freeimucal N = 1000, streamcal.fit default, {args.rounds} paired rounds")
+    print(f"  extension: before {built[args.before]}, after {built[args.after]}")
     print(f"  before {args.before}: median {np.median(before) * 1e3:.2f} ms "
           f"(rounds {' '.join(f'{v * 1e3:.2f}' for v in before)})")
     print(f"  after  {args.after}: median {np.median(after) * 1e3:.2f} ms "
@@ -99,8 +114,7 @@ def main() -> None:
     lm_times: dict = {}
     for r in range(2):
         for tree in (args.before, args.after) if r % 2 == 0 else (args.after, args.before):
-            env = {**os.environ, "PYTHONPATH": os.path.abspath(tree), "OPENBLAS_NUM_THREADS": "1"}
-            out = subprocess.run([sys.executable, "-c", LM_PROBE], env=env, cwd="/", check=True,
+            out = subprocess.run([sys.executable, "-c", LM_PROBE], env=_env(tree), cwd="/", check=True,
                                  capture_output=True, text=True).stdout
             for line in out.splitlines():
                 n, engine, value = line.split()

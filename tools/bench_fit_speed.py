@@ -97,8 +97,8 @@ def table_vi(n: int, repeats: int, seed: int) -> None:
 
 def _peak_rss_mb(resource) -> float:
     """This process's peak resident set (MB): ``VmHWM`` where Linux has it — ``ru_maxrss`` is
-    kept across ``execve``, so a child would start from its parent's peak (numba loaded by the
-    freeimucal row made every child read 237 MB, and a 1e5 fit's extra 0 MB) — else ru_maxrss."""
+    kept across ``execve``, so a child would start from its parent's peak (a parent at 237 MB
+    made every child read 237 MB, and a 1e5 fit's extra 0 MB) — else ru_maxrss."""
     try:
         with open("/proc/self/status") as f:
             return next(int(line.split()[1]) for line in f if line.startswith("VmHWM:")) / 1024.0

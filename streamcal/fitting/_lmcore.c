@@ -37,8 +37,10 @@ static void release(buf_t *bufs, int n)
             PyBuffer_Release(&bufs[i].view);
 }
 
-/* The buffer of obj as `count` C-contiguous doubles (writable when asked), or an exception. */
-static int get_doubles(PyObject *obj, buf_t *buf, Py_ssize_t count, int writable, const char *name)
+/* The buffer of obj as a C-contiguous float64 array of shape (rows, cols), or (rows,) when
+ * cols < 0 (writable when asked); else an exception naming the argument. */
+static int get_doubles(PyObject *obj, buf_t *buf, Py_ssize_t rows, Py_ssize_t cols, int writable,
+                       const char *name)
 {
     int flags = PyBUF_C_CONTIGUOUS | PyBUF_FORMAT | (writable ? PyBUF_WRITABLE : 0);
     buf->held = 0;
@@ -50,12 +52,49 @@ static int get_doubles(PyObject *obj, buf_t *buf, Py_ssize_t count, int writable
         PyErr_Format(PyExc_TypeError, "%s must hold float64 values", name);
         return -1;
     }
-    if (buf->view.len != count * (Py_ssize_t)sizeof(double)) {
-        PyErr_Format(PyExc_ValueError, "%s holds %zd values, expected %zd", name,
-                     buf->view.len / (Py_ssize_t)sizeof(double), count);
+    int ndim = cols < 0 ? 1 : 2;
+    const Py_ssize_t *shape = buf->view.shape;
+    if (buf->view.ndim != ndim || shape[0] != rows || (ndim == 2 && shape[1] != cols)) {
+        char want[64], got[64];
+        if (ndim == 1)
+            PyOS_snprintf(want, sizeof want, "(%zd,)", rows);
+        else
+            PyOS_snprintf(want, sizeof want, "(%zd, %zd)", rows, cols);
+        if (buf->view.ndim == 1)
+            PyOS_snprintf(got, sizeof got, "(%zd,)", shape[0]);
+        else if (buf->view.ndim == 2)
+            PyOS_snprintf(got, sizeof got, "(%zd, %zd)", shape[0], shape[1]);
+        else
+            PyOS_snprintf(got, sizeof got, "%d dimensions", buf->view.ndim);
+        PyErr_Format(PyExc_ValueError, "%s must have shape %s, got %s", name, want, got);
         return -1;
     }
     return 0;
+}
+
+/* The sample count n and kernel id of a call, checked before any buffer is sized by them. */
+static int check_n_kid(Py_ssize_t n, int kid)
+{
+    if (n < 0 || n > PY_SSIZE_T_MAX / (WORK * (Py_ssize_t)sizeof(double))) {
+        PyErr_Format(PyExc_ValueError, "n must be a sample count, got %zd", n);
+        return -1;
+    }
+    if (kid != KERNEL_CAUCHY && kid != KERNEL_GM) {
+        PyErr_Format(PyExc_ValueError, "kernel_id must be %d (Cauchy) or %d (Geman-McClure), got %d",
+                     KERNEL_CAUCHY, KERNEL_GM, kid);
+        return -1;
+    }
+    return 0;
+}
+
+/* r = K x + b − m of sample j of (3,n) rows, as NumpyEngine.cost computes it: (K x − m) + b. */
+static inline void residual(const double *m, const double *x, const double *K, const double *b,
+                            Py_ssize_t n, Py_ssize_t j, double r[3])
+{
+    double x0 = x[j], x1 = x[n + j], x2 = x[2 * n + j];
+    r[0] = (K[0] * x0 + K[1] * x1 + K[2] * x2) - m[j] + b[0];
+    r[1] = (K[3] * x0 + K[4] * x1 + K[5] * x2) - m[n + j] + b[1];
+    r[2] = (K[6] * x0 + K[7] * x1 + K[8] * x2) - m[2 * n + j] + b[2];
 }
 
 /* ρ′ and ρ″ of the kernel at s = ‖r‖², as kernels.Cauchy/GemanMcClure.derivatives compute them. */
@@ -84,8 +123,9 @@ static PyObject *lm_cost(PyObject *self, PyObject *args)
         return NULL;
     buf_t bufs[4];
     memset(bufs, 0, sizeof bufs);
-    if (get_doubles(o_m, &bufs[0], 3 * n, 0, "m") || get_doubles(o_x, &bufs[1], 3 * n, 0, "x")
-        || get_doubles(o_K, &bufs[2], 9, 0, "K") || get_doubles(o_b, &bufs[3], 3, 0, "b")) {
+    if (check_n_kid(n, kid) || get_doubles(o_m, &bufs[0], 3, n, 0, "m")
+        || get_doubles(o_x, &bufs[1], 3, n, 0, "x") || get_doubles(o_K, &bufs[2], 3, 3, 0, "K")
+        || get_doubles(o_b, &bufs[3], 3, -1, 0, "b")) {
         release(bufs, 4);
         return NULL;
     }
@@ -94,11 +134,9 @@ static PyObject *lm_cost(PyObject *self, PyObject *args)
     double total = 0.0;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < n; j++) {
-        double x0 = x[j], x1 = x[n + j], x2 = x[2 * n + j];
-        double r0 = (K[0] * x0 + K[1] * x1 + K[2] * x2) - m[j] + b[0];
-        double r1 = (K[3] * x0 + K[4] * x1 + K[5] * x2) - m[n + j] + b[1];
-        double r2 = (K[6] * x0 + K[7] * x1 + K[8] * x2) - m[2 * n + j] + b[2];
-        double s = r0 * r0 + r1 * r1 + r2 * r2;
+        double r[3];
+        residual(m, x, K, b, n, j, r);
+        double s = r[0] * r[0] + r[1] * r[1] + r[2] * r[2];
         total += kid == KERNEL_CAUCHY ? t2 * log1p(s / t2) : s * t2 / (t2 + s);
     }
     Py_END_ALLOW_THREADS
@@ -224,12 +262,12 @@ static inline void reduce_pair(const double *m, const double *x, const double *K
         else
             work[k * n + j] = out[k][0];
     }
-    if (lanes == 1) {  /* drop lane 1's copy of the sample from the sums */
-        const v2d keep = {1.0, 0.0};
+    if (lanes == 1) {  /* drop lane 1's copy of the sample from the sums (a select: inf·0 is NaN) */
+        const v2l lane0 = {-1, 0};
         for (int k = 0; k < 6; k++)
-            q[k] *= keep;
+            q[k] = vselect(lane0, q[k], vsplat(0.0));
         for (int k = 0; k < 3; k++)
-            y[k] *= keep;
+            y[k] = vselect(lane0, y[k], vsplat(0.0));
     }
     v2d xb[4] = {x0, x1, x2, one};
     int pair = 0;
@@ -255,10 +293,10 @@ static PyObject *lm_reduce(PyObject *self, PyObject *args)
         return NULL;
     buf_t bufs[6];
     memset(bufs, 0, sizeof bufs);
-    if (get_doubles(o_m, &bufs[0], 3 * n, 0, "m") || get_doubles(o_x, &bufs[1], 3 * n, 0, "x")
-        || get_doubles(o_K, &bufs[2], 9, 0, "K") || get_doubles(o_b, &bufs[3], 3, 0, "b")
-        || get_doubles(o_work, &bufs[4], WORK * n, 1, "work")
-        || get_doubles(o_acc, &bufs[5], 72, 1, "acc")) {
+    if (check_n_kid(n, kid) || get_doubles(o_m, &bufs[0], 3, n, 0, "m")
+        || get_doubles(o_x, &bufs[1], 3, n, 0, "x") || get_doubles(o_K, &bufs[2], 3, 3, 0, "K")
+        || get_doubles(o_b, &bufs[3], 3, -1, 0, "b") || get_doubles(o_work, &bufs[4], WORK, n, 1, "work")
+        || get_doubles(o_acc, &bufs[5], 72, -1, 1, "acc")) {
         release(bufs, 6);
         return NULL;
     }
@@ -289,8 +327,10 @@ static PyObject *lm_step(PyObject *self, PyObject *args)
         return NULL;
     buf_t bufs[4];
     memset(bufs, 0, sizeof bufs);
-    if (get_doubles(o_x, &bufs[0], 3 * n, 0, "x") || get_doubles(o_work, &bufs[1], WORK * n, 0, "work")
-        || get_doubles(o_full, &bufs[2], 12, 0, "full") || get_doubles(o_out, &bufs[3], 3 * n, 1, "out")) {
+    if (check_n_kid(n, KERNEL_CAUCHY) || get_doubles(o_x, &bufs[0], 3, n, 0, "x")
+        || get_doubles(o_work, &bufs[1], WORK, n, 0, "work")
+        || get_doubles(o_full, &bufs[2], 12, -1, 0, "full")
+        || get_doubles(o_out, &bufs[3], 3, n, 1, "out")) {
         release(bufs, 4);
         return NULL;
     }
@@ -331,10 +371,11 @@ static PyObject *lm_residuals(PyObject *self, PyObject *args)
         return NULL;
     buf_t bufs[7];
     memset(bufs, 0, sizeof bufs);
-    if (get_doubles(o_m, &bufs[0], 3 * n, 0, "m") || get_doubles(o_x, &bufs[1], 3 * n, 0, "x")
-        || get_doubles(o_K, &bufs[2], 9, 0, "K") || get_doubles(o_b, &bufs[3], 3, 0, "b")
-        || get_doubles(o_r, &bufs[4], 3 * n, 1, "r") || get_doubles(o_norm, &bufs[5], n, 1, "norm")
-        || get_doubles(o_weight, &bufs[6], n, 1, "weight")) {
+    if (check_n_kid(n, kid) || get_doubles(o_m, &bufs[0], 3, n, 0, "m")
+        || get_doubles(o_x, &bufs[1], 3, n, 0, "x") || get_doubles(o_K, &bufs[2], 3, 3, 0, "K")
+        || get_doubles(o_b, &bufs[3], 3, -1, 0, "b") || get_doubles(o_r, &bufs[4], n, 3, 1, "r")
+        || get_doubles(o_norm, &bufs[5], n, -1, 1, "norm")
+        || get_doubles(o_weight, &bufs[6], n, -1, 1, "weight")) {
         release(bufs, 7);
         return NULL;
     }
@@ -343,15 +384,10 @@ static PyObject *lm_residuals(PyObject *self, PyObject *args)
     double *r = bufs[4].view.buf, *norm = bufs[5].view.buf, *weight = bufs[6].view.buf;
     Py_BEGIN_ALLOW_THREADS
     for (Py_ssize_t j = 0; j < n; j++) {
-        double x0 = x[j], x1 = x[n + j], x2 = x[2 * n + j];
-        double r0 = (K[0] * x0 + K[1] * x1 + K[2] * x2) - m[j] + b[0];
-        double r1 = (K[3] * x0 + K[4] * x1 + K[5] * x2) - m[n + j] + b[1];
-        double r2 = (K[6] * x0 + K[7] * x1 + K[8] * x2) - m[2 * n + j] + b[2];
-        double s = r0 * r0 + r1 * r1 + r2 * r2, d1, d2;
+        double *rj = r + 3 * j;
+        residual(m, x, K, b, n, j, rj);
+        double s = rj[0] * rj[0] + rj[1] * rj[1] + rj[2] * rj[2], d1, d2;
         derivatives(kid, t2, s, &d1, &d2);
-        r[3 * j] = r0;
-        r[3 * j + 1] = r1;
-        r[3 * j + 2] = r2;
         norm[j] = sqrt(s);
         weight[j] = d1;
     }
@@ -377,7 +413,26 @@ static struct PyModuleDef module = {
     "Compiled per-sample loops of the robust LM (streamcal.fitting.lm_compiled).", -1, methods,
 };
 
+static int add_float(PyObject *mod, const char *name, double value)
+{
+    PyObject *obj = PyFloat_FromDouble(value);
+    int rc = PyModule_AddObjectRef(mod, name, obj);  /* -1 with the error set when obj is NULL */
+    Py_XDECREF(obj);
+    return rc;
+}
+
 PyMODINIT_FUNC PyInit__lmcore(void)
 {
-    return PyModule_Create(&module);
+    PyObject *mod = PyModule_Create(&module);
+    if (mod == NULL)
+        return NULL;
+    /* the constants compiled in, for lm_compiled and the tests to hold against kernels.py */
+    if (add_float(mod, "S_FLOOR", S_FLOOR) < 0 || add_float(mod, "D_MIN", D_MIN) < 0
+        || PyModule_AddIntConstant(mod, "WORK", WORK) < 0
+        || PyModule_AddIntConstant(mod, "KERNEL_CAUCHY", KERNEL_CAUCHY) < 0
+        || PyModule_AddIntConstant(mod, "KERNEL_GM", KERNEL_GM) < 0) {
+        Py_DECREF(mod);
+        return NULL;
+    }
+    return mod;
 }

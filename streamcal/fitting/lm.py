@@ -272,7 +272,7 @@ def _engine(model, m_t, kernel, name):
     if not explicit:
         name = os.environ.get(ENGINE_ENV, "").strip().lower() or "auto"
         if name not in ENGINES + ("auto",):
-            raise ValueError(f"{ENGINE_ENV}={os.environ[ENGINE_ENV]!r}: choose numpy or compiled")
+            raise ValueError(f"{ENGINE_ENV}={os.environ[ENGINE_ENV]!r}: choose auto, numpy or compiled")
     elif name not in ENGINES:
         raise ValueError(f"unknown LM engine {name!r}; choose auto, numpy or compiled")
     if name != "numpy":

@@ -11,7 +11,7 @@ Why not scipy.optimize.least_squares: it has no Schur elimination of the N direc
 (its Jacobian would be (3N, 3N + 9)), and the Triggs-corrected kernels and the paper's damping
 schedule are part of the method's published behaviour (``tests/test_lm_equivalence.py``).
 
-The extension is optional: where it was not built (no C compiler at install), :func:`why_not`
+The extension is optional: where it was not built (no C compiler or Python headers at install), :func:`why_not`
 says so and the numpy engine runs, with the same results to rounding.
 """
 from __future__ import annotations
@@ -29,7 +29,7 @@ except ImportError:
 
 #: Kernel ids inside the compiled loops.
 _KERNEL_IDS = {Cauchy: 0, GemanMcClure: 1}
-NOT_BUILT = "the compiled extension streamcal.fitting._lmcore was not built (no C compiler at install)"
+NOT_BUILT = "the compiled extension streamcal.fitting._lmcore was not built (no C compiler or Python headers at install)"
 #: Per-sample scratch between reduce and step, a row of N each: T (3,2), C (2,3), z (2,).
 _WORK = 14
 
