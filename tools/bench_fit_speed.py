@@ -214,7 +214,7 @@ def freeimucal_row(repeats: int, rounds: int = 3) -> None:
     print(f"\n### freeimucal N = {len(m)} (real), medians of {repeats}, {rounds} alternated rounds\n")
     print(f"  baseline, textbook algebraic L2 calibration (SVD + K, b): {rounds_ms('textbook')} ms")
     print(f"  (context: streamcal's conic step fit_l2_ellipsoid alone {rounds_ms('conic')} ms)")
-    print(f"  compiled LM engine: {'built' if lm_compiled.available() else lm_compiled.NOT_BUILT}")
+    print(f"  compiled LM engine: {lm_compiled.build_status()}")
     print(f"  first fit in a fresh process: {first['default'] * 1e3:.0f} ms by default, "
           f"{first['numpy'] * 1e3:.0f} ms with {lm.ENGINE_ENV}=numpy")
     labels = {"default": "default", "numpy": f"{lm.ENGINE_ENV}=numpy"}

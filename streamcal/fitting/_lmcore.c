@@ -24,6 +24,9 @@
 #define WORK 14
 #define KERNEL_CAUCHY 0
 #define KERNEL_GM 1
+#ifndef LMCORE_SOURCE_SHA256  /* setup.py passes the source's hash; other builds say so */
+#define LMCORE_SOURCE_SHA256 "unknown"
+#endif
 
 typedef struct {
     Py_buffer view;
@@ -430,7 +433,8 @@ PyMODINIT_FUNC PyInit__lmcore(void)
     if (add_float(mod, "S_FLOOR", S_FLOOR) < 0 || add_float(mod, "D_MIN", D_MIN) < 0
         || PyModule_AddIntConstant(mod, "WORK", WORK) < 0
         || PyModule_AddIntConstant(mod, "KERNEL_CAUCHY", KERNEL_CAUCHY) < 0
-        || PyModule_AddIntConstant(mod, "KERNEL_GM", KERNEL_GM) < 0) {
+        || PyModule_AddIntConstant(mod, "KERNEL_GM", KERNEL_GM) < 0
+        || PyModule_AddStringConstant(mod, "SOURCE_SHA256", LMCORE_SOURCE_SHA256) < 0) {
         Py_DECREF(mod);
         return NULL;
     }

@@ -281,7 +281,7 @@ def _engine(model, m_t, kernel, name):
             return lm_compiled.CompiledEngine(model, m_t, kernel)
         if explicit:
             raise ValueError(f"the compiled LM engine does not apply here: {reason}")
-        if name == "compiled" and reason == lm_compiled.NOT_BUILT and not _warned_not_built:
+        if name == "compiled" and not lm_compiled.BUILT and not _warned_not_built:
             _warned_not_built = True
             warnings.warn(f"{ENGINE_ENV}=compiled but {reason}: the numpy engine runs",
                           RuntimeWarning, stacklevel=3)

@@ -16,6 +16,10 @@ says so and the numpy engine runs, with the same results to rounding.
 """
 from __future__ import annotations
 
+import hashlib
+import warnings
+from pathlib import Path
+
 import numpy as np
 
 from .kernels import Cauchy, GemanMcClure
@@ -26,17 +30,45 @@ try:  # built by `pip install` where a C compiler is found; numpy runs otherwise
     BUILT = True
 except ImportError:
     BUILT = False
+try:
+    from ._lmcore import SOURCE_SHA256 as _BUILT_FROM
+except ImportError:
+    _BUILT_FROM = ""            # built before setup.py compiled the source's hash in
+
+NOT_BUILT = ("the compiled extension streamcal.fitting._lmcore was not built (no C compiler or "
+             "Python headers at install)")
+STALE = ("streamcal.fitting._lmcore was built from another version of the _lmcore.c beside it: "
+         "rebuild it (pip install -e . or python setup.py build_ext --inplace)")
+
+
+def _stale() -> bool:
+    """Whether the _lmcore.c beside the extension (a source checkout) is not the one it was built
+    from: edited since, the extension would run the old loops."""
+    src = Path(__file__).with_name("_lmcore.c")
+    if not BUILT or _BUILT_FROM == "unknown" or not src.is_file():   # "unknown": not by setup.py
+        return False
+    return hashlib.sha256(src.read_bytes()).hexdigest() != _BUILT_FROM
+
+
+_WHY_NOT_BUILT = NOT_BUILT
+if _stale():
+    warnings.warn(f"{STALE}; the numpy engine runs until then", RuntimeWarning, stacklevel=2)
+    BUILT, _WHY_NOT_BUILT = False, STALE
 
 #: Kernel ids inside the compiled loops.
 _KERNEL_IDS = {Cauchy: 0, GemanMcClure: 1}
-NOT_BUILT = "the compiled extension streamcal.fitting._lmcore was not built (no C compiler or Python headers at install)"
 #: Per-sample scratch between reduce and step, a row of N each: T (3,2), C (2,3), z (2,).
 _WORK = 14
 
 
 def available() -> bool:
-    """Whether the extension was built."""
+    """Whether the extension was built (from the source beside it, in a checkout)."""
     return BUILT
+
+
+def build_status() -> str:
+    """'built', or why the compiled loops do not run (not built; built from an older source)."""
+    return "built" if BUILT else _WHY_NOT_BUILT
 
 
 def why_not(model, kernel) -> str:
@@ -46,7 +78,7 @@ def why_not(model, kernel) -> str:
     if type(kernel) not in _KERNEL_IDS:
         return f"kernel {getattr(kernel, 'name', kernel)!r} (only cauchy and gm are compiled)"
     if not BUILT:
-        return NOT_BUILT
+        return _WHY_NOT_BUILT
     return ""
 
 
