@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from streamcal.fitting import FitResult, fit
-from streamcal.fitting.damped_lm import (CONVERGED, MAX_ITER, STALLED, STATUSES, damped_lm,
-                                         lag_grid, search_lag, trimmed_cost)
+from streamcal.fitting.damped_lm import (CONVERGED, DAMPING, MAX_ITER, STALLED, STATUSES,
+                                         Damping, damped_lm, lag_grid, search_lag, trimmed_cost)
 from streamcal.sim import simulate
 
 
@@ -50,6 +50,36 @@ def test_stall_is_reported_as_stalled_not_converged():
     assert out.iterations == 1
     assert np.array_equal(out.x, p0)          # nothing accepted
     assert "no step lowered the cost" in out.message
+
+
+@pytest.mark.parametrize("damping", (DAMPING, Damping(start=1e-2, down=10.0, up=10.0, floor=1e-12)))
+def test_the_damping_follows_its_schedule(damping):
+    """λ read back from each trial step of a one-parameter problem (H = h: d = −g / (h + λ(h +
+    10⁻¹²))): it starts at ``start``, is divided by ``down`` after an accepted step (not below
+    ``floor``) and multiplied by ``up`` after a rejected one. Every third trial is rejected (an
+    infinite cost), the others accepted."""
+    h, lams, accepted = 2.0, [], []
+
+    def linearize(x, _aux):
+        return float(x[0] ** 2), np.array([[h]]), np.array([h * x[0]]), None
+
+    def propose(x, d):
+        lams.append((-h * x[0] / d[0] - h) / (h + 1e-12))
+        return x + d
+
+    def evaluate(cand, _ctx):
+        ok = len(lams) % 3 != 2
+        accepted.append(ok)
+        return (0.0 if ok else np.inf), None
+
+    damped_lm(np.array([1.0]), None, 1.0, linearize=linearize, propose=propose, evaluate=evaluate,
+              max_iter=6, rtol=-1.0, damping=damping)     # rtol < 0: never converged
+    expected = [damping.start]
+    for ok in accepted[:-1]:
+        expected.append(max(expected[-1] / damping.down, damping.floor) if ok
+                        else expected[-1] * damping.up)
+    np.testing.assert_allclose(lams, expected, rtol=1e-6)
+    assert not all(accepted) and any(accepted)
 
 
 def test_budget_exhausted_is_max_iter():

@@ -29,7 +29,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from ..errors import InsufficientDataError
-from ..fitting.damped_lm import CONVERGED, MAX_ITER as STATUS_MAX_ITER, STALLED
+from ..fitting.damped_lm import CONVERGED, Damping, damped_lm
 from ..fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry, shifted
 from .residuals import GN_ITERATIONS, closest_point
 
@@ -39,6 +39,8 @@ TOLERANCE = 0.005
 #: Cauchy width in noise σ (95 % Gaussian efficiency), and inliers within this many widths.
 CAUCHY_C, OUTLIER_WIDTHS = 2.385, 2.0
 MAX_ITER, RTOL = 30, 1e-7
+#: λ ÷10 after an accepted step, ×10 after a rejected one.
+DAMPING = Damping(start=1e-3, down=10.0, up=10.0, floor=1e-12)
 
 
 def core_params(model: Sequence[str]) -> list[str]:
@@ -139,10 +141,10 @@ class HeldFit:
     tau: float
     estimated: dict = field(default_factory=dict)
     iterations: int = 0
-    #: How the LM loop ended: ``converged`` (relative cost decrease below :data:`RTOL`, or
-    #: nothing to fit), ``stalled`` (no trial step lowered the cost) or ``max_iter``
-    #: (:data:`MAX_ITER` rounds used while the cost still fell), as in
-    #: :mod:`streamcal.fitting.damped_lm`; ``message`` in words.
+    #: How the LM loop (:func:`streamcal.fitting.damped_lm.damped_lm`) ended: ``converged``
+    #: (relative cost decrease at most :data:`RTOL`, or nothing to fit), ``stalled`` (no trial
+    #: step lowered the cost) or ``max_iter`` (:data:`MAX_ITER` rounds used while the cost
+    #: still fell); ``message`` in words.
     status: str = CONVERGED
     message: str = ""
 
@@ -181,39 +183,28 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     def cost(s_):
         return float(np.sum(np.log1p((s_ / tau) ** 2)))
 
-    lam, it = 1e-3, 0
-    c = cost(s)
-    status, message = CONVERGED, "nothing to fit" if P == 0 else ""
-    for it in range(1, MAX_ITER + 1):
-        if P == 0:
-            it = 0
-            break
-        A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
-        w = 1.0 / (1.0 + (s / tau) ** 2)
+    def linearize(p_, st):
+        K_, _, terms_, _, x_, s_, normal_, D_ = st
+        A = jacobian(free, terms_[len(held_terms):], x_, normal_, D_, cov, x_ @ K_.T)
+        w = 1.0 / (1.0 + (s_ / tau) ** 2)
         # einsum, not BLAS: threaded BLAS on these thin (N, ≤30) products spins on a busy
         # machine (9 of 18 s of a 20-minute flight's diagnosis) for a few MFLOP of work
         H = np.einsum("np,nq->pq", A * w[:, None], A)
-        g = np.einsum("np,n->p", A, w * s)   # s(p + dp) ≈ s − A dp
-        improved = False
-        for _ in range(10):
-            dp = np.linalg.solve(H + lam * np.diag(np.diag(H) + 1e-12), g)
-            trial = state(p + dp, x)
-            c_new = cost(trial[5])
-            if c_new < c:
-                p, (K, b, terms, r, x, s, normal, D) = p + dp, trial
-                rel = (c - c_new) / max(c, 1e-300)
-                c, lam, improved = c_new, max(lam / 10, 1e-12), True
-                break
-            lam *= 10
-        if not improved:
-            status, message = STALLED, f"no step lowered the cost in 10 trials (λ = {lam:.3g})"
-            break
-        if rel < RTOL:
-            status, message = CONVERGED, f"relative cost decrease {rel:.3g} < {RTOL:g}"
-            break
+        grad = -np.einsum("np,n->p", A, w * s_)     # s(p + dp) ≈ s − A dp
+        return cost(s_), H, grad, x_                # trials re-project from these directions
+
+    def evaluate(p_, x_):
+        trial = state(p_, x_)
+        return cost(trial[5]), trial
+
+    if P == 0:
+        it, status, message = 0, CONVERGED, "nothing to fit"
     else:
-        if P:
-            status, message = STATUS_MAX_ITER, f"{MAX_ITER} rounds used while the cost still fell"
+        res = damped_lm(p, (K, b, terms, r, x, s, normal, D), cost(s), linearize=linearize,
+                        propose=lambda p_, d: p_ + d, evaluate=evaluate, max_iter=MAX_ITER,
+                        rtol=RTOL, damping=DAMPING)
+        p, (K, b, terms, r, x, s, normal, D) = res.x, res.aux
+        it, status, message = res.iterations, res.status, res.message
     # noise and width re-estimated at the solution; covariance σ̂² (AᵀWA)⁻¹
     inliers = np.abs(s) <= OUTLIER_WIDTHS * tau
     sigma = float(np.sqrt(np.mean(s[inliers] ** 2))) if inliers.sum() > P else sigma

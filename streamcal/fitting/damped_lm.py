@@ -4,7 +4,8 @@ status, and the lag grid both search before refining.
 The loop (:func:`damped_lm`) is the problem-agnostic part: each round the problem linearizes
 at the current state (cost, normal matrix H (P,P), gradient g (P,)); trial steps solve
 (H + λ (diag H + 10⁻¹²)) d = −g, λ divided by 3 after an accepted step and multiplied by 4
-after a rejected one, at most :data:`TRIALS` trials per round. A trial is accepted when its
+after a rejected one (:data:`DAMPING`; the held fit of the diagnosis against a calibration
+keeps its own ÷10 / ×10), at most :data:`TRIALS` trials per round. A trial is accepted when its
 cost does not rise. The outcome is reported like scipy's ``OptimizeResult``:
 
     ``converged``  the accepted step lowered the cost by at most ``rtol`` × cost;
@@ -20,9 +21,23 @@ import numpy as np
 
 CONVERGED, STALLED, MAX_ITER = "converged", "stalled", "max_iter"
 STATUSES = (CONVERGED, STALLED, MAX_ITER)
-#: Trial steps per round, and the damping schedule.
+#: Trial steps per round.
 TRIALS = 10
-LAMBDA0, LAMBDA_DOWN, LAMBDA_UP, LAMBDA_MIN = 1e-3, 3.0, 4.0, 1e-9
+
+
+@dataclass(frozen=True)
+class Damping:
+    """The damping schedule: λ starts at ``start``, is divided by ``down`` (not below
+    ``floor``) after an accepted step and multiplied by ``up`` after a rejected one."""
+
+    start: float = 1e-3
+    down: float = 3.0
+    up: float = 4.0
+    floor: float = 1e-9
+
+
+#: The gravity- and gyro-tied fits' schedule.
+DAMPING = Damping()
 
 
 @dataclass
@@ -52,7 +67,7 @@ def damped_lm(x0, aux0, cost0: float, *,
               linearize: Callable[[Any, Any], tuple],
               propose: Callable[[Any, np.ndarray], Any],
               evaluate: Callable[[Any, Any], tuple],
-              max_iter: int, rtol: float) -> LMStatus:
+              max_iter: int, rtol: float, damping: Damping = DAMPING) -> LMStatus:
     """Minimize by damped Gauss–Newton from ``x0`` (with its ``aux0`` and cost ``cost0``).
 
     ``linearize(x, aux) -> (cost, H, grad, ctx)``: the merit at ``x`` for this round (it may
@@ -61,7 +76,7 @@ def damped_lm(x0, aux0, cost0: float, *,
     aux)``: the candidate's cost under this round's merit (``inf`` rejects it).
     """
     x, aux, cost = x0, aux0, float(cost0)
-    lam = LAMBDA0
+    lam = damping.start
     it = 0
     for it in range(1, max_iter + 1):
         cost, H, grad, ctx = linearize(x, aux)
@@ -73,9 +88,9 @@ def damped_lm(x0, aux0, cost0: float, *,
             cost1, aux1 = evaluate(cand, ctx)
             if cost1 <= cost:
                 accepted = cand
-                lam = max(lam / LAMBDA_DOWN, LAMBDA_MIN)
+                lam = max(lam / damping.down, damping.floor)
                 break
-            lam *= LAMBDA_UP
+            lam *= damping.up
         if accepted is None:
             return LMStatus(x, cost, aux, STALLED, it,
                             f"no step lowered the cost in {TRIALS} trials (λ = {lam:.3g})")
