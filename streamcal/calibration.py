@@ -183,17 +183,16 @@ class Calibration:
         single = m.ndim == 1
         m2 = np.atleast_2d(m)
         if self.effects:
-
             x = invert_model(self, m2, covariates or {})
         else:
             x = np.linalg.solve(self.K, (m2 - self.b).T).T
         return x[0] if single else x
 
-
     def apply_field(self, m, covariates: Mapping[str, np.ndarray] | None = None) -> np.ndarray:
         """Calibrated field vectors ``|B| x`` (N,3) in the sensor unit; ``|B|`` is ``field`` when
         known, else :attr:`radius` (K's geometric-mean radius)."""
         return (self.field or self.radius) * self.apply(m, covariates)
+
     def model_error(self, other: "Calibration") -> float:
         """Normalized model deviation ‖[K,b] − [K',b']‖_F / ‖[K',b']‖_F (paper eq. 39/40)."""
         a = np.hstack([self.K, self.b[:, None]])

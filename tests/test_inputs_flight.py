@@ -115,6 +115,40 @@ def test_ulog_px4_calibration_undone(flight_dir):
     assert got <= expected and len(got) > 1000
 
 
+def test_px4_calibration_in_force_reproduces_its_corrected_field(flight_dir, tmp_path, capsys):
+    """--cal log on a PX4 ULog: the Calibration built from the CAL_MAG0_* in force maps the
+    track's (undone) readings onto the norms of PX4's own correction (export.px4.apply_px4),
+    at the strength of the field PX4 logged; diagnose runs against it and names its source."""
+    from streamcal.export.px4 import apply_px4
+
+    path = flight_dir / ULGS[0]
+    track = read_recording(path)
+    cal = autopilot_calibration(track)
+    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
+              if k.startswith("param.CAL_MAG0_")}
+    px4 = apply_px4({"CAL_MAG0_XODIAG": 0.0, "CAL_MAG0_YODIAG": 0.0, "CAL_MAG0_ZODIAG": 0.0,
+                     **params}, track.mag / 100.0) * 100.0
+    np.testing.assert_allclose(np.linalg.norm(cal.apply_field(track.mag), axis=1),
+                               np.linalg.norm(px4, axis=1), rtol=1e-9)
+    np.testing.assert_allclose(cal.b, [100.0 * params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    assert cal.field == pytest.approx(np.median(np.linalg.norm(px4, axis=1)), rel=1e-3)
+    assert main(["diagnose", str(path), "--cal", "log"]) == 0
+    assert "CAL_MAG0_* parameters" in capsys.readouterr().out
+    converted = tmp_path / "flight.csv"
+    assert main(["convert", str(path), "-o", str(converted)]) == 0
+    again = autopilot_calibration(read_recording(converted))     # from the param.* metadata
+    np.testing.assert_array_equal(again.K, cal.K)
+    np.testing.assert_array_equal(again.b, cal.b)
+
+
+def test_px4_cal_log_refused_when_the_readings_are_already_calibrated(flight_dir):
+    track = read_recording(flight_dir / ULGS[0])
+    track.metadata["mag_calibration_undone"] = ("could not: CAL_MAG0_ROT=4, SENS_BOARD_ROT=0 "
+                                                "rotate the field")
+    with pytest.raises(InputError, match="already applied to them"):
+        autopilot_calibration(track)
+
+
 def test_ulog_aux_and_units(flight_dir):
     events = read_recording(flight_dir / ULGS[2])
     assert events.has("act_out0") and events.has("battery_voltage_v")

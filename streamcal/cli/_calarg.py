@@ -4,7 +4,8 @@ directory (its ``calibration.json``, else the newest good ``history/NNNN.json``,
 created, pruned or re-permissioned.
 
 ``--cal autopilot`` (or ``--cal log``): the calibration the autopilot had in force, rebuilt from
-the recording's own parameters (ArduPilot COMPASS_*, :func:`streamcal.inputs.autopilot_calibration`)
+the recording's own parameters (ArduPilot COMPASS_*, PX4 CAL_MAGn_*:
+:func:`streamcal.inputs.autopilot_calibration`)
 — unless a file or directory of that name exists, which is then read as above."""
 from __future__ import annotations
 

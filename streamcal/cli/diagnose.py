@@ -29,8 +29,8 @@ def register(subparsers) -> None:
     p.add_argument("--plots", metavar="DIR", help="write figures of the residuals into DIR")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "daemon/replay state dir; its model replaces --model; 'autopilot' or 'log': "
-                   "the one in the log's own COMPASS_* parameters): re-estimate only what "
-                   "the track determines, hold the rest")
+                   "the one in the log's own parameters, ArduPilot COMPASS_* or PX4 "
+                   "CAL_MAGn_*): re-estimate only what the track determines, hold the rest")
     add_location_options(p)
     p.add_argument("--full", action="store_true", help="diagnose every sample even of a long "
                    "track file (default: files over 30 MB are diagnosed from a stratified "

@@ -30,8 +30,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", metavar="HTML",
                    help="report file (default: <track name>-report.html in the current directory)")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
-                   "state dir; 'autopilot' or 'log': the one in the log's own COMPASS_* "
-                   "parameters), holding what the track does not determine")
+                   "state dir; 'autopilot' or 'log': the one in the log's own parameters, "
+                   "ArduPilot COMPASS_* or PX4 CAL_MAGn_*), holding what the track does not determine")
     add_location_options(p)
     p.set_defaults(func=run)
 

@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Mapping
 
 from ..errors import InputError, TrackError
 from .track import Track
-from .autopilot_cal import calibration_from_ardupilot
+from .autopilot_cal import calibration_from_ardupilot, calibration_from_px4
 from .columns import parse_columns, parse_unit
 from .detect import FORMATS, detect
 
@@ -26,7 +26,7 @@ if TYPE_CHECKING:   # for the return annotation of autopilot_calibration only
     from ..calibration import Calibration
 
 __all__ = ["read_recording", "detect", "FORMATS", "autopilot_calibration",
-           "calibration_from_ardupilot"]
+           "calibration_from_ardupilot", "calibration_from_px4"]
 
 
 def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
@@ -86,15 +86,30 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
 
 
 def autopilot_calibration(track: Track) -> "Calibration":
-    """The autopilot's own calibration from a track read from an ArduPilot log (its
-    ``param.COMPASS_*`` and ``autopilot_field_uT`` metadata, which survive ``convert``)."""
-    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
-              if k.startswith("param.COMPASS_")}
+    """The autopilot's own calibration from a track read from a flight log: ArduPilot's
+    ``param.COMPASS_*``, or PX4's ``param.CAL_MAGn_*`` of the magnetometer the track holds, with
+    the strength of the autopilot's corrected field (``autopilot_field_uT``); these metadata
+    survive ``convert``."""
+    md = track.metadata
     where = str(track.path) if track.path else "track"
-    if not params:
-        raise InputError(f"{where}: no COMPASS_* parameters in the metadata (not read from an "
-                         "ArduPilot log, or the log has no PARM messages)")
-    field = track.metadata.get("autopilot_field_uT")
+    field = md.get("autopilot_field_uT")
+    ardupilot = {k[len("param."):]: float(v) for k, v in md.items()
+                 if k.startswith("param.COMPASS_")}
+    prefix = md.get("mag_cal_params")
+    if not ardupilot and not prefix:
+        raise InputError(f"{where}: no autopilot compass parameters in the metadata (ArduPilot "
+                         "COMPASS_* from PARM messages, or PX4 CAL_MAGn_* matching the "
+                         "magnetometer's device id)")
     if field is None:
         raise InputError(f"{where}: no autopilot_field_uT in the metadata")
-    return calibration_from_ardupilot(params, float(field), source=f"{where} COMPASS_* parameters")
+    if ardupilot:
+        return calibration_from_ardupilot(ardupilot, float(field),
+                                          source=f"{where} COMPASS_* parameters")
+    undone = md.get("mag_calibration_undone", "")
+    if undone.startswith("could not"):
+        raise InputError(f"{where}: mx,my,mz are PX4's calibrated field ({undone}): its "
+                         "calibration is already applied to them")
+    params = {k[len("param."):]: float(v) for k, v in md.items() if k.startswith("param.")}
+    return calibration_from_px4(params, float(field), prefix=prefix,
+                                compensation_in_readings=md.get("mag_calibrated_by_px4") == "yes",
+                                source=f"{where} {prefix}* parameters")

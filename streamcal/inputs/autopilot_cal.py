@@ -1,4 +1,5 @@
-"""An autopilot's own compass calibration (ArduPilot ``COMPASS_*``) as a streamcal Calibration.
+"""An autopilot's own compass calibration (ArduPilot ``COMPASS_*``, PX4 ``CAL_MAGn_*``) as a
+streamcal Calibration.
 
 ArduPilot corrects a body-frame reading ``r`` (milligauss) as (``AP_Compass`` backend, in this
 order: offsets, soft-iron matrix, motor compensation)::
@@ -17,6 +18,17 @@ which is streamcal's ``m = A x + b + g c`` with ``A = |F| S⁻¹`` (|F| in µT),
 ``aux_interference`` ``g = −S⁻¹ mot / 10`` µT per unit of the channel. ``A`` is symmetric;
 its canonical upper-triangular form ``K`` (``A = K Q``) describes the same ellipsoid, with
 directions rotated by ``Q``.
+
+PX4 corrects a reading ``r`` (gauss) as ``c = R S (r + p·comp − o)`` (``sensor_calibration/
+Magnetometer``): ``o`` = CAL_MAGn_XOFF.. (G, *subtracted*), ``S`` symmetric from XSCALE.. and
+XODIAG/YODIAG/ZODIAG (S12, S13, S23), ``R`` the board/CAL_MAGn_ROT rotation, ``comp`` =
+CAL_MAGn_XCOMP.. with ``p`` the power signal of CAL_MAG_COMP_TYP (1 throttle 0..1, 2 battery
+0's current in kA). With ``c = |F| u`` and ``m = 100 r`` µT::
+
+    m = |F| S⁻¹ Rᵀ u + 100 o − 100 comp p
+
+so ``A = |F| S⁻¹ Rᵀ``: the rotation only turns the free directions, and ``K`` is the canonical
+form of ``|F| S⁻¹``; ``b = 100 o``; on battery current (A) ``g = −0.1 comp`` µT/A.
 """
 from __future__ import annotations
 
@@ -29,6 +41,11 @@ from ..calibration import Calibration, canonical_form
 from ..errors import InputError
 
 MG_PER_UT = 10.0
+UT_PER_GAUSS = 100.0
+#: CAL_MAG_COMP_TYP values (PX4): 0 off, 1 throttle, 2 battery 0 current, 3 battery 1 current.
+PX4_COMP_CURRENT0 = 2
+#: PX4's current signal is in kA: g (µT/A) = −UT_PER_GAUSS · 0.001 · comp.
+PX4_KA_PER_A = 0.001
 #: COMPASS_MOTCT values (ArduPilot): 0 disabled, 1 throttle, 2 current.
 MOTCT_CHANNELS = {1: "throttle", 2: "battery_current_a"}
 #: Parameters of the first compass kept in a track's metadata (``param.NAME``).
@@ -89,3 +106,63 @@ def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
                      "directions are ArduPilot's corrected field rotated by frame_rotation_Q"}
     return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),
                        method="ardupilot_params", unit="uT", extra=extra)
+
+
+def px4_matrix(params: Mapping[str, float], prefix: str = "CAL_MAG0_") -> np.ndarray:
+    """The symmetric matrix ``S`` (3,3) of PX4's calibration ``prefix`` (identity when absent)."""
+    S = np.diag([params.get(f"{prefix}{a}SCALE", 1.0) for a in "XYZ"]).astype(float)
+    odiag = [params.get(f"{prefix}{a}ODIAG", 0.0) for a in "XYZ"]
+    S[0, 1] = S[1, 0] = odiag[0]
+    S[0, 2] = S[2, 0] = odiag[1]
+    S[1, 2] = S[2, 1] = odiag[2]
+    return S
+
+
+def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: str = "CAL_MAG0_",
+                         compensation_in_readings: bool = False,
+                         source: str = "PX4 parameters") -> Calibration:
+    """Calibration equivalent to PX4's ``prefix`` (``CAL_MAGn_``) parameters, on readings in µT.
+
+    Args:
+        params: ``{name: value}`` of the log's parameters (``CAL_MAGn_*``, ``CAL_MAG_COMP_TYP``).
+        field_uT: the strength of PX4's corrected field, µT (e.g. the median norm of the
+            calibrated topic × 100); sets the scale of ``K``.
+        compensation_in_readings: the readings already carry PX4's power compensation (a
+            calibrated topic whose S and o were undone): it is then not a term of the model.
+        source: said in the calibration's ``extra["source"]``.
+    Raises :class:`InputError` if the offsets are missing or ``S`` is not invertible. Power
+    compensation that cannot be a term (throttle, battery 1: no such channel in a track) is
+    left out and said in ``extra["note"]``.
+    """
+    missing = [f"{prefix}{a}OFF" for a in "XYZ" if f"{prefix}{a}OFF" not in params]
+    if missing:
+        raise InputError(f"{source}: no {', '.join(missing)} parameter: the autopilot's "
+                         "calibration cannot be rebuilt")
+    if not (np.isfinite(field_uT) and field_uT > 0):
+        raise InputError(f"{source}: field strength must be a positive number of µT, "
+                         f"got {field_uT!r}")
+    S = px4_matrix(params, prefix)
+    if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e6:
+        raise InputError(f"{source}: {prefix}SCALE/ODIAG give a singular matrix")
+    K, Q = canonical_form(field_uT * np.linalg.inv(S))
+    b = UT_PER_GAUSS * np.array([params[f"{prefix}{a}OFF"] for a in "XYZ"], dtype=float)
+    model, effects = ["hard_iron", "soft_iron"], {}
+    notes = ["K is the canonical form of |F| S⁻¹ (PX4's rotation R only turns the directions); "
+             "calibrated directions are PX4's corrected field rotated by frame_rotation_Q"]
+    comp_type = int(params.get("CAL_MAG_COMP_TYP", 0) or 0)
+    comp = np.array([params.get(f"{prefix}{a}COMP", 0.0) for a in "XYZ"], dtype=float)
+    if comp_type and np.any(comp):
+        if compensation_in_readings:
+            notes.append(f"power compensation (CAL_MAG_COMP_TYP={comp_type}) is already in the "
+                         "readings (PX4 applied it before the calibration that was undone)")
+        elif comp_type == PX4_COMP_CURRENT0:
+            g = -UT_PER_GAUSS * PX4_KA_PER_A * comp
+            model.append("aux_interference")
+            effects["aux_interference"] = {"channels": {"battery_current_a": {
+                "a0": 0.0, "g": [float(v) for v in g]}}}
+        else:
+            notes.append(f"power compensation CAL_MAG_COMP_TYP={comp_type} left out: its signal "
+                         "(throttle, or battery 1's current) is not a channel of the track")
+    extra = {"source": source, "frame_rotation_Q": Q.tolist(), "note": "; ".join(notes)}
+    return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),
+                       method="px4_params", unit="uT", extra=extra)

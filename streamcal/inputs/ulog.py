@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .autopilot_cal import px4_matrix
 from .track import Track
 from .streams import Stream, merge
 
@@ -99,6 +100,7 @@ def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndar
                                           "device id; mx,my,mz are PX4's calibrated field")
         return mag_g
     p = f"CAL_MAG{i}_"
+    meta["mag_cal_params"] = p
     rot = int(params.get(p + "ROT", -1))
     board = int(params.get("SENS_BOARD_ROT", 0))
     if rot > 0 or board != 0:
@@ -106,12 +108,7 @@ def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndar
                                           "rotate the field; mx,my,mz are PX4's calibrated field")
         return mag_g
     off = np.array([params.get(p + a + "OFF", 0.0) for a in "XYZ"], dtype=float)
-    S = np.diag([params.get(p + a + "SCALE", 1.0) for a in "XYZ"]).astype(float)
-    odiag = [params.get(p + a + "ODIAG", 0.0) for a in "XYZ"]
-    S[0, 1] = S[1, 0] = odiag[0]
-    S[0, 2] = S[2, 0] = odiag[1]
-    S[1, 2] = S[2, 1] = odiag[2]
-    raw = np.linalg.solve(S, mag_g.T).T + off
+    raw = np.linalg.solve(px4_matrix(params, p), mag_g.T).T + off
     trims = [params.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
     meta["mag_calibration_undone"] = (
         f"{p}XOFF.. added back ({','.join(f'{v:g}' for v in off)} G) and the inverse of the "
@@ -145,8 +142,20 @@ def _mag(ulog, path: Path, meta: dict) -> Stream:
     meta["mag_topic"] = f"{name} (instance {d.multi_id}, {len(t)} samples, gauss x100 = uT)"
     meta["mag_calibrated_by_px4"] = "yes" if calibrated else "no (driver reading)"
     device_id = int(d.data["device_id"][0]) if "device_id" in d.data else None
+    params = ulog.initial_parameters
     if calibrated:
-        mag_g = _undo_px4(mag_g, ulog.initial_parameters, device_id, meta)
+        # the strength PX4's corrected field has: the scale of its calibration (--cal log)
+        meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(mag_g, axis=1)) * UT_PER_GAUSS:.4g}"
+        mag_g = _undo_px4(mag_g, params, device_id, meta)
+    else:
+        i = _cal_index(params, device_id)
+        if i is not None:
+            p = f"CAL_MAG{i}_"
+            meta["mag_cal_params"] = p
+            off = np.array([params.get(p + a + "OFF", 0.0) for a in "XYZ"], dtype=float)
+            corrected = (mag_g - off) @ px4_matrix(params, p).T
+            meta["autopilot_field_uT"] = (
+                f"{np.median(np.linalg.norm(corrected, axis=1)) * UT_PER_GAUSS:.4g}")
     cols = dict(zip(("mx", "my", "mz"), (mag_g * UT_PER_GAUSS).T))
     if "temperature" in d.data and np.any(d.data["temperature"] != 0) \
             and np.all(np.isfinite(d.data["temperature"])):
@@ -224,8 +233,8 @@ def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
         if stream is not None:
             streams.append(stream)
     for name, value in ulog.initial_parameters.items():
-        if name.startswith("CAL_MAG0_") or name in ("CAL_MAG_PRIME", "CAL_MAG_COMP_TYP",
-                                                     "SENS_BOARD_ROT"):
+        if name.startswith(("CAL_MAG0_", meta.get("mag_cal_params", "CAL_MAG0_"))) \
+                or name in ("CAL_MAG_PRIME", "CAL_MAG_COMP_TYP", "SENS_BOARD_ROT"):
             meta[f"param.{name}"] = f"{value:g}"
     if cut:
         meta["read_warnings"] = f"truncated: {cut} trailing bytes ignored"
