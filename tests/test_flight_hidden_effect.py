@@ -7,6 +7,8 @@ fixed direction, added to the real magnetometer samples; nothing else is changed
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -115,7 +117,7 @@ def test_log_without_motor_channel_does_not_invent_one(log16):
 
 
 @pytest.mark.slow
-def test_cli_cal_autopilot_names_its_source_and_refuses_a_log_without_one(capsys):
+def test_cli_cal_autopilot_names_its_source_and_refuses_a_track_without_one(capsys):
     from streamcal.cli import main
 
     path = FLIGHT / LOG_16
@@ -127,7 +129,8 @@ def test_cli_cal_autopilot_names_its_source_and_refuses_a_log_without_one(capsys
     out = json.loads(capsys.readouterr().out)
     assert out["calibration_source"].startswith("autopilot calibration in force")
     assert "COMPASS_*" in out["calibration_source"]
-    ulg = FLIGHT / "px4_pyulog_sample.ulg"
-    assert main(["diagnose", str(ulg), "--cal", "log"]) == 2
+    demo = Path(streamcal.__file__).parent / "data" / "demo_track.csv.gz"   # no autopilot
+    assert main(["diagnose", str(demo), "--cal", "log"]) == 2
     err = capsys.readouterr().err
     assert "--cal log" in err and "no autopilot compass calibration" in err
+    assert "ArduPilot COMPASS_*" in err and "PX4 CAL_MAGn_*" in err

@@ -161,15 +161,21 @@ def test_compiled_engine_refuses_what_it_does_not_cover():
         lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="jit")
 
 
-def test_the_environment_chooses_the_engine_for_the_whole_process(monkeypatch):
-    """unset: compiled wherever it applies (other kernels on numpy); numpy: numpy everywhere;
-    the same choice on every call, whatever ran before."""
-    m, K0, b0, x0, _ = problem("full")
+def _engines_used(monkeypatch) -> list:
+    """The engines refine builds from now on, in order ('numpy' / 'compiled')."""
     used = []
     real_numpy, real_compiled = lm.NumpyEngine, lm_compiled.CompiledEngine
     monkeypatch.setattr(lm, "NumpyEngine", lambda *a: used.append("numpy") or real_numpy(*a))
     monkeypatch.setattr(lm_compiled, "CompiledEngine",
                         lambda *a: used.append("compiled") or real_compiled(*a))
+    return used
+
+
+def test_the_environment_chooses_the_engine_for_the_whole_process(monkeypatch):
+    """unset: compiled wherever it applies (other kernels on numpy); numpy: numpy everywhere;
+    the same choice on every call, whatever ran before."""
+    m, K0, b0, x0, _ = problem("full")
+    used = _engines_used(monkeypatch)
     monkeypatch.delenv(lm.ENGINE_ENV, raising=False)
     first = lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))
     lm.refine(m, K0, b0, x0, kernel=Huber(0.03))
@@ -208,11 +214,7 @@ def test_an_explicit_engine_overrides_the_environment_and_the_value_is_forgiving
     matter; STREAMCAL_LM_ENGINE=compiled with a kernel the loops do not cover runs numpy
     without a warning (the extension is there, it just does not apply)."""
     m, K0, b0, x0, _ = problem("full")
-    used = []
-    real_numpy, real_compiled = lm.NumpyEngine, lm_compiled.CompiledEngine
-    monkeypatch.setattr(lm, "NumpyEngine", lambda *a: used.append("numpy") or real_numpy(*a))
-    monkeypatch.setattr(lm_compiled, "CompiledEngine",
-                        lambda *a: used.append("compiled") or real_compiled(*a))
+    used = _engines_used(monkeypatch)
     monkeypatch.setenv(lm.ENGINE_ENV, " Compiled ")
     lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03), engine="numpy")
     lm.refine(m, K0, b0, x0, kernel=Cauchy(0.03))

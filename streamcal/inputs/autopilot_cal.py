@@ -67,6 +67,21 @@ def ardupilot_matrix(params: Mapping[str, float]) -> np.ndarray:
     return S * scale
 
 
+def _check(params: Mapping[str, float], offsets: list[str], S: np.ndarray, matrix_params: str,
+           field_uT: float, source: str) -> None:
+    """InputError naming what is missing or unusable: an offset parameter, the field strength,
+    an invertible matrix ``S``."""
+    missing = [name for name in offsets if name not in params]
+    if missing:
+        raise InputError(f"{source}: no {', '.join(missing)} parameter: the autopilot's "
+                         "calibration cannot be rebuilt")
+    if not (np.isfinite(field_uT) and field_uT > 0):
+        raise InputError(f"{source}: field strength must be a positive number of µT, "
+                         f"got {field_uT!r}")
+    if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e6:
+        raise InputError(f"{source}: {matrix_params} give a singular matrix")
+
+
 def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
                                source: str = "ArduPilot parameters") -> Calibration:
     """Calibration equivalent to the first compass's ``COMPASS_*`` parameters.
@@ -78,16 +93,8 @@ def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
         source: said in the calibration's ``extra["source"]``.
     Raises :class:`InputError` if the offsets are missing or the matrix is not invertible.
     """
-    missing = [f"COMPASS_OFS_{a}" for a in "XYZ" if f"COMPASS_OFS_{a}" not in params]
-    if missing:
-        raise InputError(f"{source}: no {', '.join(missing)} parameter: the autopilot's "
-                         "calibration cannot be rebuilt")
-    if not (np.isfinite(field_uT) and field_uT > 0):
-        raise InputError(f"{source}: field strength must be a positive number of µT, "
-                         f"got {field_uT!r}")
     S = ardupilot_matrix(params)
-    if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e6:
-        raise InputError(f"{source}: COMPASS_DIA/ODI give a singular soft-iron matrix")
+    _check(params, [f"COMPASS_OFS_{a}" for a in "XYZ"], S, "COMPASS_DIA/ODI", field_uT, source)
     S_inv = np.linalg.inv(S)
     K, Q = canonical_form(field_uT * S_inv)
     offsets = np.array([params[f"COMPASS_OFS_{a}"] for a in "XYZ"], dtype=float)
@@ -134,16 +141,8 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
     compensation that cannot be a term (throttle, battery 1: no such channel in a track) is
     left out and said in ``extra["note"]``.
     """
-    missing = [f"{prefix}{a}OFF" for a in "XYZ" if f"{prefix}{a}OFF" not in params]
-    if missing:
-        raise InputError(f"{source}: no {', '.join(missing)} parameter: the autopilot's "
-                         "calibration cannot be rebuilt")
-    if not (np.isfinite(field_uT) and field_uT > 0):
-        raise InputError(f"{source}: field strength must be a positive number of µT, "
-                         f"got {field_uT!r}")
     S = px4_matrix(params, prefix)
-    if not np.all(np.isfinite(S)) or np.linalg.cond(S) > 1e6:
-        raise InputError(f"{source}: {prefix}SCALE/ODIAG give a singular matrix")
+    _check(params, [f"{prefix}{a}OFF" for a in "XYZ"], S, f"{prefix}SCALE/ODIAG", field_uT, source)
     K, Q = canonical_form(field_uT * np.linalg.inv(S))
     b = UT_PER_GAUSS * np.array([params[f"{prefix}{a}OFF"] for a in "XYZ"], dtype=float)
     model, effects = ["hard_iron", "soft_iron"], {}
