@@ -63,11 +63,26 @@ def test_battery_current_compensation_becomes_an_aux_interference_term():
     assert "already in the readings" in without.extra["note"]
 
 
-def test_a_compensation_without_its_channel_is_left_out_and_said():
-    params, _, _ = _px4_params(comp_type=1, comp=(0.01, 0.0, 0.0))
+def test_throttle_compensation_is_a_term_on_the_throttle_channel():
+    """CAL_MAG_COMP_TYP = 1: p is the throttle 0..1 (actuator_controls_0.control[3])."""
+    comp = np.array([0.05, 0.01, -0.04])                  # G at full throttle
+    params, S, o = _px4_params(comp_type=1, comp=comp)
+    throttle = np.linspace(0.0, 0.8, 500)
+    m, _ = _raw_readings(S, o, comp, power=throttle)
     cal = calibration_from_px4(params, FIELD_UT, prefix="CAL_MAG1_")
+    assert set(cal.effects["aux_interference"]["channels"]) == {"throttle"}
+    x = cal.apply(m, {"throttle": throttle})
+    np.testing.assert_allclose(np.linalg.norm(x, axis=1), 1.0, rtol=1e-9)
+
+
+@pytest.mark.parametrize("comp_type, channels, signal", [
+    (1, ("battery_current_a",), "throttle"), (2, ("throttle",), "battery_current_a"),
+    (3, ("throttle", "battery_current_a"), "battery 1's current")])
+def test_a_compensation_without_its_channel_is_left_out_and_said(comp_type, channels, signal):
+    params, _, _ = _px4_params(comp_type=comp_type, comp=(0.01, 0.0, 0.0))
+    cal = calibration_from_px4(params, FIELD_UT, prefix="CAL_MAG1_", channels=channels)
     assert "aux_interference" not in cal.model
-    assert "CAL_MAG_COMP_TYP=1 left out" in cal.extra["note"]
+    assert f"CAL_MAG_COMP_TYP={comp_type} left out: its signal ({signal})" in cal.extra["note"]
 
 
 def test_missing_offsets_or_a_singular_matrix_are_refused():
@@ -81,3 +96,24 @@ def test_missing_offsets_or_a_singular_matrix_are_refused():
         calibration_from_px4(singular, FIELD_UT, prefix="CAL_MAG1_")
     with pytest.raises(InputError, match="positive number of µT"):
         calibration_from_px4(params, float("nan"), prefix="CAL_MAG1_")
+
+
+def test_the_ulog_reader_takes_the_throttle_px4_compensates_with():
+    """actuator_controls_0.control[3] becomes the ``throttle`` column when it moves; a constant
+    one (a log on the ground: the bundled samples) is left out like every constant channel."""
+    from types import SimpleNamespace
+
+    from streamcal.inputs.ulog import _throttle
+
+    def log(values):
+        topic = SimpleNamespace(name="actuator_controls_0", multi_id=0,
+                                data={"timestamp": np.arange(4) * 10_000,
+                                      "control[3]": np.asarray(values, np.float32)})
+        return SimpleNamespace(data_list=[topic])
+
+    meta = {}
+    stream = _throttle(log([0.0, 0.4, 0.55, 0.5]), meta)
+    np.testing.assert_allclose(stream.columns["throttle"], [0.0, 0.4, 0.55, 0.5], rtol=1e-7)
+    np.testing.assert_allclose(stream.t, [0.0, 0.01, 0.02, 0.03])
+    assert meta["throttle_source"] == "actuator_controls_0.control[3] (0..1)"
+    assert _throttle(log([0.0, 0.0, 0.0, 0.0]), {}) is None

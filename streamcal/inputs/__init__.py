@@ -112,4 +112,5 @@ def autopilot_calibration(track: Track) -> "Calibration":
     params = {k[len("param."):]: float(v) for k, v in md.items() if k.startswith("param.")}
     return calibration_from_px4(params, float(field), prefix=prefix,
                                 compensation_in_readings=md.get("mag_calibrated_by_px4") == "yes",
+                                channels=[name for name in track.columns if track.has(name)],
                                 source=f"{where} {prefix}* parameters")

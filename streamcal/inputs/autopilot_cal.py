@@ -28,12 +28,14 @@ CAL_MAGn_XCOMP.. with ``p`` the power signal of CAL_MAG_COMP_TYP (1 throttle 0..
     m = |F| S⁻¹ Rᵀ u + 100 o − 100 comp p
 
 so ``A = |F| S⁻¹ Rᵀ``: the rotation only turns the free directions, and ``K`` is the canonical
-form of ``|F| S⁻¹``; ``b = 100 o``; on battery current (A) ``g = −0.1 comp`` µT/A.
+form of ``|F| S⁻¹``; ``b = 100 o``; ``g = −100 comp`` µT per unit throttle, ``−0.1 comp`` µT/A
+on battery current. (PX4 applies the throttle term only while armed; the throttle it scales
+with is 0 when disarmed.)
 """
 from __future__ import annotations
 
 import re
-from typing import Mapping
+from typing import Collection, Mapping
 
 import numpy as np
 
@@ -43,7 +45,7 @@ from ..errors import InputError
 MG_PER_UT = 10.0
 UT_PER_GAUSS = 100.0
 #: CAL_MAG_COMP_TYP values (PX4): 0 off, 1 throttle, 2 battery 0 current, 3 battery 1 current.
-PX4_COMP_CURRENT0 = 2
+PX4_COMP_CHANNELS = {1: "throttle", 2: "battery_current_a"}
 #: PX4's current signal is in kA: g (µT/A) = −UT_PER_GAUSS · 0.001 · comp.
 PX4_KA_PER_A = 0.001
 #: COMPASS_MOTCT values (ArduPilot): 0 disabled, 1 throttle, 2 current.
@@ -127,6 +129,7 @@ def px4_matrix(params: Mapping[str, float], prefix: str = "CAL_MAG0_") -> np.nda
 
 def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: str = "CAL_MAG0_",
                          compensation_in_readings: bool = False,
+                         channels: Collection[str] = tuple(PX4_COMP_CHANNELS.values()),
                          source: str = "PX4 parameters") -> Calibration:
     """Calibration equivalent to PX4's ``prefix`` (``CAL_MAGn_``) parameters, on readings in µT.
 
@@ -136,10 +139,12 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
             calibrated topic × 100); sets the scale of ``K``.
         compensation_in_readings: the readings already carry PX4's power compensation (a
             calibrated topic whose S and o were undone): it is then not a term of the model.
+        channels: the columns the readings come with; a compensation whose signal is not
+            among them cannot be a term.
         source: said in the calibration's ``extra["source"]``.
     Raises :class:`InputError` if the offsets are missing or ``S`` is not invertible. Power
-    compensation that cannot be a term (throttle, battery 1: no such channel in a track) is
-    left out and said in ``extra["note"]``.
+    compensation that cannot be a term (its signal not among ``channels``; battery 1's current,
+    which a track does not carry) is left out and said in ``extra["note"]``.
     """
     S = px4_matrix(params, prefix)
     _check(params, [f"{prefix}{a}OFF" for a in "XYZ"], S, f"{prefix}SCALE/ODIAG", field_uT, source)
@@ -154,14 +159,16 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
         if compensation_in_readings:
             notes.append(f"power compensation (CAL_MAG_COMP_TYP={comp_type}) is already in the "
                          "readings (PX4 applied it before the calibration that was undone)")
-        elif comp_type == PX4_COMP_CURRENT0:
-            g = -UT_PER_GAUSS * PX4_KA_PER_A * comp
+        elif PX4_COMP_CHANNELS.get(comp_type) in channels:
+            channel = PX4_COMP_CHANNELS[comp_type]
+            g = -UT_PER_GAUSS * comp * (PX4_KA_PER_A if channel == "battery_current_a" else 1.0)
             model.append("aux_interference")
-            effects["aux_interference"] = {"channels": {"battery_current_a": {
+            effects["aux_interference"] = {"channels": {channel: {
                 "a0": 0.0, "g": [float(v) for v in g]}}}
         else:
+            signal = PX4_COMP_CHANNELS.get(comp_type, "battery 1's current")
             notes.append(f"power compensation CAL_MAG_COMP_TYP={comp_type} left out: its signal "
-                         "(throttle, or battery 1's current) is not a channel of the track")
+                         f"({signal}) is not a channel of the readings")
     extra = {"source": source, "frame_rotation_Q": Q.tolist(), "note": "; ".join(notes)}
     return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),
                        method="px4_params", unit="uT", extra=extra)

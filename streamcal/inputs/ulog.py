@@ -18,7 +18,9 @@ non-zero the metadata says so.
 
 Also: ``sensor_combined`` accelerometer_m_s2 / gyro_rad → ``ax..az``, ``gx..gz``;
 ``actuator_outputs.output[i]`` → ``act_out{i}`` (outputs that never change are left out);
-``battery_status`` current_a / voltage_v → ``battery_current_a``, ``battery_voltage_v``.
+``actuator_controls_0.control[3]`` → ``throttle`` (0..1, the signal of PX4's throttle-based
+compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
+``battery_voltage_v``.
 Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
 """
 from __future__ import annotations
@@ -194,6 +196,19 @@ def _actuators(ulog, meta: dict) -> Stream | None:
     return Stream("actuator_outputs", d.data["timestamp"] * 1e-6, cols) if cols else None
 
 
+def _throttle(ulog, meta: dict) -> Stream | None:
+    """``actuator_controls_0.control[3]`` (0..1): the throttle PX4's CAL_MAG_COMP_TYP = 1
+    compensation scales with (``VehicleMagnetometer``), when logged and not constant."""
+    d = _topic(ulog, "actuator_controls_0")
+    if d is None or "control[3]" not in d.data:
+        return None
+    values = d.data["control[3]"].astype(np.float64)
+    if not np.all(np.isfinite(values)) or np.all(values == values[0]):
+        return None
+    meta["throttle_source"] = "actuator_controls_0.control[3] (0..1)"
+    return Stream("actuator_controls_0", d.data["timestamp"] * 1e-6, {"throttle": values})
+
+
 def _battery(ulog, meta: dict) -> Stream | None:
     d = _topic(ulog, "battery_status")
     if d is None:
@@ -221,7 +236,7 @@ def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
     meta = {"sensor": "px4 magnetometer", "source": f"PX4 ULog {path.name}",
             "input_format": "px4-ulog", "mag_unit": "uT",
             "units": "mx,my,mz uT (from gauss x100); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
-                     "act_out* as logged by actuator_outputs; battery_current_a A; "
+                     "act_out* as logged by actuator_outputs; throttle 0..1; battery_current_a A; "
                      "battery_voltage_v V"}
     for key in ("ver_hw", "ver_sw", "sys_name"):
         if key in info:
@@ -229,7 +244,7 @@ def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
     streams = [_mag(ulog, path, meta)]
     meta["mag_axes"] = ("body frame (PX4 rotated it)" if meta["mag_calibrated_by_px4"] == "yes"
                         else "board frame of the driver (sensor_mag); body if SENS_BOARD_ROT = 0")
-    for stream in (_imu(ulog), _actuators(ulog, meta), _battery(ulog, meta)):
+    for stream in (_imu(ulog), _actuators(ulog, meta), _throttle(ulog, meta), _battery(ulog, meta)):
         if stream is not None:
             streams.append(stream)
     for name, value in ulog.initial_parameters.items():
