@@ -30,13 +30,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
+from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
 from .common import correction, fmt, motor_channel
 
-UT_PER_GAUSS = 100.0
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
 COMP_THROTTLE, COMP_CURRENT0 = 1, 2  # CAL_MAG_COMP_TYP values
-KA_PER_A = 0.001
 
 
 def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
@@ -45,11 +44,7 @@ def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
     ``power`` (N,) is PX4's power signal for CAL_MAG_COMP_TYP: throttle 0..1 (type 1) or the
     battery current in kA (type 2/3); ignored when absent or the type is 0.
     """
-    S = np.diag([params[f"CAL_MAG0_{a}SCALE"] for a in "XYZ"])
-    S[0, 1] = S[1, 0] = params["CAL_MAG0_XODIAG"]
-    S[0, 2] = S[2, 0] = params["CAL_MAG0_YODIAG"]
-    S[1, 2] = S[2, 1] = params["CAL_MAG0_ZODIAG"]
-    off = np.array([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    S, off = px4_matrix(params), px4_offsets(params)
     r = np.asarray(r_gauss, dtype=float)
     if power is not None and params.get("CAL_MAG_COMP_TYP", 0):
         comp = np.array([params[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])

@@ -127,6 +127,11 @@ def px4_matrix(params: Mapping[str, float], prefix: str = "CAL_MAG0_") -> np.nda
     return S
 
 
+def px4_offsets(params: Mapping[str, float], prefix: str = "CAL_MAG0_") -> np.ndarray:
+    """PX4's offsets ``o`` (3,) G of the calibration ``prefix`` (0 where absent)."""
+    return np.array([params.get(f"{prefix}{a}OFF", 0.0) for a in "XYZ"], dtype=float)
+
+
 def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: str = "CAL_MAG0_",
                          compensation_in_readings: bool = False,
                          channels: Collection[str] = tuple(PX4_COMP_CHANNELS.values()),
@@ -149,7 +154,7 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
     S = px4_matrix(params, prefix)
     _check(params, [f"{prefix}{a}OFF" for a in "XYZ"], S, f"{prefix}SCALE/ODIAG", field_uT, source)
     K, Q = canonical_form(field_uT * np.linalg.inv(S))
-    b = UT_PER_GAUSS * np.array([params[f"{prefix}{a}OFF"] for a in "XYZ"], dtype=float)
+    b = UT_PER_GAUSS * px4_offsets(params, prefix)      # present: _check
     model, effects = ["hard_iron", "soft_iron"], {}
     notes = ["K is the canonical form of |F| S⁻¹ (PX4's rotation R only turns the directions); "
              "calibrated directions are PX4's corrected field rotated by frame_rotation_Q"]

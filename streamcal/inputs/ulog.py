@@ -31,13 +31,12 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
-from .autopilot_cal import px4_matrix
+from .autopilot_cal import UT_PER_GAUSS, px4_matrix, px4_offsets
 from .track import Track
 from .streams import Stream, merge
 
 MAGIC = b"ULog\x01\x12\x35"
 HEADER_BYTES = 16
-UT_PER_GAUSS = 100.0
 MAG_TOPICS = (("sensor_mag", ("x", "y", "z"), False),
               ("vehicle_magnetometer", tuple(f"magnetometer_ga[{i}]" for i in range(3)), True),
               ("sensor_combined", tuple(f"magnetometer_ga[{i}]" for i in range(3)), True))
@@ -94,22 +93,29 @@ def _cal_index(params: dict, device_id) -> int | None:
     return None
 
 
-def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndarray:
-    """``r = S⁻¹ c + o`` for the CAL_MAGn of ``device_id`` when the rotation is the identity."""
+def _cal_prefix(params: dict, device_id, meta: dict) -> str | None:
+    """``CAL_MAGn_`` of the calibration PX4 applies to ``device_id`` (recorded in ``meta``)."""
     i = _cal_index(params, device_id)
     if i is None:
+        return None
+    meta["mag_cal_params"] = f"CAL_MAG{i}_"
+    return meta["mag_cal_params"]
+
+
+def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndarray:
+    """``r = S⁻¹ c + o`` for the CAL_MAGn of ``device_id`` when the rotation is the identity."""
+    p = _cal_prefix(params, device_id, meta)
+    if p is None:
         meta["mag_calibration_undone"] = ("could not: no CAL_MAGn_ID matches the magnetometer's "
                                           "device id; mx,my,mz are PX4's calibrated field")
         return mag_g
-    p = f"CAL_MAG{i}_"
-    meta["mag_cal_params"] = p
     rot = int(params.get(p + "ROT", -1))
     board = int(params.get("SENS_BOARD_ROT", 0))
     if rot > 0 or board != 0:
         meta["mag_calibration_undone"] = (f"could not: {p}ROT={rot}, SENS_BOARD_ROT={board} "
                                           "rotate the field; mx,my,mz are PX4's calibrated field")
         return mag_g
-    off = np.array([params.get(p + a + "OFF", 0.0) for a in "XYZ"], dtype=float)
+    off = px4_offsets(params, p)
     raw = np.linalg.solve(px4_matrix(params, p), mag_g.T).T + off
     trims = [params.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
     meta["mag_calibration_undone"] = (
@@ -149,15 +155,10 @@ def _mag(ulog, path: Path, meta: dict) -> Stream:
         # the strength PX4's corrected field has: the scale of its calibration (--cal log)
         meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(mag_g, axis=1)) * UT_PER_GAUSS:.4g}"
         mag_g = _undo_px4(mag_g, params, device_id, meta)
-    else:
-        i = _cal_index(params, device_id)
-        if i is not None:
-            p = f"CAL_MAG{i}_"
-            meta["mag_cal_params"] = p
-            off = np.array([params.get(p + a + "OFF", 0.0) for a in "XYZ"], dtype=float)
-            corrected = (mag_g - off) @ px4_matrix(params, p).T
-            meta["autopilot_field_uT"] = (
-                f"{np.median(np.linalg.norm(corrected, axis=1)) * UT_PER_GAUSS:.4g}")
+    elif (p := _cal_prefix(params, device_id, meta)) is not None:
+        corrected = (mag_g - px4_offsets(params, p)) @ px4_matrix(params, p).T
+        meta["autopilot_field_uT"] = (
+            f"{np.median(np.linalg.norm(corrected, axis=1)) * UT_PER_GAUSS:.4g}")
     cols = dict(zip(("mx", "my", "mz"), (mag_g * UT_PER_GAUSS).T))
     if "temperature" in d.data and np.any(d.data["temperature"] != 0) \
             and np.all(np.isfinite(d.data["temperature"])):
