@@ -101,7 +101,8 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
                                                 "MPU-9250 driver", "description": "streamcal demo"})
     say(f"\ndiagnosing the {len(track.t_mag)} recorded samples "
         f"(model {', '.join(DEFAULT_MODEL)}; every candidate effect is refitted)…")
-    diagnosis, reason = diagnose_or_reason(track, DEFAULT_MODEL)
+    recorded = (out.parent / TRACK_NAME).resolve()
+    diagnosis, reason = diagnose_or_reason(track, DEFAULT_MODEL, recording=[str(recorded)])
     if diagnosis is None:
         print(f"no diagnosis: {reason}")
     else:
@@ -109,15 +110,15 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
         say(_candidates(diagnosis))
         say(_ladder(diagnosis))
     out.parent.mkdir(parents=True, exist_ok=True)
-    recorded = (out.parent / TRACK_NAME).resolve()
     track.write(recorded)
-    if diagnosis is not None and diagnosis.verdict == "effect_missing" and diagnosis.candidates:
-        from ..report.html import fit_command
+    if diagnosis is not None and diagnosis.next_step:
+        import shlex
 
-        print(f"\nto fit with it: {fit_command(recorded, diagnosis.candidates[0].effect)}")
+        print(f"\nnext step (gives the rms promised above): "
+              f"{' '.join(shlex.quote(w) for w in diagnosis.next_step)}")
     path = write_report(out, track, diagnosis, reason=reason, name=track_path.name,
                         title=f"streamcal demo: {track_path.name}",
-                        intro=_stream_html(accepted, track.mag_unit), command_path=recorded)
+                        intro=_stream_html(accepted, track.mag_unit))
     print(f"\nreport written to {path.resolve()}")
     print(f"track the driver produced: {recorded}")
     say(f"(done in {time.monotonic() - start:.0f} s)")
@@ -177,21 +178,18 @@ def _unit(unit: str) -> str:
 
 
 def _verdict(d) -> str:
+    """The diagnosis' plain sentences, then the verdict with its numbers."""
+    import textwrap
+
     u = _unit(d.calibration.unit if d.calibration is not None else "uT")
+    cmd = " ".join(d.next_step) if d.next_step else ""
+    text = d.summary.replace(f" To do: {cmd}", "") if cmd else d.summary
     floor = (f"noise floor {d.noise_floor:.3f} {u} ({d.rms / d.noise_floor:.2f}× the floor)"
              if d.floor_known else f"noise floor not measurable ({d.noise_floor_reason})")
-    head = (f"\nverdict: {d.verdict} — rms {d.rms:.3f} {u} on the "
-            f"{residual_name(d.residual)} residual with {', '.join(d.model)}, {floor}; "
-            f"{d.n_outliers} of {d.n} samples are outliers")
-    if d.verdict == "effect_missing" and d.candidates:
-        top = d.candidates[0]
-        residual, before = d.baseline(top)
-        head += (f"\nmissing effect: {top.effect} ({top.evidence}); adding it gives rms "
-                 f"{top.rms_after:.3f} {u}")
-        if residual != "sensor":
-            head += (f" on the {residual_name(residual)} residual (the model without it: "
-                     f"{before:.3f} {u})")
-    return head
+    return ("\n" + "\n".join(textwrap.wrap(text, 96)) + f"\n\nverdict: {d.verdict} — rms "
+            f"{d.rms:.3f} {u} on the {residual_name(d.residual)} residual with "
+            f"{', '.join(d.model)} over {d.ladder[0]['n']} samples, {floor}; "
+            f"{d.n_outliers} of {d.n} samples are outliers of that model")
 
 
 def _candidates(d) -> str:

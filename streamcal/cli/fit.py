@@ -35,6 +35,12 @@ def register(sub) -> None:
     p.add_argument("--json", action="store_true", help="print the calibration as one JSON object")
     p.add_argument("--initial", metavar="CAL", help="warm start from this calibration (JSON "
                    "file or state dir): the LM starts from its K and b")
+    p.add_argument("--cal", metavar="CAL", help="refine this calibration (JSON file, state "
+                   "dir, 'autopilot'/'log': the one in the log's parameters, or 'default': the "
+                   "stated default a diagnosis without a calibration holds) on a recording that "
+                   "covers only a slice of the sphere: what the recording determines is "
+                   "re-estimated, the rest held, and each --add effect fitted (what `diagnose "
+                   "--cal` recommends); --model is then the calibration's")
     p.add_argument("--no-coverage-check", action="store_true",
                    help="fit even when the directions seen leave the model undetermined")
     p.set_defaults(func=run)
@@ -57,6 +63,8 @@ def _tau(value):
 def run(args) -> int:
     from ..fitting import fit
     track = read_track(args)
+    if getattr(args, "cal", None):
+        return _refine(args, track)
     initial = None
     if getattr(args, "initial", None):
         from ._calarg import load_calibration_arg
@@ -82,6 +90,36 @@ def run(args) -> int:
         print(format_calibration(cal, args.track, residual, sensor))
         if args.output:
             print(f"written: {args.output}")
+    return 0
+
+
+def _refine(args, track) -> int:
+    """``fit TRACK --cal CAL [--add EFFECT …]``: :func:`streamcal.diagnosis.against.refine`."""
+    from ..diagnosis.against import refine
+    from ..errors import InputError
+    from ._calarg import calibration_for
+
+    if args.sensor != "mag" or args.method != "autocal" or args.initial:
+        raise InputError("--cal refines a magnetometer calibration with the held fit: it takes "
+                         "neither --sensor accel, --method nor --initial")
+    from pathlib import Path
+
+    if args.cal == "default" and not Path(args.cal).exists():
+        given, source = None, None   # the stated default a diagnosis without --cal holds
+    else:
+        given, source = calibration_for(args.cal, track)
+    cal = refine(track, given, args.add, calibration_source=source)
+    if args.output:
+        cal.save(args.output)
+    if args.json:
+        print(json.dumps(jsonable(cal.to_dict()), allow_nan=False))
+        return 0
+    print(format_calibration(cal, args.track))
+    held = (cal.extra or {}).get("held") or []
+    print(f"  held      {', '.join(held) or 'none'} (at the values of "
+          f"{source or 'the stated default'}: this recording cannot determine them)")
+    if args.output:
+        print(f"written: {args.output}")
     return 0
 
 

@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from ..calibration import DEFAULT_MODEL
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import recording_argv, RECORDING_HELP, add_input_options, read_track
 from ._location import add_location_options, location_reference
 
 
@@ -65,12 +65,13 @@ def run(args) -> int:
         from ._calarg import calibration_for
 
         cal, source = calibration_for(args.cal, track)
-        kwargs = {"calibration": cal, "calibration_source": source}
-    diagnosis, reason = diagnose_or_reason(track, model, **kwargs)
+        kwargs = {"calibration": cal, "calibration_source": source, "cal_arg": args.cal}
+    diagnosis, reason = diagnose_or_reason(track, model, recording=recording_argv(args),
+                                           location=ref, **kwargs)
     out = Path(args.output) if args.output else default_output(args.track)
     out.parent.mkdir(parents=True, exist_ok=True)
     local = reference_field(track, getattr(diagnosis, "calibration", None), ref)
-    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name, command_path=args.track,
+    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name,
                        intro=_reference_html(text_lines(local)))
     print("\n".join(text_lines(local)))
     print(f"report written to {out}")
