@@ -8,6 +8,7 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, jsonable
 from ..model.catalog import EFFECT_NAMES
 from ._common import RECORDING_HELP, add_input_options, read_track
+from ._output import check_output, messages_to
 
 
 def register(sub) -> None:
@@ -31,7 +32,9 @@ def register(sub) -> None:
                         "vasconcelos, kok_schon, sphere_stream")
     p.add_argument("--tau", default=None,
                    help="kernel width in sensor units, or 'paper' for √3 (default: from the data)")
-    p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration file (atomic)")
+    p.add_argument("-o", "--output", metavar="CAL.json",
+                   help="write the calibration file (atomic; - for stdout, the messages then "
+                        "go to stderr)")
     p.add_argument("--json", action="store_true", help="print the calibration as one JSON object")
     p.add_argument("--initial", metavar="CAL", help="warm start from this calibration (JSON "
                    "file or state dir): the LM starts from its K and b")
@@ -56,6 +59,7 @@ def _tau(value):
 
 def run(args) -> int:
     from ..fitting import fit
+    check_output(args.output)
     track = read_track(args)
     initial = None
     if getattr(args, "initial", None):
@@ -73,15 +77,16 @@ def run(args) -> int:
         residual = calibration_residual(cal)
         if residual != "sensor":   # the tied fit's rms is not on the sensor residual
             sensor = sensor_rms(cal, track)
+    say = messages_to(args.output)
     if args.json:
         out = cal.to_dict()
         if sensor is not None:
             out["rms_sensor"] = sensor
-        print(json.dumps(jsonable(out), allow_nan=False))
+        print(json.dumps(jsonable(out), allow_nan=False), file=say)
     else:
-        print(format_calibration(cal, args.track, residual, sensor))
+        print(format_calibration(cal, args.track, residual, sensor), file=say)
         if args.output:
-            print(f"written: {args.output}")
+            print(f"written: {args.output}", file=say)
     return 0
 
 
