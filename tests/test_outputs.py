@@ -173,3 +173,19 @@ def test_the_rule_in_the_library(tmp_path, capsysbinary):
     finally:
         os.close(reader)
     assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
+
+
+@pytest.mark.slow
+def test_report_prints_where_it_wrote_and_the_local_field_only_when_given(inputs, tmp_path):
+    """No stray "reference none…" line: without a place the page says why, stdout only where
+    the report went; with --lat/--lon the comparison is printed too."""
+    out = tmp_path / "r.html"
+    proc = run("report", inputs, out)
+    assert proc.returncode == 0, proc.stderr.decode()
+    assert proc.stdout.decode().splitlines() == [f"report written to {out}"]
+    assert "no location given" in out.read_text()
+    argv = [sys.executable, "-m", "streamcal", "report", inputs["TRACK"], "-o", str(out),
+            "--lat", "52.2", "--lon", "0.1", "--date", "2025-06-01"]
+    placed = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=240)
+    lines = placed.stdout.splitlines()
+    assert lines[0].startswith("reference  WMM") and lines[-1] == f"report written to {out}"
