@@ -98,22 +98,25 @@ def format_calibration(cal, source: str = "", residual: str = "sensor",
     from ..units import display_unit, effect_params
 
     u = display_unit(cal.unit)
+    unit = f" {u}" if u else ""       # an unknown unit is said once, in the first line
     rows = [f"calibration of {cal.sensor} from {source} ({cal.method}"
-            + (f", {cal.kernel} kernel" if cal.kernel else "") + ")",
+            + (f", {cal.kernel} kernel" if cal.kernel else "") + ")"
+            + ("" if u else "; unit unknown (the recording does not name one streamcal knows)"),
             f"  model     {', '.join(cal.model)}",
-            "  K [" + u + "]" + "".join(f"\n    {row[0]:10.4f} {row[1]:10.4f} {row[2]:10.4f}" for row in cal.K),
-            f"  b [{u}]  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
+            "  K" + (f" [{u}]" if u else "")
+            + "".join(f"\n    {row[0]:10.4f} {row[1]:10.4f} {row[2]:10.4f}" for row in cal.K),
+            f"  b {f'[{u}]' if u else '':<4}  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
     for name, params in cal.effects.items():
         rows.append(f"  {name}: {effect_params(name, params, cal.unit)}")
-    rows.append(f"  rms       {cal.rms:.4g} {u} on the {RESIDUAL_LABELS.get(residual, residual)} "
+    rows.append(f"  rms       {cal.rms:.4g}{unit} on the {RESIDUAL_LABELS.get(residual, residual)} "
                 f"residual over {cal.n - cal.n_outliers} inliers "
                 f"({cal.n_outliers} outliers of {cal.n})")
     if sensor_rms is not None:
-        rows.append(f"  rms       {sensor_rms:.4g} {u} on the sensor residual (every direction "
+        rows.append(f"  rms       {sensor_rms:.4g}{unit} on the sensor residual (every direction "
                     f"free; the {RESIDUAL_LABELS.get(residual, residual)} one includes the "
                     f"reference's own error)")
     if cal.coverage is not None:
         rows.append(f"  coverage  {cal.coverage:.0%} of the sphere")
     if cal.field:
-        rows.append(f"  field     {cal.field:.4g} {u}")
+        rows.append(f"  field     {cal.field:.4g}{unit}")
     return "\n".join(rows)
