@@ -331,12 +331,12 @@ def _parse(data, source: str) -> Calibration:
 
     if not isinstance(data, Mapping):
         raise CalibrationFileError(f"{source}: expected a JSON object, found {type(data).__name__}")
+    if "format" in data and data["format"] != FORMAT:
+        fail("format", f"expected '{FORMAT}', found {data.get('format')!r} (not a streamcal calibration?)")
     for key in REQUIRED_KEYS:
         if key not in data:
             raise CalibrationFileError(f"{source}: missing key '{key}'" + (
                 " (not a streamcal calibration?)" if key == "format" else ""))
-    if data.get("format") != FORMAT:
-        fail("format", f"expected '{FORMAT}', found {data.get('format')!r} (not a streamcal calibration?)")
     sensor = data.get("sensor")
     if sensor not in SENSORS:
         fail("sensor", f"expected one of {SENSORS}, found {sensor!r}")
