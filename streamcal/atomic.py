@@ -57,7 +57,8 @@ def sweep_stale_temps(directory: str | os.PathLike, name: str | None = None,
 
 
 def atomic_write_bytes(path: str | os.PathLike, data: bytes, mode: int = 0o600) -> None:
-    """Replace ``path`` with ``data`` atomically; refuse to write through a symlink at ``path``."""
+    """Replace ``path`` with ``data`` atomically, by the module's rule (``-`` and streams are
+    written in place; a symbolic link that is no stream is refused)."""
     with atomic_open(path, mode) as handle:
         handle.write(data)
 
