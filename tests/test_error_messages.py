@@ -100,3 +100,17 @@ def test_a_known_unit_is_still_written_after_every_number(tmp_path, capsys):
     assert main(["fit", str(path)]) == 0
     out = capsys.readouterr().out
     assert "K [µT]" in out and "unit unknown" not in out and "µT on the sensor residual" in out
+
+
+@pytest.mark.slow
+def test_the_report_of_an_unknown_unit_says_so_and_leaves_no_empty_unit(tmp_path):
+    from streamcal.inputs.track import Track
+    from streamcal.report import diagnose_or_reason, render_html
+
+    track = Track.read(_track_in(tmp_path, "probably uT"))
+    diagnosis, reason = diagnose_or_reason(track, ("hard_iron", "soft_iron"))
+    assert diagnosis is not None, reason
+    page = render_html(track, diagnosis)
+    assert "unit unknown" in page and "probably" not in page
+    text = page.split("<script>", 1)[0]
+    assert "()" not in text and " </b>" not in text and "unit unit" not in text

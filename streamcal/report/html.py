@@ -110,13 +110,18 @@ def _residual_name(residual: str) -> str:
     return f"{label} ({what})"
 
 
+def _u(unit: str) -> str:
+    """`` µT`` after a number in prose; nothing for an unknown unit (said once, at the top)."""
+    return f" {unit}" if unit else ""
+
+
 def _floor_text(d, unit: str) -> str:
     """"x× the noise floor (f unit)", or why there is no floor to compare with."""
     if not d.floor_known:
         return (f"the noise floor cannot be measured from this recording "
                 f"({_e(d.noise_floor_reason)})")
     return (f"{_num(d.rms / d.noise_floor, '.2f')}× the noise floor "
-            f"({_num(d.noise_floor)} {unit})")
+            f"({_num(d.noise_floor)}{_u(unit)})")
 
 
 def _misfit(d) -> str:
@@ -146,29 +151,29 @@ def _summary(d, track_name: str, unit: str) -> str:
         if residual == "sensor":
             ratio = (f" ({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)"
                      if d.floor_known else "")
-            gives = f"<b>{_num(top.rms_after)} {unit}</b> on the sensor residual{ratio}"
+            gives = f"<b>{_num(top.rms_after)}{_u(unit)}</b> on the sensor residual{ratio}"
         else:   # another residual: compare with the model on that residual, not with d.rms
             floor = (f"; that residual cannot go below about "
-                     f"{_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, noise alone"
+                     f"{_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)}{_u(unit)}, noise alone"
                      if d.floor_known else "")
-            gives = (f"<b>{_num(top.rms_after)} {unit}</b> on the {_e(_residual_name(residual))}, "
-                     f"where the model without it gives {_num(before)} {unit} "
+            gives = (f"<b>{_num(top.rms_after)}{_u(unit)}</b> on the {_e(_residual_name(residual))}, "
+                     f"where the model without it gives {_num(before)}{_u(unit)} "
                      f"({_e(relative_change(before, top.rms_after))}{floor})")
         return (f'<div class="box missing"><b>An effect is missing.</b> The model '
                 f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
-                f"<b>{_num(d.rms)} {unit}</b> on the {_e(_residual_name(d.residual))}, "
+                f"<b>{_num(d.rms)}{_u(unit)}</b> on the {_e(_residual_name(d.residual))}, "
                 f"{_floor_text(d, unit)}. The best candidate is "
                 f"<b>{_e(top.effect)}</b> ({_e(top.evidence)}): adding it gives {gives}. Try "
                 f"<code>{_e(cmd)}</code>.{rule}</div>")
     if d.verdict == "unexplained":
         return (f'<div class="box missing"><b>The misfit is not explained.</b> The model '
                 f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
-                f"<b>{_num(d.rms)} {unit}</b> on the {_e(_residual_name(d.residual))}, "
+                f"<b>{_num(d.rms)}{_u(unit)}</b> on the {_e(_residual_name(d.residual))}, "
                 f"{_floor_text(d, unit)}, and no candidate effect is both significant and "
                 f"material.{rule}{_misfit(d)}</div>")
     return (f'<div class="box floor"><b>The model is at the noise floor.</b> rms residual '
-            f"{_num(d.rms)} {unit} on the {_e(_residual_name(d.residual))} against a noise "
-            f"floor of {_num(d.noise_floor)} {unit}; no candidate effect lowers it "
+            f"{_num(d.rms)}{_u(unit)} on the {_e(_residual_name(d.residual))} against a noise "
+            f"floor of {_num(d.noise_floor)}{_u(unit)}; no candidate effect lowers it "
             f"materially.{rule}</div>")
 
 
@@ -299,11 +304,12 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         figures = render_figures(data)
     if name is None:
         name = track.path.name if getattr(track, "path", None) else "track.csv"
-    unit = unit_label(track.mag_unit)
+    unit = unit_label(track.mag_unit)              # tables and headers: "unit unknown" if so
+    shown = "" if unit == "unit unknown" else unit  # prose: no unit after a number then
     title = title or f"streamcal report: {name}"
     parts = [f"<h1>{_e(title)}</h1>",
              f'<p class="sub">{len(track.t_mag)} magnetometer samples over '
-             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(unit)}; "
+             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(shown or 'unknown')}; "
              f"columns {_e(', '.join(track.columns))}</p>", _metadata(track), intro]
     if diagnosis is None:
         parts.append(f'<div class="box refused"><b>No calibration: the fit refused this track.'
@@ -313,7 +319,7 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
     else:
         if command_path is None:
             command_path = track.path if getattr(track, "path", None) else name
-        parts.append(_summary(diagnosis, command_path, unit))
+        parts.append(_summary(diagnosis, command_path, shown))
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
             by = tuple(getattr(diagnosis, "outliers_model", ()) or diagnosis.model)
