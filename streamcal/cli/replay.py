@@ -190,10 +190,11 @@ def _summary(calibrator, counts, track, args) -> dict:
     if cal is not None:
         out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
                     "rms": float(cal.rms) if math.isfinite(cal.rms) else None, "unit": cal.unit})
-        from ..units import display_unit
+        from ..units import display_unit, with_unit
 
-        u = display_unit(cal.unit)
-        result = f"calibration rms {cal.rms:.3g} {u}, b = {np.round(cal.b, 2).tolist()} {u}"
+        result = (f"calibration rms {with_unit(f'{cal.rms:.3g}', cal.unit)}, b = "
+                  f"{with_unit(str(np.round(cal.b, 2).tolist()), cal.unit)}"
+                  + ("" if display_unit(cal.unit) else " (unit unknown)"))
     else:
         result = "no calibration accepted"
     out["message"] = (f"replayed {calibrator.n_ingested} magnetometer samples of {args.track}: "

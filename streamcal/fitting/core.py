@@ -18,7 +18,7 @@ from ..errors import InputError, InsufficientDataError, UnknownEffectError
 from ..inputs.track import Track
 from ..model.build import build_effects, check_needs
 from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
-from ..units import display_unit
+from ..units import with_unit
 from .outlier_rule import widened_inliers
 from .lm import estimation_error, optimal_directions
 from .normalize import denormalize_model, normalize
@@ -136,8 +136,8 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
     if not np.isfinite(spread) or spread <= MIN_RELATIVE_SPREAD * max(1.0, float(np.max(np.abs(m)))) \
             or spread < np.finfo(float).tiny * 1e6:
         raise InsufficientDataError(
-            f"the {sensor} readings hardly change (largest per-axis spread {spread:.3g} "
-            f"{display_unit(unit)}): "
+            f"the {sensor} readings hardly change (largest per-axis spread "
+            f"{with_unit(f'{spread:.3g}', unit)}): "
             "the sensor was not rotated while recording")
     structure = "full" if "soft_iron" in names else "diag" if "scale" in names else "sphere"
     fit_b = "hard_iron" in names

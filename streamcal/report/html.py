@@ -110,13 +110,18 @@ def _residual_name(residual: str) -> str:
     return f"{label} ({what})"
 
 
+def _u(unit: str) -> str:
+    """`` µT`` after a number in prose; nothing for an unknown unit (said once, at the top)."""
+    return f" {unit}" if unit else ""
+
+
 def _floor_text(d, unit: str) -> str:
     """"x× the noise floor (f unit)", or why there is no floor to compare with."""
     if not d.floor_known:
         return (f"the noise floor cannot be measured from this recording "
                 f"({_e(d.noise_floor_reason)})")
     return (f"{_num(d.rms / d.noise_floor, '.2f')}× the noise floor "
-            f"({_num(d.noise_floor)} {unit})")
+            f"({_num(d.noise_floor)}{_u(unit)})")
 
 
 def _misfit(d) -> str:
@@ -276,11 +281,12 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         figures = render_figures(data)
     if name is None:
         name = track.path.name if getattr(track, "path", None) else "track.csv"
-    unit = unit_label(track.mag_unit)
+    unit = unit_label(track.mag_unit)              # tables and headers: "unit unknown" if so
+    shown = "" if unit == "unit unknown" else unit  # prose: no unit after a number then
     title = title or f"streamcal report: {name}"
     parts = [f"<h1>{_e(title)}</h1>",
              f'<p class="sub">{len(track.t_mag)} magnetometer samples over '
-             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(unit)}; "
+             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(shown or 'unknown')}; "
              f"columns {_e(', '.join(track.columns))}</p>", _metadata(track), intro]
     if diagnosis is None:
         parts.append(f'<div class="box refused"><b>No calibration: the fit refused this track.'
@@ -288,7 +294,7 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                      f"no calibration: the raw readings, their magnitude and the directions "
                      f"seen from the centre of a one-pass sphere fit.</div>")
     else:
-        parts.append(_summary(diagnosis, unit))
+        parts.append(_summary(diagnosis, shown))
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
             last = diagnosis.ladder[-1] if diagnosis.ladder else {}
