@@ -92,6 +92,7 @@ class LiveState:
         self._fit_events = deque(maxlen=12)
         self._disturb_events = deque(maxlen=8)
         self.closed = False
+        self._ended = False
         self.capture_errors = 0
         self.gap_every_s = 0.5
         self._gap = None                                  # (occupied bytes, wall s, center, deg)
@@ -133,6 +134,13 @@ class LiveState:
         f = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
         self._ring = (down / np.linalg.norm(down), f / np.linalg.norm(f))
 
+    def final(self, service) -> None:
+        """One last capture after the loop ended (a replay over, its page kept up): taken now
+        whatever the period, with no samples arriving any more (0 samples/s)."""
+        self._ended = True
+        self._next = -math.inf
+        self.on_block(service, None)
+
     def close(self) -> None:
         with self._changed:
             self.closed = True
@@ -151,7 +159,10 @@ class LiveState:
                 vec = cal.apply(block)
                 f = np.linalg.norm(vec, axis=1)
                 f = f[np.isfinite(f)]
-                calibrated = float(np.median(f)) if len(f) else None
+                # before the first calibration apply() scales by the running sphere estimate:
+                # not a calibrated field, so no "after calibration" figure
+                if cal.calibration is not None and len(f):
+                    calibrated = float(np.median(f))
                 if block.accel is not None and len(f):
                     self._ring_inputs(now, vec, np.asarray(block.accel, dtype=float))
         if raw is not None:
@@ -171,7 +182,7 @@ class LiveState:
             "fit_events": list(self._fit_events), "disturb_events": list(self._disturb_events),
             "unit": getattr(cal, "unit", "uT"), "reference": self.reference,
             "dips": [d for t, d in self._dips if now - t <= self.window_s],
-            "ring": self._ring,
+            "ring": self._ring, "ended": self._ended,
         }
 
     # -- reader side (any thread) ----------------------------------------------------------------
@@ -179,8 +190,8 @@ class LiveState:
         """Block until a capture newer than ``seq`` exists (or ``timeout`` s, or close); returns
         the latest capture number."""
         with self._changed:
-            if self._seq <= seq and not self.closed:
-                self._changed.wait(timeout)
+            if self._seq <= seq:
+                self._changed.wait(timeout)     # closed: still waits, a reader must not spin
             return self._seq
 
     def build(self) -> dict | None:
@@ -223,7 +234,7 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
     rate = cap["rate"]
     recent = [r for r in rate if now - r[0] <= 2.0] or rate
     sps = 0.0
-    if len(recent) >= 2 and recent[-1][0] > recent[0][0]:
+    if len(recent) >= 2 and recent[-1][0] > recent[0][0] and not cap["ended"]:
         sps = (recent[-1][1] - recent[0][1]) / (recent[-1][0] - recent[0][0])
     held = cap["held"]
     held_recent = held[-1][1] - held[0][1] if len(held) >= 2 else 0
