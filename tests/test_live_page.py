@@ -356,13 +356,15 @@ def test_non_loopback_warns_on_stderr(tmp_path):
 
 @pytest.mark.slow
 def test_serial_host_serves_the_page(tmp_path):
-    """A fake board at 10× its pace: the events are read until one carries a calibration.
-    The page stays up after the replay (until terminated), so however slow the machine, nothing
-    races the end of the track."""
+    """A fake board at 10× its pace: the events are read until one carries a calibration and
+    a calibrated magnitude (a block applied with it; the capture that first sees a calibration
+    may be of a poll without a block). The page stays up after the replay (until terminated),
+    so however slow the machine, nothing races the end of the track."""
     proc, url = start_daemon(tmp_path, device=["serial", "--port", f"fake:{TRACK}", "--speed",
                                                "10"], seconds="300")
     try:
-        events = sse_events(url, seconds=120.0, until=lambda e: e["calibration"] is not None)
+        events = sse_events(url, seconds=120.0, until=lambda e: e["calibration"] is not None
+                            and any(v is not None for v in e["magnitude"]["calibrated"]))
         state = events[-1]
         assert proc.poll() is None
     finally:
