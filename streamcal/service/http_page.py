@@ -2,8 +2,9 @@
 
 ``streamcal daemon|serial … --http [HOST:]PORT`` starts it. Routes (GET only):
 
-- ``/``: the page (``static/live.html``: HTML, CSS and JS in one small file; the latest snapshot
-  is inlined so the page shows figures before its first event arrives).
+- ``/``: the page (``static/live.html``: HTML, CSS and JS in one small file, with
+  ``static/sphere3d.js``, the rotatable 3-D sphere, and the latest snapshot inlined, so the page
+  shows figures before its first event arrives).
 - ``/events``: Server-Sent Events (``text/event-stream``), one ``data:`` line of JSON
   (:mod:`.live_state` snapshot) per capture, at most ``1/period_s`` per second; a comment line
   every 10 s keeps proxies from closing an idle stream.
@@ -361,8 +362,10 @@ _TEMPLATE: str | None = None
 def _page_html(latest: bytes) -> bytes:
     global _TEMPLATE
     if _TEMPLATE is None:
-        _TEMPLATE = resources.files("streamcal.service").joinpath("static/live.html").read_text(
-            encoding="utf-8")
+        static = resources.files("streamcal.service").joinpath("static")
+        sphere = static.joinpath("sphere3d.js").read_text(encoding="utf-8")
+        _TEMPLATE = static.joinpath("live.html").read_text(encoding="utf-8").replace(
+            "/*SPHERE3D*/", sphere, 1)     # the script holds no "</"
     # JSON inside <script>: "</" cannot close the element once escaped.
     initial = (latest.decode() if latest else "null").replace("</", "<\\/")
     return _TEMPLATE.replace("/*INITIAL*/null", initial, 1).encode("utf-8")

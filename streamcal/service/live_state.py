@@ -19,11 +19,13 @@ Snapshot keys (JSON, what ``/events`` sends and ``/state.json`` returns):
   [...]}`` the equal-area partition (:class:`~streamcal.sphere_cells.SphereCells`: cells per
   band north first, band edges in z) and ``occupied``: one ``"0"``/``"1"`` per cell;
   ``n_samples``; ``gap``: ``{"deg", "center": [x, y, z]}`` the largest empty cap (body axes of
-  the current frame); ``hint``: where to turn next (the same words as the terminal report).
+  the current frame); ``hint``: where to turn next (the same words as the terminal report);
+  ``directions``: at most ``MAX_DIRECTIONS`` of the stored samples as unit vectors ``[x, y, z]``
+  in the same frame (evenly picked; empty until a sphere frames them), the 3-D sphere's dots.
 - ``magnitude``: ``{"t": [...], "raw": [...], "calibrated": [...], "unit"}`` over the last
   ``window_s`` (60 s): wall seconds relative to now (≤ 0), the median ``‖m‖`` of the latest
-  block before calibration (sensor unit) and the median ``‖field‖`` after it (µT; null before an
-  estimate exists).
+  block before calibration and the median ``‖field‖`` after it (null before the first
+  calibration), both in ``unit`` (``"uT"`` for µT).
 - ``calibration``: null, or ``{"version", "rms", "residual", "unit", "field", "coverage",
   "method", "model", "created", "stale"}`` — ``rms`` is the sensor estimation error over inliers
   (``residual`` names it), ``stale`` true after an environment change until a refit.
@@ -59,6 +61,8 @@ from ..stream.coverage import not_measured
 
 #: The residual the calibration's ``rms`` is computed on.
 RMS_RESIDUAL = "sensor estimation error over inliers (paper eq. 41)"
+#: The most stored directions a snapshot carries (about 7 kB of JSON).
+MAX_DIRECTIONS = 300
 _FIT_KINDS = ("accepted", "rejected", "fit_failed", "discarded", "recalled")
 _DISTURB_KINDS = ("disturbance", "drift", "forgot")
 
@@ -258,6 +262,7 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
         "occupied": "".join("1" if o else "0" for o in occupied.tolist()),
         "gap": {"deg": round(radius, 1), "center": [round(float(v), 3) for v in center]}
         if framed else None,
+        "directions": _directions(cap) if framed else [],
         "hint": hint(center, radius, cap["fraction"]) if framed
         else not_measured(cap["unframed"]),
         "magnitude": {"t": [round(r[0] - now, 2) for r in keep],
@@ -281,6 +286,19 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
                    "counters": {k: v for k, v in counters.items()
                                 if isinstance(v, (int, float))}},
     }
+
+
+def _directions(cap: dict) -> list:
+    """Up to :data:`MAX_DIRECTIONS` stored samples, evenly picked, as unit vectors (3 decimals)
+    in the frame of the running sphere (``center``, ``A``)."""
+    m = cap["stored"]
+    if not len(m):
+        return []
+    pick = m[np.unique(np.linspace(0, len(m) - 1, min(len(m), MAX_DIRECTIONS)).astype(int))]
+    x = (pick - cap["center"]) @ cap["A"].T
+    norm = np.linalg.norm(x, axis=1)
+    ok = np.isfinite(norm) & (norm > 0)
+    return np.round(x[ok] / norm[ok, None], 3).tolist()
 
 
 def _reference(cap: dict, c) -> dict:
