@@ -455,3 +455,40 @@ def test_watched_replay_follows_the_recorded_pace_by_default(tmp_path):
     pace = (last["device"]["samples"] - first["device"]["samples"]) / rate / (
         last["uptime_s"] - first["uptime_s"])
     assert 0.7 < pace < 1.3, pace
+
+
+def test_snapshot_before_and_after_the_first_calibration():
+    """The bundled track through a streaming calibrator into a LiveState on the track's clock:
+    before the first calibration no 'after calibration' magnitude (apply() then scales by the
+    running sphere estimate, not a calibration); after it, calibrated values near the fitted
+    field. Directions: unit vectors, at most MAX_DIRECTIONS, none before a sphere frames them."""
+    from streamcal.inputs.track import Track
+    from streamcal.service.live_state import MAX_DIRECTIONS, LiveState
+    from streamcal.service.replay_feed import ReplayFeed
+    from streamcal.stream import StreamingCalibrator
+
+    track = Track.read(TRACK)
+    now = [0.0]
+    state = LiveState(clock=lambda: now[0])
+    calibrator = StreamingCalibrator(synchronous=True, unit=track.mag_unit)
+    feed = ReplayFeed(calibrator, [state])
+    snaps = []
+    for i, block in enumerate(track.blocks(50)):
+        now[0] = float(block.t[-1])
+        feed.observe(block, calibrator.ingest(block))
+        if i % 8 == 0 or calibrator.calibration is not None:
+            snaps.append(state.build())
+        if calibrator.calibration is not None and now[0] > 40:
+            break
+    before = [s for s in snaps if s and s["calibration"] is None]
+    after = [s for s in snaps if s and s["calibration"] is not None]
+    assert before and after
+    assert all(v is None for s in before for v in s["magnitude"]["calibrated"])
+    assert any(v is not None for v in before[-1]["magnitude"]["raw"])
+    cal = [v for v in after[-1]["magnitude"]["calibrated"] if v is not None]
+    assert cal and abs(np.median(cal) / after[-1]["calibration"]["field"] - 1) < 0.05
+    unframed = [s for s in snaps if s and s["coverage"] is None]
+    assert unframed and all(s["directions"] == [] for s in unframed)
+    d = np.array(after[-1]["directions"])
+    assert 0 < len(d) <= MAX_DIRECTIONS and d.shape[1] == 3
+    assert np.allclose(np.linalg.norm(d, axis=1), 1, atol=3e-3)

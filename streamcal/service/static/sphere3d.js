@@ -65,7 +65,8 @@ function Sphere3D(canvas){
       const at=k=>[cx+v[0]*R*k,cy-v[1]*R*k];
       if(front){const [x0,y0]=at(1),[x1,y1]=at(1.12);g.strokeStyle=col;g.lineWidth=2;
         g.beginPath();g.moveTo(x0,y0);g.lineTo(x1,y1);g.stroke();}
-      const [x,y]=at(front?1.22:1.0);g.fillStyle=front?col:"rgba(90,90,90,.55)";g.fillText(name,x,y);});
+      const [x,y]=at(front?1.22:1.0);g.strokeStyle="rgba(255,255,255,.85)";g.lineWidth=3;
+      g.strokeText(name,x,y);g.fillStyle=front?col:"#777";g.fillText(name,x,y);});
     g.textAlign="start";g.textBaseline="alphabetic";
   }
   const redraw=()=>{if(pending)return;pending=true;requestAnimationFrame(()=>{pending=false;draw();});};
