@@ -492,3 +492,32 @@ def test_snapshot_before_and_after_the_first_calibration():
     d = np.array(after[-1]["directions"])
     assert 0 < len(d) <= MAX_DIRECTIONS and d.shape[1] == 3
     assert np.allclose(np.linalg.norm(d, axis=1), 1, atol=3e-3)
+
+
+@pytest.mark.slow
+def test_realtime_replay_keeps_its_page_after_the_end(tmp_path):
+    """``replay --realtime --http`` over a 3 s recording: after the summary the page stays with
+    the final state until SIGINT (the exit code is still the replay's: 1, no calibration)."""
+    from streamcal.sim.scenario import simulate
+
+    track = tmp_path / "short.csv"
+    simulate(3, seed=5, motor=False).track.write(track)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "streamcal", "replay", str(track), "--realtime",
+                             "--http", "127.0.0.1:0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+    lines = StderrLines(proc, tmp_path / "stderr.txt")
+    try:
+        over = lines.wait_for(r"replay over; the live page stays at (http://\S+) until Ctrl-C", 120)
+        assert over, lines.text()[-2000:]
+        state = json.loads(request(over.group(1), b"GET /state.json HTTP/1.0\r\n\r\n").partition(
+            b"\r\n\r\n")[2])
+        assert state["device"]["state"] == "replay over"
+        assert state["device"]["samples_per_s"] == 0 and state["device"]["samples"] > 0
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 1
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "coverage" in proc.stdout.read()             # the summary came before the wait
+    assert lines.wait_for(r"live page closed \(SIGINT\)", 5), lines.text()[-500:]

@@ -191,7 +191,7 @@ def replay_page(args, calibrator):
     if not args.realtime:
         raise InputError("--http needs --realtime (a replay at full speed is over before a "
                          "page could follow it)")
-    return ReplayFeed(calibrator, [live_page(args, "replay")])
+    return ReplayFeed(calibrator, [live_page(args, "replay", lingers=True)])
 
 
 class _PageObserver:
