@@ -521,3 +521,17 @@ def test_realtime_replay_keeps_its_page_after_the_end(tmp_path):
             proc.kill()
     assert "coverage" in proc.stdout.read()             # the summary came before the wait
     assert lines.wait_for(r"live page closed \(SIGINT\)", 5), lines.text()[-500:]
+
+
+@pytest.mark.parametrize("device", [["serial", "--port", "/dev/ttyNOPE"],
+                                    ["serial", "--port", f"simavr:{TRACK}"],
+                                    ["daemon", "--bus", "1"]])
+def test_speed_on_a_device_without_a_recorded_pace_is_one_line(tmp_path, device):
+    done = subprocess.run([sys.executable, "-m", "streamcal", *device, "--speed", "2",
+                           "--no-socket", "--state-dir", str(tmp_path / "s")],
+                          capture_output=True, text=True, cwd=REPO, timeout=60,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "--speed applies to a fake:TRACK.csv device only" in done.stderr
+    assert ("simavr runs as fast as the host reads" in done.stderr) == ("simavr:" in device[2])

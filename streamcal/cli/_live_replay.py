@@ -38,8 +38,15 @@ class TrackSpan:
 
 def replay_speed(args, spec: str) -> float | None:
     """The pace of a replayed device: ``--speed`` when given; 1 (the recorded pace) for a
-    ``fake:`` replay with ``--http``; else None (as fast as read)."""
+    ``fake:`` replay with ``--http``; else None (as fast as read). ``--speed`` on another device
+    is an :class:`~streamcal.errors.InputError`."""
     if args.speed is not None:
+        if not spec.startswith(FAKE_PREFIX):
+            from ..errors import InputError
+
+            why = ("; simavr runs as fast as the host reads" if spec.startswith(SIMAVR_PREFIX)
+                   else "")
+            raise InputError(f"--speed applies to a fake:TRACK.csv device only, not {spec!r}{why}")
         return args.speed
     if getattr(args, "http", None) and spec.startswith(FAKE_PREFIX):
         return 1.0
