@@ -3,7 +3,8 @@ whose wheel carries only its driver: no browser download) against ``streamcal da
 fake:… --http``. One page session: ``#coverage`` is read once the page has rendered, then
 again a few seconds later in the same page, so the growth seen is the Server-Sent Events
 updating the DOM (the served HTML holds only the snapshot of the moment it was loaded). A
-screenshot is kept under tmp_path."""
+screenshot is kept under tmp_path. Then the page's layout at 900 px and 1400 px, its 3-D sphere
+and magnitude axis, over the bundled track fed in-process (screenshots kept likewise)."""
 import io
 import json
 import os
