@@ -81,7 +81,8 @@ def serve_after_replay(service, name: str, max_seconds: float | None, started: f
         if service.stats.stop_reason != "end of replay":
             return
         service.device_state = "replay over"
-        page.state.final(service)
+        # the line below tells a reader the final state is served: wait until it is
+        page.page.wait_published(page.state.final(service), timeout=5.0)
         stopped: list[str] = []
         for sig, label in ((signal.SIGINT, "SIGINT"), (signal.SIGTERM, "SIGTERM")):
             signal.signal(sig, lambda s, f, label=label: stopped.append(label))

@@ -106,6 +106,8 @@ class LivePage:
         self._clients: set[_Client] = set()
         self._connections = 0
         self.latest = b""                # the last event's JSON, UTF-8
+        self.published = 0               # the state's capture number ``latest`` was built from
+        self._published = threading.Condition()
         self.stats = {"streams": 0, "refused_busy": 0, "dropped_slow": 0, "events": 0,
                       "bad_requests": 0, "forbidden": 0, "not_found": 0, "build_errors": 0}
         self._stop = threading.Event()
@@ -140,6 +142,12 @@ class LivePage:
             t.start()
         return self
 
+    def wait_published(self, seq: int, timeout: float) -> bool:
+        """Block until capture ``seq`` (or a later one) is what the page serves; False after
+        ``timeout`` s."""
+        with self._published:
+            return self._published.wait_for(lambda: self.published >= seq, timeout)
+
     def close(self) -> None:
         self._stop.set()
         self.server.shutdown()
@@ -166,6 +174,9 @@ class LivePage:
                 self.stats["build_errors"] += 1
                 continue
             self.latest = data
+            with self._published:
+                self.published = new
+                self._published.notify_all()
             self.stats["events"] += 1
             with self._lock:
                 clients = list(self._clients)

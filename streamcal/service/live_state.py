@@ -138,12 +138,15 @@ class LiveState:
         f = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
         self._ring = (down / np.linalg.norm(down), f / np.linalg.norm(f))
 
-    def final(self, service) -> None:
+    def final(self, service) -> int:
         """One last capture after the loop ended (a replay over, its page kept up): taken now
-        whatever the period, with no samples arriving any more (0 samples/s)."""
+        whatever the period, with no samples arriving any more (0 samples/s); returns its
+        capture number."""
         self._ended = True
         self._next = -math.inf
         self.on_block(service, None)
+        with self._lock:
+            return self._seq
 
     def close(self) -> None:
         with self._changed:
