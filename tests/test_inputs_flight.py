@@ -1,4 +1,4 @@
-"""Real flight-controller logs (../shared/data/real/flight): read, convert, offsets undone,
+"""Real flight-controller logs (data/real/flight under STREAMCAL_SHARED): read, convert, offsets undone,
 truncated copies refused."""
 import shutil
 from pathlib import Path

@@ -10,8 +10,9 @@ import pytest
 import streamcal
 from streamcal.cli import main
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "tracks"
-TIVA_06 = REAL / "tiva_mpu9250_mag_06.csv"
+from .conftest import REAL_TRACKS, real_path
+
+TIVA_06 = REAL_TRACKS / "tiva_mpu9250_mag_06.csv"
 DEMO = Path(streamcal.__file__).parent / "data" / "demo_track.csv.gz"
 
 
@@ -21,8 +22,7 @@ def _replay(capsys, *argv):
 
 
 def _runs(capsys, track, *flags, n=3):
-    if not track.exists():
-        pytest.skip(f"{track} not available")
+    real_path(track)
     return [_replay(capsys, track, *flags) for _ in range(n)]
 
 

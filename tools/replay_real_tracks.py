@@ -1,8 +1,8 @@
 #!/usr/bin/env python3
 """Replay every real track through the streaming calibrator and compare with the batch fit.
 
-For each track in ``../shared/data/real/tracks``: the streaming calibrator (synchronous fits, so
-the result is reproducible; blocks of 100 rows; covariates ``temp`` and aux channels kept) is fed
+For each track in ``data/real/tracks`` under ``STREAMCAL_SHARED``: the streaming calibrator
+(synchronous fits, so the result is reproducible; blocks of 100 rows; covariates ``temp`` and aux channels kept) is fed
 the whole track, and its final calibration is compared with :func:`streamcal.fitting.fit` on the whole
 track by the normalized model deviation of the paper (eq. 40, ``Calibration.model_error``). When
 ``fit`` refuses the track for lack of coverage, the comparison is with
