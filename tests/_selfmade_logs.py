@@ -1,8 +1,8 @@
 """Self-made autopilot logs for the tests that must not need the real recordings.
 
 :func:`flight_slice` simulates a drone-like slice (yaw turns, small tilts, a gyro) with throttle,
-six PWM outputs and a battery, and optionally a motor field proportional to the throttle hidden
-in the magnetometer. :func:`write_dataflash` writes it as an ArduPilot DataFlash ``.bin`` as the
+six PWM outputs and a battery, and optionally a motor field proportional to the throttle (or to
+one motor output) hidden in the magnetometer. :func:`write_dataflash` writes it as an ArduPilot DataFlash ``.bin`` as the
 firmware logs it (the *corrected* field ``S (raw + o) + MOfs`` in mG, COMPASS_* parameters);
 :func:`write_ulog` as a PX4 ``.ulg`` (``sensor_mag`` raw or ``vehicle_magnetometer`` corrected
 ``S (r − o)`` in gauss, CAL_MAG0_* parameters). Both follow the public file formats (DataFlash:
@@ -53,23 +53,49 @@ def _throttle(t: np.ndarray) -> np.ndarray:
     return 0.6 + 0.2 * np.sin(2 * np.pi * t / 13.0) + 0.05 * np.sin(2 * np.pi * t / 3.1)
 
 
+#: Periods (s) of each motor's own correction about the common throttle (a quad's attitude
+#: control), so that the five driven outputs are not copies of the throttle or of each other.
+_MOTOR_PERIODS = (7.3, 5.1, 9.7, 4.3, 11.9)
+
+
+def _pwm(t: np.ndarray) -> np.ndarray:
+    """(len(t), 6) PWM outputs in µs: five motors about 1100 + 800 × throttle, a servo at rest."""
+    motors = [1100.0 + 800.0 * _throttle(t) + 90.0 * np.sin(2 * np.pi * t / p + k)
+              for k, p in enumerate(_MOTOR_PERIODS)]
+    return np.column_stack(motors + [np.full(len(t), 1500.0)])
+
+
+def _volts(t: np.ndarray, throttle: np.ndarray) -> np.ndarray:
+    """Battery voltage (V): a slow discharge and a sag under load."""
+    return 12.6 - 0.01 * t - 0.6 * throttle ** 2
+
+
+def _amps(t: np.ndarray, throttle: np.ndarray) -> np.ndarray:
+    """Battery current (A): rising faster than the throttle, plus the attitude corrections."""
+    return 1.5 + 28.0 * throttle ** 1.5 + 2.0 * np.sin(2 * np.pi * t / 6.7)
+
+
 def flight_slice(duration_s: float = 60.0, seed: int = 0, *, motor_uT: float = 0.0,
-                 tilt_deg: float = 12.0) -> FlightSlice:
+                 motor_channel: str = "throttle", tilt_deg: float = 12.0) -> FlightSlice:
     """A yaw slice (:func:`streamcal.sim.yaw_slice.yaw_slice`) of the true sensor with channels
-    at 10 Hz; ``motor_uT`` µT × throttle along :data:`MOTOR_DIRECTION` added to the readings."""
+    at 10 Hz; ``motor_uT`` µT × ``motor_channel`` (``throttle`` or ``rcou_c1``..``rcou_c5``,
+    scaled to 0..1 over the flight) along :data:`MOTOR_DIRECTION` added to the readings."""
     sim = yaw_slice(duration_s, seed, K=A_TRUE, b=B_TRUE, tilt_deg=tilt_deg, field_uT=FIELD_UT,
                     mag_rate_hz=50.0, imu_rate_hz=100.0)
     track = sim.track
     t_mag, mag = track.t_mag, track.mag.copy()
-    mag += motor_uT * _throttle(t_mag)[:, None] * MOTOR_DIRECTION
+    if motor_channel == "throttle":
+        signal = _throttle(t_mag)
+    else:
+        signal = _pwm(t_mag)[:, int(motor_channel.removeprefix("rcou_c")) - 1]
+    span = signal.max() - signal.min()
+    mag += motor_uT * ((signal - signal.min()) / span)[:, None] * MOTOR_DIRECTION
     imu = track.accel_rows
     t_ch = np.arange(0.0, duration_s, 0.1) + 0.013
     throttle = _throttle(t_ch)
-    pwm = 1100.0 + 800.0 * throttle[:, None] + np.array([0, 5, -5, 10, -10, 0.0])
-    pwm[:, 5] = 1500.0  # a constant output (a servo at rest): left out by the readers
     return FlightSlice(t_mag, mag, track.t[imu], track.accel, track.gyro,
                        track.columns["temp"][imu], _throttle(t_mag), t_ch, throttle,
-                       np.round(pwm), 12.4 - 0.8 * throttle, 2.0 + 30.0 * throttle,
+                       np.round(_pwm(t_ch)), _volts(t_ch, throttle), _amps(t_ch, throttle),
                        motor_uT=motor_uT)
 
 
