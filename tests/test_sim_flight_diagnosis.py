@@ -23,9 +23,9 @@ from ._selfmade_logs import flight_slice, write_dataflash
 MOTOR_UT = 3.0   # at the channel's full range, as the real-log tests inject
 
 
-def _log(tmp_path_factory, name, **kw):
+def _log(tmp_path_factory, name, duration_s=60.0, **kw):
     path = write_dataflash(tmp_path_factory.mktemp("flight") / name,
-                           flight_slice(60.0, seed=5, **kw))
+                           flight_slice(duration_s, seed=5, **kw))
     track = read_recording(path)
     return path, track, autopilot_calibration(track)
 
@@ -49,8 +49,26 @@ def test_hidden_motor_field_is_aux_interference_on_its_channel(motor):
     assert top["significant"] and top["material"]
     assert top["rms_after"] < 0.75 * top["rms_before"]
     assert next(iter(d.aux_channels)) == channel   # the channel the residual follows most
-    assert "aux_interference" in [s.get("added") for s in d.to_dict()["ladder"]]
+    added = [s.get("added") for s in d.to_dict()["ladder"]]
+    assert "aux_interference" in added
+    # what the plausibility rule marks (a slice does not determine them) is never added
+    marked = {c.effect for c in d.candidates if getattr(c, "implausible", "")}
+    assert "aux_interference" not in marked and not marked & set(added)
     assert d.to_dict()["calibration_source"].endswith("COMPASS_* parameters")
+
+
+@pytest.mark.slow
+def test_a_long_flight_ranks_on_a_subsample_and_says_so(tmp_path_factory):
+    """300 s at 50 Hz: the candidates are refitted on a cell × time subsample, said in the
+    output, and the motor field is still found on its channel."""
+    _, track, cal = _log(tmp_path_factory, "long.bin", duration_s=300.0, motor_uT=MOTOR_UT,
+                         motor_channel="rcou_c3")
+    d = streamcal.diagnose(track, calibration=cal)
+    out = d.to_dict()
+    assert d.n_ranked < d.n and out["n_ranked"] == d.n_ranked
+    top = out["candidates"][0]
+    assert top["effect"] == "aux_interference" and top["significant"] and top["material"]
+    assert next(iter(d.aux_channels)) == "rcou_c3"
 
 
 def test_clean_log_top_candidate_is_not_a_motor_field(clean):
