@@ -5,7 +5,9 @@ A tiny suite in a temporary folder loads this project's tests/conftest.py as a p
 gets the same fixtures and the same terminal summary as the real suite."""
 from __future__ import annotations
 
+import ast
 import os
+import re
 import subprocess
 import sys
 
@@ -86,3 +88,44 @@ def test_in_ci_missing_data_fails_and_nothing_is_counted_as_skipped(tmp_path):
     assert "2 failed, 1 passed, 1 skipped, 2 errors" in proc.stdout
     assert "CI must have the real recordings" in proc.stdout
     assert _summary_lines(proc.stdout) == []
+
+
+REAL = {"real_tracks_dir", "flight_dir", "real_data_dir"}
+REAL_CALLS = {"real_path", "real_track", "real_flight"}
+
+
+def _real_data_tests(source: str) -> set[str]:
+    """Names of the tests in ``source`` that need the real recordings: they take a real-data
+    fixture (directly or through a fixture of the module), or call a real_* helper (directly or
+    through a helper of the module)."""
+    tree = ast.parse(source)
+    funcs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
+
+    def needs(name: str, seen: frozenset = frozenset()) -> bool:
+        node = funcs.get(name)
+        if node is None or name in seen:
+            return False
+        seen = seen | {name}
+        args = {a.arg for a in node.args.args}
+        calls = {c.func.id for c in ast.walk(node)
+                 if isinstance(c, ast.Call) and isinstance(c.func, ast.Name)}
+        return bool(args & REAL or calls & REAL_CALLS) or any(
+            needs(other, seen) for other in (args | calls) if other != name)
+
+    return {name for name in funcs if name.startswith("test_") and needs(name)}
+
+
+def test_every_real_data_test_is_in_the_table_of_docs_testing_md():
+    """docs/testing.md names, for each real-data test, the simulated test of its behaviour."""
+    table = (REPO / "docs" / "testing.md").read_text(encoding="utf-8")
+    found = {}
+    for path in sorted((REPO / "tests").glob("test_*.py")):
+        if path.name.startswith("test_sim_"):
+            continue
+        for name in _real_data_tests(path.read_text(encoding="utf-8")):
+            found[name] = path.name
+    assert len(found) > 60                       # the scan itself works
+    # a test is named in the table, or its whole file is, with a count: "`test_x.py` (six tests)"
+    missing = sorted(f"{f}::{n}" for n, f in found.items()
+                     if not re.search(rf"\b{n}\b", table) and f"`{f}` (" not in table)
+    assert not missing, missing

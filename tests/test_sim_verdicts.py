@@ -23,7 +23,7 @@ from streamcal.cli.diagnose import _text
 from streamcal.diagnosis import diagnose
 from streamcal.diagnosis.verdict import FLOOR_FACTOR
 from streamcal.errors import InsufficientDataError
-from streamcal.fitting import autocal, fit
+from streamcal.fitting import fit
 from streamcal.inputs.track import Track
 from streamcal.report import render_html
 from streamcal.report.html import _SCALES_NOTE
@@ -234,22 +234,3 @@ def test_a_cap_against_its_full_calibration():
     d0 = streamcal.diagnose(cap)
     assert {"K_xx", "K_yy", "K_zz"} <= set(d0.held) and {"b_x", "b_y", "b_z"} <= set(d0.estimated)
     assert d0.rms <= REAL_RMS_FACTOR * cal.rms, (d0.rms, cal.rms)
-
-
-def test_a_hand_tumble_takes_one_cauchy_step_and_a_two_iteration_polish(monkeypatch):
-    """The real check is FreeIMU-cal's 1000 samples; a simulated tumble of 1000 samples at the
-    same (hand) pace takes the same path: three LM iterations in all, the polish converged."""
-    iterations = []
-    original = autocal.refine
-
-    def counted(*args, **kwargs):
-        result = original(*args, **kwargs)
-        iterations.append(result.iterations)
-        return result
-
-    monkeypatch.setattr(autocal, "refine", counted)
-    for seed in (0, 1, 2):
-        del iterations[:]
-        m = simulate(60.0, seed, motor=False).track.mag[:1000]
-        result = fit(m, full_output=True, check_coverage=False)
-        assert sum(iterations) == 3 and result.status == "converged" and result.iterations <= 2
