@@ -1,12 +1,13 @@
 """Self-made autopilot logs for the tests that must not need the real recordings.
 
 :func:`flight_slice` simulates a drone-like slice (yaw turns, small tilts, a gyro) with throttle,
-six PWM outputs and a battery, and optionally a motor field proportional to the throttle (or to
-one motor output) hidden in the magnetometer. :func:`write_dataflash` writes it as an ArduPilot DataFlash ``.bin`` as the
-firmware logs it (the *corrected* field ``S (raw + o) + MOfs`` in mG, COMPASS_* parameters);
-:func:`write_ulog` as a PX4 ``.ulg`` (``sensor_mag`` raw or ``vehicle_magnetometer`` corrected
-``S (r − o)`` in gauss, CAL_MAG0_* parameters). Both follow the public file formats (DataFlash:
-``0xA3 0x95`` headers, FMT messages; ULog: the 16-byte header, then B/F/I/P/A/D messages).
+six PWM outputs and a battery, and optionally a motor field proportional to the throttle (or to one
+motor output) hidden in the magnetometer. :func:`write_dataflash` writes it as an ArduPilot
+DataFlash ``.bin`` as the firmware logs it (the *corrected* field ``S (raw + o) + MOfs`` in mG,
+COMPASS_* parameters); :func:`write_ulog` as a PX4 ``.ulg`` (``sensor_mag`` raw or
+``vehicle_magnetometer`` corrected ``S (r − o)`` in gauss, CAL_MAG0_* parameters). Both follow the
+public file formats (DataFlash: ``0xA3 0x95`` headers, FMT messages; ULog: the 16-byte header, then
+B/F/I/P/A/D messages).
 """
 from __future__ import annotations
 

@@ -8,12 +8,11 @@ import pytest
 
 from streamcal.sim import simulate
 
-from .test_batch import (test_batch_diagnose_rows_name_a_verdict_and_a_residual,  # noqa: F401
-                         test_batch_with_a_thread_pool_matches_a_serial_run,
-                         test_cli_batch_rejects_zero_jobs,
-                         test_cli_batch_with_jobs_writes_one_row_per_file,
-                         test_dask_distributed_executor_matches_a_serial_run,
-                         test_unknown_task_is_an_input_error)
+from .test_batch import (  # noqa: F401  (collected here, with the paths fixture below)
+    test_batch_diagnose_rows_name_a_verdict_and_a_residual,
+    test_batch_with_a_thread_pool_matches_a_serial_run, test_cli_batch_rejects_zero_jobs,
+    test_cli_batch_with_jobs_writes_one_row_per_file,
+    test_dask_distributed_executor_matches_a_serial_run, test_unknown_task_is_an_input_error)
 
 
 @pytest.fixture(scope="module")

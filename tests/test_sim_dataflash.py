@@ -100,7 +100,8 @@ def test_offsets_and_soft_iron_undone_back_to_the_sensor_reading(log, flight):
     # one logged mG step is 0.1 µT; through S⁻¹ (near 1) at most about 0.06 µT per axis
     assert np.max(np.abs(track.mag - flight.mag_uT)) < 0.1
     meta = track.metadata
-    assert "subtracted" in meta["mag_offsets_undone"] and "-120,70,-200" in meta["mag_offsets_undone"]
+    assert "subtracted" in meta["mag_offsets_undone"]
+    assert "-120,70,-200" in meta["mag_offsets_undone"]
     assert "inverse of the PARM COMPASS_DIA/ODI" in meta["mag_soft_iron_undone"]
     assert meta["mag_motor_offsets_undone"] == "none (MAG.MOfs all 0)"
 

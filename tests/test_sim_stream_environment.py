@@ -17,8 +17,9 @@ from streamcal.fitting import fit
 from streamcal.inputs.track import Track
 from streamcal.sim import simulate
 
-from .test_stream_environment import (test_broad32_magnet_detected_forgotten_and_recovered,  # noqa: F401
-                                      test_sunsided_session_change_detected_and_recalibrated)
+from .test_stream_environment import (  # noqa: F401  (collected here, with the fixtures below)
+    test_broad32_magnet_detected_forgotten_and_recovered,
+    test_sunsided_session_change_detected_and_recalibrated)
 
 K_TRUE = np.array([[46.0, 0.9, -1.2], [0.0, 44.5, 0.7], [0.0, 0.0, 49.5]])
 B_TRUE = np.array([10.0, -6.0, 3.0])

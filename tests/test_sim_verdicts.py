@@ -7,7 +7,8 @@ candidate explains (tiva 01/06) — an axis nonlinearity diagnosed with a catalo
 floor the recording cannot measure (jr_mpu9250 at 3.3 Hz, turned by hand) — the same rate
 simulated; a significant but immaterial effect (tiva 01's time drift) — a small simulated drift;
 a time lag of milliseconds (broad_30) — an 11 ms lag; a long coverage hint (broad_30) — a
-hemisphere; a refused track (broad_32) — a planar turn; a cap of a short noisy recording (tiva 03)."""
+hemisphere; a refused track (broad_32) — a planar turn; a cap of a short noisy recording
+(tiva 03)."""
 from __future__ import annotations
 
 import html
