@@ -155,9 +155,10 @@ def ardupilot_params(*, motor_comp: np.ndarray | None = None) -> dict:
 
 def dataflash_bytes(flight: FlightSlice, *, params: dict | None = None,
                     motor_comp: np.ndarray | None = None, messages=("IMU", "RCOU", "BAT", "CURR"),
-                    with_mag: bool = True) -> bytes:
+                    with_mag: bool = True, c7_not_pwm: bool = False) -> bytes:
     """The log ArduPilot writes for ``flight``: logged MAG = S (10 m + o) + MOfs (mG, int16),
-    ``MOfs = COMPASS_MOT · throttle`` when ``motor_comp`` (mG at full throttle) is given."""
+    ``MOfs = COMPASS_MOT · throttle`` when ``motor_comp`` (mG at full throttle) is given; RCOU C7
+    unused (0) or, with ``c7_not_pwm``, a counter far outside any PWM range."""
     params = ardupilot_params(motor_comp=motor_comp) if params is None else params
     S = np.array([[params["COMPASS_DIA_X"], params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"]],
                   [params["COMPASS_ODI_X"], params["COMPASS_DIA_Y"], params["COMPASS_ODI_Z"]],
@@ -181,7 +182,8 @@ def dataflash_bytes(flight: FlightSlice, *, params: dict | None = None,
     for k, t in enumerate(flight.t_ch):
         us = int(round(t * 1e6)) + 1000
         if "RCOU" in messages:
-            rows.append((t, 2, df_message("RCOU", us, *map(int, flight.pwm[k]), 0, 0)))
+            c7 = 50_000 + 10 * k if c7_not_pwm else 0
+            rows.append((t, 2, df_message("RCOU", us, *map(int, flight.pwm[k]), c7, 0)))
         if "BAT" in messages:
             rows.append((t, 3, df_message("BAT", us, 0, flight.volts[k], flight.amps[k])))
         if "CURR" in messages:
@@ -220,8 +222,14 @@ def _umsg(kind: bytes, payload: bytes) -> bytes:
     return struct.pack("<HB", len(payload), kind[0]) + payload
 
 
-def _topic_struct(topic: str) -> struct.Struct:
-    return struct.Struct("<" + "".join(f"{n}{_CTYPE[c]}" for c, _, n in TOPICS[topic]))
+#: sensor_combined of older PX4 logs: it also carries PX4's calibrated field, the latest sample
+#: on each IMU row, stamped relative to the row.
+COMBINED_WITH_MAG = TOPICS["sensor_combined"] + [("float", "magnetometer_ga", 3),
+                                                 ("int32_t", "magnetometer_timestamp_relative", 1)]
+
+
+def _topic_struct(fields) -> struct.Struct:
+    return struct.Struct("<" + "".join(f"{n}{_CTYPE[c]}" for c, _, n in fields))
 
 
 def px4_params(*, comp_type: int = 0, rot: int = -1, board_rot: int = 0) -> dict:
@@ -238,17 +246,20 @@ def px4_params(*, comp_type: int = 0, rot: int = -1, board_rot: int = 0) -> dict
     return {**params, **ints}
 
 
-def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, params: dict | None = None,
+def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, combined: bool = False,
+               params: dict | None = None,
                topics=("sensor_combined", "actuator_outputs", "actuator_controls_0",
                        "battery_status"), with_mag: bool = True) -> bytes:
     """The ULog PX4 writes for ``flight``: ``sensor_mag`` (the driver's reading, G) or, when
-    ``calibrated``, ``vehicle_magnetometer`` = S (r − o) with the CAL_MAG0_* of ``params``."""
+    ``calibrated``, ``vehicle_magnetometer`` = S (r − o) with the CAL_MAG0_* of ``params``; with
+    ``combined`` that corrected field rides in ``sensor_combined`` instead (older logs)."""
     params = px4_params() if params is None else params
+    layout = dict(TOPICS, sensor_combined=COMBINED_WITH_MAG) if combined else TOPICS
     mag_topic = "vehicle_magnetometer" if calibrated else "sensor_mag"
-    names = ([mag_topic] if with_mag else []) + list(topics)
+    names = ([mag_topic] if with_mag and not combined else []) + list(topics)
     out = [ULOG_MAGIC + bytes([1]) + struct.pack("<Q", 0), _umsg(b"B", bytes(40))]
     for name in names:
-        fields = "".join(f"{c}{'' if n == 1 else f'[{n}]'} {f};" for c, f, n in TOPICS[name])
+        fields = "".join(f"{c}{'' if n == 1 else f'[{n}]'} {f};" for c, f, n in layout[name])
         out.append(_umsg(b"F", f"{name}:{fields}".encode()))
     for key, value in (("sys_name", "PX4"), ("ver_hw", "SELFMADE_V1")):
         k = f"char[{len(value)}] {key}".encode()
@@ -265,10 +276,10 @@ def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, params: dict | 
     def data(t: float, name: str, *values) -> None:
         us = int(round(t * 1e6)) + 1_000_000
         rows.append((us, ids[name], _umsg(b"D", struct.pack("<H", ids[name])
-                                          + _topic_struct(name).pack(us, *values))))
+                                          + _topic_struct(layout[name]).pack(us, *values))))
 
     r_g = flight.mag_uT / 100.0
-    if with_mag and calibrated:
+    if with_mag and (calibrated or combined):
         S = np.array([[params["CAL_MAG0_XSCALE"], params["CAL_MAG0_XODIAG"],
                        params["CAL_MAG0_YODIAG"]],
                       [params["CAL_MAG0_XODIAG"], params["CAL_MAG0_YSCALE"],
@@ -276,12 +287,20 @@ def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, params: dict | 
                       [params["CAL_MAG0_YODIAG"], params["CAL_MAG0_ZODIAG"],
                        params["CAL_MAG0_ZSCALE"]]])
         o = np.array([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
-        for t, c in zip(flight.t_mag, (r_g - o) @ S.T):
-            data(t, "vehicle_magnetometer", DEVICE_ID, *c)
+        corrected = (r_g - o) @ S.T
+        if combined:
+            latest = np.searchsorted(flight.t_mag, flight.t_imu, side="right") - 1
+            for t, g, a, k in zip(flight.t_imu, flight.gyro, flight.accel, latest):
+                if k >= 0:
+                    relative = int(round(flight.t_mag[k] * 1e6)) - int(round(t * 1e6))
+                    data(t, "sensor_combined", *g, *a, *corrected[k], relative)
+        else:
+            for t, c in zip(flight.t_mag, corrected):
+                data(t, "vehicle_magnetometer", DEVICE_ID, *c)
     elif with_mag:
         for t, r in zip(flight.t_mag, r_g):
             data(t, "sensor_mag", DEVICE_ID, *r, 31.5)
-    if "sensor_combined" in topics:
+    if "sensor_combined" in topics and not combined:
         for t, g, a in zip(flight.t_imu, flight.gyro, flight.accel):
             data(t, "sensor_combined", *g, *a)
     for k, t in enumerate(flight.t_ch):

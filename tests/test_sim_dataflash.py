@@ -141,10 +141,14 @@ def test_aux_channels_their_units_and_the_parameters(log, flight, tmp_path):
     np.testing.assert_allclose(track.columns["throttle"][rows], flight.throttle, atol=1e-3)
     assert track.metadata["throttle_source"] == "CURR.Throttle / 1000 (0..1)"
     assert track.metadata["param.COMPASS_OFS_X"] == "-120"
-    # an older layout: CURR's integer Volt is centivolts
-    old = write_dataflash(tmp_path / "old.bin", flight, messages=("IMU", "RCOU", "CURR"))
-    volts = read_recording(old).columns["battery_voltage_v"]
+    # an older layout: CURR's integer Volt is centivolts; an output that is no PWM is dropped
+    old = read_recording(write_dataflash(tmp_path / "old.bin", flight, c7_not_pwm=True,
+                                         messages=("IMU", "RCOU", "CURR")))
+    volts = old.columns["battery_voltage_v"]
     np.testing.assert_allclose(volts[np.isfinite(volts)], flight.volts, atol=0.006)
+    assert "rcou_c7" not in old.columns
+    last = 50_000 + 10 * (len(flight.t_ch) - 1)
+    assert f"rcou_c7 (values 50000..{last} outside 0..3000 us" in old.metadata["rcou_dropped"]
 
 
 def test_autopilot_calibration_reproduces_the_logged_field_and_the_truth(log):

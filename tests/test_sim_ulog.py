@@ -1,7 +1,7 @@
 """PX4 ULog logs on a self-made log (tests/_selfmade_logs.py): what tests/test_inputs_flight.py
-checks on the bundled pyulog samples — convert, content detection, PX4's CAL_MAG0_* undone on a
-calibrated topic, aux channels and units, the calibration in force (``--cal log``), a rotated
-calibration refused, truncated logs."""
+checks on the bundled pyulog samples — convert, content detection, each magnetometer topic
+(sensor_mag; vehicle_magnetometer and sensor_combined with PX4's CAL_MAG0_* undone), aux channels
+and units, the calibration in force (``--cal log``), a rotated calibration refused, truncated logs."""
 from __future__ import annotations
 
 import shutil
@@ -27,10 +27,18 @@ def flight():
     return flight_slice(40.0, seed=4)
 
 
-@pytest.fixture(scope="module", params=[False, True], ids=["sensor_mag", "vehicle_magnetometer"])
+#: The three magnetometer topics the reader takes: the driver's reading, PX4's corrected field,
+#: and that field riding in sensor_combined (older logs, as the bundled pyulog samples).
+TOPICS = {"sensor_mag": {}, "vehicle_magnetometer": {"calibrated": True},
+          "sensor_combined": {"calibrated": True, "combined": True}}
+
+
+@pytest.fixture(scope="module", params=list(TOPICS))
 def log(request, flight, tmp_path_factory):
-    return write_ulog(tmp_path_factory.mktemp("ulog") / "flight.ulg", flight,
-                      calibrated=request.param)
+    path = write_ulog(tmp_path_factory.mktemp("ulog") / "flight.ulg", flight,
+                      **TOPICS[request.param])
+    assert read_recording(path).metadata["mag_topic"].startswith(request.param)
+    return path
 
 
 def test_convert_writes_the_track_read_recording_gives(log, flight, tmp_path):
@@ -57,6 +65,7 @@ def test_the_reading_is_the_sensors_whichever_topic_was_logged(log, flight):
     both give back what the sensor read, in µT (gauss × 100)."""
     track = read_recording(log)
     np.testing.assert_allclose(track.mag, flight.mag_uT, atol=1e-4)   # float32 gauss
+    np.testing.assert_allclose(track.t_mag, flight.t_mag - flight.t_mag[0], atol=1e-6)
     meta = track.metadata
     if meta["mag_calibrated_by_px4"] == "yes":
         assert meta["mag_calibration_undone"].startswith("CAL_MAG0_XOFF.. added back")
