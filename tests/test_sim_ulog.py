@@ -1,7 +1,8 @@
 """PX4 ULog logs on a self-made log (tests/_selfmade_logs.py): what tests/test_inputs_flight.py
 checks on the bundled pyulog samples — convert, content detection, each magnetometer topic
 (sensor_mag; vehicle_magnetometer and sensor_combined with PX4's CAL_MAG0_* undone), aux channels
-and units, the calibration in force (``--cal log``), a rotated calibration refused, truncated logs."""
+and units, the calibration in force (``--cal log``), a rotated calibration refused, truncated
+logs."""
 from __future__ import annotations
 
 import shutil
