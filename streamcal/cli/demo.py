@@ -90,14 +90,24 @@ def track_dir(out: Path, out_dir: str | None) -> Path:
 def run(args) -> int:
     with contextlib.ExitStack() as stack:
         track_path = Path(args.track) if args.track else stack.enter_context(bundled_track())
+        source = _open(track_path)   # a track the driver cannot replay: said before any output
         out = report_path(args.output, args.out_dir)
         directory = track_dir(out, args.out_dir)
         prepare_output(out)             # a place that cannot be written is said before the work
         output_dir(directory)
-        return _demo(track_path, out, directory, args.quiet)
+        return _demo(track_path, source, out, directory, args.quiet)
 
 
-def _demo(track_path: Path, out: Path, directory: Path, quiet: bool) -> int:
+def _open(track_path: Path):
+    """The fake-bus MPU-9250 source replaying ``track_path`` (the driver brought up)."""
+    from firmware_bridge.i2c_source import open_i2c_source
+
+    from ..inputs.track import Track
+
+    return open_i2c_source(f"fake:{track_path}", block_size=BLOCK_SIZE, read_track=Track.read)
+
+
+def _demo(track_path: Path, source, out: Path, directory: Path, quiet: bool) -> int:
     from ..report import diagnose_or_reason, write_report
     from ..inputs.track import Track
 
@@ -106,7 +116,7 @@ def _demo(track_path: Path, out: Path, directory: Path, quiet: bool) -> int:
     start = time.monotonic()
     say(f"streamcal demo: replaying {track_path.name} through the MPU-9250 driver on a "
         f"simulated I²C bus (fake:{track_path})")
-    blocks, accepted, calibrator = _replay(track_path, say)
+    blocks, accepted, calibrator = _replay(source, say)
     if not blocks:
         from ..errors import InsufficientDataError
         raise InsufficientDataError(f"{track_path}: the driver produced no samples")
@@ -142,14 +152,10 @@ def _demo(track_path: Path, out: Path, directory: Path, quiet: bool) -> int:
     return 0 if diagnosis is not None else 1
 
 
-def _replay(track_path: Path, say):
-    from firmware_bridge.i2c_source import open_i2c_source
-
-    from ..inputs.track import Track
+def _replay(source, say):
     from ..report import coverage_view
     from ..stream import CoverageBuffer, StreamingCalibrator
 
-    source = open_i2c_source(f"fake:{track_path}", block_size=BLOCK_SIZE, read_track=Track.read)
     calibrator = None
     blocks, accepted, maps_done = [], [], set()
     for block in source:
