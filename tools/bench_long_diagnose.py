@@ -2,7 +2,7 @@
 full computation, same run (issue #13 item 2).
 
     python tools/bench_long_diagnose.py [--keep DIR] [--full-long] [--only 1h,4h]
-                                        [--baseline CHECKOUT] [--repeat N]
+                                        [--formats] [--baseline CHECKOUT] [--repeat N]
 
 Simulates 5-minute, 1-hour and 4-hour 100 Hz tracks with ``streamcal.sim.simulate`` (hourly
 segments of one sensor model and one hidden ``temperature_offset`` placed end to end, two outlier
@@ -12,6 +12,11 @@ own subprocess (``python -m streamcal diagnose TRACK --json``, peak RSS from
 (``--full``) of the 5-minute track, and of the 1-hour track with ``--full-long``. Targets:
 1-hour ≤ 10 s and ≤ 400 MB; 4-hour peak RSS ≤ 1.3 × the 1-hour's; verdict and top candidate as
 the full computation's.
+
+``--formats`` adds the 1-hour recording as CSV.gz, as an ArduPilot DataFlash log (written by the
+tests' self-made log writer, ``tests/_selfmade_logs.py``: the same readings, IMU rows, a throttle
+channel and COMPASS_* parameters) diagnosed ``--cal log``, and the CSV ``--cal CAL.json``: the
+subsample is decided by the number of samples, whatever the format or starting point.
 
 ``--baseline CHECKOUT`` runs every row with that checkout's code too (another worktree, e.g. the
 commit this one branched from), alternating baseline / this ``--repeat`` times (default 1), and
@@ -65,11 +70,37 @@ print(json.dumps({"rc": proc.returncode, "maxrss_kib":
 """
 
 
-def _run(path: Path, full: bool, repo: Path = REPO, label: str = "") -> dict:
+def _dataflash(track_path: Path, out: Path) -> Path:
+    """The 1-hour track as the DataFlash log ArduPilot would write (self-made writer)."""
+    import numpy as np
+
+    sys.path.insert(0, str(REPO / "tests"))
+    from _selfmade_logs import FlightSlice, write_dataflash
+
+    from streamcal.inputs.track import Track
+
+    track = Track.read(track_path)
+    c = track.columns
+    imu = np.isfinite(np.asarray(c["ax"]))
+    t_mag = np.asarray(track.t_mag)
+    t_ch = np.arange(0.0, float(t_mag[-1]), 0.1)
+    thr = 0.5 + 0.2 * np.sin(2 * np.pi * t_ch / 60.0)
+    flight = FlightSlice(
+        t_mag=t_mag, mag_uT=np.asarray(track.mag), t_imu=np.asarray(c["t"])[imu],
+        accel=np.column_stack([np.asarray(c[k])[imu] for k in ("ax", "ay", "az")]),
+        gyro=np.column_stack([np.asarray(c[k])[imu] for k in ("gx", "gy", "gz")]),
+        temp=np.asarray(c["temp"])[imu], throttle_at_mag=np.interp(t_mag, t_ch, thr),
+        t_ch=t_ch, throttle=thr, pwm=np.tile((1100 + 800 * thr)[:, None], (1, 6)),
+        volts=np.full(len(t_ch), 15.8), amps=5.0 + 20.0 * thr)
+    return write_dataflash(out, flight, messages=("IMU", "RCOU", "CURR"))
+
+
+def _run(path: Path, full: bool, repo: Path = REPO, label: str = "", extra=()) -> dict:
     env = dict(os.environ, PYTHONPATH=str(repo))
     start = time.perf_counter()
     # cwd: ``-m streamcal`` looks in the working directory first
-    proc = subprocess.run([sys.executable, "-c", _MEASURE, str(path), *(["--full"] if full else [])],
+    proc = subprocess.run([sys.executable, "-c", _MEASURE, str(path), *extra,
+                           *(["--full"] if full else [])],
                           capture_output=True, text=True, env=env, check=True, cwd=str(repo))
     elapsed = time.perf_counter() - start
     out = json.loads(proc.stdout)
@@ -77,11 +108,12 @@ def _run(path: Path, full: bool, repo: Path = REPO, label: str = "") -> dict:
         sys.exit(f"diagnose of {path} failed ({out['rc']}): {out['stderr']}")
     d = json.loads(out["out"])
     top = d["candidates"][0]["effect"] if d["candidates"] else None
-    row = {"track": path.name, "mode": ("full" if full else "auto") + label, "s": elapsed,
+    row = {"track": path.name + (" " + " ".join(extra) if extra else ""),
+           "mode": ("full" if full else "auto") + label, "s": elapsed,
            "rss_mb": out["maxrss_kib"] / 1024, "verdict": d["verdict"], "top": top,
            "used": d["samples_used"], "total": d["samples_total"],
            "spans": len(d["outlier_spans"]), "spans_over": d.get("outlier_spans_over", "all")}
-    print(f"{row['track']:<8}{row['mode']:<9}{row['s']:>8.1f} s{row['rss_mb']:>9.0f} MiB  "
+    print(f"{row['track']:<22}{row['mode']:<9}{row['s']:>8.1f} s{row['rss_mb']:>9.0f} MiB  "
           f"{row['verdict']:<15}{str(top):<22}{row['used']:>9}/{row['total']:<9}"
           f"{row['spans']:>4} spans over {row['spans_over']}", flush=True)
     return row
@@ -92,6 +124,8 @@ def main() -> int:
     ap.add_argument("--keep", metavar="DIR", help="write the tracks here and reuse them")
     ap.add_argument("--full-long", action="store_true", help="also the full 1-hour diagnosis")
     ap.add_argument("--only", help="comma-separated rows: 5min-full,5min,1h-full,1h,4h")
+    ap.add_argument("--formats", action="store_true", help="also the 1-hour recording as CSV.gz, "
+                    "as DataFlash diagnosed --cal log, and the CSV --cal CAL.json")
     ap.add_argument("--baseline", metavar="CHECKOUT", help="also run each row with this checkout")
     ap.add_argument("--repeat", type=int, default=1, help="alternations per row (default 1)")
     args = ap.parse_args()
@@ -112,7 +146,7 @@ def main() -> int:
                 rows = _make(paths[name], tracks[name], seed=3)
                 print(f"simulated {name}: {rows} rows, {paths[name].stat().st_size / 1e6:.0f} MB "
                       f"in {time.perf_counter() - start:.0f} s", flush=True)
-        print(f"{'track':<8}{'mode':<9}{'time':>10}{'peak RSS':>13}  {'verdict':<15}"
+        print(f"{'track':<22}{'mode':<9}{'time':>10}{'peak RSS':>13}  {'verdict':<15}"
               f"{'top candidate':<22}{'used/total mag samples':>19}")
         runs: dict = {}
         for name, full in plan:
@@ -122,6 +156,26 @@ def main() -> int:
                     runs.setdefault(key + ("base",), []).append(
                         _run(paths[name], full, Path(args.baseline).resolve(), "/base"))
                 runs.setdefault(key + ("this",), []).append(_run(paths[name], full))
+        if args.formats and "1h" in paths:
+            import gzip
+            import shutil
+
+            gz = where / "1h.csv.gz"
+            if not gz.exists():
+                with open(paths["1h"], "rb") as src, gzip.open(gz, "wb", compresslevel=1) as dst:
+                    shutil.copyfileobj(src, dst)
+            bin_ = where / "1h.bin"
+            if not bin_.exists():
+                _dataflash(paths["1h"], bin_)
+            cal = where / "cal.json"
+            if not cal.exists():
+                from streamcal import fit
+                from streamcal.inputs.track import Track
+
+                fit(Track.read(paths["5min"] if "5min" in paths else paths["1h"])).save(cal)
+            for path, extra in ((gz, ()), (bin_, ("--cal", "log")), (paths["1h"], ("--cal", str(cal)))):
+                runs.setdefault((path.name + " ".join(extra), "sub", "this"), []).append(
+                    _run(path, False, extra=extra))
         rows = {k[:2]: v[-1] for k, v in runs.items() if k[2] == "this"}
         if args.baseline:
             import statistics
@@ -148,7 +202,7 @@ def main() -> int:
         ref = rows.get(("1h", "full"), base)
         if ref:
             same = all((r["verdict"], r["top"]) == (ref["verdict"], ref["top"])
-                       for v in runs.values() for r in v)
+                       for k, v in runs.items() if "--cal" not in k[0] for r in v)
             print(f"verdict and top candidate equal to the full {ref['track']} diagnosis on "
                   f"every track and run: {same}")
     return 0
