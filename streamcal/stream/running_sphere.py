@@ -53,16 +53,27 @@ def sphere_of_samples(m: np.ndarray, min_n: int):
 
 
 class RunningSphere:
-    """Running sums, the latest estimate ``(c, R)`` (or None) and its reference (or None).
+    """Running sums over a sliding window, the latest estimate ``(c, R)`` (or None) and its
+    reference (or None).
+
+    The sums cover the last ``window`` to ``2 window`` samples (two epochs, each ``window``
+    samples; the older is dropped when the newer is full), so that samples of an earlier
+    environment, or the thousands of one point a board at rest adds, leave the estimate: sums
+    over a whole stream that began at rest and then changed its field fit a sphere through the
+    rest cluster and the new shell, hundreds of times the field's radius, which frames every
+    direction into one cell.
 
     Args:
         every: samples between refits.
         min_n: fewest samples for a fit.
+        window: samples per epoch of the sums (memory stays O(1)).
     """
 
-    def __init__(self, every: int = 200, min_n: int = 100):
+    def __init__(self, every: int = 200, min_n: int = 100, window: int = 4096):
         self.every, self.min_n = int(every), int(min_n)
+        self.window = max(int(window), self.min_n)
         self.stats = SphereStats()
+        self._older = SphereStats()
         self.estimate: tuple[np.ndarray, float] | None = None
         self.reference: Reference | None = None
         self._since = 0
@@ -70,24 +81,33 @@ class RunningSphere:
     @property
     def n(self) -> int:
         """Samples in the sums."""
-        return self.stats.n
+        return self.stats.n + self._older.n
 
     @property
     def nbytes(self) -> int:
-        return self.stats.s22.nbytes
+        return self.stats.s22.nbytes + self._older.s22.nbytes
 
     def add(self, m: np.ndarray, counted: int | None = None) -> bool:
         """Add samples ``m`` (n,3) to the sums (``counted``: samples seen, default n); True
         when a refit (:meth:`refit`) is due."""
+        if self.stats.n >= self.window:
+            self._older, self.stats = self.stats, self._older
+            self.stats.reset()
         self.stats.update(m)
         self._since += len(m) if counted is None else int(counted)
         return self._since >= self.every
+
+    def _sums(self) -> SphereStats:
+        """Both epochs' sums as one."""
+        if not self._older.n:
+            return self.stats
+        return self._older.copy().merge(self.stats)
 
     def refit(self) -> tuple[tuple | None, bool]:
         """Refit from the sums: ``(estimate, moved)``; ``estimate`` None (kept the old one) when
         undetermined; ``moved`` when the centre or radius moved by over 5 % of the radius."""
         self._since = 0
-        found = sphere_of(self.stats, self.min_n)
+        found = sphere_of(self._sums(), self.min_n)
         if found is None:
             return None, False
         c, R = found
@@ -99,6 +119,7 @@ class RunningSphere:
     def reset(self, m: np.ndarray) -> None:
         """Restart from the samples ``m`` (n,3) (those kept after an environment change)."""
         self.stats.reset()
+        self._older.reset()
         self.stats.update(m)
         self.estimate = None
         self.reference = None
@@ -142,4 +163,4 @@ class RunningSphere:
             return None
         c, R = self.estimate
         return Calibration(K=R * np.eye(3), b=c, model=("hard_iron",), method="sphere_stream",
-                           unit=unit, n=self.stats.n)
+                           unit=unit, n=self.n)
