@@ -15,19 +15,16 @@ Per stage of samples (DESIGN §1)::
                   ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
                   ─▶ StatusReporter: the state in words, every few seconds of sample time
 
-Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at most one at a
-time, and its result is picked up by a later ``ingest`` or ``poll`` (``synchronous=True``, for
-reproducible replays: the fit runs when it is due and is picked up at once). The parts live in
-their own modules: the clock (:mod:`.clock`), the fit worker (:mod:`.fitworker`), the hold-back
-reference (:mod:`.reference`), the disturbance tracker (:mod:`.tracker`, rules in
-:mod:`.disturbance`), the running sphere estimate (:mod:`.running_sphere`), the recall of
-remembered calibrations (:mod:`.recall`), the environment log (:mod:`.environments`) and the
-status (:mod:`.status`). Rows are staged ``stage`` at a time (default 256: 2.6 s at 100 Hz,
-0.9 s at 286 Hz), so fits start, finished fits are picked up and drift is judged at most one
-stage late; a larger block is processed at once, with what was staged. ``poll()`` processes what
-is staged (call it when the source is idle). Disturbances and environment changes: module
-:mod:`.tracker`. A candidate always has to beat the calibration in use on held-out samples, so a
-worse calibration is never accepted.
+Ingest never waits for a fit (DESIGN §4.1): one fit at a time runs on a worker thread and a
+later ``ingest`` or ``poll`` picks it up (``synchronous=True``, for reproducible replays: it runs
+when due and is picked up at once). The parts' modules: :mod:`.clock`, :mod:`.fitworker`,
+:mod:`.reference` (hold-back), :mod:`.tracker` (disturbances and environment changes, rules in
+:mod:`.disturbance`), :mod:`.running_sphere`, :mod:`.recall`, :mod:`.environments`,
+:mod:`.status`. Rows are staged ``stage`` at a time (default 256: 2.6 s at 100 Hz, 0.9 s at
+286 Hz), so fits start, finished fits are picked up and drift is judged at most one stage late;
+a larger block is processed at once, with what was staged. ``poll()`` processes what is staged
+(call it when the source is idle). A candidate always has to beat the calibration in use on
+held-out samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
 

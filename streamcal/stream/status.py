@@ -22,12 +22,12 @@ class StatusReporter:
 
     Args:
         every_s: sample time (s) between status events while no calibration is in force (they
-            come with a stage of samples, up to 2.6 s later at 100 Hz: 7.5 s keeps the gaps
+            come with a stage of samples, up to 2.6 s later at 100 Hz: 7 s keeps the gaps
             within 10 s).
         calibrated_every_s: the same while a calibration is in force.
     """
 
-    def __init__(self, every_s: float = 7.5, calibrated_every_s: float = 60.0):
+    def __init__(self, every_s: float = 7.0, calibrated_every_s: float = 60.0):
         self.every_s = float(every_s)
         self.calibrated_every_s = float(calibrated_every_s)
         self.last_t = -math.inf         # last status event
@@ -45,9 +45,9 @@ class StatusReporter:
             self._note(e)
         calibrated = cal.calibration is not None and not cal.stale
         every = self.calibrated_every_s if calibrated else self.every_s
-        if not math.isfinite(self.last_t):
-            self.last_t = t_now             # the first samples: nothing to say yet
-            return []
+        if not math.isfinite(self.last_t):  # the first samples: counted from the first one
+            start = cal.environments.start
+            self.last_t = start if math.isfinite(start) else t_now
         if t_now - self.last_t < every:
             return []
         return [self.event(cal, t_now)]
