@@ -31,7 +31,7 @@ class StatusReporter:
         self.every_s = float(every_s)
         self.calibrated_every_s = float(calibrated_every_s)
         self.last_t = -math.inf         # last status event
-        self.reason = ""                # key of the reason reported last
+        self.reason = ""                # state and key of the reason reported last
         self.since = math.nan           # when that reason began (s)
         self.in_force_since = math.nan  # the calibration in force since (s)
         self.failures = 0               # fits failed or rejected since the last acceptance
@@ -70,9 +70,9 @@ class StatusReporter:
                     f"{percent(cal.buffer.measured_fraction)}")
             return Event("status", text, self._data("calibrated", "", since, cal), t_now)
         key, reason, hint = self._reason(cal)
-        if key != self.reason or not math.isfinite(self.since):
-            self.reason, self.since = key, t_now
         state = "stale" if cal.calibration is not None else "uncalibrated"
+        if f"{state}:{key}" != self.reason or not math.isfinite(self.since):
+            self.reason, self.since = f"{state}:{key}", t_now
         head = ("no calibration (the one in use is stale: the field changed)"
                 if state == "stale" else "no calibration")
         failed = ""
@@ -115,10 +115,10 @@ class StatusReporter:
         if buffer.n_samples < policy.min_samples:
             return "few_samples", (f"too few distinct directions ({buffer.n_samples} samples "
                                    f"stored, a first fit needs {policy.min_samples})"), turn
+        plateau = (f", or {percent(policy.plateau_coverage)} once no new direction came for "
+                   f"{policy.plateau_s:g} s" if policy.may_plateau(cal.calibration, True) else "")
         return "coverage", (f"too little coverage ({percent(buffer.fraction)} of the sphere; a "
-                            f"first fit needs {percent(policy.min_coverage)}, or "
-                            f"{percent(policy.plateau_coverage)} once no new direction came for "
-                            f"{policy.plateau_s:g} s)"), turn
+                            f"first fit needs {percent(policy.min_coverage)}{plateau})"), turn
 
     def _data(self, state: str, key: str, since: float, cal) -> dict:
         return {"state": state, "reason": key or None,
