@@ -71,11 +71,13 @@ def verdict(cand, decision, unit: str, t: float) -> Event:
     """The guard's ``decision`` (a :class:`~.guard.Decision`) on the candidate ``cand``."""
     rms = float(cand.rms)
     data = {**decision.to_dict(), "K": cand.K.round(6).tolist(), "b": cand.b.round(6).tolist(),
-            "rms": rms if np.isfinite(rms) else None, "coverage_at_fit": cand.coverage}
+            "rms": rms if np.isfinite(rms) else None, "coverage_at_fit": cand.coverage,
+            "model": list(cand.model)}
     if not decision.accepted:
         return Event("rejected", f"candidate rejected: {decision.text()}", data, t)
+    only = ", hard iron only" if tuple(cand.model) == ("hard_iron",) else ""
     return Event("accepted", f"calibration accepted ({decision.text()}): rms {cand.rms:.3g} "
-                 f"{display_unit(unit)}, b = {np.round(cand.b, 2).tolist()}", data, t)
+                 f"{display_unit(unit)}, b = {np.round(cand.b, 2).tolist()}{only}", data, t)
 
 
 def coverage(report, t: float) -> Event:
