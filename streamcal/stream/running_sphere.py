@@ -85,8 +85,9 @@ class RunningSphere:
     """Running sums over a sliding window, the latest estimate ``(c, R)`` (or None) and its
     reference (or None).
 
-    A stage of readings at rest (:func:`at_rest`) adds one in :data:`REST_KEEP` of them, and the
-    sums cover the last
+    A stage of readings at rest (:func:`at_rest`) adds one in :data:`REST_KEEP` of them (they
+    frame the buffer while nothing else is there; the first stage that moves replaces sums of
+    readings at rest only), and the sums cover the last
     ``window`` to ``2 window`` samples (two epochs, each ``window`` samples; the older is dropped
     when the newer is full): sums of a whole stream that began at rest and then changed its
     field fitted a sphere through the thousands of copies of one point and the new shell,
@@ -106,6 +107,7 @@ class RunningSphere:
         self.estimate: tuple[np.ndarray, float] | None = None
         self.reference: Reference | None = None
         self._since = 0
+        self._rest_only = True      # the sums hold readings at rest only (or none)
 
     @property
     def n(self) -> int:
@@ -123,6 +125,11 @@ class RunningSphere:
         seen = len(m) if counted is None else int(counted)
         if at_rest(m):
             m = m[::REST_KEEP]
+        elif len(m):
+            if self._rest_only:     # the board moves: the rest cluster has nothing more to say
+                self.stats.reset()
+                self._older.reset()
+            self._rest_only = False
         if self.stats.n >= self.window:
             self._older, self.stats = self.stats, self._older
             self.stats.reset()
@@ -154,6 +161,7 @@ class RunningSphere:
         self.stats.reset()
         self._older.reset()
         self.stats.update(m)
+        self._rest_only = not len(m)
         self.estimate = None
         self.reference = None
         self._since = 0
