@@ -96,13 +96,14 @@ def _resting(duration, m0, t0, rng, rate=286.0):
     return t, m0 + rng.normal(0.0, 0.4, (len(t), 3))
 
 
-@pytest.fixture(scope="module")
-def magnet_track() -> Track:
+@pytest.fixture(scope="module", params=[21, 31])
+def magnet_track(request) -> Track:
     """Rest (no magnet), turning with the magnet on, turning without it, rest: BROAD 32's
-    phases with the truth known."""
-    rng = np.random.default_rng(5)
-    t1, m1 = _turning(TURN_S, 21, B_CLEAN + DELTA, REST_S)
-    t2, m2 = _turning(TURN_S, 22, B_CLEAN, MAGNET_OFF)
+    phases with the truth known (two motions: simulation seeds)."""
+    seed = request.param
+    rng = np.random.default_rng(seed)
+    t1, m1 = _turning(TURN_S, seed, B_CLEAN + DELTA, REST_S)
+    t2, m2 = _turning(TURN_S, seed + 1, B_CLEAN, MAGNET_OFF)
     t0, m0 = _resting(REST_S, m1[0] - DELTA, 0.0, rng)
     t3, m3 = _resting(30.0, m2[-1], MAGNET_OFF + TURN_S, rng)
     return Track.from_arrays(np.concatenate([t0, t1, t2, t3]),
@@ -143,6 +144,39 @@ def test_simulated_magnet_is_an_environment_change_and_calibrates_after(simulate
 
 
 # -- the parts ------------------------------------------------------------------------------
+
+def _shell(rng, n, center, R=45.0):
+    u = rng.normal(size=(n, 3))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    # in time order: a slow walk over the sphere, as a turning board gives
+    order = np.argsort(np.arctan2(u[:, 1], u[:, 0]) + 10.0 * np.round(u[:, 2] * 4))
+    return center + R * u[order] + rng.normal(scale=0.3, size=(n, 3))
+
+
+def test_running_sphere_forgets_a_rest_cluster_and_an_old_environment():
+    from streamcal.stream.running_sphere import RunningSphere, at_rest, sphere_of_samples
+
+    rng = np.random.default_rng(4)
+    sphere = RunningSphere(every=256, min_n=100, window=2048)
+    rest = np.array([30.0, 10.0, -40.0]) + rng.normal(scale=0.4, size=(10240, 3))
+    assert at_rest(rest[:256]) and not at_rest(_shell(rng, 256, B_CLEAN))
+    for k in range(0, len(rest), 256):                 # 36 s at 286 Hz, as in BROAD 32
+        sphere.add(rest[k:k + 256])
+    assert sphere.n == len(rest) // 16                  # one in 16 readings at rest
+    shell = _shell(rng, 1024, B_CLEAN + DELTA)
+    for k in range(0, len(shell), 256):
+        sphere.add(shell[k:k + 256])
+    (c, R), _ = sphere.refit()                          # the rest cluster is gone
+    assert np.linalg.norm(c - (B_CLEAN + DELTA)) < 1.0 and abs(R - 45.0) < 1.0
+    later = _shell(rng, 6144, B_CLEAN)                  # the magnet taken off, no reference
+    for k in range(0, len(later), 256):
+        sphere.add(later[k:k + 256])
+    (c, R), _ = sphere.refit()                          # two windows later: the new shell
+    assert np.linalg.norm(c - B_CLEAN) < 1.0 and abs(R - 45.0) < 1.0
+    # A few degrees of directions fix no sphere: no estimate rather than a huge one.
+    u = rng.normal(size=(500, 3)) * [0.03, 0.03, 0.0] + [0.0, 0.0, 1.0]
+    assert sphere_of_samples(45.0 * u / np.linalg.norm(u, axis=1, keepdims=True), 100) is None
+
 
 def test_plateau_starts_a_first_fit_below_the_coverage_a_first_fit_needs():
     p = RecalPolicy()
