@@ -461,7 +461,7 @@ class StreamingCalibrator:
         ref_R = self.coarse[1] if self.coarse is not None else None
         decision = self.guard.check(cand, job.holdout.m, job.holdout.columns(), current, ref_R)
         if not decision.accepted:
-            return [ev.verdict(cand, decision, self.unit, t)]
+            return [ev.judged(cand, decision, self.unit, t)]
         events = []
         self.tracker.end(events, "reference_replaced", t)     # the running estimate's
         self._cal = cand
@@ -471,7 +471,7 @@ class StreamingCalibrator:
         self.environments.calibrated = True
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
-        events.append(ev.verdict(cand, decision, self.unit, t))
+        events.append(ev.judged(cand, decision, self.unit, t))
         self._save(cand, events)
         return events
 

@@ -71,13 +71,11 @@ def verdict(cand, decision, unit: str, t: float) -> Event:
     """The guard's ``decision`` (a :class:`~.guard.Decision`) on the candidate ``cand``."""
     rms = float(cand.rms)
     data = {**decision.to_dict(), "K": cand.K.round(6).tolist(), "b": cand.b.round(6).tolist(),
-            "rms": rms if np.isfinite(rms) else None, "coverage_at_fit": cand.coverage,
-            "model": list(cand.model)}
+            "rms": rms if np.isfinite(rms) else None, "coverage_at_fit": cand.coverage}
     if not decision.accepted:
         return Event("rejected", f"candidate rejected: {decision.text()}", data, t)
-    only = ", hard iron only" if tuple(cand.model) == ("hard_iron",) else ""
     return Event("accepted", f"calibration accepted ({decision.text()}): rms {cand.rms:.3g} "
-                 f"{display_unit(unit)}, b = {np.round(cand.b, 2).tolist()}{only}", data, t)
+                 f"{display_unit(unit)}, b = {np.round(cand.b, 2).tolist()}", data, t)
 
 
 def coverage(report, t: float) -> Event:
@@ -138,3 +136,13 @@ class Milestones:
             self.reached = now
             return True
         return False
+
+
+def judged(cand, decision, unit: str, t: float) -> Event:
+    """:func:`verdict`, with the candidate's ``model`` in the figures and, for a candidate of the
+    hard iron alone (the fallback of a fit whose directions leave the soft iron undetermined),
+    "hard iron only" after an acceptance's figures."""
+    e = verdict(cand, decision, unit, t)
+    only = (", hard iron only" if e.kind == "accepted" and tuple(cand.model) == ("hard_iron",)
+            else "")
+    return Event(e.kind, e.message + only, {**e.data, "model": list(cand.model)}, e.t, e.detail)

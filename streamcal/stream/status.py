@@ -63,10 +63,10 @@ class StatusReporter:
         self.last_t = t_now
         if cal.calibration is not None and not cal.stale:
             since = self.in_force_since
-            c = cal.calibration
+            c, unit = cal.calibration, display_unit(cal.calibration.unit)
             text = ("calibration in use" + (f" since t={since:.2f} s" if math.isfinite(since)
                                                else " (loaded)")
-                    + f", rms {c.rms:.3g} {display_unit(c.unit)}, coverage "
+                    + f", rms {c.rms:.3g}{' ' + unit if unit else ''}, coverage "
                     f"{percent(cal.buffer.measured_fraction)}")
             return Event("status", text, self._data("calibrated", "", since, cal), t_now)
         key, reason, hint = self._reason(cal)
