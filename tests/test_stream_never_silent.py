@@ -7,9 +7,9 @@ The real track: the board rests 0–36 s, a magnet 1 cm from the IMU rides on it
 used to fall silent after 36.75 s (its running sphere, summed over the rest cluster and the
 magnet's shell, had a radius of thousands of µT and framed every direction into one cell).
 The simulated board: the same phases (rest, turning with a magnet that adds ``DELTA``, turning
-without it, rest) with a known calibration; before the fix its replay was silent from 16.8 s to
-50 s (the running sphere framed the magnet's first samples into a few cells) and after 156.7 s
-of 186 s.
+without it, rest) with a known calibration, for two motions; before the fix their replays fell
+silent after 152.0 s and 149.0 s of 186 s, and the second also from 16.8 s to 101.1 s, with no
+environment change reported.
 """
 from __future__ import annotations
 
