@@ -13,21 +13,18 @@ Per stage of samples (DESIGN §1)::
                   ─▶ while stale: recall check   (does a remembered calibration fit again?)
                   ─▶ pick up a finished fit ─▶ AcceptanceGuard ─▶ CalibrationStore
                   ─▶ RecalPolicy: start a fit?  ─▶ worker thread runs fitter(snapshot)
+                  ─▶ StatusReporter: the state in words, every few seconds of sample time
 
-Ingest never waits for a fit (DESIGN §4.1): the fit runs on a worker thread, at most one at a
-time, and its result is picked up by a later ``ingest`` or ``poll`` (``synchronous=True``, for
-reproducible replays: the fit runs when it is due and is picked up at once). The parts live in
-their own modules: the monotone clock (:mod:`.clock`), the fit worker (:mod:`.fitworker`), the
-hold-back reference (:mod:`.reference`), the disturbance tracker (:mod:`.tracker`, rules in
-:mod:`.disturbance`), the running sphere estimate (:mod:`.running_sphere`), the recall of
-remembered calibrations (:mod:`.recall`) and the environment log (:mod:`.environments`). Rows are staged ``stage`` at
-a time (default 256: 2.6 s at 100 Hz, 0.9 s at 286 Hz), so fits start, finished fits are picked
-up and drift is judged at most one stage late; a block larger than the free room is processed
-at once, with what was staged. ``poll()`` processes what is staged (call it when the source is
-idle).
-
-Disturbances and environment changes: module :mod:`.tracker`. A candidate always has to beat
-the calibration in use on held-out samples, so a worse calibration is never accepted.
+Ingest never waits for a fit (DESIGN §4.1): one fit at a time runs on a worker thread and a
+later ``ingest`` or ``poll`` picks it up (``synchronous=True``, for reproducible replays: it runs
+when due and is picked up at once). The parts' modules: :mod:`.clock`, :mod:`.fitworker`,
+:mod:`.reference` (hold-back), :mod:`.tracker` (disturbances and environment changes, rules in
+:mod:`.disturbance`), :mod:`.running_sphere`, :mod:`.recall`, :mod:`.environments`,
+:mod:`.status`. Rows are staged ``stage`` at a time (default 256: 2.6 s at 100 Hz, 0.9 s at
+286 Hz), so fits start, finished fits are picked up and drift is judged at most one stage late;
+a larger block is processed at once, with what was staged. ``poll()`` processes what is staged
+(call it when the source is idle). A candidate always has to beat the calibration in use on
+held-out samples, so a worse calibration is never accepted.
 """
 from __future__ import annotations
 
@@ -48,8 +45,8 @@ from .recall import Recaller
 from .reference import Reference
 from .running_sphere import NO_ESTIMATE, RunningSphere, sphere_of_samples
 from .staging import Stage
+from .status import StatusReporter
 from .tracker import DisturbanceTracker
-
 
 
 class StreamingCalibrator:
@@ -121,6 +118,7 @@ class StreamingCalibrator:
         self.coarse_judge_coverage = float(coarse_judge_coverage)
         self._cal_ref: Reference | None = None
         self.environments = EnvironmentLog()
+        self.status = StatusReporter()
         self.buffer.unframed = NO_ESTIMATE.format(n=self.sphere.every)
         if store is not None:
             self._load()
@@ -239,7 +237,7 @@ class StreamingCalibrator:
             if job is not None and job.done:
                 self._job = None
                 events.append(ev.discarded("disturbance_open", self.clock.t_last))
-        return events
+        return events + ([self.status.final(self, self.clock.t_last)] if self.n_ingested else [])
 
     # -- the per-stage path -------------------------------------------------------------------
     def _process(self, m, t, cov) -> list:
@@ -272,7 +270,7 @@ class StreamingCalibrator:
             stored, new_cells = self.buffer.insert(m, t, cov)
             if due and not self._frame_is_cal:
                 self._update_unframed()
-            self.policy.note(stored, new_cells)
+            self.policy.note(stored, new_cells, t_now)
             if ref is not None:
                 self._check(ref, events)
             if self.recaller.remembered and self.stale:
@@ -284,11 +282,12 @@ class StreamingCalibrator:
             request = self.policy.want_fit(
                 calibrated=self._cal is not None and not self.stale,
                 coverage=self.buffer.fraction, n_samples=self.buffer.n_samples,
-                n_cells=self.buffer.cells.n_cells, capacity=self.buffer.capacity, t_now=t_now)
+                n_cells=self.buffer.cells.n_cells, capacity=self.buffer.capacity, t_now=t_now,
+                plateau=self.policy.may_plateau(self._cal, not self.buffer.unframed))
             if request is not None:
                 self.policy.requested(t_now)
                 events += self._submit(request, t_now)
-        return events
+        return events + self.status.after(events, self, t_now)
 
     def _update_coarse(self) -> None:
         found, moved = self.sphere.refit()
@@ -344,7 +343,7 @@ class StreamingCalibrator:
             stored, new_cells = self.buffer.insert(m, t, cov, d=d, cell=cell)
         else:
             stored, new_cells = self.buffer.insert(m, t, cov)
-        self.policy.note(stored, new_cells)
+        self.policy.note(stored, new_cells, self.clock.t_last)
         self._check(ref, events)
 
     def _disagreeing(self, m, t, cov, ref):
@@ -462,7 +461,7 @@ class StreamingCalibrator:
         ref_R = self.coarse[1] if self.coarse is not None else None
         decision = self.guard.check(cand, job.holdout.m, job.holdout.columns(), current, ref_R)
         if not decision.accepted:
-            return [ev.verdict(cand, decision, self.unit, t)]
+            return [ev.judged(cand, decision, self.unit, t)]
         events = []
         self.tracker.end(events, "reference_replaced", t)     # the running estimate's
         self._cal = cand
@@ -472,7 +471,7 @@ class StreamingCalibrator:
         self.environments.calibrated = True
         self.policy.reset_window()
         self._set_frame(cand.b, np.linalg.inv(cand.K), from_cal=True)
-        events.append(ev.verdict(cand, decision, self.unit, t))
+        events.append(ev.judged(cand, decision, self.unit, t))
         self._save(cand, events)
         return events
 

@@ -18,7 +18,8 @@ class Event:
     judgeable within the persistence time while a finished fit waited), ``open`` at the end of
     the stream; ``start``, ``end``, ``peak`` error in the sensor unit, ``held`` samples held back),
     ``drift`` (an environment change), ``forgot``, ``recalled``, ``clock_reset`` (sample times
-    went back; later ones are shifted by ``shift`` s), ``stored``, ``store_error``. ``t`` is
+    went back; later ones are shifted by ``shift`` s), ``stored``, ``store_error``, ``status``
+    (the state, :mod:`.status`: ``state``, ``reason``, ``since``, ``failures``). ``t`` is
     the sample time (s) at which it happened, ``data`` its figures
     (JSON-ready); ``detail`` an object behind them, not serialized (a ``coverage`` event's
     :class:`~.coverage.CoverageReport`, with the occupied cells, for a map that agrees with it).
@@ -136,3 +137,13 @@ class Milestones:
             self.reached = now
             return True
         return False
+
+
+def judged(cand, decision, unit: str, t: float) -> Event:
+    """:func:`verdict`, with the candidate's ``model`` in the figures and, for a candidate of the
+    hard iron alone (the fallback of a fit whose directions leave the soft iron undetermined),
+    "hard iron only" after an acceptance's figures."""
+    e = verdict(cand, decision, unit, t)
+    only = (", hard iron only" if e.kind == "accepted" and tuple(cand.model) == ("hard_iron",)
+            else "")
+    return Event(e.kind, e.message + only, {**e.data, "model": list(cand.model)}, e.t, e.detail)

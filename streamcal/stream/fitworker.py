@@ -90,15 +90,32 @@ class FitWorker:
             self._executor = None
 
 
+#: The model a fit falls back to when the directions leave the one asked for undetermined.
+HARD_IRON_ONLY = ("hard_iron",)
+
+
 def default_fitter(model=DEFAULT_MODEL, kernel: str = "cauchy"):
     """``fitter(snapshot) -> Calibration`` running :func:`streamcal.fitting.fit` on the stored
-    samples (with their covariates when the model has effects beyond K and b)."""
+    samples (with their covariates when the model has effects beyond K and b); when the samples
+    leave that model undetermined, the hard iron alone (:data:`HARD_IRON_ONLY`, its
+    ``model`` says so), or the first error when that fails too."""
 
     def fit_snapshot(snap: Snapshot) -> Calibration:
+        from ..errors import InsufficientDataError
         from ..fitting import fit
 
-        if set(model) <= {"hard_iron", "soft_iron", "scale"}:
-            return fit(snap.m, model=tuple(model), kernel=kernel)
-        return fit(snap.to_track(), model=tuple(model), kernel=kernel)
+        try:
+            if set(model) <= {"hard_iron", "soft_iron", "scale"}:
+                return fit(snap.m, model=tuple(model), kernel=kernel)
+            return fit(snap.to_track(), model=tuple(model), kernel=kernel)
+        except InsufficientDataError as exc:
+            if tuple(model) == HARD_IRON_ONLY:
+                raise
+            # A cap or band of directions that leaves the soft iron undetermined may still fix
+            # the centre: the hard iron alone, which the guard judges like any candidate.
+            try:
+                return fit(snap.m, model=HARD_IRON_ONLY, kernel=kernel)
+            except InsufficientDataError:
+                raise exc from None
 
     return fit_snapshot

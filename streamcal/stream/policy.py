@@ -27,6 +27,13 @@ class RecalPolicy:
 
     Args:
         min_coverage: sphere fraction needed for a first fit.
+        plateau_coverage, plateau_s: a first fit also starts at this lower sphere fraction once
+            no new cell was filled for ``plateau_s`` s of sample time (the board keeps turning
+            through the same directions): whether the directions determine the model is then
+            the fit's to say (it refuses an undetermined one) and the guard's (the candidate
+            must beat the reference on held-out samples). Only on a measured frame, and while
+            no calibration fitted on ``min_coverage`` is in use, stale or not
+            (:meth:`may_plateau`). Again after each ``plateau_s`` without new cells.
         min_samples: stored samples needed for a first fit.
         new_cells: refit after this fraction of the cells was newly filled since the last fit…
         new_samples: …or this fraction of the buffer capacity was newly stored (new slots, not
@@ -38,11 +45,14 @@ class RecalPolicy:
         drift_k, drift_floor: drift limit ``max(k · rms/radius, floor)`` (relative units).
     """
 
-    def __init__(self, *, min_coverage: float = 0.35, min_samples: int = 100,
+    def __init__(self, *, min_coverage: float = 0.35, plateau_coverage: float = 0.25,
+                 plateau_s: float = 8.0, min_samples: int = 100,
                  new_cells: float = 0.05, new_samples: float = 0.25, min_interval_s: float = 2.0,
                  refit_interval_s: float = 30.0, window: int = 200, drift_k: float = 4.0,
                  drift_floor: float = 0.03):
         self.min_coverage = min_coverage
+        self.plateau_coverage = plateau_coverage
+        self.plateau_s = plateau_s
         self.min_samples = min_samples
         self.new_cells = new_cells
         self.new_samples = new_samples
@@ -55,6 +65,7 @@ class RecalPolicy:
         self.reset_counts()
         self.reset_window()
         self.last_request_t = -np.inf
+        self.last_new_cell_t = -np.inf
 
     @property
     def window(self) -> int:
@@ -71,19 +82,41 @@ class RecalPolicy:
         self.cells_since = 0
         self.stored_since = 0
 
-    def note(self, stored: int, new_cells: int) -> None:
-        """Count what the buffer gained from the last block."""
+    def note(self, stored: int, new_cells: int, t: float = -np.inf) -> None:
+        """Count what the buffer gained from the last block (ending at sample time ``t`` s)."""
         self.stored_since += int(stored)
         self.cells_since += int(new_cells)
+        if new_cells:
+            self.last_new_cell_t = max(self.last_new_cell_t, float(t))
+
+    def plateaued(self, coverage: float, t_now: float) -> bool:
+        """The coverage stays between :attr:`plateau_coverage` and :attr:`min_coverage`: no new
+        cell for :attr:`plateau_s` s before ``t_now``, none since the last request either."""
+        quiet = min(t_now - self.last_new_cell_t, t_now - self.last_request_t)
+        return self.plateau_coverage <= coverage < self.min_coverage and quiet >= self.plateau_s
+
+    def may_plateau(self, in_use, measured: bool) -> bool:
+        """The plateau rule may start a fit: the coverage is ``measured`` (about a sphere the
+        samples fit) and the calibration ``in_use`` (stale or not; None) was not fitted on
+        :attr:`min_coverage`. A stale calibration of a well-covered sphere stays until a fit of
+        the same coverage replaces it, or it is recalled when its field returns; one fitted on
+        a plateau is no better than a new plateau fit."""
+        if not measured:
+            return False
+        cov = None if in_use is None else in_use.coverage
+        return in_use is None or cov is not None and cov < self.min_coverage
 
     def want_fit(self, *, calibrated: bool, coverage: float, n_samples: int, n_cells: int,
-                 capacity: int, t_now: float) -> FitRequest | None:
-        """A :class:`FitRequest` when a fit should start now, else None."""
-        if t_now - self.last_request_t < self.min_interval_s:
+                 capacity: int, t_now: float, plateau: bool = False) -> FitRequest | None:
+        """A :class:`FitRequest` when a fit should start now, else None; ``plateau``: the
+        plateau rule may serve (:meth:`may_plateau`)."""
+        if t_now - self.last_request_t < self.min_interval_s or n_samples < self.min_samples:
             return None
-        if coverage < self.min_coverage or n_samples < self.min_samples:
+        if not calibrated and plateau and self.plateaued(coverage, t_now):
+            reason = "coverage_plateau"
+        elif coverage < self.min_coverage:
             return None
-        if not calibrated and self.last_request_t == -np.inf:
+        elif not calibrated and self.last_request_t == -np.inf:
             reason = "coverage_reached"
         elif self.cells_since >= max(1, self.new_cells * n_cells):
             reason = "new_cells"
@@ -103,6 +136,7 @@ class RecalPolicy:
     def restart(self) -> None:
         """Forget the fit history (after the environment changed): the next fit is a first one."""
         self.last_request_t = -np.inf
+        self.last_new_cell_t = -np.inf
         self.reset_counts()
         self.reset_window()
 
