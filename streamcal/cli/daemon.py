@@ -26,8 +26,13 @@ def register(sub) -> None:
                        description="Read the MPU-9250 over I2C, calibrate continuously, keep the "
                                    "calibration in the state directory and serve calibrated "
                                    "samples (systemd Type=notify service).")
-    p.add_argument("--bus", required=True, metavar="N|fake:TRACK.csv",
-                   help="I2C bus number (1 for /dev/i2c-1) or fake:TRACK.csv (simulated sensor)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--bus", metavar="N|fake:TRACK.csv",
+                     help="I2C bus number (1 for /dev/i2c-1) or fake:TRACK.csv (simulated sensor)")
+    src.add_argument("--port", metavar="mavlink:CONNECTION",
+                     help="a flight controller over MAVLink: mavlink:udpin:HOST:PORT, "
+                          "mavlink:tcp:HOST:PORT or mavlink:DEVICE[,BAUD] (docs/robots.md)")
+    add_mavlink_options(p)
     p.add_argument("--address", default="0x68", type=_address,
                    help="MPU-9250 address: 0x68 (AD0 low, default) or 0x69")
     add_service_options(p)
@@ -38,6 +43,23 @@ def register(sub) -> None:
                         "can be read, in track time)")
     add_skip_bad_rows(p)   # of a --bus fake: replay's track
     p.set_defaults(func=run)
+
+
+def add_mavlink_options(p) -> None:
+    """``--compass`` (the MAVLink magnetometer of ``--port mavlink:…``)."""
+    p.add_argument("--compass", type=int, choices=(0, 1, 2), default=0,
+                   help="with --port mavlink:…: the magnetometer read, 0 RAW_IMU (default), "
+                        "1 SCALED_IMU2, 2 SCALED_IMU3")
+
+
+def live_source(args, *, baud: int = 115200):
+    """The source of ``--port mavlink:…`` (a :class:`~streamcal.service.mavlink_blocks.
+    MavlinkBlocks`), or None for another ``--port``."""
+    from ..service.mavlink_blocks import MavlinkBlocks, is_mavlink
+
+    if not is_mavlink(getattr(args, "port", None)):
+        return None
+    return MavlinkBlocks(args.port, compass=args.compass, baud=baud)
 
 
 def add_service_options(p) -> None:
@@ -206,10 +228,17 @@ def show_coverage(calibrator) -> None:
 def run(args) -> int:
     from ..service import I2CBlocks
 
+    from ..errors import InputError
     from ._common import fake_track_reader
 
-    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=args.speed,
-                       read_track=fake_track_reader(args))
+    if args.port is not None:
+        source = live_source(args)
+        if source is None:
+            raise InputError(f"--port {args.port}: the daemon's --port is a flight controller, "
+                             "mavlink:CONNECTION (the Arduino board runs under streamcal serial)")
+    else:
+        source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=args.speed,
+                           read_track=fake_track_reader(args))
     try:
         service = build(args, source, "daemon")
     except BaseException:
