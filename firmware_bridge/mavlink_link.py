@@ -129,10 +129,18 @@ class MavlinkLink:
         try:
             self.conn = mavutil.mavlink_connection(self.connection, baud=self.baud,
                                                    source_system=255, source_component=190,
-                                                   robust_parsing=True, autoreconnect=False)
+                                                   robust_parsing=True, autoreconnect=False,
+                                                   retries=0)
         except Exception as exc:   # socket.gaierror, serial.SerialException, ValueError…
             raise InputError(f"{self.source}: cannot open the MAVLink connection "
                              f"({type(exc).__name__}: {exc})") from None
+        if hasattr(self.conn, "handle_eof"):
+            # pymavlink's TCP link prints and carries on at a closed peer; here it is a failure
+            # that read_block turns into a reconnection
+            def peer_closed():
+                raise ConnectionError("the TCP peer closed the connection")
+
+            self.conn.handle_eof = self.conn.handle_disconnect = peer_closed
         port = getattr(self.conn, "port", None)
         if self.connection.startswith(_LISTENING) and hasattr(port, "setsockopt"):
             import socket

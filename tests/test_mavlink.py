@@ -186,18 +186,37 @@ def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
     assert got.model_error(streamcal.fit(demo)) < MODEL_ERROR_BOUND
 
 
+def _lines(stream, into: list) -> threading.Thread:
+    thread = threading.Thread(target=lambda: into.extend(iter(stream.readline, "")), daemon=True)
+    thread.start()
+    return thread
+
+
 def test_daemon_over_udp_with_garbage_and_a_silent_link(tmp_path, demo):
+    """The daemon and its live page: the whole demo track over UDP with random bytes every 500
+    compass messages and a 5 s silence after 6000."""
+    import urllib.request
+
     port = free_udp_port()
     proc = _popen("daemon", "--port", f"mavlink:udpin:127.0.0.1:{port}", "--state-dir",
-                  tmp_path, "--no-socket", "--max-seconds", WAIT_S)
+                  tmp_path, "--no-socket", "--max-seconds", WAIT_S, "--http", "127.0.0.1:0")
+    stderr: list[str] = []
+    reader = _lines(proc.stderr, stderr)
     _wait_listening(proc, port)
     sender = Sender(demo, port, garbage=40, pause=(6000, 5.0), extra_row=False)
     sender.start()
     sender.join(WAIT_S)
     time.sleep(1.0)
+    url = next(line.split("live page at ")[1].strip() for line in stderr if "live page at" in line)
+    with urllib.request.urlopen(url + "state.json", timeout=30) as response:
+        page = json.loads(response.read())
     proc.send_signal(signal.SIGTERM)
-    out, err = proc.communicate(timeout=WAIT_S)
+    out, _ = proc.communicate(timeout=WAIT_S)
+    reader.join(WAIT_S)
+    err = "".join(stderr)
     assert sender.error is None and proc.returncode == 0, err
+    assert page["device"]["state"] == "running" and page["device"]["samples"] > 0.9 * len(demo.t_mag)
+    assert page["calibration"] is not None
     summary = json.loads(out.strip().splitlines()[-1])
     src = summary["source"]
     assert src["heartbeats"] >= 1 and src["autopilot"] == 3
@@ -209,6 +228,7 @@ def test_daemon_over_udp_with_garbage_and_a_silent_link(tmp_path, demo):
     assert summary["samples"] >= src["mag_samples"] > 0.99 * len(demo.t_mag)
     stored = Calibration.load(tmp_path / "calibration.json")
     err_model = stored.model_error(streamcal.fit(demo))
+    print(f"daemon over MAVLink: model error {err_model:.4f}; source {src}")
     assert err_model < MODEL_ERROR_BOUND, f"daemon over MAVLink vs fit: {err_model:.4f}"
 
 
