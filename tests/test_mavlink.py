@@ -158,17 +158,8 @@ def demo():
 
 
 def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
-    port = free_udp_port()
     out = tmp_path / "rec.csv"
-    seconds = demo.t_mag[-1] - demo.t_mag[0] + 0.5
-    proc = _popen("record", "--port", f"mavlink:udpin:127.0.0.1:{port}", "-o", out,
-                  "--seconds", seconds)
-    _wait_listening(proc, port)
-    sender = Sender(demo, port)
-    sender.start()
-    sender.join(WAIT_S)
-    _, err = proc.communicate(timeout=WAIT_S)
-    assert sender.error is None and proc.returncode == 0, err
+    err = _record(demo, out)
     rec = Track.read(out)
     assert rec.metadata["source"].startswith("MAVLink udpin:127.0.0.1")
     assert len(rec.t_mag) == len(demo.t_mag), err
@@ -184,6 +175,34 @@ def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
     np.testing.assert_allclose(got.K, want.K, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(got.b, want.b, rtol=1e-9, atol=1e-9)
     assert got.model_error(streamcal.fit(demo)) < MODEL_ERROR_BOUND
+
+
+def _record(track: Track, out: Path) -> str:
+    """``streamcal record --port mavlink:udpin:…`` of ``track`` replayed by a :class:`Sender`;
+    returns record's stderr."""
+    port = free_udp_port()
+    seconds = track.t_mag[-1] - track.t_mag[0] + 0.5
+    proc = _popen("record", "--port", f"mavlink:udpin:127.0.0.1:{port}", "-o", out,
+                  "--seconds", seconds)
+    _wait_listening(proc, port)
+    sender = Sender(track, port)
+    sender.start()
+    sender.join(WAIT_S)
+    _, err = proc.communicate(timeout=WAIT_S)
+    assert sender.error is None and proc.returncode == 0, err
+    return err
+
+
+def test_record_real_track_over_udp(real_tracks_dir, tmp_path):
+    track = Track.read(real_tracks_dir / "sunsided_set2_fullsphere.csv.gz")
+    out = tmp_path / "rec.csv"
+    _record(track, out)
+    rec = Track.read(out)
+    assert len(rec.t_mag) == len(track.t_mag) == 8190
+    np.testing.assert_allclose(rec.mag, track.mag, atol=0.05 + 1e-9)
+    got, want = streamcal.fit(rec), streamcal.fit(_quantized(track))
+    np.testing.assert_allclose(got.K, want.K, rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got.b, want.b, rtol=1e-9, atol=1e-9)
 
 
 def _lines(stream, into: list) -> threading.Thread:

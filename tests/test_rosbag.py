@@ -279,3 +279,15 @@ def test_empty_bag_is_one_line_exit_2(tmp_path, kind):
 def test_directory_without_metadata_is_one_line(tmp_path):
     line = _one_line_exit_2(tmp_path)
     assert "a directory, not a recording" in line
+
+
+@pytest.mark.parametrize("kind", ("rosbag1", "mcap"))
+def test_real_track_as_a_bag_fits_the_same(real_tracks_dir, tmp_path, kind):
+    track_path = real_tracks_dir / "sunsided_set2_fullsphere.csv.gz"
+    bag = write_bag(tmp_path / ("real.bag" if kind == "rosbag1" else "real"), kind,
+                    Track.read(track_path))
+    got = json.loads(_cli("fit", bag, "--json").stdout)
+    want = json.loads(_cli("fit", track_path, "--json").stdout)
+    np.testing.assert_allclose(got["K"], want["K"], rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(got["b"], want["b"], rtol=1e-9, atol=1e-9)
+    assert got["n"] == want["n"] == 8190
