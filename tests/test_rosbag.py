@@ -48,11 +48,12 @@ def _messages(ts, kind, track: Track, *, battery: str | None, mag_frame: str, im
            ("/imu/temperature", Temp.__msgtype__): []}
     if battery:
         out[("/battery", Batt.__msgtype__)] = []
+    frames = (mag_frame,) if isinstance(mag_frame, str) else tuple(mag_frame)
     for i in range(len(ns_all)):
         ns = int(ns_all[i])
         if np.isfinite(c["mx"][i]):
             out[("/imu/mag", MF.__msgtype__)].append((ns, MF(
-                header=_header(ts, kind, ns, mag_frame),
+                header=_header(ts, kind, ns, frames[i % len(frames)]),
                 magnetic_field=V3(x=c["mx"][i] * 1e-6, y=c["my"][i] * 1e-6, z=c["mz"][i] * 1e-6),
                 magnetic_field_covariance=zeros9)))
         if "ax" in c and np.isfinite(c["ax"][i]):
@@ -78,10 +79,11 @@ def _messages(ts, kind, track: Track, *, battery: str | None, mag_frame: str, im
 
 
 def write_bag(path: Path, kind: str, track: Track, *, battery: str | None = None,
-              extra_mag_topic: bool = False, mag_frame: str = "imu_link",
+              extra_mag_topic: bool = False, mag_frame: str | tuple = "imu_link",
               imu_frame: str = "imu_link") -> Path:
     """Write ``track`` as a bag with rosbags' writers: ``kind`` ``rosbag1`` (a ``.bag`` file),
-    ``sqlite3`` or ``mcap`` (a ROS 2 bag directory). Returns what to give streamcal."""
+    ``sqlite3`` or ``mcap`` (a ROS 2 bag directory); a tuple ``mag_frame`` is cycled over the
+    MagneticField messages. Returns what to give streamcal."""
     ts = _typestore(kind)
     streams = _messages(ts, kind, track, battery=battery, mag_frame=mag_frame,
                         imu_frame=imu_frame)
@@ -291,3 +293,34 @@ def test_real_track_as_a_bag_fits_the_same(real_tracks_dir, tmp_path, kind):
     np.testing.assert_allclose(got["K"], want["K"], rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(got["b"], want["b"], rtol=1e-9, atol=1e-9)
     assert got["n"] == want["n"] == 8190
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_numpy_decoding_equals_rosbags_per_message(demo_bags, monkeypatch, kind):
+    from streamcal.inputs import rosbag_fields
+
+    fast = read_recording(demo_bags[kind])
+    monkeypatch.setattr(rosbag_fields, "_vectorized", lambda *args, **kw: None)
+    slow = read_recording(demo_bags[kind])
+    assert list(fast.columns) == list(slow.columns) and fast.metadata == slow.metadata
+    for name in fast.columns:
+        np.testing.assert_array_equal(fast.columns[name], slow.columns[name])
+
+
+@pytest.mark.parametrize("kind", ("rosbag1", "mcap"))
+def test_messages_of_different_lengths_are_read_one_by_one(simulated, tmp_path, monkeypatch,
+                                                           kind):
+    """Frame ids of different lengths: no fixed layout, rosbags deserializes each message."""
+    from streamcal.inputs import rosbag_fields
+
+    sim, track_path, _ = simulated
+    bag = write_bag(tmp_path / ("frames.bag" if kind == "rosbag1" else "frames"), kind,
+                    sim.track, mag_frame=("mag", "magnetometer_link"))
+    calls = []
+    one_by_one = rosbag_fields._one_by_one
+    monkeypatch.setattr(rosbag_fields, "_one_by_one",
+                        lambda raws, msgtype, *a: calls.append(msgtype) or one_by_one(raws, msgtype, *a))
+    track = read_recording(bag)
+    assert calls == ["sensor_msgs/msg/MagneticField"]
+    np.testing.assert_allclose(track.mag, Track.read(track_path).mag, rtol=1e-12)
+    assert track.metadata["mag_frame_id"] == "mag,magnetometer_link"

@@ -26,6 +26,7 @@ from typing import Iterable
 import numpy as np
 
 from ..errors import InputError
+from .rosbag_fields import decode
 from .streams import Stream, merge
 
 ROSBAG1_MAGIC = b"#ROSBAG V2.0\n"
@@ -135,37 +136,29 @@ def _choose(connections, path: Path, wanted: Iterable[str]) -> dict[str, str]:
     return chosen
 
 
-def _stamps(msgs, received: list[int]) -> tuple[np.ndarray, str]:
+def _stamps(fields: dict, received: list[int]) -> tuple[np.ndarray, str]:
     """(n,) int64 ns of the header stamps, or of the receive times when all stamps are zero."""
-    stamps = np.array([m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec
-                       for m in msgs], dtype=np.int64)
+    stamps = fields["stamp_ns"]
     if len(stamps) and not stamps.any():
         return np.asarray(received, dtype=np.int64), "bag receive time (header stamps all zero)"
     return stamps, "header.stamp"
 
 
-def _vectors(msgs, field: str) -> np.ndarray:
-    return np.array([(getattr(m, field).x, getattr(m, field).y, getattr(m, field).z)
-                     for m in msgs], dtype=np.float64).reshape(-1, 3)
-
-
-def _columns(kind: str, msgs, meta: dict, topic: str) -> dict[str, np.ndarray]:
+def _columns(kind: str, fields: dict, meta: dict, topic: str) -> dict[str, np.ndarray]:
     if kind == "mag":
-        return dict(zip(("mx", "my", "mz"), (_vectors(msgs, "magnetic_field") * UT_PER_TESLA).T))
+        return dict(zip(("mx", "my", "mz"), (fields["magnetic_field"] * UT_PER_TESLA).T))
     if kind == "imu":
         cols = {}
-        for field, names, cov in (("linear_acceleration", ("ax", "ay", "az"),
-                                   "linear_acceleration_covariance"),
-                                  ("angular_velocity", ("gx", "gy", "gz"),
-                                   "angular_velocity_covariance")):
-            if all(getattr(m, cov)[0] == -1 for m in msgs):
+        for field, names in (("linear_acceleration", ("ax", "ay", "az")),
+                             ("angular_velocity", ("gx", "gy", "gz"))):
+            if np.all(fields[f"{field}_covariance0"] == -1):
                 meta[f"{topic}.{field}"] = "declared absent (covariance[0] = -1); left out"
                 continue
-            cols.update(zip(names, _vectors(msgs, field).T))
+            cols.update(zip(names, fields[field].T))
         return cols
     if kind == "temp":
-        return {"temp": np.array([m.temperature for m in msgs], dtype=np.float64)}
-    return {"battery_current_a": np.array([m.current for m in msgs], dtype=np.float64)}
+        return {"temp": fields["temperature"][:, 0]}
+    return {"battery_current_a": fields["current"][:, 0]}
 
 
 def read_rosbag(path, fmt: str, *, topics: Iterable[str] | None = None):
@@ -187,22 +180,23 @@ def read_rosbag(path, fmt: str, *, topics: Iterable[str] | None = None):
         streams, t_ns, frames = [], [], {}
         for kind, topic in chosen.items():
             conns = [c for c in reader.connections if c.topic == topic]
-            msgs, received = [], []
-            for conn, stamp, raw in reader.messages(connections=conns):
-                msgs.append(deserialize(raw, conn.msgtype))
+            raws, received = [], []
+            for _, stamp, raw in reader.messages(connections=conns):
+                raws.append(bytes(raw))
                 received.append(stamp)
-            if not msgs:
+            if not raws:
                 if kind == "mag":
                     raise InputError(f"{path}: topic {topic} ({_ros_name(MESSAGE_TYPES[kind])}) "
                                      "has no messages")
                 continue
-            ns, stamp_source = _stamps(msgs, received)
-            cols = _columns(kind, msgs, meta, topic)
+            fields = decode(raws, MESSAGE_TYPES[kind], deserialize, ros2=fmt == "rosbag2")
+            ns, stamp_source = _stamps(fields, received)
+            cols = _columns(kind, fields, meta, topic)
             keep = np.ones(len(ns), dtype=bool)
             for values in cols.values():
                 keep &= np.isfinite(values)
-            frames[kind] = sorted({m.header.frame_id for m in msgs})
-            meta[f"{kind}_topic"] = (f"{topic} ({_ros_name(MESSAGE_TYPES[kind])}, {len(msgs)} "
+            frames[kind] = fields["frame_ids"]
+            meta[f"{kind}_topic"] = (f"{topic} ({_ros_name(MESSAGE_TYPES[kind])}, {len(raws)} "
                                      f"messages, time from {stamp_source})")
             meta[f"{kind}_frame_id"] = ",".join(f or "''" for f in frames[kind])
             if not keep.all():
