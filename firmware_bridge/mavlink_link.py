@@ -19,7 +19,8 @@ Messages read (units as in MAVLink's common.xml):
 sensor's raw units except on ArduPilot, which fills it exactly like ``SCALED_IMU`` (common.xml):
 its accelerometer and gyro are used only once a heartbeat says the autopilot is ArduPilot; its
 magnetometer is always read as mgauss. Only the selected compass's message gives rows with
-``mx,my,mz`` (and that message's IMU fields); the others are ignored.
+``mx,my,mz`` (and that message's IMU fields), and only from the first vehicle (system id)
+heard; the others are ignored.
 
 Time is the vehicle's (``time_usec``/``time_boot_ms`` since boot, in s); ``BATTERY_STATUS``,
 which has no stamp, takes the latest vehicle time seen. Lost messages are counted from the
@@ -48,6 +49,7 @@ MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 AUX_CHANNELS = ("battery_current_a", "attitude_roll", "attitude_pitch", "attitude_yaw")
 _EPOCH_USEC = 10**15      # common.xml: time_usec above this is UNIX time, below it since boot
 _REBOOT_S = 1.0
+_MAV_AUTOPILOT_INVALID = 8
 _LISTENING = ("udpin:", "udp:", "udpbcast:")
 _WANTED = set(COMPASS_MESSAGES) | {"SCALED_PRESSURE", "BATTERY_STATUS", "ATTITUDE",
                                    "HEARTBEAT", "BAD_DATA"}
@@ -61,7 +63,9 @@ class MavlinkSilent(StreamcalError):
 class MavlinkStats:
     """What arrived and what was lost. ``lost``: messages missing from the senders' sequence
     numbers; ``bad_data``/``garbage_bytes``: what pymavlink could not parse; ``link_drops``:
-    times the link fell silent or failed; ``reconnects``: connections opened after the first."""
+    times the link fell silent or failed; ``reconnects``: connections opened after the first;
+    ``other_vehicles``: compass messages of another system id than the first one heard
+    (ignored)."""
 
     messages: int = 0
     heartbeats: int = 0
@@ -69,6 +73,7 @@ class MavlinkStats:
     bad_data: int = 0
     garbage_bytes: int = 0
     mag_samples: int = 0
+    other_vehicles: int = 0
     link_drops: int = 0
     reconnects: int = 0
 
@@ -112,6 +117,7 @@ class MavlinkLink:
         self.source = f"mavlink:{self.connection}"
         self.stats = MavlinkStats()
         self.autopilot: int | None = None
+        self.vehicle: int | None = None      # MAVLink system id whose compass is read
         self.seen: dict[str, int] = {}
         self.conn = None
         self._loss_base = 0           # mav_loss of the connections closed so far
@@ -241,11 +247,18 @@ class MavlinkLink:
         self.stats.messages += 1
         if kind == "HEARTBEAT":
             self.stats.heartbeats += 1
-            if msg.get_srcComponent() == 1 or self.autopilot is None:   # the autopilot's own
+            # a ground station's heartbeat (MAV_AUTOPILOT_INVALID) says nothing of the vehicle
+            if msg.autopilot != _MAV_AUTOPILOT_INVALID and (
+                    self.vehicle is None or msg.get_srcSystem() == self.vehicle):
                 self.autopilot = int(msg.autopilot)
             return None
         if kind in COMPASS_MESSAGES:
             if kind != self.compass:
+                return None
+            if self.vehicle is None:
+                self.vehicle = msg.get_srcSystem()      # the first vehicle heard is the one read
+            elif msg.get_srcSystem() != self.vehicle:
+                self.stats.other_vehicles += 1
                 return None
             t = msg.time_usec * 1e-6 if kind == "RAW_IMU" else msg.time_boot_ms * 1e-3
             if kind == "RAW_IMU" and msg.time_usec > _EPOCH_USEC:

@@ -191,3 +191,49 @@ def test_connection_strings():
 
     assert parse_connection("mavlink:/dev/ttyACM0,57600") == ("/dev/ttyACM0", 57600)
     assert parse_connection("mavlink:udpin:0.0.0.0:14550") == ("udpin:0.0.0.0:14550", None)
+
+
+def test_serial_device_with_baud_in_the_connection():
+    """A pseudo-terminal stands for the flight controller's USB port: ``DEVICE,BAUD``."""
+    import os
+
+    mavlink, mav = _encoder()
+    master, slave = os.openpty()
+    try:
+        link = MavlinkLink(f"mavlink:{os.ttyname(slave)},57600", compass=0)
+        assert link.baud == 57600
+        data = _pack(mav, mav.heartbeat_encode(mavlink.MAV_TYPE_QUADROTOR,
+                                               mavlink.MAV_AUTOPILOT_ARDUPILOTMEGA, 0, 0, 0))
+        data += b"".join(_pack(mav, mav.raw_imu_encode(1_000_000 + 10_000 * k, 0, 0, -1000, 0, 0,
+                                                       0, 300, -200, 100)) for k in range(25))
+        os.write(master, data)
+        t, mag, accel, _, _ = _read_until(link, 25)
+        link.close()
+    finally:
+        os.close(master)
+        os.close(slave)
+    np.testing.assert_allclose(mag, np.tile([30.0, -20.0, 10.0], (25, 1)))
+    np.testing.assert_allclose(accel[:, 2], -9.80665)
+    assert link.stats.lost == 0 and link.stats.messages == 26
+
+
+def test_only_the_first_vehicle_is_read():
+    mavlink, first = _encoder(system=1)
+    _, second = _encoder(system=2)
+    port = _udp_port()
+    link = MavlinkLink(f"mavlink:udpin:127.0.0.1:{port}", compass=1)
+    try:
+        packets = []
+        for k in range(10):
+            packets.append(_pack(first, first.scaled_imu2_encode(10 * k, 0, 0, 0, 0, 0, 0,
+                                                                 100, 0, 0, 0)))
+            packets.append(_pack(second, second.scaled_imu2_encode(10 * k, 0, 0, 0, 0, 0, 0,
+                                                                   -900, 0, 0, 0)))
+        _send_udp(port, packets)
+        _, mag, _, _, _ = _read_until(link, 10)
+        time.sleep(0.2)
+        link.read_block(50, timeout=0.2)
+    finally:
+        link.close()
+    np.testing.assert_allclose(mag[:, 0], 10.0)
+    assert link.vehicle == 1 and link.stats.other_vehicles == 10
