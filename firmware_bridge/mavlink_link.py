@@ -216,7 +216,11 @@ class MavlinkLink:
             if self._down:
                 self._down = False
         elif time.monotonic() - self._last_compass > self.silence_s:
-            raise self._drop(self._silence_text())
+            why = self._silence_text()
+            if not self.connection.startswith(_LISTENING):
+                self.close()                         # TCP or serial: reconnect on the next read
+                why += "; reconnecting"
+            raise self._drop(why)
         return self._block(rows) if rows else None
 
     def _silence_text(self) -> str:
@@ -228,11 +232,7 @@ class MavlinkLink:
                 hint += " (another compass: see --compass)"
         else:
             hint = "no MAVLink message so far: check the connection and the autopilot's stream rates"
-        why = (f"no {self.compass} for {self.silence_s:g} s on {self.source}; {hint}")
-        if not self.connection.startswith(_LISTENING):
-            self.close()                         # TCP or serial: reconnect on the next read
-            why += "; reconnecting"
-        return why
+        return f"no {self.compass} for {self.silence_s:g} s on {self.source}; {hint}"
 
     def _row(self, msg):
         """``(kind, t, values)`` for a message that gives a row, else None (counted)."""

@@ -159,7 +159,12 @@ def demo():
 
 def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
     out = tmp_path / "rec.csv"
-    err = _record(demo, out)
+    err, sender = _record(demo, out)
+    import re
+
+    counts = re.search(r"MAVLink: (\d+) messages, (\d+) heartbeats, 0 lost, 0 unparsable", err)
+    # record stops at the row past --seconds: the sender's 3 closing heartbeats may come later
+    assert counts and sender.sent - 3 <= int(counts.group(1)) <= sender.sent, err
     rec = Track.read(out)
     assert rec.metadata["source"].startswith("MAVLink udpin:127.0.0.1")
     assert len(rec.t_mag) == len(demo.t_mag), err
@@ -177,9 +182,9 @@ def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
     assert got.model_error(streamcal.fit(demo)) < MODEL_ERROR_BOUND
 
 
-def _record(track: Track, out: Path) -> str:
+def _record(track: Track, out: Path) -> tuple[str, Sender]:
     """``streamcal record --port mavlink:udpin:…`` of ``track`` replayed by a :class:`Sender`;
-    returns record's stderr."""
+    returns record's stderr and the sender."""
     port = free_udp_port()
     seconds = track.t_mag[-1] - track.t_mag[0] + 0.5
     proc = _popen("record", "--port", f"mavlink:udpin:127.0.0.1:{port}", "-o", out,
@@ -190,7 +195,7 @@ def _record(track: Track, out: Path) -> str:
     sender.join(WAIT_S)
     _, err = proc.communicate(timeout=WAIT_S)
     assert sender.error is None and proc.returncode == 0, err
-    return err
+    return err, sender
 
 
 def test_record_real_track_over_udp(real_tracks_dir, tmp_path):

@@ -192,6 +192,11 @@ def run(args) -> int:
     print(f"streamcal record: wrote {writer.rows} rows ({writer.mag_rows} with the magnetometer) "
           f"to {out} ({why})" + (f"; board clock restarted {writer.time_resets} times"
                                  if writer.time_resets else ""), file=sys.stderr)
+    if getattr(source, "sensor", "") == "mavlink magnetometer":
+        c = source.counters()
+        print(f"streamcal record: MAVLink: {c['messages']} messages, {c['heartbeats']} heartbeats, "
+              f"{c['lost']} lost, {c['bad_data']} unparsable, {c['link_drops']} link drops",
+              file=sys.stderr)
     return 0
 
 
