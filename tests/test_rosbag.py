@@ -324,3 +324,59 @@ def test_messages_of_different_lengths_are_read_one_by_one(simulated, tmp_path, 
     assert calls == ["sensor_msgs/msg/MagneticField"]
     np.testing.assert_allclose(track.mag, Track.read(track_path).mag, rtol=1e-12)
     assert track.metadata["mag_frame_id"] == "mag,magnetometer_link"
+
+
+MELODIC_BATTERY_STATE = """\
+std_msgs/Header header
+float32 voltage
+float32 current
+float32 charge
+float32 capacity
+float32 design_capacity
+float32 percentage
+uint8 power_supply_status
+uint8 power_supply_health
+uint8 power_supply_technology
+bool present
+float32[] cell_voltage
+string location
+string serial_number
+"""
+
+
+def test_ros1_bag_is_read_with_its_own_message_definitions(tmp_path):
+    """A ROS 1 melodic BatteryState has no temperature field: read with noetic's layout its
+    current would be the charge. The reader uses the definitions the bag carries."""
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    noetic = get_typestore(Stores.ROS1_NOETIC)
+    melodic = get_typestore(Stores.EMPTY)
+    melodic.register({k: v for k, v in noetic.fielddefs.items()
+                      if k != "sensor_msgs/msg/BatteryState"})
+    melodic.register(get_types_from_msg(MELODIC_BATTERY_STATE, "sensor_msgs/msg/BatteryState"))
+    MF, V3 = melodic.types["sensor_msgs/msg/MagneticField"], melodic.types["geometry_msgs/msg/Vector3"]
+    Batt = melodic.types["sensor_msgs/msg/BatteryState"]
+    bag = tmp_path / "melodic.bag"
+    with Writer(bag) as writer:
+        mag = writer.add_connection("/imu/mag", MF.__msgtype__, typestore=melodic)
+        batt = writer.add_connection("/battery", Batt.__msgtype__, typestore=melodic)
+        for k in range(5):
+            ns = BASE_NS + k * 10**8
+            writer.write(mag, ns, melodic.serialize_ros1(MF(
+                header=_header(melodic, "rosbag1", ns, "imu"),
+                magnetic_field=V3(x=2e-5, y=0.0, z=4e-5),
+                magnetic_field_covariance=np.zeros(9)), MF.__msgtype__))
+            writer.write(batt, ns, melodic.serialize_ros1(Batt(
+                header=_header(melodic, "rosbag1", ns, "battery"), voltage=12.5,
+                current=1.5 + k, charge=99.0, capacity=np.nan, design_capacity=np.nan,
+                percentage=0.5, power_supply_status=0, power_supply_health=0,
+                power_supply_technology=0, present=True, cell_voltage=np.zeros(0),
+                location="", serial_number=""), Batt.__msgtype__))
+    link = tmp_path / "melodic_recording"          # a ROS 1 bag without the .bag suffix
+    link.write_bytes(bag.read_bytes())
+    for path in (bag, link):
+        track = read_recording(path)
+        current = track.columns["battery_current_a"]
+        np.testing.assert_allclose(current[np.isfinite(current)], 1.5 + np.arange(5))
+        np.testing.assert_allclose(track.mag[0], [20.0, 0.0, 40.0])

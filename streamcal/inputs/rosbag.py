@@ -20,6 +20,8 @@ frame ids and message counts go into the track's metadata.
 """
 from __future__ import annotations
 
+import tempfile
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Iterable
 
@@ -57,18 +59,21 @@ def _ros_name(msgtype: str) -> str:
     return msgtype.replace("/msg/", "/")
 
 
-def _open(path: Path, fmt: str):
-    """``(reader, deserialize(raw, msgtype), description)`` of an opened bag."""
+def _open(path: Path, fmt: str, stack: ExitStack):
+    """``(reader, description)``: an open :class:`rosbags.highlevel.AnyReader`, which
+    deserializes with the message definitions the bag carries (a ROS 1 melodic
+    ``BatteryState`` is not noetic's), else with the stock ROS 2 types."""
+    from rosbags.highlevel import AnyReader
     from rosbags.typesys import Stores, get_typestore
 
     if fmt == "rosbag1":
-        from rosbags.rosbag1 import Reader
-
-        store = get_typestore(Stores.ROS1_NOETIC)
-        reader, deserialize, what = Reader(path), store.deserialize_ros1, "ROS 1 bag"
+        target, what = path, "ROS 1 bag"
+        if path.suffix != ".bag":
+            # AnyReader tells ROS 1 from ROS 2 by the .bag suffix; the content said ROS 1
+            link = Path(stack.enter_context(tempfile.TemporaryDirectory())) / f"{path.name}.bag"
+            link.symlink_to(path.resolve())
+            target = link
     else:
-        from rosbags.rosbag2 import Reader
-
         target = path
         if path.is_file() and is_rosbag2_dir(path.parent):
             target = path.parent                  # the whole bag: every split file
@@ -77,11 +82,11 @@ def _open(path: Path, fmt: str):
             raise InputError(f"{path}: a ROS 2 {storage} storage file without its bag directory "
                              f"(metadata.yaml); give the bag directory, or name the file "
                              f"{'.db3' if storage == 'sqlite3' else '.mcap'}")
-        store = get_typestore(Stores.ROS2_HUMBLE)
-        reader, deserialize = Reader(target), store.deserialize_cdr
         what = f"ROS 2 bag ({_storage(target)})"
+    reader = AnyReader([target], default_typestore=get_typestore(Stores.ROS2_HUMBLE))
     reader.open()
-    return reader, deserialize, what
+    stack.callback(reader.close)
+    return reader, what
 
 
 def read_magic(path: Path) -> bytes:
@@ -169,9 +174,10 @@ def read_rosbag(path, fmt: str, *, topics: Iterable[str] | None = None):
     ``MagneticField`` topic, or a type with several topics none of which ``topics`` names.
     """
     path = Path(path)
-    reader = None
+    stack = ExitStack()
     try:
-        reader, deserialize, what = _open(path, fmt)
+        reader, what = _open(path, fmt, stack)
+        deserialize = reader.deserialize
         chosen = _choose(reader.connections, path, topics or ())
         meta = {"sensor": "ros magnetometer", "source": f"{what} {path.name}",
                 "input_format": fmt, "mag_unit": "uT",
@@ -210,11 +216,10 @@ def read_rosbag(path, fmt: str, *, topics: Iterable[str] | None = None):
         raise InputError(f"{path}: cannot read the ROS bag ({type(exc).__name__}: {exc}); the "
                          "bag is truncated or damaged") from None
     finally:
-        if reader is not None:
-            try:
-                reader.close()
-            except Exception:
-                pass
+        try:
+            stack.close()
+        except Exception:   # closing a damaged bag must not hide why it failed
+            pass
     t0 = min(t_ns)
     mag_frames, imu_frames = frames.get("mag", []), frames.get("imu")
     meta["mag_axes"] = (f"frame {','.join(mag_frames) or chr(39) * 2} of the MagneticField "
