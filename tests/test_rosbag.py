@@ -126,11 +126,23 @@ def demo():
     return Track.read(DEMO)
 
 
+class _Bags(dict):
+    """The demo track as a bag of each kind, written when first asked for (a test worker
+    writes only the kinds its tests use)."""
+
+    def __init__(self, root: Path, track: Track):
+        super().__init__()
+        self.root, self.track = root, track
+
+    def __missing__(self, kind: str) -> Path:
+        self[kind] = write_bag(self.root / _bag_name(kind), kind, self.track,
+                               battery="motor_current")
+        return self[kind]
+
+
 @pytest.fixture(scope="module")
 def demo_bags(tmp_path_factory, demo):
-    root = tmp_path_factory.mktemp("bags")
-    return {kind: write_bag(root / _bag_name(kind), kind, demo, battery="motor_current")
-            for kind in KINDS}
+    return _Bags(tmp_path_factory.mktemp("bags"), demo)
 
 
 @pytest.fixture(scope="module")
@@ -187,6 +199,10 @@ def test_commands_read_bags(demo_bags, tmp_path):
     assert converted.metadata["mag_topic"].startswith("/imu/mag")
     assert converted.metadata["input_format"] == "rosbag2"
     _cli("diagnose", demo_bags["rosbag1"], "--json")
+    _cli("fit", bag, "-o", tmp_path / "cal.json")
+    _cli("apply", tmp_path / "cal.json", bag, "-o", tmp_path / "applied.csv")
+    lines = (tmp_path / "applied.csv").read_text().splitlines()
+    assert len([ln for ln in lines if not ln.startswith("#")]) == 17999 + 1
     _cli("report", bag, "-o", tmp_path / "report.html")
     assert (tmp_path / "report.html").stat().st_size > 10_000
     replay = _cli("replay", demo_bags["sqlite3"], "--json")
