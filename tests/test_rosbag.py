@@ -396,3 +396,21 @@ def test_ros1_bag_is_read_with_its_own_message_definitions(tmp_path):
         current = track.columns["battery_current_a"]
         np.testing.assert_allclose(current[np.isfinite(current)], 1.5 + np.arange(5))
         np.testing.assert_allclose(track.mag[0], [20.0, 0.0, 40.0])
+
+
+def test_magnetometer_without_finite_values_is_one_line(tmp_path):
+    from rosbags.rosbag1 import Writer
+
+    ts = _typestore("rosbag1")
+    MF, V3 = ts.types["sensor_msgs/msg/MagneticField"], ts.types["geometry_msgs/msg/Vector3"]
+    bag = tmp_path / "nan.bag"
+    with Writer(bag) as writer:
+        conn = writer.add_connection("/imu/mag", MF.__msgtype__, typestore=ts)
+        for k in range(3):
+            ns = BASE_NS + k * 10**7
+            writer.write(conn, ns, ts.serialize_ros1(MF(
+                header=_header(ts, "rosbag1", ns, "imu"),
+                magnetic_field=V3(x=np.nan, y=np.nan, z=np.nan),
+                magnetic_field_covariance=np.zeros(9)), MF.__msgtype__))
+    line = _one_line_exit_2(bag)
+    assert "/imu/mag has no finite magnetic field values" in line

@@ -220,10 +220,11 @@ def read_rosbag(path, fmt: str, *, topics: Iterable[str] | None = None):
             stack.close()
         except Exception:   # closing a damaged bag must not hide why it failed
             pass
+    if not streams or streams[0][0] != "mag":
+        raise InputError(f"{path}: topic {chosen['mag']} has no finite magnetic field values")
     t0 = min(t_ns)
     mag_frames, imu_frames = frames.get("mag", []), frames.get("imu")
-    meta["mag_axes"] = (f"frame {','.join(mag_frames) or chr(39) * 2} of the MagneticField "
-                        "messages")
+    meta["mag_axes"] = f"frame {meta['mag_frame_id']} of the MagneticField messages"
     if imu_frames is not None and imu_frames != mag_frames:
         meta["mag_axes"] += (f"; the Imu frame ({','.join(imu_frames)}) differs: streamcal takes "
                              "them as the same axes (no tf is applied)")
