@@ -285,6 +285,8 @@ def test_wrong_compass_says_what_arrives(tmp_path, demo):
 def test_bad_connection_and_bad_port_are_one_line_exit_2(tmp_path):
     for args, words in ((("daemon", "--port", "/dev/ttyACM0"), "mavlink:CONNECTION"),
                         (("daemon", "--port", "mavlink:"), "needs a connection"),
+                        (("daemon", "--port", "mavlink:udpin:127.0.0.1:0", "--speed", "2"),
+                         "apply to --bus"),
                         (("record", "--port", "mavlink:/nonexistent/tty", "-o",
                           tmp_path / "x.csv"), "cannot open the MAVLink connection")):
         proc = subprocess.run([sys.executable, "-m", "streamcal", *map(str, args),

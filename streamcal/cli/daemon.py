@@ -232,6 +232,9 @@ def run(args) -> int:
     from ._common import fake_track_reader
 
     if args.port is not None:
+        if args.speed is not None or args.rate is not None:
+            raise InputError("--speed and --rate apply to --bus (a flight controller sets its "
+                             "own stream rates)")
         source = live_source(args)
         if source is None:
             raise InputError(f"--port {args.port}: the daemon's --port is a flight controller, "
