@@ -159,17 +159,7 @@ def demo():
 
 def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
     out = tmp_path / "rec.csv"
-    err, sender = _record(demo, out)
-    import re
-
-    counts = re.search(r"MAVLink: (\d+) messages, (\d+) heartbeats, 0 lost, 0 unparsable", err)
-    # record stops at the row past --seconds: the sender's 3 closing heartbeats may come later
-    assert counts and sender.sent - 3 <= int(counts.group(1)) <= sender.sent, err
-    rec = Track.read(out)
-    assert rec.metadata["source"].startswith("MAVLink udpin:127.0.0.1")
-    assert len(rec.t_mag) == len(demo.t_mag), err
-    np.testing.assert_allclose(rec.mag, demo.mag, atol=0.05 + 1e-9)       # mgauss = 0.1 µT
-    np.testing.assert_allclose(rec.t_mag - rec.t_mag[0], demo.t_mag - demo.t_mag[0], atol=1.5e-6)
+    rec, err = _record_and_check(demo, out)
     # RAW_IMU from ArduPilot: mG and mrad/s (the heartbeat came first)
     assert np.nanmax(np.abs(rec.columns["az"])) > 5.0 and np.isfinite(rec.columns["gx"]).any()
     t = rec.columns["temp"]
@@ -180,6 +170,34 @@ def test_record_over_udp_gives_the_track_within_mgauss(tmp_path, demo):
     np.testing.assert_allclose(got.K, want.K, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(got.b, want.b, rtol=1e-9, atol=1e-9)
     assert got.model_error(streamcal.fit(demo)) < MODEL_ERROR_BOUND
+
+
+def _record_and_check(track: Track, out: Path) -> tuple[Track, str]:
+    """Record ``track`` over UDP; check the counts and that every recorded magnetometer row is
+    its source row within the mgauss quantization. Skips the caller's exact checks (after these)
+    when UDP lost datagrams on a loaded machine."""
+    import re
+
+    err, sender = _record(track, out)
+    counts = re.search(r"MAVLink: (\d+) messages, (\d+) heartbeats, (\d+) lost, 0 unparsable", err)
+    assert counts, err
+    received, lost = int(counts.group(1)), int(counts.group(3))
+    # record stops at the row past --seconds: the sender's 3 closing heartbeats may come later
+    assert sender.sent - 3 <= received + lost <= sender.sent, err
+    rec = Track.read(out)
+    assert rec.metadata["source"].startswith("MAVLink udpin:127.0.0.1")
+    t_src = (track.t_mag - track.t_mag[0]) * 1e6        # µs; RAW_IMU carries whole µs
+    t_rec = (rec.t_mag - rec.t_mag[0]) * 1e6
+    at = np.minimum(np.searchsorted(t_src, t_rec - 1.5), len(t_src) - 1)
+    np.testing.assert_allclose(t_src[at], t_rec, atol=1.5)
+    np.testing.assert_allclose(rec.mag, track.mag[at], atol=0.05 + 1e-9)   # mgauss = 0.1 µT
+    if lost:
+        # counted, and only those rows are missing; the calibration is still the track's
+        assert len(rec.t_mag) >= len(track.t_mag) - lost
+        assert streamcal.fit(rec).model_error(streamcal.fit(track)) < MODEL_ERROR_BOUND
+        pytest.skip(f"{lost} messages lost on loopback UDP: the exact comparison needs all")
+    assert len(rec.t_mag) == len(track.t_mag), err
+    return rec, err
 
 
 def _record(track: Track, out: Path) -> tuple[str, Sender]:
@@ -200,11 +218,8 @@ def _record(track: Track, out: Path) -> tuple[str, Sender]:
 
 def test_record_real_track_over_udp(real_tracks_dir, tmp_path):
     track = Track.read(real_tracks_dir / "sunsided_set2_fullsphere.csv.gz")
-    out = tmp_path / "rec.csv"
-    _record(track, out)
-    rec = Track.read(out)
-    assert len(rec.t_mag) == len(track.t_mag) == 8190
-    np.testing.assert_allclose(rec.mag, track.mag, atol=0.05 + 1e-9)
+    rec, _ = _record_and_check(track, tmp_path / "rec.csv")
+    assert len(rec.t_mag) == 8190
     got, want = streamcal.fit(rec), streamcal.fit(_quantized(track))
     np.testing.assert_allclose(got.K, want.K, rtol=1e-9, atol=1e-9)
     np.testing.assert_allclose(got.b, want.b, rtol=1e-9, atol=1e-9)
@@ -244,8 +259,10 @@ def test_daemon_over_udp_with_garbage_and_a_silent_link(tmp_path, demo):
     summary = json.loads(out.strip().splitlines()[-1])
     src = summary["source"]
     assert src["heartbeats"] >= 1 and src["autopilot"] == 3
-    # every message is accounted for: received, or missing from the sequence numbers
-    assert src["messages"] + src["lost"] == sender.sent, (src, sender.sent, err[-3000:])
+    # every message is accounted for: received, or missing from the sequence numbers (which
+    # count a gap modulo 256)
+    missing = sender.sent - src["messages"] - src["lost"]
+    assert missing >= 0 and missing % 256 == 0, (src, sender.sent, err[-3000:])
     assert src["bad_data"] > 0 and src["garbage_bytes"] > 0
     assert src["link_drops"] >= 1 and summary["outages"] >= 1
     assert "device not answering: no RAW_IMU for 3 s" in err and "device answers again" in err
