@@ -52,7 +52,7 @@ _REBOOT_S = 1.0
 _MAV_AUTOPILOT_INVALID = 8
 _LISTENING = ("udpin:", "udp:", "udpbcast:")
 _WANTED = set(COMPASS_MESSAGES) | {"SCALED_PRESSURE", "BATTERY_STATUS", "ATTITUDE",
-                                   "HEARTBEAT", "BAD_DATA"}
+                                   "HEARTBEAT"}
 
 
 class MavlinkSilent(StreamcalError):
@@ -62,7 +62,8 @@ class MavlinkSilent(StreamcalError):
 @dataclass
 class MavlinkStats:
     """What arrived and what was lost. ``lost``: messages missing from the senders' sequence
-    numbers; ``bad_data``/``garbage_bytes``: what pymavlink could not parse; ``link_drops``:
+    numbers; ``bad_data``/``garbage_bytes``: what pymavlink could not parse, or parsed as a
+    message id it does not know; ``link_drops``:
     times the link fell silent or failed; ``reconnects``: connections opened after the first;
     ``other_vehicles``: compass messages of another system id than the first one heard
     (ignored)."""
@@ -224,8 +225,8 @@ class MavlinkLink:
         return self._block(rows) if rows else None
 
     def _silence_text(self) -> str:
-        others = ", ".join(f"{name} {count}" for name, count in sorted(self.seen.items())
-                           if name != "BAD_DATA")
+        busiest = sorted(self.seen.items(), key=lambda item: (-item[1], item[0]))[:8]
+        others = ", ".join(f"{name} {count}" for name, count in busiest)
         if others:
             hint = f"messages so far: {others}"
             if any(name in self.seen for name in COMPASS_MESSAGES if name != self.compass):
@@ -237,14 +238,16 @@ class MavlinkLink:
     def _row(self, msg):
         """``(kind, t, values)`` for a message that gives a row, else None (counted)."""
         kind = msg.get_type()
-        if kind not in _WANTED:
-            return None
-        self.seen[kind] = self.seen.get(kind, 0) + 1
-        if kind == "BAD_DATA":
+        if kind == "BAD_DATA" or msg.get_msgId() < 0:
+            # unparsable bytes, or an id this dialect does not know (its CRC cannot be checked:
+            # often garbage that looked like a frame); the sequence numbers skip them too
             self.stats.bad_data += 1
             self.stats.garbage_bytes += len(getattr(msg, "data", b"") or b"")
             return None
-        self.stats.messages += 1
+        self.stats.messages += 1          # every message, as the sequence numbers count them
+        self.seen[kind] = self.seen.get(kind, 0) + 1
+        if kind not in _WANTED:
+            return None
         if kind == "HEARTBEAT":
             self.stats.heartbeats += 1
             # a ground station's heartbeat (MAV_AUTOPILOT_INVALID) says nothing of the vehicle
