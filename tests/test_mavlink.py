@@ -247,15 +247,21 @@ def test_daemon_over_udp_with_garbage_and_a_silent_link(tmp_path, demo):
     sender.join(WAIT_S)
     time.sleep(1.0)
     url = next(line.split("live page at ")[1].strip() for line in stderr if "live page at" in line)
-    with urllib.request.urlopen(url + "state.json", timeout=30) as response:
-        page = json.loads(response.read())
+    deadline = time.monotonic() + WAIT_S
+    while time.monotonic() < deadline:     # the page catches up with the daemon's backlog
+        with urllib.request.urlopen(url + "state.json", timeout=30) as response:
+            page = json.loads(response.read())
+        if page["device"]["samples"] > 0.9 * len(demo.t_mag) and page["calibration"]:
+            break
+        time.sleep(0.5)
     proc.send_signal(signal.SIGTERM)
     out, _ = proc.communicate(timeout=WAIT_S)
     reader.join(WAIT_S)
     err = "".join(stderr)
     assert sender.error is None and proc.returncode == 0, err
-    assert page["device"]["state"] == "running" and page["device"]["samples"] > 0.9 * len(demo.t_mag)
-    assert page["calibration"] is not None
+    # the page served the MAVLink stream (the link may already be silent: the replay is over)
+    assert page["device"]["state"] in ("running", "absent"), page["device"]
+    assert page["device"]["samples"] > 0.9 * len(demo.t_mag) and page["calibration"] is not None
     summary = json.loads(out.strip().splitlines()[-1])
     src = summary["source"]
     assert src["heartbeats"] >= 1 and src["autopilot"] == 3
@@ -303,7 +309,7 @@ def test_bad_connection_and_bad_port_are_one_line_exit_2(tmp_path):
     for args, words in ((("daemon", "--port", "/dev/ttyACM0"), "mavlink:CONNECTION"),
                         (("daemon", "--port", "mavlink:"), "needs a connection"),
                         (("daemon", "--port", "mavlink:udpin:127.0.0.1:0", "--speed", "2"),
-                         "apply to --bus"),
+                         "--speed applies to a fake:"),
                         (("record", "--port", "mavlink:/nonexistent/tty", "-o",
                           tmp_path / "x.csv"), "cannot open the MAVLink connection")):
         proc = subprocess.run([sys.executable, "-m", "streamcal", *map(str, args),
