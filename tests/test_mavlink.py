@@ -25,8 +25,6 @@ import streamcal
 from streamcal.calibration import Calibration
 from streamcal.inputs.track import Track
 
-pytest.importorskip("pymavlink")
-
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "streamcal" / "data" / "demo_track.csv.gz"
 MODEL_ERROR_BOUND = 0.01

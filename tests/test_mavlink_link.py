@@ -10,10 +10,8 @@ import time
 import numpy as np
 import pytest
 
-pytest.importorskip("pymavlink")
-
-from firmware_bridge.mavlink_link import MavlinkLink, MavlinkSilent  # noqa: E402
-from streamcal.errors import InputError  # noqa: E402
+from firmware_bridge.mavlink_link import MavlinkLink, MavlinkSilent
+from streamcal.errors import InputError
 
 WAIT_S = 60.0
 

@@ -13,8 +13,6 @@ import pytest
 from streamcal.inputs import detect, read_recording
 from streamcal.inputs.track import Track
 
-pytest.importorskip("rosbags")
-
 ROOT = Path(__file__).resolve().parents[1]
 DEMO = ROOT / "streamcal" / "data" / "demo_track.csv.gz"
 BASE_NS = 1_700_000_000 * 10**9          # an epoch stamp, as a robot's clock gives
