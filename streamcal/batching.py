@@ -29,9 +29,9 @@ COLUMNS = ("path", "status", "n", "rms", "residual", "unit", "field", "coverage"
 def _read(path: str, skip_bad_rows: bool):
     """The track at ``path`` and its summary cells on skipped rows (``skipped_rows``, the first
     reason), filled only with ``skip_bad_rows``."""
-    from .inputs.track import Track
+    from .inputs import read_recording
 
-    track = Track.read(path, skip_bad_rows=skip_bad_rows)
+    track = read_recording(path, skip_bad_rows=skip_bad_rows)
     cells = {}
     if skip_bad_rows:
         cells = {"skipped_rows": track.skipped_rows,

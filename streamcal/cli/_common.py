@@ -4,17 +4,22 @@ from __future__ import annotations
 
 import sys
 
-RECORDING_HELP = ("recording: track (.csv/.csv.gz), ArduPilot DataFlash .bin, PX4 .ulg, "
-                  "MotionCal Raw: capture, or another CSV/TSV with --columns")
+RECORDING_HELP = ("recording: track (.csv/.csv.gz), ArduPilot DataFlash .bin, PX4 .ulg, ROS 1 "
+                  ".bag, ROS 2 bag directory, MotionCal Raw: capture, or another CSV/TSV with "
+                  "--columns")
 
 
 def add_input_options(parser, skip_bad_rows: bool = False) -> None:
-    """Add ``--columns`` and ``--unit`` (and ``--skip-bad-rows`` when asked) to ``parser``."""
+    """Add ``--columns``, ``--unit`` and ``--topic`` (and ``--skip-bad-rows`` when asked) to
+    ``parser``."""
     parser.add_argument("--columns", metavar="MAP",
                         help="for another CSV/TSV: mx=NAME,my=NAME,mz=NAME[,t=NAME,ax=NAME,…,"
                              "temp=NAME,AUX=NAME]")
     parser.add_argument("--unit", choices=("uT", "nT", "mG", "G", "counts"),
                         help="magnetometer unit of a --columns file (default uT)")
+    parser.add_argument("--topic", action="append", metavar="NAME",
+                        help="for a ROS bag with several topics of a message type: the one to "
+                             "read (repeatable, one per type)")
     if skip_bad_rows:
         add_skip_bad_rows(parser)
 
@@ -49,7 +54,8 @@ def read_track(args, path=None):
     path = args.track if path is None else path
     track = read_recording(path, columns=getattr(args, "columns", None),
                            unit=getattr(args, "unit", None),
-                           skip_bad_rows=getattr(args, "skip_bad_rows", False))
+                           skip_bad_rows=getattr(args, "skip_bad_rows", False),
+                           topics=getattr(args, "topic", None))
     say_skipped(path, getattr(track, "skipped_rows", 0), getattr(track, "skip_reasons", ()),
                 _command(args))
     return track

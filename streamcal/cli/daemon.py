@@ -26,8 +26,13 @@ def register(sub) -> None:
                        description="Read the MPU-9250 over I2C, calibrate continuously, keep the "
                                    "calibration in the state directory and serve calibrated "
                                    "samples (systemd Type=notify service).")
-    p.add_argument("--bus", required=True, metavar="N|fake:TRACK.csv",
-                   help="I2C bus number (1 for /dev/i2c-1) or fake:TRACK.csv (simulated sensor)")
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--bus", metavar="N|fake:TRACK.csv",
+                     help="I2C bus number (1 for /dev/i2c-1) or fake:TRACK.csv (simulated sensor)")
+    src.add_argument("--port", metavar="mavlink:CONNECTION",
+                     help="a flight controller over MAVLink: mavlink:udpin:HOST:PORT, "
+                          "mavlink:tcp:HOST:PORT or mavlink:DEVICE[,BAUD] (docs/robots.md)")
+    add_mavlink_options(p)
     p.add_argument("--address", default="0x68", type=_address,
                    help="MPU-9250 address: 0x68 (AD0 low, default) or 0x69")
     add_service_options(p)
@@ -36,6 +41,23 @@ def register(sub) -> None:
     add_speed_option(p, "--bus fake:…")
     add_skip_bad_rows(p)   # of a --bus fake: replay's track
     p.set_defaults(func=run)
+
+
+def add_mavlink_options(p) -> None:
+    """``--compass`` (the MAVLink magnetometer of ``--port mavlink:…``)."""
+    p.add_argument("--compass", type=int, choices=(0, 1, 2), default=0,
+                   help="with --port mavlink:…: the magnetometer read, 0 RAW_IMU (default), "
+                        "1 SCALED_IMU2, 2 SCALED_IMU3")
+
+
+def live_source(args, *, baud: int = 115200):
+    """The source of ``--port mavlink:…`` (a :class:`~streamcal.service.mavlink_blocks.
+    MavlinkBlocks`), or None for another ``--port``."""
+    from ..service.mavlink_blocks import MavlinkBlocks, is_mavlink
+
+    if not is_mavlink(getattr(args, "port", None)):
+        return None
+    return MavlinkBlocks(args.port, compass=args.compass, baud=baud)
 
 
 def add_speed_option(p, device: str) -> None:
@@ -223,19 +245,31 @@ def run(args) -> int:
 
     from ..service import I2CBlocks
 
+    from ..errors import InputError
     from ._common import fake_track_reader
     from ._live_replay import TrackSpan, announce, replay_speed, serve_after_replay
 
     started = time.monotonic()
     span = TrackSpan(fake_track_reader(args))
-    speed = replay_speed(args, args.bus)
-    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=speed, read_track=span)
+    spec = args.bus if args.bus is not None else args.port
+    speed = replay_speed(args, spec)
+    if args.port is not None:
+        if args.rate is not None:
+            raise InputError("--rate applies to --bus (a flight controller sets its own stream "
+                             "rates)")
+        source = live_source(args)
+        if source is None:
+            raise InputError(f"--port {args.port}: the daemon's --port is a flight controller, "
+                             "mavlink:CONNECTION (the Arduino board runs under streamcal serial)")
+    else:
+        source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=speed,
+                           read_track=span)
     try:
         service = build(args, source, "daemon")
     except BaseException:
         source.close()
         raise
-    announce(args, "daemon", args.bus, speed, span)
+    announce(args, "daemon", spec, speed, span)
     service.install_signal_handlers()
     code = service.run()
     print(json.dumps(jsonable(service.summary()), allow_nan=False), file=sys.stderr if args.json_lines else sys.stdout,

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from ._common import add_skip_bad_rows
+from .daemon import add_mavlink_options
 
 COLUMNS = ("t", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz", "temp")
 FSYNC_EVERY_S = 5.0
@@ -34,11 +35,13 @@ def register(sub) -> None:
                                    "a track file (docs/tracks_and_inputs.md).")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--bus", metavar="N|fake:TRACK.csv", help="I2C bus number or fake:TRACK.csv")
-    src.add_argument("--port", metavar="DEV|fake:TRACK.csv|simavr:TRACK.csv",
-                     help="serial device, pyserial URL, fake:TRACK.csv or simavr:TRACK.csv (the "
-                          "compiled sketch in simavr)")
+    src.add_argument("--port", metavar="DEV|fake:TRACK.csv|simavr:TRACK.csv|mavlink:CONNECTION",
+                     help="serial device, pyserial URL, fake:TRACK.csv, simavr:TRACK.csv (the "
+                          "compiled sketch in simavr) or mavlink:CONNECTION (a flight "
+                          "controller, docs/robots.md)")
     p.add_argument("--address", default="0x68", help="MPU-9250 I2C address (default: %(default)s)")
     p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default: %(default)s)")
+    add_mavlink_options(p)
     p.add_argument("-o", "--output", required=True, metavar="TRACK.csv",
                    help="track file to write (.csv or .csv.gz; - for stdout)")
     p.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds of samples")
@@ -154,7 +157,7 @@ def run(args) -> int:
     from ..errors import InputError
     from ..service import I2CBlocks, SerialBlocks, SourceUnavailable
     from ._common import fake_track_reader
-    from .daemon import _address
+    from .daemon import _address, live_source
 
     if args.seconds is not None and not args.seconds > 0:
         raise InputError(f"--seconds must be positive, got {args.seconds}")
@@ -163,11 +166,13 @@ def run(args) -> int:
     if args.bus is not None:
         source = I2CBlocks(args.bus, _address(args.address), read_track=fake_track_reader(args))
     else:
-        source = SerialBlocks(args.port, args.baud, read_track=fake_track_reader(args))
+        source = live_source(args, baud=args.baud) or SerialBlocks(
+            args.port, args.baud, read_track=fake_track_reader(args))
     stop: list[str] = []
     for sig, name in ((signal.SIGTERM, "SIGTERM"), (signal.SIGINT, "SIGINT")):
         signal.signal(sig, lambda s, f, name=name: stop.append(name))
-    metadata = {"sensor": "mpu9250", "source": source.description, "mag_unit": "uT",
+    metadata = {"sensor": getattr(source, "sensor", "mpu9250"), "source": source.description,
+                "mag_unit": "uT",
                 "recorded": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
                 "tool": "streamcal record"}
     writer = TrackWriter(out, metadata)
@@ -208,6 +213,11 @@ def run(args) -> int:
     print(f"streamcal record: wrote {writer.rows} rows ({writer.mag_rows} with the magnetometer) "
           f"to {out} ({why})" + (f"; board clock restarted {writer.time_resets} times"
                                  if writer.time_resets else ""), file=sys.stderr)
+    if getattr(source, "sensor", "") == "mavlink magnetometer":
+        c = source.counters()
+        print(f"streamcal record: MAVLink: {c['messages']} messages, {c['heartbeats']} heartbeats, "
+              f"{c['lost']} lost, {c['bad_data']} unparsable, {c['link_drops']} link drops",
+              file=sys.stderr)
     return 0
 
 

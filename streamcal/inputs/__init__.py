@@ -3,6 +3,7 @@
     track = read_recording("flight.BIN")                      # ArduPilot DataFlash
     track = read_recording("log.ulg")                         # PX4 ULog
     track = read_recording("capture.txt")                     # MotionCal Raw: lines
+    track = read_recording("run.bag", topics=["/imu/mag"])    # ROS 1 bag (a ROS 2 bag: its dir)
     track = read_recording("other.tsv", columns="mx=Bx,my=By,mz=Bz,t=time", unit="nT")
 
 The format is detected from the content (:mod:`.detect`). Every reader returns a
@@ -30,7 +31,8 @@ __all__ = ["read_recording", "detect", "FORMATS", "autopilot_calibration",
 
 
 def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
-                   unit: str | None = None, skip_bad_rows: bool = False) -> Track:
+                   unit: str | None = None, skip_bad_rows: bool = False,
+                   topics=None) -> Track:
     """Read any supported recording into a Track.
 
     Args:
@@ -40,6 +42,8 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
             columns.
         unit: the magnetometer unit of such a file: ``uT``, ``nT``, ``mG``, ``G`` or ``counts``.
         skip_bad_rows: skip and count malformed rows (text) or a cut last message (logs).
+        topics: ROS bags only: topic names picking one topic per message type where the bag
+            has several (``--topic``, repeatable).
     """
     path = Path(path)
     fmt = detect(path)
@@ -47,10 +51,17 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
         columns = parse_columns(columns)
     except InputError as exc:
         raise InputError(f"{path}: {exc}") from None
-    if (columns is not None or unit is not None) and fmt in ("dataflash", "ulog", "raw"):
+    if (columns is not None or unit is not None) and fmt in ("dataflash", "ulog", "raw",
+                                                             "rosbag1", "rosbag2"):
         raise InputError(f"{path}: --columns/--unit apply to CSV/TSV files; this is a "
                          f"{fmt} recording with its own units")
-    if fmt == "dataflash":
+    if topics and fmt not in ("rosbag1", "rosbag2"):
+        raise InputError(f"{path}: --topic applies to ROS bags; this is a {fmt} recording")
+    if fmt in ("rosbag1", "rosbag2"):
+        from .rosbag import read_rosbag
+
+        track = read_rosbag(path, fmt, topics=topics)
+    elif fmt == "dataflash":
         from .dataflash import read_dataflash
 
         track = read_dataflash(path, skip_bad_rows=skip_bad_rows)

@@ -1,5 +1,5 @@
 """Which reader a recording needs, decided from its content (magic bytes, first lines), not
-from its name."""
+from its name. A ROS 2 bag is a directory: recognised by the ``metadata.yaml`` in it."""
 from __future__ import annotations
 
 import gzip
@@ -9,10 +9,11 @@ from pathlib import Path
 from ..errors import InputError
 from .dataflash import looks_like_dataflash
 from .raw_capture import looks_like_raw_capture
+from .rosbag import is_rosbag2_dir, looks_like_rosbag1, looks_like_rosbag2_file
 from .ulog import looks_like_ulog
 
 HEAD_BYTES = 1 << 16
-FORMATS = ("dataflash", "ulog", "track", "raw", "csv")
+FORMATS = ("dataflash", "ulog", "rosbag1", "rosbag2", "track", "raw", "csv")
 _GZIP_MAGIC = b"\x1f\x8b"
 _TRACK_COLUMNS = {"t", "mx", "my", "mz"}
 
@@ -33,10 +34,16 @@ def read_head(path: Path) -> bytes:
 
 
 def detect(path) -> str:
-    """One of :data:`FORMATS`: ``dataflash`` (ArduPilot .bin), ``ulog`` (PX4 .ulg), ``track``
+    """One of :data:`FORMATS`: ``dataflash`` (ArduPilot .bin), ``ulog`` (PX4 .ulg), ``rosbag1``
+    (ROS 1 .bag), ``rosbag2`` (ROS 2 bag directory, or its sqlite3/MCAP storage file), ``track``
     (docs/tracks_and_inputs.md CSV), ``raw`` (MotionCal ``Raw:`` lines) or ``csv`` (other
     delimited text)."""
     path = Path(path)
+    if path.is_dir():
+        if is_rosbag2_dir(path):
+            return "rosbag2"
+        raise InputError(f"{path}: a directory, not a recording (a ROS 2 bag directory holds a "
+                         "metadata.yaml)")
     head = read_head(path)
     if not head:
         raise InputError(f"{path}: empty file")
@@ -44,6 +51,10 @@ def detect(path) -> str:
         return "dataflash"
     if looks_like_ulog(head):
         return "ulog"
+    if looks_like_rosbag1(head):
+        return "rosbag1"
+    if looks_like_rosbag2_file(head):
+        return "rosbag2"
     text = head.decode("utf-8", errors="replace")
     if looks_like_raw_capture(text):
         return "raw"
