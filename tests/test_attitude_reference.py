@@ -1,0 +1,128 @@
+"""The attitude reference (WMM rotated by the logged attitude), the mounting-rotation table and
+its detection, on a simulated vehicle with a known truth and on the real flight logs."""
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from streamcal.fitting.attitude_reference import attitude_reference, attitude_data
+from streamcal.fitting.mount_rotations import by_name, mount_rotations
+from streamcal.fitting.reference_fit import fit_reference
+from streamcal.sim.flight import simulated_log
+
+S_TRUE = np.array([[1.05, 0.03, -0.02], [0.03, 0.97, 0.04], [-0.02, 0.04, 1.02]])
+B_TRUE = np.array([12.0, -7.0, 20.0])
+
+
+def test_rotation_table_follows_the_autopilots_definitions():
+    # ArduPilot's rotate(): YAW_90 is x' = -y, y' = x; ROLL_180_YAW_90 is x' = y, y' = x, z' = -z
+    v = np.array([1.0, 2.0, 3.0])
+    assert by_name("YAW_90").matrix @ v == pytest.approx([-2.0, 1.0, 3.0])
+    assert by_name("ROLL_180_YAW_90").matrix @ v == pytest.approx([2.0, 1.0, -3.0])
+    assert by_name("PITCH_180").matrix @ v == pytest.approx([-1.0, 2.0, -3.0])
+    table = mount_rotations()
+    assert table[0].name == "NONE" and table[0].ardupilot == 0 == table[0].px4
+    mats = np.array([r.matrix for r in table])
+    # every entry a distinct proper rotation (the enum's duplicates merged)
+    assert np.allclose(np.linalg.det(mats), 1.0)
+    assert len({tuple(np.round(m, 6).ravel()) for m in mats}) == len(table)
+    shared = [r for r in table if r.ardupilot is not None]
+    assert all(r.ardupilot == r.px4 and r.ardupilot <= 37 for r in shared)
+    assert {r.px4 for r in table if r.ardupilot is None} <= {41, 42, 43, 46, 47}
+
+
+@pytest.mark.parametrize("mount", ["NONE", "YAW_90", "YAW_225", "ROLL_180", "PITCH_270"])
+def test_flight_recovers_iron_offsets_and_mounting(mount):
+    track, truth = simulated_log("flight", mount=by_name(mount).matrix, S=S_TRUE, b_body=B_TRUE,
+                                 seed=3)
+    data, why = attitude_data(track)
+    assert data is not None, why
+    out = attitude_reference(track)
+    ref, orient = out["attitude_reference"], out["orientation"]
+    assert orient["name"] == mount and orient["ardupilot"] == by_name(mount).ardupilot
+    # 1200 samples, 0.3 µT noise per axis, the field turning by ~25 µT: σ(A) ~ 4e-4, σ(b) ~ 0.02 µT
+    fit = fit_reference(data.m, data.expected, rotation=by_name(mount))
+    assert np.abs(fit.A - S_TRUE).max() < 5e-3
+    assert np.abs(fit.b - B_TRUE).max() < 0.2
+    # noise 0.3 µT per axis: residual norm rms √3·0.3 = 0.52 µT
+    assert ref["rms_uT_after"] < 0.6 < 5 < ref["rms_uT_before"]
+    assert ref["heading_error_deg"]["rms_after"] < 1.0 < ref["heading_error_deg"]["rms_before"]
+    assert orient["angle_error_deg"] < 0.2
+    assert ref["undetermined"] == {}
+
+
+def test_motor_current_term_is_recovered():
+    gain = np.array([0.2, -0.1, 0.3])
+    track, _ = simulated_log("flight", S=S_TRUE, b_body=B_TRUE, current_gain=gain, seed=5)
+    data, _ = attitude_data(track)
+    fit = fit_reference(data.m, data.expected, {"battery_current_a": data.cov["battery_current_a"]})
+    assert np.abs(fit.g["battery_current_a"] - gain).max() < 0.01
+
+
+def test_still_vehicle_holds_iron_and_does_not_guess_a_mounting():
+    track, _ = simulated_log("still", duration_s=20, b_body=B_TRUE, mount=by_name("YAW_90").matrix)
+    out = attitude_reference(track)
+    assert out["orientation"] is None
+    assert set(out["attitude_reference"]["undetermined"]) == {"A11", "A22", "A33", "A12", "A13",
+                                                              "A23"}
+    assert "soft iron held" in out["attitude_reference"]["note"]
+
+
+def test_no_attitude_or_no_position_says_why():
+    track, _ = simulated_log("flight", duration_s=20)
+    meta = {k: v for k, v in track.metadata.items() if not k.startswith("gps_")}
+    no_gps = type(track)(track.columns, meta)
+    out = attitude_reference(no_gps)["attitude_reference"]
+    assert out["rms_uT_before"] is None and "GPS" in out["reason"]
+    cols = {k: v for k, v in track.columns.items() if not k.startswith("att_")}
+    out = attitude_reference(type(track)(cols, track.metadata))["attitude_reference"]
+    assert out["rms_uT_after"] is None and "attitude" in out["reason"]
+
+
+def test_attitude_columns_are_not_auxiliary_channels():
+    track, _ = simulated_log("flight", duration_s=10, current_gain=np.array([0.1, 0, 0]))
+    assert track.aux_names == ["battery_current_a"]
+
+
+def test_diagnose_json_carries_the_reference(tmp_path):
+    track, _ = simulated_log("flight", duration_s=60, mount=by_name("YAW_90").matrix, S=S_TRUE,
+                             b_body=B_TRUE)
+    path = tmp_path / "flight.csv"
+    track.write(path)
+    run = subprocess.run([sys.executable, "-m", "streamcal", "diagnose", str(path), "--json"],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    ref = out["attitude_reference"]
+    assert set(ref) >= {"rms_uT_before", "rms_uT_after", "heading_error_deg", "window_s", "caveat"}
+    assert set(ref["heading_error_deg"]) == {"rms_before", "rms_after", "p95_before", "p95_after"}
+    assert out["orientation"]["name"] == "YAW_90" and out["orientation"]["px4"] == 2
+
+
+def test_real_ardupilot_log_reference(flight_dir):
+    from streamcal.inputs import autopilot_calibration, read_recording
+
+    track = read_recording(flight_dir / "ardupilot_erle_15-12-2014_16.BIN")
+    assert track.metadata["gps_date"] == "2014-12-15"          # GPS week 1823
+    assert abs(float(track.metadata["gps_lat_deg"]) - 42.846) < 0.001
+    out = attitude_reference(track, autopilot_calibration(track))
+    ref = out["attitude_reference"]
+    assert ref["reference"]["source"] == "WMM2010"
+    assert ref["rms_uT_after"] < ref["rms_uT_before"]
+    assert ref["heading_error_deg"]["rms_after"] < ref["heading_error_deg"]["rms_before"]
+    assert out["orientation"]["name"] == "NONE"
+
+
+def test_real_px4_log_reference(flight_dir):
+    from streamcal.inputs import read_recording
+
+    track = read_recording(flight_dir / "px4_pyulog_sample_px4_events.ulg")
+    assert track.metadata["gps_date"] == "2024-03-18"
+    data, why = attitude_data(track)
+    assert data is not None, why
+    # the unit quaternion of vehicle_attitude, interpolated and renormalised
+    assert np.allclose(np.linalg.norm(data.q, axis=1), 1.0)
+    out = attitude_reference(track)["attitude_reference"]
+    assert out["rms_uT_before"] is not None and out["window_s"][1] > out["window_s"][0]
