@@ -8,6 +8,7 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, jsonable
 from ..model.catalog import EFFECT_NAMES
 from ._common import RECORDING_HELP, add_input_options, read_track
+from ._location import add_location_options, location_reference
 
 
 def register(sub) -> None:
@@ -37,6 +38,18 @@ def register(sub) -> None:
                    "file or state dir): the LM starts from its K and b")
     p.add_argument("--no-coverage-check", action="store_true",
                    help="fit even when the directions seen leave the model undetermined")
+    g = p.add_argument_group("calibration without a tumble (World Magnetic Model as the "
+                             "reference; docs/flight_logs.md)")
+    how = g.add_mutually_exclusive_group()
+    how.add_argument("--heading", type=float, metavar="DEG",
+                     help="the track is a few still seconds at this true heading (degrees "
+                          "clockwise from true north): solve the offsets, hold the iron "
+                          "(--initial's, else none)")
+    how.add_argument("--planar", action="store_true",
+                     help="the track is a rover or boat turning in the plane: horizontal "
+                          "offsets and iron from the turns, the vertical offset from the "
+                          "model's inclination and total field")
+    add_location_options(p)
     p.set_defaults(func=run)
 
 
@@ -54,7 +67,26 @@ def _tau(value):
     return tau
 
 
+def _no_tumble(args, track, initial):
+    """The calibration of ``--heading`` / ``--planar`` against the model field at
+    ``--lat/--lon/--date`` or the log's GPS position."""
+    from ..errors import InputError
+    from ..fitting.attitude_reference import log_location
+    from ..fitting.no_tumble import fit_heading, fit_planar
+
+    ref = location_reference(args)
+    if ref is None:
+        ref, why = log_location(track)
+        if ref is None:
+            option = "--planar" if args.planar else "--heading"
+            raise InputError(f"{option} needs the place of the recording: {why}")
+    if args.planar:
+        return fit_planar(track, ref)
+    return fit_heading(track, args.heading, ref, initial)
+
+
 def run(args) -> int:
+    from ..errors import InsufficientDataError
     from ..fitting import fit
     track = read_track(args)
     initial = None
@@ -62,8 +94,20 @@ def run(args) -> int:
         from ._calarg import load_calibration_arg
 
         initial, _ = load_calibration_arg(args.initial, "--initial")
-    cal = fit(track, sensor=args.sensor, model=args.model, add=args.add, kernel=args.kernel,
-              method=args.method, tau=_tau(args.tau), check_coverage=not args.no_coverage_check, initial=initial)
+    if args.planar or args.heading is not None:
+        cal = _no_tumble(args, track, initial)
+    else:
+        try:
+            cal = fit(track, sensor=args.sensor, model=args.model, add=args.add,
+                      kernel=args.kernel, method=args.method, tau=_tau(args.tau),
+                      check_coverage=not args.no_coverage_check, initial=initial)
+        except InsufficientDataError as exc:
+            if "of the sphere" not in str(exc):
+                raise
+            raise InsufficientDataError(
+                f"{exc} A vehicle that cannot be tumbled: --planar for one turning in the plane, "
+                "--heading DEG for a few still seconds at a known heading (with --lat/--lon/"
+                "--date or a GPS in the log).") from None
     if args.output:
         cal.save(args.output)
     residual, sensor = "sensor", None
@@ -111,4 +155,6 @@ def format_calibration(cal, source: str = "", residual: str = "sensor",
         rows.append(f"  coverage  {cal.coverage:.0%} of the sphere")
     if cal.field:
         rows.append(f"  field     {cal.field:.4g} {u}")
+    for name, why in dict((cal.extra or {}).get("undetermined") or {}).items():
+        rows.append(f"  not determined  {name}: {why}")
     return "\n".join(rows)

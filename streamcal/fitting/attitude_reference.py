@@ -156,8 +156,9 @@ def calibration_from_fit(fit: ReferenceFit, field_uT: float, source: str,
         extra["orientation"] = as_dict(fit.rotation, None)
     if undetermined:
         extra["undetermined"] = dict(undetermined)
+    inl = fit.inliers if fit.inliers is not None else w >= 0.5
     return Calibration(K=K, b=Rt @ fit.b, model=tuple(model), effects=effects,
-                       rms=fit.rms, n=len(w), n_outliers=int(np.sum(w < 0.5)),
+                       rms=fit.rms, n=len(w), n_outliers=int(np.sum(~inl)),
                        field=float(field_uT), method="attitude_reference", unit="uT",
                        kernel="cauchy", extra=extra)
 
@@ -168,8 +169,9 @@ def held_parameters(fit: ReferenceFit) -> dict:
     for name, share in fit.held.items():
         centre = "the identity" if name.startswith("A") else "its prior" if name.startswith("b") \
             else "0 per unit"
-        out[name] = (f"held near {centre} (the data left {share:.0%} of the prior's σ): the "
-                     "attitudes in the log do not determine it")
+        out[name] = (f"held at {centre}: the attitudes in the log cannot determine it" if share >= 1
+                     else f"held near {centre} (the data left {share:.0%} of the prior's σ): "
+                          "the attitudes in the log do not determine it")
     return out
 
 
@@ -190,7 +192,6 @@ def reference_fit(data: AttitudeData, channels=(), detect: bool = True) -> tuple
     spread = attitude_spread_uT(data.expected)
     if spread < MIN_SPREAD_UT:
         fit = fit_reference(data.m, data.expected, chans, fixed_A=np.eye(3))
-        fit.held.update({n: 1.0 for n in ("A11", "A22", "A33", "A12", "A13", "A23")})
         return fit, (f"the attitudes turn the expected field by only {spread:.2g} µT (under "
                      f"{MIN_SPREAD_UT:g}): soft iron held at the identity, mounting not checked")
     if detect:

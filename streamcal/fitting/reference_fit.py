@@ -98,7 +98,8 @@ def _design(e: np.ndarray, chans: np.ndarray) -> np.ndarray:
 
 
 def fit_reference(m, expected, channels: dict | None = None, rotation: MountRotation | None = None,
-                  b0=None, weights=None, fixed_A: np.ndarray | None = None) -> ReferenceFit:
+                  b0=None, weights=None, fixed_A: np.ndarray | None = None,
+                  hold=()) -> ReferenceFit:
     """Robust fit of ``R m = A e + b + Σ g (a − a0)`` (module docstring).
 
     Args:
@@ -108,6 +109,7 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
         b0: (3,) prior centre of the body-frame offset (default 0).
         weights: (N,) starting robust weights (default 1).
         fixed_A: hold A at this (3,3) (only offsets and channels fitted).
+        hold: names of A's entries (:data:`A_NAMES`) held at the identity's value.
     """
     rotation = rotation or mount_rotations()[0]
     m = np.asarray(m, float) @ rotation.matrix.T
@@ -126,12 +128,13 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
     prior_sigma = np.r_[np.full(6, PRIOR_SIGMA_A), np.full(3, PRIOR_SIGMA_B),
                         np.repeat(PRIOR_SIGMA_G / spread, 3)]
     free = np.ones(p, dtype=bool)
-    target = m
+    for name in hold:
+        free[A_NAMES.index(name)] = False
     if fixed_A is not None:
         fA = np.asarray(fixed_A, float)
         theta0[:6] = [fA[i, j] for i, j in _SYM]
         free[:6] = False
-        target = m - e @ fA.T
+    target = m - np.einsum("nip,p->ni", J[:, :, ~free], theta0[~free])
     Jf = J[:, :, free]
     w = np.ones(len(m)) if weights is None else np.asarray(weights, float).copy()
     theta = theta0.copy()
@@ -156,6 +159,7 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
     labels = [*A_NAMES, "bx", "by", "bz"] + [f"{c}_{a}" for c in names for a in "xyz"]
     free_labels = [n for n, f in zip(labels, free) if f]
     share = np.sqrt(np.diag(cov)) * np.sqrt(prior)
+    held_fixed = {n: 1.0 for n, f in zip(labels, free) if not f}
     A = np.zeros((3, 3))
     for k, (i, j) in enumerate(_SYM):
         A[i, j] = A[j, i] = theta[k]
@@ -167,7 +171,8 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
         g={c: theta[9 + 3 * k: 12 + 3 * k].copy() for k, c in enumerate(names)},
         a0={c: float(a0[k]) for k, c in enumerate(names)}, weights=w, scale=scale,
         rms=float(np.sqrt(np.mean(norm[inl] ** 2))) if inl.any() else float("nan"),
-        held={n: round(float(s), 3) for n, s in zip(free_labels, share) if s > HELD_SHARE},
+        held={**held_fixed,
+              **{n: round(float(s), 3) for n, s in zip(free_labels, share) if s > HELD_SHARE}},
         sigma={n: float(np.sqrt(cov[k, k])) for k, n in enumerate(free_labels)})
 
 
