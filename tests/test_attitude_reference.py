@@ -126,3 +126,31 @@ def test_real_px4_log_reference(flight_dir):
     assert np.allclose(np.linalg.norm(data.q, axis=1), 1.0)
     out = attitude_reference(track)["attitude_reference"]
     assert out["rms_uT_before"] is not None and out["window_s"][1] > out["window_s"][0]
+
+
+def test_fit_attitude_and_export_write_the_mounting(tmp_path):
+    from streamcal.export import export
+    from streamcal.export.ardupilot import apply_ardupilot
+    from streamcal.fitting.attitude_reference import fit_attitude_reference
+
+    gain = np.array([0.2, -0.1, 0.3])
+    mount = by_name("YAW_90").matrix
+    track, _ = simulated_log("flight", mount=mount, S=S_TRUE, b_body=B_TRUE, current_gain=gain)
+    cal = fit_attitude_reference(track, channels=["battery_current_a"])
+    assert cal.extra["orientation"]["name"] == "YAW_90"
+    text, _ = export(cal, "ardupilot")
+    params = dict(line.split(",") for line in text.splitlines() if not line.startswith("#"))
+    params = {k: float(v) for k, v in params.items()}
+    assert params["COMPASS_ORIENT"] == 2 and params["COMPASS_MOTCT"] == 2
+    # ArduPilot's own chain: rotate the reading by COMPASS_ORIENT, then offsets, matrix, motor
+    data, _ = attitude_data(track)
+    f = apply_ardupilot(params, (10.0 * data.m) @ mount.T, data.cov["battery_current_a"])
+    err = np.linalg.norm(f / 10.0 - data.expected, axis=1)
+    assert np.median(err) < 0.6          # µT: the 0.3 µT per-axis noise
+    px4 = export(cal, "px4")[0]
+    assert "\tCAL_MAG0_ROT\t2\t" in px4
+    # the offsets PX4 subtracts in the sensor frame: mountᵀ b_body, in gauss
+    off = {ln.split("\t")[2]: float(ln.split("\t")[3]) for ln in px4.splitlines()
+           if ln.startswith("1\t") and "OFF" in ln}
+    assert [off[f"CAL_MAG0_{a}OFF"] for a in "XYZ"] == pytest.approx(mount.T @ B_TRUE / 100,
+                                                                     abs=3e-3)

@@ -49,6 +49,10 @@ def register(sub) -> None:
                      help="the track is a rover or boat turning in the plane: horizontal "
                           "offsets and iron from the turns, the vertical offset from the "
                           "model's inclination and total field")
+    how.add_argument("--attitude", action="store_true",
+                     help="fit against the log's attitude: the model field at its GPS position "
+                          "rotated by the logged attitude (offsets, iron, the aux channels of "
+                          "--add aux_interference=CHANNEL, the compass's mounting rotation)")
     add_location_options(p)
     p.set_defaults(func=run)
 
@@ -75,13 +79,18 @@ def _no_tumble(args, track, initial):
     from ..fitting.no_tumble import fit_heading, fit_planar
 
     ref = location_reference(args)
-    if ref is None:
+    if ref is None and not args.attitude:
         ref, why = log_location(track)
         if ref is None:
             option = "--planar" if args.planar else "--heading"
             raise InputError(f"{option} needs the place of the recording: {why}")
     if args.planar:
         return fit_planar(track, ref)
+    if args.attitude:
+        from ..fitting.attitude_reference import fit_attitude_reference
+
+        channels = [a.split("=", 1)[1] for a in args.add if a.startswith("aux_interference=")]
+        return fit_attitude_reference(track, ref, channels)
     return fit_heading(track, args.heading, ref, initial)
 
 
@@ -94,7 +103,7 @@ def run(args) -> int:
         from ._calarg import load_calibration_arg
 
         initial, _ = load_calibration_arg(args.initial, "--initial")
-    if args.planar or args.heading is not None:
+    if args.planar or args.attitude or args.heading is not None:
         cal = _no_tumble(args, track, initial)
     else:
         try:

@@ -106,3 +106,21 @@ def motor_channel(channels) -> tuple[str | None, str | None, list[str]]:
 def fmt(value: float) -> str:
     """A parameter value: shortest round-tripping decimal of a float32-precise number."""
     return f"{float(value) + 0.0:.7g}"  # + 0.0 turns -0.0 into 0.0
+
+
+def mounting(cal: Calibration, firmware: str) -> tuple[np.ndarray | None, int | None, list[str]]:
+    """The mounting rotation a calibration found (``extra["orientation"]``, docs/flight_logs.md):
+    (sensor → body matrix, ``firmware``'s number for it, notes); (None, None, []) without one."""
+    from ..fitting.mount_rotations import by_name
+
+    orient = (cal.extra or {}).get("orientation")
+    if not orient or orient.get("name", "NONE") == "NONE":
+        return None, None, []
+    try:
+        matrix = by_name(str(orient["name"])).matrix
+    except KeyError:
+        return None, None, [f"mounting rotation {orient['name']!r}: not a known rotation"]
+    number = orient.get(firmware)
+    if number is None:
+        return None, None, [f"mounting rotation {orient['name']}: {firmware} has no number for it"]
+    return matrix, int(number), []

@@ -299,3 +299,26 @@ def reference_series(track, cal_before: Calibration | None = None, *, ref: dict 
             "heading_after": heading_error_deg(data.q, after, data.b_ned),
             "inliers": fit.inliers,
             "before_label": "calibration in force" if cal_before is not None else "as logged"}
+
+
+def fit_attitude_reference(track, ref: dict | None = None, channels=()) -> Calibration:
+    """The calibration fitted against the attitude reference (offsets, symmetric iron, the
+    interference of ``channels``, the mounting rotation): what ``fit LOG --attitude`` saves.
+    Raises :class:`~streamcal.errors.InsufficientDataError` saying why there is no reference."""
+    from ..errors import InsufficientDataError
+
+    data, why = attitude_data(track, ref)
+    if data is None:
+        raise InsufficientDataError(f"no attitude reference: {why}")
+    fit, note = reference_fit(data, channels)
+    undetermined = held_parameters(fit)
+    if note:
+        undetermined["orientation"] = f"assumed NONE: {note}"
+    cal = calibration_from_fit(fit, data.ref["intensity_uT"],
+                               f"attitude reference ({data.ref['source']} at the log's position, "
+                               f"logged attitude, {len(data.t)} samples)", undetermined)
+    extra = dict(cal.extra)
+    if fit.rotation.name != "NONE":
+        extra["orientation"] = as_dict(fit.rotation, residual_rotation_deg(
+            fit.body_field(data.m, data.cov), data.expected, fit.weights))
+    return cal.replace(extra=extra)
