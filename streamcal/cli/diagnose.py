@@ -80,7 +80,7 @@ def run(args: argparse.Namespace) -> int:
         out = result.to_dict()
         out["reference_field"] = local
         from ..fitting.attitude_reference import log_attitude_reference
-        out.update(log_attitude_reference(track, ref))
+        out.update(log_attitude_reference(track, ref, result.calibration))
         print(json.dumps(jsonable(out), allow_nan=False))
         if plots:   # stdout stays one JSON object
             print(plots, file=sys.stderr)

@@ -267,15 +267,22 @@ def attitude_reference(track, cal_before: Calibration | None = None,
     return {"attitude_reference": out, "orientation": orientation}
 
 
-def log_attitude_reference(track, ref: dict | None = None) -> dict:
+def log_attitude_reference(track, ref: dict | None = None,
+                           calibration: Calibration | None = None) -> dict:
     """:func:`attitude_reference` of a log against the calibration in force in it (the
-    autopilot's parameters, else the readings as logged); ``{}`` for a track without attitude
-    columns (nothing to add to ``diagnose --json``)."""
+    autopilot's parameters, else the readings as logged).
+
+    A track without attitude columns gets only ``{"orientation": …}`` from gravity
+    (:mod:`.orientation_gravity`) when it has an accelerometer, a place (``ref`` or a GPS
+    position) and a ``calibration`` in µT to turn the readings into the field; else ``{}``
+    (nothing to add to ``diagnose --json``)."""
     from ..errors import InputError
     from ..inputs import autopilot_calibration
 
-    if track is None or not all(track.has(c) for c in ATTITUDE_COLUMNS):
+    if track is None:
         return {}
+    if not all(track.has(c) for c in ATTITUDE_COLUMNS):
+        return _gravity_orientation(track, ref, calibration)
     try:
         before = autopilot_calibration(track)
     except InputError:
@@ -322,3 +329,20 @@ def fit_attitude_reference(track, ref: dict | None = None, channels=()) -> Calib
         extra["orientation"] = as_dict(fit.rotation, residual_rotation_deg(
             fit.body_field(data.m, data.cov), data.expected, fit.weights))
     return cal.replace(extra=extra)
+
+
+def _gravity_orientation(track, ref, calibration) -> dict:
+    from .orientation_gravity import orientation_from_gravity
+
+    if calibration is None or calibration.unit != "uT" or not track.has("accel") \
+            or track.mag_unit != "uT":
+        return {}
+    if ref is None:
+        ref, _ = log_location(track)
+        if ref is None:
+            return {}
+    cov = track.covariates_at_mag()
+    a = np.column_stack([cov[c] for c in ("ax", "ay", "az")])
+    down = -a / np.linalg.norm(a, axis=1, keepdims=True)
+    field = body_field(calibration, track.mag, cov)
+    return {"orientation": orientation_from_gravity(field, down, ref["inclination_deg"])}
