@@ -42,6 +42,9 @@ CHI2_3_INLIER = 16.27
 #: A rotation other than NONE is reported only when its robust scale is below this share of
 #: NONE's (a wrong mounting multiplies the misfit; a right one leaves noise and attitude error).
 ROTATION_MARGIN = 0.5
+#: The candidates are compared on at most this many samples, evenly spaced in the log (a wrong
+#: mounting is off by tens of µT; a few thousand samples decide it).
+DETECT_SAMPLES = 2000
 ITERATIONS = 30
 A_NAMES = ("A11", "A22", "A33", "A12", "A13", "A23")
 _SYM = ((0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2))
@@ -180,20 +183,23 @@ def detect_rotation(m, expected, channels: dict | None = None,
                     candidates=None) -> tuple[ReferenceFit, list[tuple[str, float]]]:
     """The mounting rotation whose fit matches ``expected`` best (smallest robust scale; A
     held at the identity so that no rotation can hide in it; NONE, the first candidate, unless
-    the best beats it by :data:`ROTATION_MARGIN`), refitted with A free.
+    the best beats it by :data:`ROTATION_MARGIN`; compared on :data:`DETECT_SAMPLES` samples),
+    refitted on every sample with A free.
 
     Returns (that fit, ``[(name, robust scale µT)]`` of every candidate, best first).
     """
     candidates = candidates or mount_rotations()
+    m, expected = np.asarray(m, float), np.asarray(expected, float)
+    pick = np.unique(np.linspace(0, len(m) - 1, min(len(m), DETECT_SAMPLES)).astype(int))
+    sub = {k: np.asarray(v, float)[pick] for k, v in (channels or {}).items()}
     scores = []
     for rot in candidates:
-        f = fit_reference(m, expected, channels, rotation=rot, fixed_A=np.eye(3))
+        f = fit_reference(m[pick], expected[pick], sub, rotation=rot, fixed_A=np.eye(3))
         scores.append((rot.name, f.scale, rot, f))
     none = scores[0]
     scores.sort(key=lambda s: s[1])
     best = scores[0] if scores[0][1] < ROTATION_MARGIN * none[1] else none
-    fit = fit_reference(m, expected, channels, rotation=best[2], b0=best[3].b,
-                        weights=best[3].weights)
+    fit = fit_reference(m, expected, channels, rotation=best[2], b0=best[3].b)
     return fit, [(name, round(float(s), 3)) for name, s, _, _ in scores]
 
 

@@ -5,10 +5,12 @@ Frames as the autopilots use them: earth NED, body forward-right-down; the attit
 turns body vectors to NED. The compass is mounted rotated by ``mount`` (sensor → body, as
 :mod:`streamcal.fitting.mount_rotations` defines it) and reads, in its own frame::
 
-    m = mountᵀ (A_true⁻¹ … ) — precisely  m = mountᵀ (S e + b_body + g · current) + noise
+    m = mountᵀ (S e + b_body + g · current) + noise
 
-with ``e = Rᵀ B_NED`` the body-frame earth field, ``S`` a symmetric soft-iron matrix and
-``b_body`` the offset, both in the body frame. ``kind``:
+with ``e = Rᵀ B_NED`` the body-frame earth field, ``S`` a symmetric soft-iron matrix, ``b_body``
+the offset and ``g`` the interference per ampere, all in the body frame. The accelerometer
+reads the specific force of a vehicle without linear acceleration, ``Rᵀ (0, 0, −g)``.
+``kind``:
 
 * ``"flight"``: yaw sweeps through every heading, roll and pitch wander ±``tilt_deg``;
 * ``"rover"``: the same with roll and pitch within ±``tilt_deg`` (default 2°): planar;
