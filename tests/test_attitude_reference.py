@@ -206,3 +206,15 @@ def test_real_px4_frames_agree_with_the_model(flight_dir):
     out = attitude_reference(track, autopilot_calibration(track), ref=ref)["attitude_reference"]
     assert out["rms_uT_before"] < 3.0 and out["heading_error_deg"]["rms_before"] < 5.0
     assert out["n"] > 5000
+
+
+def test_attitude_columns_are_no_misfit_covariates():
+    from streamcal.diagnosis.misfit import localise
+
+    track, _ = simulated_log("flight", duration_s=20, current_gain=np.array([0.1, 0, 0]))
+    cov = track.covariates_at_mag()
+    n = len(track.t_mag)
+    out = localise(np.random.default_rng(0).normal(size=(n, 3)), np.ones(n, bool), track.t_mag,
+                   track.mag, cov)
+    assert "battery_current_a" in out["covariates"]
+    assert not set(out["covariates"]) & {"att_qw", "att_qx", "att_qy", "att_qz"}
