@@ -218,3 +218,19 @@ def test_attitude_columns_are_no_misfit_covariates():
                    track.mag, cov)
     assert "battery_current_a" in out["covariates"]
     assert not set(out["covariates"]) & {"att_qw", "att_qx", "att_qy", "att_qz"}
+
+
+def test_report_shows_the_attitude_reference(tmp_path):
+    from streamcal.report.figures_attitude import attitude_reference_figure
+
+    track, _ = simulated_log("flight", duration_s=60, S=S_TRUE, b_body=B_TRUE)
+    fig = attitude_reference_figure(track)
+    assert fig is not None and fig.png.startswith(b"\x89PNG")
+    path = tmp_path / "flight.csv"
+    track.write(path)
+    run = subprocess.run([sys.executable, "-m", "streamcal", "report", str(path), "-o",
+                          str(tmp_path / "r.html")], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert fig.title in (tmp_path / "r.html").read_text(encoding="utf-8")
+    cols = {k: v for k, v in track.columns.items() if not k.startswith("att_")}
+    assert attitude_reference_figure(type(track)(cols, track.metadata)) is None

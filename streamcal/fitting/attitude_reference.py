@@ -276,18 +276,23 @@ def log_attitude_reference(track, ref: dict | None = None,
     (:mod:`.orientation_gravity`) when it has an accelerometer, a place (``ref`` or a GPS
     position) and a ``calibration`` in µT to turn the readings into the field; else ``{}``
     (nothing to add to ``diagnose --json``)."""
-    from ..errors import InputError
-    from ..inputs import autopilot_calibration
-
     if track is None:
         return {}
     if not all(track.has(c) for c in ATTITUDE_COLUMNS):
         return _gravity_orientation(track, ref, calibration)
+    return attitude_reference(track, calibration_in_force(track), ref=ref)
+
+
+def calibration_in_force(track) -> Calibration | None:
+    """The autopilot's calibration in the log's parameters
+    (:func:`streamcal.inputs.autopilot_calibration`), None when it has none."""
+    from ..errors import InputError
+    from ..inputs import autopilot_calibration
+
     try:
-        before = autopilot_calibration(track)
+        return autopilot_calibration(track)
     except InputError:
-        before = None
-    return attitude_reference(track, before, ref=ref)
+        return None
 
 
 def reference_series(track, cal_before: Calibration | None = None, *, ref: dict | None = None,

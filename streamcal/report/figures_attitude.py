@@ -6,14 +6,17 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..fitting.attitude_reference import reference_series
+from ..fitting.attitude_reference import calibration_in_force, reference_series
 from .figure_common import AFTER, FIT, INLIER, RenderedFigure, png_bytes, stride_index
 
 
-def attitude_reference_figure(track, cal_before=None, ref: dict | None = None,
+def attitude_reference_figure(track, cal_before="in force", ref: dict | None = None,
                               channels=()) -> RenderedFigure | None:
     """Four panels (x, y, z in µT; heading error in degrees) over time; None when the track
-    has no attitude or no position."""
+    has no attitude or no position. ``cal_before``: a calibration, None for the readings as
+    logged, or ``"in force"`` for the autopilot's calibration in the log's parameters."""
+    if isinstance(cal_before, str):
+        cal_before = calibration_in_force(track)
     s = reference_series(track, cal_before, ref=ref, channels=channels)
     if s is None:
         return None
