@@ -88,3 +88,20 @@ def test_cli_planar_heading_and_the_refusal(tmp_path):
     assert "not determined  K" in run.stdout
     cal = Calibration.load(tmp_path / "c.json")
     assert np.abs(cal.b - B_TRUE).max() < 0.15
+
+
+def test_known_heading_uses_only_the_still_samples(ref):
+    from streamcal.inputs.track import Track
+
+    track, _ = simulated_log("still", duration_s=10, heading_deg=30, b_body=B_TRUE, seed=2)
+    n = len(track)
+    gyro = np.zeros((n, 3))
+    gyro[: n // 2, 2] = 0.5          # the first half turning: the heading is not known there
+    mag = np.array(track.mag)
+    mag[: n // 2] += 40.0            # and its readings are useless
+    cols = {k: v for k, v in track.columns.items() if k not in ("mx", "my", "mz")}
+    moved = Track.from_arrays(track.t, mag=mag, accel=np.column_stack(
+        [cols.pop(c) for c in ("ax", "ay", "az")]), gyro=gyro,
+        aux={k: v for k, v in cols.items() if k != "t"}, metadata=track.metadata)
+    cal = fit_heading(moved, 30.0, ref)
+    assert cal.n == n - n // 2 and np.abs(cal.b - B_TRUE).max() < 0.2

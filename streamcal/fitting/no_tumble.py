@@ -1,6 +1,7 @@
 """Calibration of a vehicle that cannot be tumbled, against the World Magnetic Model.
 
-* **Known heading** (:func:`fit_heading`): a few still seconds at a known true heading. The
+* **Known heading** (:func:`fit_heading`): a few still seconds at a known true heading (with a
+  gyro, only the samples turning slower than ``STILL_RATE`` count). The
   accelerometer gives roll and pitch (gravity), the heading gives yaw, the model the field:
   the expected body-frame field ``e`` is known, and one attitude gives three equations —
   the offset ``b = median(m) − A e`` with the iron ``A`` held (a given calibration's, else the
@@ -22,6 +23,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration
+from ..constants import STILL_RATE
 from ..errors import InsufficientDataError
 from ..geomag import ned_field
 from .attitude_reference import calibration_from_fit
@@ -38,8 +40,9 @@ CHI2_2_MEDIAN, CHI2_2_INLIER = 1.3863, 13.816
 MIN_SAMPLES = 10
 
 
-def _mag_and_down(track) -> tuple[np.ndarray, np.ndarray]:
-    """(m (M,3), down (M,3) unit gravity direction in the body frame) at the mag samples."""
+def _mag_and_down(track, still: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """(m (M,3), down (M,3) unit gravity direction in the body frame) at the mag samples;
+    with ``still`` and a gyro, only the samples turning slower than ``STILL_RATE``."""
     if not track.has("accel"):
         raise InsufficientDataError("the vertical comes from the accelerometer, and the track "
                                     "has none (ax, ay, az)")
@@ -47,9 +50,13 @@ def _mag_and_down(track) -> tuple[np.ndarray, np.ndarray]:
     a = np.column_stack([cov[c] for c in ("ax", "ay", "az")])
     norm = np.linalg.norm(a, axis=1, keepdims=True)
     ok = np.all(np.isfinite(a), axis=1) & (norm[:, 0] > 0)
+    what = "magnetometer samples with gravity"
+    if still and track.has("gyro"):
+        w = np.linalg.norm(np.column_stack([cov[c] for c in ("gx", "gy", "gz")]), axis=1)
+        ok &= w < STILL_RATE
+        what = f"still magnetometer samples (gyro under {STILL_RATE:g} rad/s) with gravity"
     if ok.sum() < MIN_SAMPLES:
-        raise InsufficientDataError(f"only {int(ok.sum())} magnetometer samples with gravity "
-                                    f"(need {MIN_SAMPLES})")
+        raise InsufficientDataError(f"only {int(ok.sum())} {what} (need {MIN_SAMPLES})")
     return track.mag[ok], -a[ok] / norm[ok]        # at rest the accelerometer reads −g
 
 
@@ -75,7 +82,7 @@ def _held_iron(initial: Calibration | None, field_uT: float) -> tuple[np.ndarray
 def fit_heading(track, heading_deg: float, ref: dict, initial: Calibration | None = None) -> Calibration:
     """Offsets from a still vehicle at true heading ``heading_deg`` (degrees clockwise from
     true north) with the model field ``ref`` (:func:`streamcal.geomag.wmm_field`)."""
-    m, down = _mag_and_down(track)
+    m, down = _mag_and_down(track, still=True)
     b_ned = ned_field(ref)
     F = ref["intensity_uT"]
     e = tilt_rotation(down, heading_deg).inv().apply(b_ned)
