@@ -34,6 +34,8 @@ def test_planar_recovers_offsets_and_horizontal_iron(ref, seed):
     und = cal.extra["undetermined"]
     assert {"A33", "A13", "A23", "heading offset", "orientation"} <= set(und)
     assert cal.n_outliers <= 0.01 * cal.n
+    # residual of the levelled field: radial and vertical, 0.3 µT each → √2·0.3 = 0.42 µT
+    assert cal.rms < 0.55
     again = Calibration.from_json(cal.to_json())
     assert again.extra["undetermined"] == und and again == cal
 
@@ -105,3 +107,19 @@ def test_known_heading_uses_only_the_still_samples(ref):
         aux={k: v for k, v in cols.items() if k != "t"}, metadata=track.metadata)
     cal = fit_heading(moved, 30.0, ref)
     assert cal.n == n - n // 2 and np.abs(cal.b - B_TRUE).max() < 0.2
+
+
+@pytest.mark.parametrize("turns", [0.5, 0.2])
+def test_planar_part_of_a_circle(ref, turns):
+    """Half a turn (plus the ±20° wander) still locates the centre: the radius is known; a
+    fifth of a turn is refused, not answered with offsets several µT off."""
+    track, _ = simulated_log("rover", S=S_PLANAR, b_body=B_TRUE, seed=1, turns=turns)
+    if turns >= 0.5:
+        cal = fit_planar(track, ref)
+        assert np.abs(cal.b - B_TRUE).max() < 0.15
+        assert cal.extra["planar"]["heading_arc_deg"] >= 180
+    else:
+        from streamcal.errors import InsufficientDataError
+
+        with pytest.raises(InsufficientDataError, match="half a circle"):
+            fit_planar(track, ref)

@@ -7,12 +7,12 @@
   the offset ``b = median(m) − A e`` with the iron ``A`` held (a given calibration's, else the
   identity at the model's field strength).
 * **Planar** (:func:`fit_planar`): a rover or boat turning in the plane. Roll and pitch come
-  from the accelerometer; the yaw of each sample is taken from the tilt-compensated heading of
-  the current calibration, and the robust reference fit (:mod:`.reference_fit`) is repeated:
-  the horizontal circle gives the horizontal offsets and iron, the model's vertical component
-  (total field and inclination) the vertical offset. A fit against headings from the data
-  cannot see a rotation about the vertical; the vertical scale and its cross terms are held
-  at the prior (identity) because turning in the plane does not change the vertical field.
+  from the accelerometer; the calibrated field, levelled with them, must have the model's
+  horizontal strength H and vertical component Z at every sample — an ellipse of known radius,
+  fitted robustly. The turns (at least half a circle) give the horizontal offsets and iron,
+  Z (total field and inclination) the vertical offset. Headings come from the compass itself,
+  so a rotation about the vertical is not seen; the vertical scale and its cross terms are
+  held at the identity because turning in the plane does not change the vertical field.
 
 Each result lists what it could not determine in ``extra["undetermined"]``
 (``{"PARAM": "the value assumed and why"}``).
@@ -27,11 +27,14 @@ from ..constants import STILL_RATE
 from ..errors import InsufficientDataError
 from ..geomag import ned_field
 from .attitude_reference import calibration_from_fit
-from .reference_fit import ReferenceFit, fit_reference
+from .reference_fit import CAUCHY_WIDTH, ReferenceFit
 from .mount_rotations import mount_rotations
 
-#: Rounds of (headings from the calibration → reference fit) in the planar fit.
-PLANAR_ROUNDS = 12
+#: The planar fit refuses when a horizontal offset is less certain than this (µT, 1 σ), or
+#: when the headings cover less than MIN_ARC_DEG of the circle (on simulated rovers an arc of
+#: 150–175° left the offsets 0.8–1.3 µT off with σ ≈ 0.2 µT: the iron trades with them).
+PLANAR_MAX_SIGMA_UT = 1.0
+MIN_ARC_DEG = 180.0
 #: Entries of the iron a vehicle turning in the plane cannot see (held at the identity).
 VERTICAL_IRON = ("A33", "A13", "A23")
 #: Median and 99.9 % point of a χ² with 2 degrees of freedom.
@@ -108,33 +111,77 @@ def fit_heading(track, heading_deg: float, ref: dict, initial: Calibration | Non
     return cal.replace(method="known_heading", kernel=None, extra=extra)
 
 
-def _headings(fit: ReferenceFit, m: np.ndarray, down: np.ndarray, b_ned: np.ndarray) -> np.ndarray:
-    """Yaw (degrees) of each sample: the tilt-compensated heading of the fit's calibrated
-    field, turned so that its horizontal part points where the model's does."""
-    f = fit.body_field(m)
-    level = tilt_rotation(down, 0.0).apply(f)         # body → a level frame with yaw 0
-    return np.degrees(np.arctan2(b_ned[1], b_ned[0]) - np.arctan2(level[:, 1], level[:, 0]))
+def heading_arc_deg(yaw_deg) -> float:
+    """Degrees of the circle the headings cover: 360 minus the largest gap between them."""
+    h = np.sort(np.mod(np.asarray(yaw_deg, float), 360.0))
+    if len(h) < 2:
+        return 0.0
+    gaps = np.diff(np.r_[h, h[0] + 360.0])
+    return float(360.0 - gaps.max())
+
+
+def _planar_parts(theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(A (3,3), b (3,)) of the planar parameters (A11, A22, A12, bx, by, bz); the vertical
+    row and column of A held at the identity's."""
+    a11, a22, a12, bx, by, bz = theta
+    return np.array([[a11, a12, 0.0], [a12, a22, 0.0], [0.0, 0.0, 1.0]]), np.array([bx, by, bz])
+
+
+def _level_field(theta, m, tilt: Rotation) -> np.ndarray:
+    """The calibrated field ``A⁻¹ (m − b)`` turned into a level frame (yaw unknown), (N,3)."""
+    A, b = _planar_parts(theta)
+    return tilt.apply(np.linalg.solve(A, (m - b).T).T)
 
 
 def fit_planar(track, ref: dict) -> Calibration:
-    """Offsets and horizontal iron of a vehicle turning in the plane (module docstring)."""
+    """Offsets and horizontal iron of a vehicle turning in the plane (module docstring).
+
+    A robust (Cauchy) least squares over (A11, A22, A12, bx, by, bz): the calibrated field,
+    levelled with the accelerometer's roll and pitch, must have the model's horizontal
+    strength H and vertical component Z at every sample — an ellipse of known radius, which
+    locates the centre also from part of a circle. Raises InsufficientDataError when the
+    horizontal offsets come out less certain than :data:`PLANAR_MAX_SIGMA_UT` (too short an
+    arc of headings)."""
+    from scipy.optimize import least_squares
+
     m, down = _mag_and_down(track)
     b_ned = ned_field(ref)
-    F = ref["intensity_uT"]
-    # start: offsets at the middle of the readings' horizontal extent, no iron
-    fit = ReferenceFit(rotation=mount_rotations()[0], A=np.eye(3),
-                       b=(np.percentile(m, 97.5, axis=0) + np.percentile(m, 2.5, axis=0)) / 2)
-    fit.b[2] = np.median(m[:, 2]) - b_ned[2]
-    for _ in range(PLANAR_ROUNDS):
-        yaw = _headings(fit, m, down, b_ned)
-        e = tilt_rotation(down, yaw).inv().apply(b_ned)
-        fit = fit_reference(m, e, b0=fit.b, weights=fit.weights, hold=VERTICAL_IRON)
-    # the headings come from the data, so the horizontal residual along the circle is zero:
-    # the residual has two degrees of freedom (radial, vertical), and the inliers follow χ²₂
-    r2 = np.sum((fit.body_field(m) @ fit.A.T - e) ** 2, axis=1)
-    scale2 = np.median(r2) / CHI2_2_MEDIAN
-    fit.inliers = r2 <= CHI2_2_INLIER * scale2
-    fit.rms = float(np.sqrt(np.mean(r2[fit.inliers])))
+    F, H, Z = ref["intensity_uT"], float(np.hypot(b_ned[0], b_ned[1])), float(b_ned[2])
+    tilt = tilt_rotation(down, 0.0)
+
+    def residual(theta):
+        g = _level_field(theta, m, tilt)
+        return np.concatenate([np.hypot(g[:, 0], g[:, 1]) - H, g[:, 2] - Z])
+
+    centre = (np.percentile(m, 97.5, axis=0) + np.percentile(m, 2.5, axis=0)) / 2
+    theta = np.array([1.0, 1.0, 0.0, centre[0], centre[1], np.median(m[:, 2]) - Z])
+    scale = 5.0
+    for _ in range(3):      # the Cauchy width follows the robust scale of the residual
+        sol = least_squares(residual, theta, loss="cauchy", f_scale=CAUCHY_WIDTH * scale,
+                            x_scale=[0.1, 0.1, 0.1, 10.0, 10.0, 10.0])
+        theta = sol.x
+        r = sol.fun.reshape(2, -1).T
+        r2 = np.sum(r * r, axis=1)
+        scale = max(float(np.sqrt(np.median(r2) / CHI2_2_MEDIAN)), 1e-3)
+    J = sol.jac
+    cov = np.linalg.pinv(J.T @ J) * scale ** 2
+    sigma = np.sqrt(np.diag(cov))
+    g = _level_field(theta, m, tilt)
+    arc = heading_arc_deg(np.degrees(np.arctan2(b_ned[1], b_ned[0]) - np.arctan2(g[:, 1], g[:, 0])))
+    if arc < MIN_ARC_DEG or max(sigma[3], sigma[4]) > PLANAR_MAX_SIGMA_UT:
+        raise InsufficientDataError(
+            f"--planar: {arc:.0f}° of heading (need {MIN_ARC_DEG:g}°) give the horizontal "
+            f"offsets to ±{max(sigma[3], sigma[4]):.2g} µT (limit {PLANAR_MAX_SIGMA_UT:g}), and "
+            "a short arc lets the iron trade with them beyond that: turn the vehicle through at "
+            "least half a circle, or use --heading DEG at a known heading")
+    A, b = _planar_parts(theta)
+    inliers = r2 <= CHI2_2_INLIER * scale ** 2
+    fit = ReferenceFit(
+        rotation=mount_rotations()[0], A=A, b=b,
+        weights=1.0 / (1.0 + r2 / (CAUCHY_WIDTH * scale) ** 2), scale=scale,
+        rms=float(np.sqrt(np.mean(r2[inliers]))), inliers=inliers,
+        held={name: 1.0 for name in VERTICAL_IRON},
+        sigma=dict(zip(("A11", "A22", "A12", "bx", "by", "bz"), map(float, sigma))))
     undetermined = {name: ("held at the identity's value: turning in the plane does not "
                            "change the vertical field, so the vertical scale and its cross terms "
                            "cannot be told from the vertical offset" if share >= 1 else
@@ -143,5 +190,10 @@ def fit_planar(track, ref: dict) -> Calibration:
     undetermined["heading offset"] = ("a rotation about the vertical (a yaw mounting error) is "
                                       "not seen: the headings come from the compass itself")
     undetermined["orientation"] = "assumed NONE (the compass axes are the vehicle's)"
-    cal = calibration_from_fit(fit, F, f"planar turns ({len(m)} samples)", undetermined)
-    return cal.replace(method="planar")
+    cal = calibration_from_fit(fit, F, f"planar turns ({len(m)} samples, {arc:.0f}° of "
+                                       "heading)", undetermined)
+    extra = dict(cal.extra)
+    extra["planar"] = {"heading_arc_deg": round(arc, 1),
+                       "sigma": {k: round(v, 4) for k, v in fit.sigma.items()},
+                       "reference": ref["source"]}
+    return cal.replace(method="planar", extra=extra)

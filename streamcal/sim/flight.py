@@ -12,7 +12,8 @@ the offset and ``g`` the interference per ampere, all in the body frame. The acc
 reads the specific force of a vehicle without linear acceleration, ``Rᵀ (0, 0, −g)``.
 ``kind``:
 
-* ``"flight"``: yaw sweeps through every heading, roll and pitch wander ±``tilt_deg``;
+* ``"flight"``: yaw sweeps ``turns`` times through every heading (plus a wander of ~20°), roll
+  and pitch wander ±``tilt_deg``;
 * ``"rover"``: the same with roll and pitch within ±``tilt_deg`` (default 2°): planar;
 * ``"still"``: at rest at ``heading_deg``, level within ±0.5°.
 """
@@ -32,7 +33,8 @@ LAT, LON, DATE = 47.3977, 8.5456, "2025-06-01"
 def simulated_log(kind: str = "flight", duration_s: float = 120.0, seed: int = 0, *,
                   rate_hz: float = 10.0, b_ned=None, S=None, b_body=(12.0, -7.0, 20.0),
                   mount=None, current_gain=None, noise_uT: float = 0.3, tilt_deg=None,
-                  heading_deg: float = 0.0, accel_noise: float = 0.05, lat: float = LAT,
+                  heading_deg: float = 0.0, turns: float = 2.0, accel_noise: float = 0.05,
+                  lat: float = LAT,
                   lon: float = LON, date: str = DATE) -> tuple[Track, dict]:
     """(track, truth): mag µT in the sensor frame, accel m/s² in the body frame, the attitude
     as ``att_q*`` columns, the GPS position in the metadata; ``battery_current_a`` when
@@ -54,7 +56,7 @@ def simulated_log(kind: str = "flight", duration_s: float = 120.0, seed: int = 0
         yaw = np.full(n, heading_deg)
         tilt = 0.5 if tilt_deg is None else tilt_deg
     else:
-        yaw = heading_deg + 720.0 * t / duration_s + smooth_noise(n, 1 / rate_hz, 2.0, 20.0, rng, 1)[:, 0]
+        yaw = heading_deg + 360.0 * turns * t / duration_s + smooth_noise(n, 1 / rate_hz, 2.0, 20.0, rng, 1)[:, 0]
         tilt = (20.0 if kind == "flight" else 2.0) if tilt_deg is None else tilt_deg
     rp = smooth_noise(n, 1 / rate_hz, 1.5, tilt / 2, rng, 2)
     rp = np.clip(rp, -tilt, tilt)
