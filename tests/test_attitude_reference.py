@@ -234,3 +234,30 @@ def test_report_shows_the_attitude_reference(tmp_path):
     assert fig.title in (tmp_path / "r.html").read_text(encoding="utf-8")
     cols = {k: v for k, v in track.columns.items() if not k.startswith("att_")}
     assert attitude_reference_figure(type(track)(cols, track.metadata)) is None
+
+
+def test_cli_fit_attitude_and_its_refusals(tmp_path):
+    gain = np.array([0.2, -0.1, 0.3])
+    mount = by_name("YAW_90").matrix
+    track, _ = simulated_log("flight", mount=mount, S=S_TRUE, b_body=B_TRUE, current_gain=gain)
+    path = tmp_path / "flight.csv"
+    track.write(path)
+
+    def fit(*argv):
+        return subprocess.run([sys.executable, "-m", "streamcal", "fit", str(path), *argv],
+                              capture_output=True, text=True, timeout=600)
+
+    run = fit("--attitude", "--add", "aux_interference", "--json")
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    assert out["orientation"]["name"] == "YAW_90"
+    g = out["effects"]["aux_interference"]["channels"]["battery_current_a"]["g"]
+    assert np.allclose(g, mount.T @ gain, atol=0.01)      # sensor frame
+    bad = fit("--attitude", "--add", "temperature_offset")
+    assert bad.returncode == 2 and "--add temperature_offset" in bad.stderr
+    bad = fit("--attitude", "--add", "aux_interference=nope")
+    assert bad.returncode == 2 and "battery_current_a" in bad.stderr
+    meta = {k: v for k, v in track.metadata.items() if not k.startswith("gps_")}
+    type(track)(track.columns, meta).write(path)
+    nogps = fit("--attitude")
+    assert nogps.returncode == 1 and "GPS" in nogps.stderr

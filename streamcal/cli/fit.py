@@ -51,8 +51,9 @@ def register(sub) -> None:
                           "model's inclination and total field")
     how.add_argument("--attitude", action="store_true",
                      help="fit against the log's attitude: the model field at its GPS position "
-                          "rotated by the logged attitude (offsets, iron, the aux channels of "
-                          "--add aux_interference=CHANNEL, the compass's mounting rotation)")
+                          "rotated by the logged attitude (offsets, iron, the compass's mounting "
+                          "rotation; with --add aux_interference[=CHANNEL] a motor term on the "
+                          "battery current, else the throttle, or CHANNEL)")
     add_location_options(p)
     p.set_defaults(func=run)
 
@@ -71,6 +72,35 @@ def _tau(value):
     return tau
 
 
+#: The channel ``fit --attitude --add aux_interference`` takes when none is named: the first
+#: of these the track has (the signals the autopilots compensate).
+MOTOR_SIGNALS = ("battery_current_a", "throttle")
+
+
+def _motor_channels(args, track) -> list[str]:
+    """The channels of ``--add aux_interference[=NAME]`` for ``--attitude`` (InputError for
+    another effect or a channel the track lacks)."""
+    from ..errors import InputError
+
+    out = []
+    for item in args.add:
+        name, _, channel = item.partition("=")
+        if name != "aux_interference":
+            raise InputError(f"--attitude fits offsets, iron and aux_interference; --add {item} "
+                             "is not one of them")
+        if not channel:
+            channel = next((c for c in MOTOR_SIGNALS if track.has(c)), None)
+            if channel is None:
+                raise InputError("--add aux_interference: the track has neither "
+                                 f"{' nor '.join(MOTOR_SIGNALS)}; name a channel "
+                                 f"(aux_interference=NAME) of: {', '.join(track.aux_names) or 'none'}")
+        elif not track.has(channel):
+            raise InputError(f"--add aux_interference={channel}: no such channel in the track "
+                             f"(channels: {', '.join(track.aux_names) or 'none'})")
+        out.append(channel)
+    return out
+
+
 def _no_tumble(args, track, initial):
     """The calibration of ``--heading`` / ``--planar`` against the model field at
     ``--lat/--lon/--date`` or the log's GPS position."""
@@ -78,6 +108,12 @@ def _no_tumble(args, track, initial):
     from ..fitting.attitude_reference import log_location
     from ..fitting.no_tumble import fit_heading, fit_planar
 
+    if args.sensor != "mag":
+        raise InputError("--heading, --planar and --attitude calibrate the magnetometer "
+                         "(--sensor mag)")
+    if (args.add and not args.attitude) or args.model != ",".join(DEFAULT_MODEL):
+        raise InputError("--heading and --planar fit offsets and iron, --attitude also "
+                         "--add aux_interference[=CHANNEL]; --model and other --add do not apply")
     ref = location_reference(args)
     if ref is None and not args.attitude:
         ref, why = log_location(track)
@@ -89,8 +125,7 @@ def _no_tumble(args, track, initial):
     if args.attitude:
         from ..fitting.attitude_reference import fit_attitude_reference
 
-        channels = [a.split("=", 1)[1] for a in args.add if a.startswith("aux_interference=")]
-        return fit_attitude_reference(track, ref, channels)
+        return fit_attitude_reference(track, ref, _motor_channels(args, track))
     return fit_heading(track, args.heading, ref, initial)
 
 
