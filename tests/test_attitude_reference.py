@@ -261,3 +261,36 @@ def test_cli_fit_attitude_and_its_refusals(tmp_path):
     type(track)(track.columns, meta).write(path)
     nogps = fit("--attitude")
     assert nogps.returncode == 1 and "GPS" in nogps.stderr
+
+
+def test_mounting_advice_composes_with_the_configured_rotation():
+    from streamcal.fitting.attitude_reference import mounting_advice
+    from streamcal.fitting.mount_rotations import by_number
+
+    ardupilot = {"input_format": "ardupilot-dataflash", "param.COMPASS_ORIENT": "8"}
+    # MAG is logged after COMPASS_ORIENT 8 (ROLL_180); a further YAW_90 makes ROLL_180_YAW_90
+    # (10): Rz(90) Rx(180)
+    advice = mounting_advice(ardupilot, by_name("YAW_90"))
+    assert advice["configured"]["value"] == 8 and advice["set"]["value"] == 10
+    assert mounting_advice(ardupilot, by_name("NONE"))["set"]["value"] == 8
+    # PX4's sensor_mag is the sensor's own frame: the rotation found is the one to set
+    px4 = {"input_format": "px4-ulog", "mag_cal_params": "CAL_MAG1_", "mag_calibrated_by_px4": "no",
+           "param.CAL_MAG1_ROT": "-1"}
+    advice = mounting_advice(px4, by_name("ROLL_180"))
+    assert advice["set"] == {"param": "CAL_MAG1_ROT", "value": 8}
+    assert mounting_advice({"input_format": "track"}, by_name("ROLL_180")) == {}
+    # ArduPilot's 26 (PITCH_180_YAW_90) is the matrix of 14 (ROLL_180_YAW_270)
+    assert by_number(26).ardupilot == 14
+
+
+def test_export_sets_the_combined_orientation():
+    from streamcal.export import export
+    from streamcal.fitting.attitude_reference import fit_attitude_reference
+
+    track, _ = simulated_log("flight", mount=by_name("YAW_90").matrix, b_body=B_TRUE)
+    meta = dict(track.metadata, input_format="ardupilot-dataflash")
+    meta["param.COMPASS_ORIENT"] = "8"
+    cal = fit_attitude_reference(type(track)(track.columns, meta))
+    assert cal.extra["orientation"]["set"]["value"] == 10
+    text = export(cal, "ardupilot")[0]
+    assert "COMPASS_ORIENT,10" in text.splitlines()

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from .common import correction, fmt, motor_channel, mounting
+from .common import correction, fmt, motor_channel, mounting, orientation_words
 
 MG_PER_UT = 10.0
 #: COMPASS_MOTCT of each motor-compensation channel kind.
@@ -79,7 +79,7 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                      f"(COMPASS_MOTCT {motct}: {'current, mG/A' if motct == 2 else 'throttle 0..1, mG'})")
     if orient is not None:
         lines.append(f"# COMPASS_ORIENT {orient}: the compass is mounted rotated "
-                     f"({cal.extra['orientation']['name']}); offsets and matrix are in the "
+                     f"({orientation_words(cal)}); offsets and matrix are in the "
                      "vehicle frame after that rotation (ArduPilot 4.x order)")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
     lines += [f"{name},{fmt(value)}" for name, value in params.items()]

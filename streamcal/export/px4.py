@@ -31,7 +31,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
-from .common import correction, fmt, motor_channel, mounting
+from .common import correction, fmt, motor_channel, mounting, orientation_words
 
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
@@ -104,7 +104,7 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         lines.append(f"1\t1\tCAL_MAG_COMP_TYP\t{comp_type}\t{INT_TYPE}")
     if orient is not None:
         lines.insert(2, f"# CAL_MAG0_ROT {orient}: the compass is mounted rotated "
-                        f"({cal.extra['orientation']['name']}); PX4 applies it after the "
+                        f"({orientation_words(cal)}); PX4 applies it after the "
                         "offsets and scale")
         lines.append(f"1\t1\tCAL_MAG0_ROT\t{orient}\t{INT_TYPE}")
     return "\n".join(lines) + "\n", notes

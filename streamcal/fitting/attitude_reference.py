@@ -263,8 +263,41 @@ def attitude_reference(track, cal_before: Calibration | None = None,
     }
     if note:
         out["note"] = note
-    orientation = None if note else as_dict(fit.rotation, angle)
+    orientation = None if note else {**as_dict(fit.rotation, angle),
+                                     **mounting_advice(track.metadata, fit.rotation)}
     return {"attitude_reference": out, "orientation": orientation}
+
+
+def mounting_advice(meta, found) -> dict:
+    """What a mounting rotation ``found`` (relative to the frame of the readings) means for the
+    autopilot's parameter: ``{"configured": {"param", "value"}, "set": {"param", "value"}}``.
+
+    ArduPilot's MAG and PX4's calibrated topics are logged after the configured rotation
+    (COMPASS_ORIENT, CAL_MAGn_ROT), so the rotation to set is ``found`` after it; PX4's
+    ``sensor_mag`` is the sensor's own frame, so it is ``found`` itself. ``{}`` when the
+    log names no such parameter; ``"value": None`` when the product is not a numbered
+    rotation."""
+    from .mount_rotations import by_number, matching
+
+    meta = dict(meta or {})
+    if meta.get("input_format") == "ardupilot-dataflash":
+        param, firmware, logged_after = "COMPASS_ORIENT", "ardupilot", True
+    elif meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
+        param = meta["mag_cal_params"] + "ROT"
+        firmware, logged_after = "px4", meta.get("mag_calibrated_by_px4") == "yes"
+    else:
+        return {}
+    try:
+        configured = max(int(float(meta[f"param.{param}"])), 0)   # PX4: -1 = internal, none
+    except (KeyError, ValueError):
+        return {}
+    base = by_number(configured, firmware)
+    if base is None:
+        total = None
+    else:
+        total = matching(found.matrix @ base.matrix) if logged_after else found
+    return {"configured": {"param": param, "value": configured},
+            "set": {"param": param, "value": None if total is None else getattr(total, firmware)}}
 
 
 def log_attitude_reference(track, ref: dict | None = None,
@@ -330,9 +363,10 @@ def fit_attitude_reference(track, ref: dict | None = None, channels=()) -> Calib
                                f"attitude reference ({data.ref['source']} at the log's position, "
                                f"logged attitude, {len(data.t)} samples)", undetermined)
     extra = dict(cal.extra)
+    advice = mounting_advice(track.metadata, fit.rotation)
     if fit.rotation.name != "NONE":
-        extra["orientation"] = as_dict(fit.rotation, residual_rotation_deg(
-            fit.body_field(data.m, data.cov), data.expected, fit.weights))
+        extra["orientation"] = {**as_dict(fit.rotation, residual_rotation_deg(
+            fit.body_field(data.m, data.cov), data.expected, fit.weights)), **advice}
     return cal.replace(extra=extra)
 
 

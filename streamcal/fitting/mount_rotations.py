@@ -66,7 +66,7 @@ def euler_matrix(roll: float, pitch: float, yaw: float) -> np.ndarray:
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
-    return bool(np.allclose(a, b, atol=1e-9))
+    return bool(np.allclose(a, b, atol=1e-6))
 
 
 @lru_cache(maxsize=1)
@@ -99,3 +99,22 @@ def as_dict(rot: MountRotation, angle_error_deg: float | None) -> dict:
     """The ``orientation`` object of the JSON outputs (docs/flight_logs.md)."""
     return {"name": rot.name, "ardupilot": rot.ardupilot, "px4": rot.px4,
             "angle_error_deg": None if angle_error_deg is None else round(float(angle_error_deg), 2)}
+
+
+def by_number(number: int, firmware: str = "ardupilot") -> MountRotation | None:
+    """The table's rotation that ``firmware`` (``"ardupilot"``/``"px4"``) calls ``number``
+    (ArduPilot's duplicates 26 and 27 give the entry with their matrix); None for a number
+    outside the 90°/45°-yaw set."""
+    rows = _SHARED + (_PX4_ONLY if firmware == "px4" else ())
+    for n, _, r, p, y in rows:
+        if n == number:
+            return matching(euler_matrix(r, p, y))
+    return None
+
+
+def matching(matrix: np.ndarray) -> MountRotation | None:
+    """The table's rotation with this matrix (3,3), None when there is none."""
+    for rot in mount_rotations():
+        if _same(rot.matrix, np.asarray(matrix, float)):
+            return rot
+    return None
