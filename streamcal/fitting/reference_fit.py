@@ -182,7 +182,8 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
 def detect_rotation(m, expected, channels: dict | None = None,
                     candidates=None) -> tuple[ReferenceFit, list[tuple[str, float]]]:
     """The mounting rotation whose fit matches ``expected`` best (smallest robust scale; A
-    held at the identity so that no rotation can hide in it; NONE, the first candidate, unless
+    held at a multiple of the identity — the gain of the readings' spread over the expected
+    field's — so that no rotation can hide in it; NONE, the first candidate, unless
     the best beats it by :data:`ROTATION_MARGIN`; compared on :data:`DETECT_SAMPLES` samples),
     refitted on every sample with A free.
 
@@ -192,9 +193,14 @@ def detect_rotation(m, expected, channels: dict | None = None,
     m, expected = np.asarray(m, float), np.asarray(expected, float)
     pick = np.unique(np.linspace(0, len(m) - 1, min(len(m), DETECT_SAMPLES)).astype(int))
     sub = {k: np.asarray(v, float)[pick] for k, v in (channels or {}).items()}
+    # one gain for every candidate, from the spreads (blind to rotations and offsets): a
+    # compass reading 30 % low must not make the right rotation look as bad as a wrong one
+    gain = float(np.sqrt(np.trace(np.cov(m[pick].T)) / max(np.trace(np.cov(expected[pick].T)),
+                                                            1e-12)))
+    gain = gain if np.isfinite(gain) and gain > 0 else 1.0
     scores = []
     for rot in candidates:
-        f = fit_reference(m[pick], expected[pick], sub, rotation=rot, fixed_A=np.eye(3))
+        f = fit_reference(m[pick], expected[pick], sub, rotation=rot, fixed_A=gain * np.eye(3))
         scores.append((rot.name, f.scale, rot, f))
     none = scores[0]
     scores.sort(key=lambda s: s[1])
