@@ -9,8 +9,9 @@ Expected body-frame field of each magnetometer sample ``j``::
 position and date (or ``--lat/--lon/--date``), ``R_j`` the logged attitude (body
 forward-right-down → NED; track columns ``att_q*``, interpolated to the sample). A
 calibration's body-frame field ``f_j`` is set beside it: the residual ``f_j − e_j`` (µT) and
-the heading error, the angle between the horizontal parts of ``R_j f_j`` and ``B_NED`` (the
-error a compass heading would have; positive east of the expected).
+the heading error, the angle between the horizontal parts of ``R_j f_j`` and ``B_NED`` (its
+size is the error a compass heading would have; positive when the measured field points east
+of the model's, which makes the compass heading read west of the true one).
 
 "Before" is a calibration in force (the autopilot's, :mod:`streamcal.inputs.autopilot_cal`)
 or, without one, the readings as logged; "after" is the robust fit against the reference
