@@ -325,3 +325,13 @@ def test_real_log_turned_by_a_mounting_is_recognised(flight_dir, mount):
     # the same field in another frame: the fit after undoing the mounting is the same
     assert out["attitude_reference"]["rms_uT_after"] == pytest.approx(
         base["attitude_reference"]["rms_uT_after"], rel=1e-3)
+
+
+def test_diagnose_plots_include_the_attitude_reference(tmp_path):
+    track, _ = simulated_log("flight", duration_s=60, S=S_TRUE, b_body=B_TRUE)
+    path = tmp_path / "flight.csv"
+    track.write(path)
+    run = subprocess.run([sys.executable, "-m", "streamcal", "diagnose", str(path), "--plots",
+                          str(tmp_path / "plots")], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    assert (tmp_path / "plots" / "attitude_reference.png").read_bytes().startswith(b"\x89PNG")
