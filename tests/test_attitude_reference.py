@@ -335,3 +335,20 @@ def test_diagnose_plots_include_the_attitude_reference(tmp_path):
                           str(tmp_path / "plots")], capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     assert (tmp_path / "plots" / "attitude_reference.png").read_bytes().startswith(b"\x89PNG")
+
+
+def test_readings_that_do_not_follow_the_attitude_are_said_so():
+    from streamcal.errors import InsufficientDataError
+    from streamcal.fitting.attitude_reference import fit_attitude_reference
+
+    track, _ = simulated_log("flight", b_body=B_TRUE, seed=1)
+    other, _ = simulated_log("flight", b_body=B_TRUE, seed=2)     # another flight's attitude
+    cols = dict(track.columns)
+    cols.update({k: v for k, v in other.columns.items() if k.startswith("att_")})
+    mixed = type(track)(cols, track.metadata)
+    out = attitude_reference(mixed)
+    ref = out["attitude_reference"]
+    assert ref["rms_uT_after"] is None and "do not follow" in ref["reason"]
+    assert ref["rms_uT_before"] > 20 and out["orientation"] is None
+    with pytest.raises(InsufficientDataError, match="do not follow"):
+        fit_attitude_reference(mixed)

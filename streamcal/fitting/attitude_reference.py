@@ -38,6 +38,9 @@ CAVEAT = ("the logged attitude is the autopilot's estimate and its yaw is itself
           "crustal fields)")
 #: Fewer samples than this in the window: no reference.
 MIN_SAMPLES = 50
+#: Eigenvalues of the fitted A (the compass's gain against the model) outside this range
+#: mean the readings do not follow the reference at all.
+GAIN_RANGE = (0.25, 4.0)
 #: Attitudes that turn the expected field by less than this (µT, largest standard deviation
 #: along an axis) cannot tell soft iron from offsets, nor a mounting rotation.
 MIN_SPREAD_UT = 5.0
@@ -200,6 +203,17 @@ def reference_fit(data: AttitudeData, channels=(), detect: bool = True) -> tuple
     return fit_reference(data.m, data.expected, chans), ""
 
 
+def implausible(fit: ReferenceFit) -> str:
+    """Why the fit cannot be a calibration (its gains outside :data:`GAIN_RANGE`), or ""."""
+    gains = np.linalg.eigvalsh(fit.A)
+    if gains.min() >= GAIN_RANGE[0] and gains.max() <= GAIN_RANGE[1]:
+        return ""
+    return (f"the readings do not follow the attitude reference: the fitted gains against the "
+            f"model are {gains.min():.2g}..{gains.max():.2g} (plausible "
+            f"{GAIN_RANGE[0]:g}..{GAIN_RANGE[1]:g}); the logged yaw may not come from this "
+            "compass, or the place or date is wrong")
+
+
 def _stats(data: AttitudeData, field: np.ndarray, keep: np.ndarray) -> tuple[float, float, float]:
     res = np.linalg.norm(field[keep] - data.expected[keep], axis=1)
     head = np.abs(heading_error_deg(data.q[keep], field[keep], data.b_ned))
@@ -228,7 +242,9 @@ def attitude_reference(track, cal_before: Calibration | None = None,
             aux_interference that the track has).
         detect: look for a mounting rotation.
 
-    Without attitude or position every number is null and ``reason`` says why.
+    Without attitude or position every number is null and ``reason`` says why; when the fit
+    against the reference is no calibration (:func:`implausible`), the "after" numbers and the
+    orientation are null, ``reason`` says why, and "before" is on every sample of the window.
     """
     data, why = attitude_data(track, ref)
     if data is None:
@@ -237,19 +253,26 @@ def attitude_reference(track, cal_before: Calibration | None = None,
         aux = dict((cal_before.effects if cal_before else {}).get("aux_interference") or {})
         channels = list(aux.get("channels", {}))
     fit, note = reference_fit(data, channels, detect)
-    after_cal = cal_after or calibration_from_fit(fit, data.ref["intensity_uT"],
-                                                  "attitude reference fit")
-    keep = fit.inliers
+    failed = implausible(fit) if cal_after is None else ""
+    keep = fit.inliers if not failed else np.ones(len(data.t), dtype=bool)
     before = body_field(cal_before, data.m, data.cov) if cal_before is not None else data.m
-    after = body_field(after_cal, data.m, data.cov)
     rb, hb, pb = _stats(data, before, keep)
-    ra, ha, pa = _stats(data, after, keep)
-    angle = residual_rotation_deg(fit.body_field(data.m, data.cov) if cal_after is None
-                                  else after, data.expected, fit.weights)
+    ra = ha = pa = angle = None
+    if not failed:
+        after_cal = cal_after or calibration_from_fit(fit, data.ref["intensity_uT"],
+                                                      "attitude reference fit")
+        after = body_field(after_cal, data.m, data.cov)
+        ra, ha, pa = _stats(data, after, keep)
+        angle = residual_rotation_deg(fit.body_field(data.m, data.cov) if cal_after is None
+                                      else after, data.expected, fit.weights)
+
+    def r(v, digits):
+        return None if v is None else round(v, digits)
+
     out = {
-        "rms_uT_before": round(rb, 3), "rms_uT_after": round(ra, 3),
-        "heading_error_deg": {"rms_before": round(hb, 2), "rms_after": round(ha, 2),
-                              "p95_before": round(pb, 2), "p95_after": round(pa, 2)},
+        "rms_uT_before": round(rb, 3), "rms_uT_after": r(ra, 3),
+        "heading_error_deg": {"rms_before": round(hb, 2), "rms_after": r(ha, 2),
+                              "p95_before": round(pb, 2), "p95_after": r(pa, 2)},
         "window_s": [round(float(data.t[0]), 3), round(float(data.t[-1]), 3)],
         "caveat": CAVEAT,
         "n": int(keep.sum()), "n_outliers": int((~keep).sum()),
@@ -264,8 +287,10 @@ def attitude_reference(track, cal_before: Calibration | None = None,
     }
     if note:
         out["note"] = note
-    orientation = None if note else {**as_dict(fit.rotation, angle),
-                                     **mounting_advice(track.metadata, fit.rotation)}
+    if failed:
+        out.update(reason=failed, after=None, undetermined={})
+    orientation = None if note or failed else {**as_dict(fit.rotation, angle),
+                                               **mounting_advice(track.metadata, fit.rotation)}
     return {"attitude_reference": out, "orientation": orientation}
 
 
@@ -357,6 +382,9 @@ def fit_attitude_reference(track, ref: dict | None = None, channels=()) -> Calib
     if data is None:
         raise InsufficientDataError(f"no attitude reference: {why}")
     fit, note = reference_fit(data, channels)
+    failed = implausible(fit)
+    if failed:
+        raise InsufficientDataError(f"no fit against the attitude reference: {failed}")
     undetermined = held_parameters(fit)
     if note:
         undetermined["orientation"] = f"assumed NONE: {note}"
