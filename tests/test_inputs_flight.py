@@ -1,5 +1,5 @@
-"""Real flight-controller logs (../shared/data/real/flight): read, convert, offsets undone,
-truncated copies refused."""
+"""Real flight-controller logs (data/real/flight under STREAMCAL_SHARED): read, convert, offsets
+undone, truncated copies refused."""
 import shutil
 from pathlib import Path
 
