@@ -273,6 +273,11 @@ def test_mounting_advice_composes_with_the_configured_rotation():
     advice = mounting_advice(ardupilot, by_name("YAW_90"))
     assert advice["configured"]["value"] == 8 and advice["set"]["value"] == 10
     assert mounting_advice(ardupilot, by_name("NONE"))["set"]["value"] == 8
+    # the second parameter set (a log's second compass): COMPASS_ORIENT2
+    second = {"input_format": "ardupilot-dataflash", "compass_params_index": "1",
+              "param.COMPASS_ORIENT2": "0", "param.COMPASS_ORIENT": "8"}
+    assert mounting_advice(second, by_name("YAW_90"))["set"] == {"param": "COMPASS_ORIENT2",
+                                                                 "value": 2}
     # PX4's sensor_mag is the sensor's own frame: the rotation found is the one to set
     px4 = {"input_format": "px4-ulog", "mag_cal_params": "CAL_MAG1_", "mag_calibrated_by_px4": "no",
            "param.CAL_MAG1_ROT": "-1"}

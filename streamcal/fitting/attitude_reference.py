@@ -307,7 +307,10 @@ def mounting_advice(meta, found) -> dict:
 
     meta = dict(meta or {})
     if meta.get("input_format") == "ardupilot-dataflash":
-        param, firmware, logged_after = "COMPASS_ORIENT", "ardupilot", True
+        # COMPASS_ORIENT, COMPASS_ORIENT2, … of the parameter set the compass read uses
+        index = int(float(meta.get("compass_params_index", 0) or 0))
+        param = "COMPASS_ORIENT" + (str(index + 1) if index else "")
+        firmware, logged_after = "ardupilot", True
     elif meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
         param = meta["mag_cal_params"] + "ROT"
         firmware, logged_after = "px4", meta.get("mag_calibrated_by_px4") == "yes"
