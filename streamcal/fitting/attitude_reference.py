@@ -150,7 +150,8 @@ def calibration_from_fit(fit: ReferenceFit, field_uT: float, source: str,
     if fit.g:
         model.append("aux_interference")
         effects["aux_interference"] = {"channels": {
-            name: {"a0": fit.a0[name], "g": [float(v) for v in Rt @ g]} for name, g in fit.g.items()}}
+            name: {"a0": fit.a0[name], "g": [float(v) for v in Rt @ g]}
+            for name, g in fit.g.items()}}
     w = fit.weights
     extra = {"source": source, "frame_rotation_Q": Q.tolist(),
              "note": "fitted against the expected field (World Magnetic Model rotated by the "
