@@ -273,6 +273,11 @@ def test_mounting_advice_composes_with_the_configured_rotation():
     advice = mounting_advice(ardupilot, by_name("YAW_90"))
     assert advice["configured"]["value"] == 8 and advice["set"]["value"] == 10
     assert mounting_advice(ardupilot, by_name("NONE"))["set"]["value"] == 8
+    # the second parameter set (a log's second compass): COMPASS_ORIENT2
+    second = {"input_format": "ardupilot-dataflash", "compass_params_index": "1",
+              "param.COMPASS_ORIENT2": "0", "param.COMPASS_ORIENT": "8"}
+    assert mounting_advice(second, by_name("YAW_90"))["set"] == {"param": "COMPASS_ORIENT2",
+                                                                 "value": 2}
     # PX4's sensor_mag is the sensor's own frame: the rotation found is the one to set
     px4 = {"input_format": "px4-ulog", "mag_cal_params": "CAL_MAG1_", "mag_calibrated_by_px4": "no",
            "param.CAL_MAG1_ROT": "-1"}
@@ -358,3 +363,25 @@ def test_readings_that_do_not_follow_the_attitude_are_said_so():
     assert ref["rms_uT_before"] > 20 and out["orientation"] is None
     with pytest.raises(InsufficientDataError, match="do not follow"):
         fit_attitude_reference(mixed)
+
+
+def test_px4_sensor_mag_before_is_turned_by_cal_mag_rot():
+    """PX4 corrects a sensor_mag reading as R S (r − o), R = CAL_MAGn_ROT: the calibration in
+    force, applied to a compass mounted ROLL_180 with CAL_MAG0_ROT = 8, matches the reference."""
+    from streamcal.calibration import Calibration
+    from streamcal.fitting.attitude_reference import px4_rotation
+
+    track, truth = simulated_log("flight", mount=by_name("ROLL_180").matrix, b_body=B_TRUE)
+    F = float(np.linalg.norm(truth["b_ned"]))
+    meta = dict(track.metadata, input_format="px4-ulog", mag_cal_params="CAL_MAG0_",
+                mag_calibrated_by_px4="no", **{"param.CAL_MAG0_ROT": "8"})
+    px4 = type(track)(track.columns, meta)
+    b_sensor = by_name("ROLL_180").matrix.T @ B_TRUE
+    in_force = Calibration(K=F * np.eye(3), b=b_sensor, field=F, method="px4_params")
+    assert px4_rotation(meta) == pytest.approx(by_name("ROLL_180").matrix)
+    out = attitude_reference(px4, in_force)
+    assert out["attitude_reference"]["rms_uT_before"] < 0.6
+    assert out["orientation"]["name"] == "ROLL_180"
+    assert out["orientation"]["set"] == {"param": "CAL_MAG0_ROT", "value": 8}
+    internal = dict(meta, **{"param.CAL_MAG0_ROT": "-1", "param.SENS_BOARD_ROT": "2"})
+    assert px4_rotation(internal) == pytest.approx(by_name("YAW_90").matrix)

@@ -126,7 +126,7 @@ def mounting(cal: Calibration, firmware: str) -> tuple[np.ndarray | None, int | 
     number = orient.get(firmware)
     chosen = orient.get("set") or {}
     if chosen.get("param"):
-        if (chosen["param"] == "COMPASS_ORIENT") != (firmware == "ardupilot"):
+        if chosen["param"].startswith("COMPASS_ORIENT") != (firmware == "ardupilot"):
             return None, None, [f"mounting rotation {orient['name']} was found relative to the "
                                 f"frame of {chosen['param']} = "
                                 f"{(orient.get('configured') or {}).get('value')} of the other "

@@ -138,6 +138,36 @@ def body_field(cal: Calibration, m: np.ndarray, cov: dict) -> np.ndarray:
     return (cal.field or cal.radius) * x
 
 
+def px4_rotation(meta) -> np.ndarray | None:
+    """The rotation (3,3) PX4 turns a ``sensor_mag`` reading by after its calibration:
+    CAL_MAGn_ROT for an external compass, SENS_BOARD_ROT for an internal one (ROT = −1);
+    None when it is the identity or not a numbered rotation."""
+    from .mount_rotations import by_number
+
+    prefix = meta.get("mag_cal_params")
+    if meta.get("input_format") != "px4-ulog" or not prefix:
+        return None
+    try:
+        rot = int(float(meta.get(f"param.{prefix}ROT", -1)))
+        number = rot if rot >= 0 else int(float(meta.get("param.SENS_BOARD_ROT", 0)))
+    except ValueError:
+        return None
+    found = by_number(number, "px4")
+    return None if found is None or found.name == "NONE" else found.matrix
+
+
+def before_field(track, cal: Calibration | None, data: AttitudeData) -> np.ndarray:
+    """The body-frame field (M,3) µT of the calibration in force: :func:`body_field`, turned
+    by PX4's rotation when the readings are ``sensor_mag``'s (the sensor's own frame); the
+    readings as logged when ``cal`` is None."""
+    if cal is None:
+        return data.m
+    field = body_field(cal, data.m, data.cov)
+    meta = track.metadata
+    R = px4_rotation(meta) if meta.get("mag_calibrated_by_px4") == "no" else None
+    return field if R is None else field @ R.T
+
+
 def calibration_from_fit(fit: ReferenceFit, field_uT: float, source: str,
                          undetermined: dict | None = None) -> Calibration:
     """The fit as a streamcal calibration of the readings as logged:
@@ -150,7 +180,8 @@ def calibration_from_fit(fit: ReferenceFit, field_uT: float, source: str,
     if fit.g:
         model.append("aux_interference")
         effects["aux_interference"] = {"channels": {
-            name: {"a0": fit.a0[name], "g": [float(v) for v in Rt @ g]} for name, g in fit.g.items()}}
+            name: {"a0": fit.a0[name], "g": [float(v) for v in Rt @ g]}
+            for name, g in fit.g.items()}}
     w = fit.weights
     extra = {"source": source, "frame_rotation_Q": Q.tolist(),
              "note": "fitted against the expected field (World Magnetic Model rotated by the "
@@ -255,7 +286,7 @@ def attitude_reference(track, cal_before: Calibration | None = None,
     fit, note = reference_fit(data, channels, detect)
     failed = implausible(fit) if cal_after is None else ""
     keep = fit.inliers if not failed else np.ones(len(data.t), dtype=bool)
-    before = body_field(cal_before, data.m, data.cov) if cal_before is not None else data.m
+    before = before_field(track, cal_before, data)
     rb, hb, pb = _stats(data, before, keep)
     ra = ha = pa = angle = None
     if not failed:
@@ -307,7 +338,10 @@ def mounting_advice(meta, found) -> dict:
 
     meta = dict(meta or {})
     if meta.get("input_format") == "ardupilot-dataflash":
-        param, firmware, logged_after = "COMPASS_ORIENT", "ardupilot", True
+        # COMPASS_ORIENT, COMPASS_ORIENT2, … of the parameter set the compass read uses
+        index = int(float(meta.get("compass_params_index", 0) or 0))
+        param = "COMPASS_ORIENT" + (str(index + 1) if index else "")
+        firmware, logged_after = "ardupilot", True
     elif meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
         param = meta["mag_cal_params"] + "ROT"
         firmware, logged_after = "px4", meta.get("mag_calibrated_by_px4") == "yes"
@@ -363,7 +397,7 @@ def reference_series(track, cal_before: Calibration | None = None, *, ref: dict 
     if data is None:
         return None
     fit, _ = reference_fit(data, channels)
-    before = body_field(cal_before, data.m, data.cov) if cal_before is not None else data.m
+    before = before_field(track, cal_before, data)
     after = fit.body_field(data.m, data.cov)
     return {"t": data.t, "expected": data.expected, "before": before, "after": after,
             "heading_before": heading_error_deg(data.q, before, data.b_ned),

@@ -13,8 +13,8 @@ current, the throttle), all in the body frame. The problem is linear: a robust (
 least squares with a weak Gaussian prior on every parameter — ``A`` around the identity with
 σ = :data:`PRIOR_SIGMA_A`, the rest centred on the given values — so that what the slice of
 attitudes does not determine stays at the prior instead of wandering (a level flight hardly
-tells the vertical offset from the vertical scale). Each parameter's prior share of its
-information is reported; over :data:`HELD_SHARE` it counts as held by the prior.
+tells the vertical offset from the vertical scale). A parameter whose posterior σ stays over
+:data:`HELD_SHARE` of its prior σ counts as held by the prior, and is reported.
 """
 from __future__ import annotations
 
@@ -169,8 +169,8 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
     r = target - np.einsum("nip,p->ni", Jf, theta[free])
     norm = np.linalg.norm(r, axis=1)
     inl = norm ** 2 <= CHI2_3_INLIER * scale ** 2
-    return ReferenceFit(inliers=inl, 
-        rotation=rotation, A=A, b=theta[6:9].copy(),
+    return ReferenceFit(
+        rotation=rotation, A=A, b=theta[6:9].copy(), inliers=inl,
         g={c: theta[9 + 3 * k: 12 + 3 * k].copy() for k, c in enumerate(names)},
         a0={c: float(a0[k]) for k, c in enumerate(names)}, weights=w, scale=scale,
         rms=float(np.sqrt(np.mean(norm[inl] ** 2))) if inl.any() else float("nan"),
