@@ -11,3 +11,7 @@ MAD_TO_SIGMA = 1.0 / HALF_NORMAL_MEDIAN
 STILL_RATE = 0.05
 #: A residual farther than this many kernel widths is reported an outlier.
 OUTLIER_WIDTHS = 2.0
+#: Track columns of the vehicle's logged attitude: the unit quaternion (scalar first) that turns
+#: body-frame (forward-right-down) vectors into the local NED earth frame. They are not
+#: auxiliary channels (no effect term is fitted on them).
+ATTITUDE_COLUMNS = ("att_qw", "att_qx", "att_qy", "att_qz")

@@ -1,4 +1,5 @@
-"""The local geomagnetic field as a physical reference (World Magnetic Model, WMM2025).
+"""The local geomagnetic field as a physical reference (World Magnetic Model: WMM2025, and the
+2010, 2015 and 2020 models for older recordings).
 
 :func:`wmm_field` gives the expected total intensity (µT), inclination and declination (°) at a
 place and date from ``pygeomag``, whose wheel ships the WMM coefficient files (no network at run
@@ -16,9 +17,13 @@ from __future__ import annotations
 import datetime as _dt
 import math
 
-#: Model used; the coefficient file inside ``pygeomag``.
+#: Model used for current dates; the coefficient file inside ``pygeomag``.
 MODEL = "WMM2025"
 _COF = "wmm/WMM_2025.COF"
+#: Earlier models ``pygeomag`` ships, for logs recorded before 2025: (name, file, first year);
+#: each covers five years from its first.
+_EARLIER = (("WMM2020", "wmm/WMM_2020.COF", 2020), ("WMM2015", "wmm/WMM_2015v2.COF", 2015),
+            ("WMM2010", "wmm/WMM_2010.COF", 2010))
 #: Hint thresholds: a field ratio off 1 by more than this (µT tracks) and a dip off by more
 #: than this (degrees) are worth a sentence.
 FIELD_HINT_FRACTION = 0.10
@@ -69,15 +74,28 @@ def wmm_field(lat: float, lon: float, alt_km: float = 0.0, date: _dt.date | None
         from pygeomag import GeoMag
     except ImportError:
         raise InputError("--lat/--lon need the pygeomag package (pip install pygeomag)") from None
-    model = GeoMag(coefficients_file=_COF)
+    name, cof = next(((n, f) for n, f, first in _EARLIER if first <= year < first + 5),
+                     (MODEL, _COF))
+    model = GeoMag(coefficients_file=cof)
     start, end = model.life_span
     if not start <= year < end:
-        raise InputError(f"--date {date.isoformat()}: {MODEL} covers {start:g} to {end:g}")
+        raise InputError(f"--date {date.isoformat()}: {name} covers {start:g} to {end:g}"
+                         + (" (the earliest model shipped)" if year < start else ""))
     r = model.calculate(glat=lat, glon=lon, alt=alt_km, time=year, allow_date_outside_lifespan=True)
-    return {"source": MODEL, "lat": lat, "lon": lon, "alt_km": alt_km, "date": date.isoformat(),
+    return {"source": name, "lat": lat, "lon": lon, "alt_km": alt_km, "date": date.isoformat(),
             "decimal_year": round(year, 4), "intensity_uT": round(r.f / 1000.0, 4),
             "inclination_deg": round(r.i, 3), "declination_deg": round(r.d, 3),
             "caution": bool(r.h < 6000.0)}
+
+
+def ned_field(ref: dict):
+    """The field of :func:`wmm_field`'s result as a (3,) vector in µT, north-east-down."""
+    import numpy as np
+
+    f = ref["intensity_uT"]
+    inc, dec = np.radians(ref["inclination_deg"]), np.radians(ref["declination_deg"])
+    h = f * np.cos(inc)
+    return np.array([h * np.cos(dec), h * np.sin(dec), f * np.sin(inc)])
 
 
 def compare(ref: dict | None, fitted_field: float | None, unit: str,

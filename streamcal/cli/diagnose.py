@@ -75,6 +75,8 @@ def run(args: argparse.Namespace) -> int:
     if args.json:
         out = result.to_dict()
         out["reference_field"] = local
+        from ..fitting.attitude_reference import log_attitude_reference
+        out.update(log_attitude_reference(track, ref, result.calibration))
         print(json.dumps(jsonable(out), allow_nan=False))
         if plots:   # stdout stays one JSON object
             print(plots, file=sys.stderr)

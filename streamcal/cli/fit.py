@@ -8,6 +8,7 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, jsonable
 from ..model.catalog import EFFECT_NAMES
 from ._common import RECORDING_HELP, add_input_options, read_track
+from ._location import add_location_options, location_reference
 from ._output import check_output, messages_to
 
 
@@ -46,6 +47,23 @@ def register(sub) -> None:
                    "--cal` recommends); --model is then the calibration's")
     p.add_argument("--no-coverage-check", action="store_true",
                    help="fit even when the directions seen leave the model undetermined")
+    g = p.add_argument_group("calibration without a tumble (World Magnetic Model as the "
+                             "reference; docs/flight_logs.md)")
+    how = g.add_mutually_exclusive_group()
+    how.add_argument("--heading", type=float, metavar="DEG",
+                     help="the track is a few still seconds at this true heading (degrees "
+                          "clockwise from true north): solve the offsets, hold the iron "
+                          "(--initial's, else none)")
+    how.add_argument("--planar", action="store_true",
+                     help="the track is a rover or boat turning in the plane: horizontal "
+                          "offsets and iron from the turns, the vertical offset from the "
+                          "model's inclination and total field")
+    how.add_argument("--attitude", action="store_true",
+                     help="fit against the log's attitude: the model field at its GPS position "
+                          "rotated by the logged attitude (offsets, iron, the compass's mounting "
+                          "rotation; with --add aux_interference[=CHANNEL] a motor term on the "
+                          "battery current, else the throttle, or CHANNEL)")
+    add_location_options(p)
     p.set_defaults(func=run)
 
 
@@ -63,19 +81,95 @@ def _tau(value):
     return tau
 
 
+#: The channel ``fit --attitude --add aux_interference`` takes when none is named: the first
+#: of these the track has (the signals the autopilots compensate).
+MOTOR_SIGNALS = ("battery_current_a", "throttle")
+
+
+def _motor_channels(args, track) -> list[str]:
+    """The channels of ``--add aux_interference[=NAME]`` for ``--attitude`` (InputError for
+    another effect or a channel the track lacks)."""
+    from ..errors import InputError
+
+    out = []
+    for item in args.add:
+        name, _, channel = item.partition("=")
+        if name != "aux_interference":
+            raise InputError(f"--attitude fits offsets, iron and aux_interference; --add {item} "
+                             "is not one of them")
+        if not channel:
+            channel = next((c for c in MOTOR_SIGNALS if track.has(c)), None)
+            if channel is None:
+                raise InputError("--add aux_interference: the track has neither "
+                                 f"{' nor '.join(MOTOR_SIGNALS)}; name a channel "
+                                 f"(aux_interference=NAME) of: {', '.join(track.aux_names) or 'none'}")
+        elif not track.has(channel):
+            raise InputError(f"--add aux_interference={channel}: no such channel in the track "
+                             f"(channels: {', '.join(track.aux_names) or 'none'})")
+        out.append(channel)
+    return out
+
+
+def _no_tumble(args, track, initial):
+    """The calibration of ``--heading`` / ``--planar`` against the model field at
+    ``--lat/--lon/--date`` or the log's GPS position."""
+    from ..errors import InputError
+    from ..fitting.attitude_reference import log_location
+    from ..fitting.no_tumble import fit_heading, fit_planar
+
+    if args.sensor != "mag":
+        raise InputError("--heading, --planar and --attitude calibrate the magnetometer "
+                         "(--sensor mag)")
+    if (args.add and not args.attitude) or args.model != ",".join(DEFAULT_MODEL):
+        raise InputError("--heading and --planar fit offsets and iron, --attitude also "
+                         "--add aux_interference[=CHANNEL]; --model and other --add do not apply")
+    ref = location_reference(args)
+    if ref is None and not args.attitude:
+        ref, why = log_location(track)
+        if ref is None:
+            option = "--planar" if args.planar else "--heading"
+            raise InputError(f"{option} needs the place of the recording: {why}")
+    if args.planar:
+        return fit_planar(track, ref)
+    if args.attitude:
+        from ..fitting.attitude_reference import fit_attitude_reference
+
+        return fit_attitude_reference(track, ref, _motor_channels(args, track))
+    return fit_heading(track, args.heading, ref, initial)
+
+
 def run(args) -> int:
+    from ..errors import InsufficientDataError
     from ..fitting import fit
     check_output(args.output)
     track = read_track(args)
     if getattr(args, "cal", None):
+        if args.planar or args.attitude or args.heading is not None:
+            from ..errors import InputError
+
+            raise InputError("--cal refines a given calibration; --heading, --planar and "
+                             "--attitude fit one against the World Magnetic Model: one or the "
+                             "other")
         return _refine(args, track)
     initial = None
     if getattr(args, "initial", None):
         from ._calarg import load_calibration_arg
 
         initial, _ = load_calibration_arg(args.initial, "--initial")
-    cal = fit(track, sensor=args.sensor, model=args.model, add=args.add, kernel=args.kernel,
-              method=args.method, tau=_tau(args.tau), check_coverage=not args.no_coverage_check, initial=initial)
+    if args.planar or args.attitude or args.heading is not None:
+        cal = _no_tumble(args, track, initial)
+    else:
+        try:
+            cal = fit(track, sensor=args.sensor, model=args.model, add=args.add,
+                      kernel=args.kernel, method=args.method, tau=_tau(args.tau),
+                      check_coverage=not args.no_coverage_check, initial=initial)
+        except InsufficientDataError as exc:
+            if "of the sphere" not in str(exc):
+                raise
+            raise InsufficientDataError(
+                f"{exc} A vehicle that cannot be tumbled: --planar for one turning in the plane, "
+                "--heading DEG for a few still seconds at a known heading (with --lat/--lon/"
+                "--date or a GPS in the log).") from None
     if args.output:
         cal.save(args.output)
     residual, sensor = "sensor", None
@@ -157,4 +251,6 @@ def format_calibration(cal, source: str = "", residual: str = "sensor",
         rows.append(f"  coverage  {cal.coverage:.0%} of the sphere")
     if cal.field:
         rows.append(f"  field     {cal.field:.4g}{unit}")
+    for name, why in dict((cal.extra or {}).get("undetermined") or {}).items():
+        rows.append(f"  not determined  {name}: {why}")
     return "\n".join(rows)

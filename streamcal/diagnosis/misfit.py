@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..constants import ATTITUDE_COLUMNS
+
 #: Equal-duration time bins.
 TIME_BINS = 10
 #: Quantile bins per covariate.
@@ -18,7 +20,7 @@ COVARIATE_BINS = 4
 #: Rotation-rate bin edges (rad/s).
 RATE_EDGES = (0.0, 0.1, 0.5, 1.5, np.inf)
 #: Covariates not treated as such (time, the gyro has its own grouping).
-_NOT_COVARIATES = {"t", "gx", "gy", "gz"}
+_NOT_COVARIATES = {"t", "gx", "gy", "gz", *ATTITUDE_COLUMNS}  # quaternion parts: no ranges
 #: Direction cells: the nearest of the six body axes.
 _AXES = np.vstack([np.eye(3), -np.eye(3)])
 _AXIS_NAMES = ("+X", "+Y", "+Z", "-X", "-Y", "-Z")

@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..calibration import Calibration
-from .common import correction, fmt, motor_channel
+from .common import correction, fmt, motor_channel, mounting, orientation_words
 
 MG_PER_UT = 10.0
 #: COMPASS_MOTCT of each motor-compensation channel kind.
@@ -42,6 +42,14 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     """(file text, notes on what ArduPilot cannot express)."""
     corr = correction(cal)
     S, notes = corr.S, list(corr.not_expressed)
+    rot, orient, more = mounting(cal, "ardupilot")
+    notes += more
+    if rot is not None:
+        # ArduPilot turns the reading by COMPASS_ORIENT before the offsets and the matrix
+        # (AP_Compass_Backend: rotate_field, then correct_field): express them after it
+        S = rot @ S @ rot.T
+        corr.offset = rot @ corr.offset
+        corr.channels = {k: rot @ g for k, g in corr.channels.items()}
     params = {}
     for k, a in enumerate("XYZ"):
         params[f"COMPASS_OFS_{a}"] = -MG_PER_UT * corr.offset[k]
@@ -58,6 +66,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         for k, a in enumerate("XYZ"):
             params[f"COMPASS_MOT_{a}"] = mot[k]
         params["COMPASS_MOTCT"] = motct
+    if orient is not None:
+        params["COMPASS_ORIENT"] = orient
     lines = [f"# streamcal calibration for ArduPilot (first compass), {cal.created}",
              "# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG",
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
@@ -67,6 +77,10 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     if chosen is not None:
         lines.append(f"# COMPASS_MOT from aux_interference on {chosen!r} "
                      f"(COMPASS_MOTCT {motct}: {'current, mG/A' if motct == 2 else 'throttle 0..1, mG'})")
+    if orient is not None:
+        lines.append(f"# COMPASS_ORIENT {orient}: the compass is mounted rotated "
+                     f"({orientation_words(cal)}); offsets and matrix are in the "
+                     "vehicle frame after that rotation (ArduPilot 4.x order)")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
     lines += [f"{name},{fmt(value)}" for name, value in params.items()]
     return "\n".join(lines) + "\n", notes

@@ -107,3 +107,43 @@ def motor_channel(channels) -> tuple[str | None, str | None, list[str]]:
 def fmt(value: float) -> str:
     """A parameter value: shortest round-tripping decimal of a float32-precise number."""
     return f"{float(value) + 0.0:.7g}"  # + 0.0 turns -0.0 into 0.0
+
+
+def mounting(cal: Calibration, firmware: str) -> tuple[np.ndarray | None, int | None, list[str]]:
+    """The mounting rotation a calibration found (``extra["orientation"]``, docs/flight_logs.md):
+    (its sensor → body matrix, the number ``firmware`` is to be set to — the rotation found, or
+    after the one configured in the log when ``orientation["set"]`` says so —, notes);
+    (None, None, []) without one."""
+    from ..fitting.mount_rotations import by_name
+
+    orient = (cal.extra or {}).get("orientation")
+    if not orient or orient.get("name", "NONE") == "NONE":
+        return None, None, []
+    try:
+        matrix = by_name(str(orient["name"])).matrix
+    except KeyError:
+        return None, None, [f"mounting rotation {orient['name']!r}: not a known rotation"]
+    number = orient.get(firmware)
+    chosen = orient.get("set") or {}
+    if chosen.get("param"):
+        if chosen["param"].startswith("COMPASS_ORIENT") != (firmware == "ardupilot"):
+            return None, None, [f"mounting rotation {orient['name']} was found relative to the "
+                                f"frame of {chosen['param']} = "
+                                f"{(orient.get('configured') or {}).get('value')} of the other "
+                                "autopilot; its rotation parameter is not written"]
+        number = chosen.get("value")     # found after the rotation already configured in the log
+    if number is None:
+        return None, None, [f"mounting rotation {orient['name']}: {firmware} has no number for it"
+                            + (" combined with the one configured in the log"
+                               if chosen.get("param") else "")]
+    return matrix, int(number), []
+
+
+def orientation_words(cal: Calibration) -> str:
+    """``YAW_90`` or ``YAW_90 found after the configured COMPASS_ORIENT 8``."""
+    orient = (cal.extra or {}).get("orientation") or {}
+    conf = orient.get("configured")
+    words = str(orient.get("name"))
+    if conf and conf.get("value"):
+        words += f" found after the configured {conf['param']} {conf['value']}"
+    return words

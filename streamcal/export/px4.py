@@ -31,7 +31,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
-from .common import correction, fmt, motor_channel
+from .common import correction, fmt, motor_channel, mounting, orientation_words
 
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
@@ -71,6 +71,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     corr = correction(cal)
     S, notes = corr.S, list(corr.not_expressed)
     comp_type, chosen, comp = _compensation(corr, notes)
+    rot, orient, more = mounting(cal, "px4")   # PX4 rotates after offsets and scale
+    notes += more
     params = {}
     for k, a in enumerate("XYZ"):
         params[f"CAL_MAG0_{a}OFF"] = corr.offset[k] / UT_PER_GAUSS
@@ -83,7 +85,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
             params[f"CAL_MAG0_{a}COMP"] = comp[k]
     lines = [f"# streamcal calibration for PX4 (CAL_MAG0), {cal.created}",
              "# PX4 corrects f = R S (r + p CAL_MAG0_COMP - CAL_MAG0_OFF), offsets in gauss; "
-             "CAL_MAG0_ID and _ROT are left as they are on the vehicle",
+             "CAL_MAG0_ID (and _ROT unless a mounting rotation was found) are left as they "
+             "are on the vehicle",
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
              + ("" if corr.field_known else " (K's mean radius: field strength unknown)"),
              "# the rotation between streamcal's and this frame is unobservable from the "
@@ -99,4 +102,9 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     lines += [f"1\t1\t{name}\t{fmt(value)}\t{FLOAT_TYPE}" for name, value in params.items()]
     if chosen is not None:
         lines.append(f"1\t1\tCAL_MAG_COMP_TYP\t{comp_type}\t{INT_TYPE}")
+    if orient is not None:
+        lines.insert(2, f"# CAL_MAG0_ROT {orient}: the compass is mounted rotated "
+                        f"({orientation_words(cal)}); PX4 applies it after the "
+                        "offsets and scale")
+        lines.append(f"1\t1\tCAL_MAG0_ROT\t{orient}\t{INT_TYPE}")
     return "\n".join(lines) + "\n", notes

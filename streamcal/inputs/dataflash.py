@@ -39,8 +39,10 @@ from .track import Track
 from .autopilot_cal import COMPASS_PARAMS, MG_PER_UT, ardupilot_matrix
 from .streams import Stream, merge
 from .dataflash_bulk import MAGIC, decode, walk
+from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
 
 MESSAGES = ("MAG", "IMU", "RCOU", "CURR", "BAT", "BARO", "PARM", "MSG")
+MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
 PWM_RANGE_US = (0.0, 3000.0)
 #: CURR.Throttle / ThrOut run 0..1000 in the firmware versions that log them.
@@ -362,6 +364,7 @@ def _track(msgs: _Messages, path: Path) -> Track:
     if rcou is not None:
         streams.append(rcou)
     streams += _battery(msgs, path, meta)
+    streams += dataflash_attitude(msgs, lambda name: _time(msgs, name, path), meta)
     for name, value in msgs.params.items():
         if COMPASS_PARAMS.fullmatch(name):
             meta[f"param.{name}"] = f"{value:g}"

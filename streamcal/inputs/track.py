@@ -21,6 +21,7 @@ from typing import Iterable, Iterator, Mapping
 import numpy as np
 
 from . import trackio
+from ..constants import ATTITUDE_COLUMNS
 from ..errors import InputError, TrackError
 from ..samples import SampleBlock
 from ..units import UNKNOWN
@@ -243,8 +244,9 @@ class Track:
 
     @property
     def aux_names(self) -> list[str]:
-        """Auxiliary channels: every column that is not t, a sensor axis or temp, file order."""
-        return [name for name in self.columns if name not in KNOWN]
+        """Auxiliary channels: every column that is not t, a sensor axis, temp or the logged
+        attitude (``att_q*``), file order."""
+        return [name for name in self.columns if name not in KNOWN and name not in ATTITUDE_COLUMNS]
 
     @property
     def mag_unit(self) -> str:

@@ -34,6 +34,7 @@ from ..errors import InputError
 from .autopilot_cal import UT_PER_GAUSS, px4_matrix, px4_offsets
 from .track import Track
 from .streams import Stream, merge
+from .attitude_streams import ulog_attitude
 
 MAGIC = b"ULog\x01\x12\x35"
 HEADER_BYTES = 16
@@ -248,6 +249,7 @@ def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
     for stream in (_imu(ulog), _actuators(ulog, meta), _throttle(ulog, meta), _battery(ulog, meta)):
         if stream is not None:
             streams.append(stream)
+    streams += ulog_attitude(ulog, meta)
     for name, value in ulog.initial_parameters.items():
         if name.startswith(("CAL_MAG0_", meta.get("mag_cal_params", "CAL_MAG0_"))) \
                 or name in ("CAL_MAG_PRIME", "CAL_MAG_COMP_TYP", "SENS_BOARD_ROT"):

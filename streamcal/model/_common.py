@@ -5,10 +5,13 @@ from typing import Mapping
 
 import numpy as np
 
+from ..constants import ATTITUDE_COLUMNS
 from ..errors import MissingColumnsError
 
-#: Covariate names that are not auxiliary channels (time, temperature, IMU axes, mag axes).
-NON_AUX = frozenset({"t", "temp", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz"})
+#: Covariate names that are not auxiliary channels (time, temperature, IMU axes, mag axes, the
+#: logged attitude).
+NON_AUX = frozenset({"t", "temp", "ax", "ay", "az", "gx", "gy", "gz", "mx", "my", "mz",
+                     *ATTITUDE_COLUMNS})
 
 
 def column(cov: Mapping[str, np.ndarray], name: str, effect: str) -> np.ndarray:

@@ -42,7 +42,11 @@ def write_diagnosis_plots(diagnosis, track, directory: str | os.PathLike,
 
     directory = output_dir(directory)
     paths = []
-    for fig in render_figures(FigureData.build(track, diagnosis, reason)):
+    from .figures_attitude import attitude_reference_figure
+
+    figures = render_figures(FigureData.build(track, diagnosis, reason))
+    figures += [f for f in (attitude_reference_figure(track),) if f is not None]
+    for fig in figures:
         path = directory / f"{fig.name}.png"
         atomic_write_bytes(path, fig.png, mode=0o644)
         paths.append(path)

@@ -311,6 +311,11 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
 
         aux = aux_residual_figure(track, diagnosis)
         parts += [_img(aux)] if aux is not None else []
+    if data is not None:
+        from .figures_attitude import attitude_reference_figure
+
+        att = attitude_reference_figure(track)
+        parts += [_img(att)] if att is not None else []
     if diagnosis is not None:
         from .held_table import held_section
 
