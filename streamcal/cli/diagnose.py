@@ -51,6 +51,9 @@ def run(args: argparse.Namespace) -> int:
     from ..diagnosis import diagnose
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
+    if getattr(args, "compass", None) == "all":
+        from ._compasses import diagnose_all
+        return diagnose_all(args, model)
     from ..diagnosis.reference_field import reference_field
     from ..geomag import text_lines
 

@@ -58,6 +58,9 @@ def run(args) -> int:
     from ..geomag import text_lines
 
     model = model_from_args(args.model, args.add)
+    if getattr(args, "compass", None) == "all":
+        from ._compasses import report_all
+        return report_all(args, model, Path(args.output) if args.output else default_output(args.track))
     ref = location_reference(args)
     track = read_track(args)
     kwargs = {}

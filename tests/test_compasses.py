@@ -1,0 +1,150 @@
+"""Every compass of a flight log (SPEC §6): --compass N|all on self-made DataFlash logs with two
+and three compasses and on the real logs; the compass comparison against figures computed from
+the logs' truth; throttle from CTUN and RCOU for COMPASS_MOTCT = 1."""
+import json
+
+import numpy as np
+import pytest
+
+from streamcal.cli import main
+from streamcal.diagnosis.compass_consistency import LIMITS
+from streamcal.errors import InputError
+from streamcal.inputs import autopilot_calibration, read_compasses, read_recording
+
+from ._dataflash_log import write_flight
+
+OFS = [(30.0, -20.0, 10.0), (-50.0, 40.0, 5.0), (12.0, 7.0, -30.0)]
+ERR1 = np.array([150.0, 0.0, 0.0])     # mG: compass 1's hard iron its calibration misses
+
+
+def _angle(u, v):
+    return np.degrees(np.arccos(np.clip(np.sum(u * v, 1) / np.linalg.norm(u, axis=1)
+                                        / np.linalg.norm(v, axis=1), -1, 1)))
+
+
+@pytest.fixture(scope="module")
+def two(tmp_path_factory):
+    path = tmp_path_factory.mktemp("compasses") / "two.bin"
+    truth = write_flight(path, [{"ofs": OFS[0]}, {"ofs": OFS[1], "err": ERR1}], motct=1,
+                         mot=(20.0, -10.0, 30.0))
+    return path, truth
+
+
+@pytest.mark.parametrize("layout", ["old", "instance"])
+def test_each_compass_with_its_own_parameters(tmp_path, layout):
+    """MAG/MAG2/MAG3 or MAG.I: compass N's readings have its own COMPASS_OFSn undone and its
+    --cal autopilot rebuilds the logged field."""
+    path = tmp_path / f"three_{layout}.bin"
+    truth = write_flight(path, [{"ofs": o} for o in OFS], layout=layout, noise_mG=0.0)
+    for k, ofs in enumerate(OFS):
+        track = read_recording(path, compass=k)
+        assert track.metadata["compass_instance"] == str(k)
+        assert track.metadata["compasses_in_log"] == "0,1,2"
+        # raw = logged − ofs; logged = the true body field (no noise, rounded to 1 mG)
+        np.testing.assert_allclose(track.mag * 10.0 + np.array(ofs), truth["field"], atol=0.51)
+        cal = autopilot_calibration(track)
+        np.testing.assert_allclose(cal.b, -np.array(ofs) / 10.0)
+    assert read_recording(path).metadata["compass_instance"] == "0"
+    with pytest.raises(InputError, match=r"no compass 3 .*0, 1, 2"):
+        read_recording(path, compass=3)
+
+
+def test_default_is_compass_primary(tmp_path):
+    path = tmp_path / "primary.bin"
+    write_flight(path, [{"ofs": OFS[0]}, {"ofs": OFS[1]}], extra_params={"COMPASS_PRIMARY": 1})
+    assert read_recording(path).metadata["compass_instance"] == "1"
+
+
+def test_ctun_throttle_makes_motct1_autopilot_cal_work(two, capsys):
+    """The issue's ArduPilot 3.4 case: COMPASS_MOTCT = 1 and the throttle only in CTUN.ThO."""
+    path, truth = two
+    track = read_recording(path, compass=1)
+    assert track.metadata["throttle_source"].startswith("CTUN.ThO")
+    t = track.t[~np.isnan(track.columns["throttle"])]
+    np.testing.assert_allclose(np.sort(track.columns["throttle"][~np.isnan(
+        track.columns["throttle"])]), np.sort(truth["throttle"]), atol=1e-6)
+    assert len(t) == len(truth["t"])
+    assert main(["diagnose", str(path), "--compass", "1", "--cal", "autopilot", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert "aux_interference" in out["model"]
+
+
+def test_rcou_throttle_when_ctun_has_none(tmp_path):
+    path = tmp_path / "rcou.bin"
+    truth = write_flight(path, [{"ofs": OFS[0]}], throttle_in="RCOU")
+    track = read_recording(path)
+    assert track.metadata["throttle_source"].startswith("RCOU C1,C2,C3,C4")
+    got = track.columns["throttle"][~np.isnan(track.columns["throttle"])]
+    # PWM rounded to 1 µs over a 1000 µs range
+    np.testing.assert_allclose(got, np.clip(truth["throttle"], 0, 1), atol=0.6e-3)
+
+
+def test_consistency_against_the_truth(two, capsys):
+    """diagnose --compass all: the autopilot-calibration angles equal those between the true
+    logged fields (f and f + ERR1), streamcal's fit removes ERR1, JSON per SPEC §6."""
+    path, truth = two
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [c["instance"] for c in out["compasses"]] == [0, 1]
+    assert [c["device_id"] for c in out["compasses"]] == [97539, 97795]
+    assert all(c["diagnosis"]["verdict"] for c in out["compasses"])
+    pairs = {p["calibration"]: p for p in out["consistency"]}
+    f = truth["field"]
+    expected = _angle(f, f + ERR1)
+    ap = pairs["autopilot"]
+    assert ap["a"] == 0 and ap["b"] == 1 and ap["n"] == len(f)
+    assert abs(ap["angle_deg_median"] - np.median(expected)) < 0.3
+    assert abs(ap["angle_deg_p95"] - np.percentile(expected, 95)) < 0.5
+    xy_len = np.linalg.norm(ERR1[:2]) / 10.0
+    body_xy = _angle(np.c_[f[:, :2], np.zeros(len(f))], np.c_[f[:, :2] + ERR1[:2], np.zeros(len(f))])
+    share = np.mean((expected > 90) | (body_xy > 60) | (xy_len > LIMITS["xy_length_uT"]))
+    assert abs(ap["fraction_inconsistent"] - share) < 0.01 and share > 0
+    assert pairs["streamcal"]["angle_deg_median"] < 0.2 * ap["angle_deg_median"]
+    assert out["consistency_limits"] == {"angle_deg": 90.0, "xy_angle_deg": 60.0,
+                                         "xy_length_uT": 20.0}
+
+
+def test_text_and_report_with_every_compass(two, tmp_path, capsys):
+    path, _ = two
+    assert main(["diagnose", str(path), "--compass", "all"]) == 0
+    text = capsys.readouterr().out
+    assert "compass 0 (device id 97539)" in text and "compass 1 (device id 97795)" in text
+    assert "3-D angle 90 deg, body X-Y angle 60 deg" in text and "0–1  autopilot" in text
+    html = tmp_path / "r.html"
+    assert main(["report", str(path), "--compass", "all", "-o", str(html)]) == 0
+    page = html.read_text()
+    assert 'id="compasses"' in page and 'id="fig-compass-consistency"' in page
+
+
+def test_compass_all_refused_where_one_is_read(two, tmp_path, capsys):
+    path, _ = two
+    assert main(["convert", str(path), "--compass", "all", "-o", str(tmp_path / "o.csv")]) == 2
+    assert "--compass all" in capsys.readouterr().err
+    assert main(["convert", str(path), "--compass", "1", "-o", str(tmp_path / "o.csv")]) == 0
+    assert read_recording(tmp_path / "o.csv").metadata["compass_instance"] == "1"
+
+
+def test_compass_on_a_track_refused(tmp_path, capsys):
+    track = tmp_path / "t.csv"
+    track.write_text("t,mx,my,mz\n0,1,2,3\n0.1,1,2,3\n")
+    assert main(["fit", str(track), "--compass", "0"]) == 2
+    assert "--compass applies to autopilot logs" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_real_logs_every_compass(flight_dir, capsys):
+    """The bundled ArduPilot logs define MAG2/MAG3 but log only MAG; the PX4 sample with two
+    sensor_mag instances gives two compasses with their own CAL_MAGn by device id."""
+    for name in ("ardupilot_erle_Erle-Brain3.BIN", "ardupilot_erle_PXFv2.0b_Rpi.BIN"):
+        tracks = read_compasses(flight_dir / name)
+        assert [t.metadata["compass_instance"] for t in tracks] == ["0"]
+        with pytest.raises(InputError, match="no compass 1"):
+            read_recording(flight_dir / name, compass=1)
+    ulg = flight_dir / "px4_pyulog_sample_logging_tagged_and_default_params.ulg"
+    tracks = read_compasses(ulg)
+    assert [t.metadata["compass_instance"] for t in tracks] == ["0", "1"]
+    assert [t.metadata["compass_device_id"] for t in tracks] == ["197388", "197644"]
+    assert [t.metadata["mag_cal_params"] for t in tracks] == ["CAL_MAG0_", "CAL_MAG1_"]
+    # the Erle-Brain3 log (ArduPilot 3.4) logs its throttle in CTUN.ThO only
+    eb = read_recording(flight_dir / "ardupilot_erle_Erle-Brain3.BIN")
+    assert eb.metadata["throttle_source"].startswith("CTUN.ThO")
