@@ -53,7 +53,7 @@ import numpy as np
 from ..errors import InputError
 from .track import Track
 from .autopilot_cal import MG_PER_UT, ardupilot_matrix, ardupilot_param, compass_params
-from .streams import Stream, merge
+from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
 
 MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BARO", "CTUN", "PARM", "MSG")
@@ -486,6 +486,10 @@ def _track(msgs: _Messages, path: Path, instance: int) -> Track:
     notes = [m for m in msgs.texts if m.startswith(("truncated", "Skipped"))]
     if notes:
         meta["read_warnings"] = "; ".join(notes)
+    streams = drop_nonfinite(streams, meta)
+    if not any(len(s.t) for s in streams if "mx" in s.columns):
+        raise InputError(f"{path}: no intact MAG message of compass {instance} "
+                         f"({meta.get('read_warnings', 'all damaged')})")
     t0 = min(float(s.t.min()) for s in streams if len(s.t))
     meta["time_origin"] = f"log time {t0:.6f} s since boot is t = 0"
     meta["log_t0_s"] = f"{t0:.6f}"

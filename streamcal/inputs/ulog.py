@@ -30,6 +30,8 @@ skips a damaged stretch to the next sync marker or valid message. Both are said 
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import struct
 from pathlib import Path
 
@@ -38,7 +40,7 @@ import numpy as np
 from ..errors import InputError
 from .autopilot_cal import UT_PER_GAUSS, px4_matrix, px4_offsets
 from .track import Track
-from .streams import Stream, merge
+from .streams import Stream, drop_nonfinite, merge
 
 MAGIC = b"ULog\x01\x12\x35"
 HEADER_BYTES = 16
@@ -51,30 +53,55 @@ def looks_like_ulog(head: bytes) -> bool:
     return head[:7] == MAGIC
 
 
-def _complete_until(path: Path) -> tuple[int, int]:
-    """(end of the last complete message, file size): pyulog stops silently at a cut message."""
-    data = path.read_bytes()
+def _complete_until(data: bytes) -> int:
+    """End of the last complete message: pyulog stops silently at a cut message."""
     offset = HEADER_BYTES
     while offset + 3 <= len(data):
         size = struct.unpack_from("<H", data, offset)[0]
         if offset + 3 + size > len(data):
             break
         offset += 3 + size
-    return offset, len(data)
+    return offset
+
+
+class _PaddedReads(io.BytesIO):
+    """The log's bytes for pyulog, as if the file went on past its end for relative seeks.
+
+    pyulog, on a damaged header near the end, reads the message size it announces and seeks back
+    by that size + 2 to advance one byte; a read cut short by the end of the file turns that
+    into a step backwards and an endless loop. Here a relative seek after a short read counts
+    from where the full read would have ended, so the step is one byte forward as intended."""
+
+    _virtual: int | None = None
+
+    def read(self, n=-1):
+        start = self.tell()
+        data = super().read(n)
+        self._virtual = start + n if n is not None and 0 <= len(data) < n else None
+        return data
+
+    def seek(self, offset, whence=0):
+        if whence == 1 and self._virtual is not None:
+            offset, whence = max(self._virtual + offset, 0), 0
+        self._virtual = None
+        return super().seek(offset, whence)
 
 
 def _load(path: Path):
     from pyulog import ULog  # imported only when a ULog is read
 
     try:
-        end, size = _complete_until(path)
+        data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
+    end = _complete_until(data)
+    chatter = io.StringIO()
     try:
-        ulog = ULog(str(path))
+        with contextlib.redirect_stdout(chatter):   # pyulog prints its warnings
+            ulog = ULog(_PaddedReads(data))
     except Exception as exc:  # pyulog raises assorted exception types on damaged bytes
         raise InputError(f"{path}: cannot read the ULog ({type(exc).__name__}: {exc})") from None
-    return ulog, size - end
+    return ulog, len(data) - end
 
 
 def _topic(ulog, name: str, instance: int | None = None):
@@ -313,6 +340,9 @@ def _track(ulog, path: Path, cut: int, instance: int) -> Track:
     if ulog.file_corruption:
         meta["read_warnings"] = (meta.get("read_warnings", "") + "; " if "read_warnings" in meta
                                  else "") + "pyulog reports file corruption (some data skipped)"
+    streams = drop_nonfinite(streams, meta)
+    if not len(streams[0].t):
+        raise InputError(f"{path}: no intact magnetometer sample ({meta['read_warnings']})")
     t0 = min(float(s.t.min()) for s in streams if len(s.t))
     meta["time_origin"] = f"ULog timestamp {t0:.6f} s is t = 0"
     meta["log_t0_s"] = f"{t0:.6f}"
