@@ -148,3 +148,25 @@ def test_real_logs_every_compass(flight_dir, capsys):
     # the Erle-Brain3 log (ArduPilot 3.4) logs its throttle in CTUN.ThO only
     eb = read_recording(flight_dir / "ardupilot_erle_Erle-Brain3.BIN")
     assert eb.metadata["throttle_source"].startswith("CTUN.ThO")
+
+
+def test_px4_every_magnetometer_with_its_cal_magn(tmp_path, capsys):
+    """Self-made ULog with two sensor_mag instances: each gets the CAL_MAGn of its device id,
+    the default is the higher CAL_MAGn_PRIO, and with both calibrations right they agree."""
+    from ._ulog_log import write_ulog
+
+    path = tmp_path / "two.ulg"
+    offsets = [(0.05, -0.1, 0.02), (-0.2, 0.1, 0.3)]
+    truth = write_ulog(path, offsets, prio=(50, 75))
+    assert read_recording(path).metadata["compass_instance"] == "1"
+    for k, track in enumerate(read_compasses(path)):
+        assert track.metadata["mag_cal_params"] == f"CAL_MAG{k}_"
+        np.testing.assert_allclose(autopilot_calibration(track).b,
+                                   100.0 * np.array(offsets[k]), atol=1e-5)
+        np.testing.assert_allclose(track.mag / 100.0 - offsets[k], truth["field_g"], atol=1e-6)
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    ap = next(p for p in out["consistency"] if p["calibration"] == "autopilot")
+    assert ap["angle_deg_p95"] < 0.01 and ap["fraction_inconsistent"] == 0.0
+    assert main(["diagnose", str(path), "--compass", "2"]) == 2
+    assert "no magnetometer 2" in capsys.readouterr().err

@@ -113,3 +113,14 @@ def test_batch_reads_logs_and_says_what_a_cut_lost(small_bin, tmp_path):
     assert main(["batch", "fit", str(small_bin), "--compass", "1", "--jobs", "1", "-o",
                  str(out)]) in (0, 1)
     assert "not UTF-8" not in out.read_text()
+
+
+def test_self_made_ulog_fuzz_never_a_traceback(tmp_path):
+    from ._ulog_log import write_ulog
+
+    path = tmp_path / "two.ulg"
+    write_ulog(path, [(0.05, -0.1, 0.02), (-0.2, 0.1, 0.3)], seconds=40)
+    data = path.read_bytes()
+    assert len(data) > 50 * KB
+    seen = _fuzz(data, tmp_path, ".ulg", seed=4)
+    assert seen[0] > 40

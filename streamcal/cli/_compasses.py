@@ -75,28 +75,32 @@ def _pair_line(p: dict) -> str:
             f"{f(p['xy_angle_deg_p95']):>10} {f(p['fraction_inconsistent']):>12}   {p['n']}")
 
 
-def _text(entries: list[dict], pairs: list[dict]) -> str:
+def _table(pairs: list[dict]) -> str:
     from ..diagnosis.compass_consistency import LIMITS_TEXT
-    from .diagnose import _text as diagnosis_text, held_text
 
-    parts = []
-    for e in entries:
-        head = f"compass {e['instance']}" + (f" (device id {e['device_id']})"
-                                              if e["device_id"] else "")
-        body = (diagnosis_text(e["diagnosis"]) + held_text(e["diagnosis"])
-                if e["diagnosis"] is not None else f"no calibration: {e['error']}")
-        parts.append(f"{head}\n{body}")
     table = ["consistency (angles in degrees between calibrated field vectors; horizontal: "
              + (pairs[0]["xy_plane"] if pairs else "-") + ")",
              "  pair calibration  median      p95  horiz med  horiz p95  inconsistent   n"]
     table += [_pair_line(p) for p in pairs] or ["  (fewer than two compasses: nothing to compare)"]
     table.append(f"limits: {LIMITS_TEXT}")
-    return "\n\n".join(parts + ["\n".join(table)])
+    return "\n".join(table)
 
 
-def diagnose_all(args, model) -> int:
-    """Print the per-compass diagnoses and the consistency table (or one JSON object); exit 1
-    when no compass could be calibrated."""
+def _text(entries: list[dict], pairs: list[dict], describe) -> str:
+    """One paragraph per compass (``describe(diagnosis)``), then the consistency table."""
+    parts = []
+    for e in entries:
+        head = f"compass {e['instance']}" + (f" (device id {e['device_id']})"
+                                              if e["device_id"] else "")
+        body = (describe(e["diagnosis"]) if e["diagnosis"] is not None
+                else f"no calibration: {e['error']}")
+        parts.append(f"{head}\n{body}")
+    return "\n\n".join(parts + [_table(pairs)])
+
+
+def diagnose_all(args, model, describe=str) -> int:
+    """Print the per-compass diagnoses (``describe(diagnosis)`` each) and the consistency table
+    (or one JSON object); exit 1 when no compass could be calibrated."""
     entries = _diagnose_each(args, model)
     pairs = _consistency(entries)
     dicts = [p.to_dict() for p in pairs]
@@ -107,24 +111,26 @@ def diagnose_all(args, model) -> int:
                                    "consistency": dicts, "consistency_limits": LIMITS}),
                          allow_nan=False))
     else:
-        print(_text(entries, dicts))
+        print(_text(entries, dicts, describe))
     return 0 if any(e["diagnosis"] is not None for e in entries) else 1
 
 
 def report_all(args, model, output) -> int:
-    """Write the report of the default compass with a section comparing every compass."""
+    """Write the report of the compass the autopilot uses first, with a section comparing every
+    compass."""
     from ..report import write_report
     from ..report.figures_compasses import compasses_section, consistency_figure
 
     entries = _diagnose_each(args, model)
     pairs = _consistency(entries)
-    first = entries[0]
+    default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
+    first = next((e for e in entries if str(e["instance"]) == default), entries[0])
     figure = consistency_figure(pairs) if pairs else None
     section = compasses_section([_entry_json(e) for e in entries], pairs, figure)
     output.parent.mkdir(parents=True, exist_ok=True)
     out = write_report(output, first["track"], first["diagnosis"], reason=first["error"],
                        intro=section, command_path=args.track)
-    print(_text(entries, [p.to_dict() for p in pairs]).split("\n\n")[-1])
+    print(_table([p.to_dict() for p in pairs]))
     print(f"report written to {out}")
     if all(e["diagnosis"] is None for e in entries):
         print(f"streamcal report: no calibration of any compass ({first['error']})",

@@ -437,7 +437,10 @@ def read_dataflash_compasses(path, *, skip_bad_rows: bool = False) -> list[Track
     present = compass_instances(msgs)
     if not present:
         _mag_rows(msgs, path, 0)   # raises: no MAG messages
-    return [_track(msgs, path, i) for i in present]
+    tracks = [_track(msgs, path, i) for i in present]
+    for track in tracks:
+        track.metadata["compass_default"] = str(default_compass(msgs))
+    return tracks
 
 
 def read_dataflash_pymavlink(path, *, skip_bad_rows: bool = False,

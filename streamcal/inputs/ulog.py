@@ -302,14 +302,30 @@ def read_ulog(path, *, skip_bad_rows: bool = False, compass: int | None = None) 
     """
     path = Path(path)
     ulog, cut = _load(path)
-    return _track(ulog, path, cut, default_compass(ulog) if compass is None else compass)
+    with _damaged(path):
+        return _track(ulog, path, cut, default_compass(ulog) if compass is None else compass)
 
 
 def read_ulog_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
     """One Track per magnetometer instance of the log (the log is parsed once)."""
     path = Path(path)
     ulog, cut = _load(path)
-    return [_track(ulog, path, cut, i) for i in compass_instances(ulog) or [0]]
+    with _damaged(path):
+        tracks = [_track(ulog, path, cut, i) for i in compass_instances(ulog) or [0]]
+        for track in tracks:
+            track.metadata["compass_default"] = str(default_compass(ulog))
+    return tracks
+
+
+@contextlib.contextmanager
+def _damaged(path: Path):
+    """InputError naming the file when pyulog parsed damaged definitions into fields of the
+    wrong type (a flipped byte in a format message makes ``device_id`` a string, …)."""
+    try:
+        yield
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError) as exc:
+        raise InputError(f"{path}: the ULog's message definitions are damaged "
+                         f"({type(exc).__name__}: {exc})") from None
 
 
 def _track(ulog, path: Path, cut: int, instance: int) -> Track:
