@@ -75,7 +75,7 @@ def write_flight(path, compasses, *, seconds: float = 90.0, seed: int = 0, layou
             fmts[("MAG", "MAG2", "MAG3")[k]] = ("Qhhhhhhhhh", "TimeUS," + mag_cols)
     for name, (fmt, cols) in fmts.items():
         out.append(_fmt_message(_TYPES[name], name, fmt, cols))
-    params = {"COMPASS_MOTCT": motct, **(extra_params or {})}
+    params = {"COMPASS_MOTCT": motct}
     for k, c in enumerate(compasses):
         sfx = "" if k == 0 else str(k + 1)
         for a, v in zip("XYZ", c.get("ofs", (0, 0, 0))):
@@ -83,6 +83,7 @@ def write_flight(path, compasses, *, seconds: float = 90.0, seed: int = 0, layou
         for a, v in zip("XYZ", mot):
             params[f"COMPASS_MOT{sfx}_{a}"] = v
         params[f"COMPASS_DEV_ID{sfx}"] = 97539 + 256 * k
+    params.update(extra_params or {})
     for name, value in params.items():
         out.append(_message(_TYPES["PARM"], "QNf", (t_us[0], name.encode(), float(value))))
     for i in range(len(t)):

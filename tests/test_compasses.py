@@ -170,3 +170,21 @@ def test_px4_every_magnetometer_with_its_cal_magn(tmp_path, capsys):
     assert ap["angle_deg_p95"] < 0.01 and ap["fraction_inconsistent"] == 0.0
     assert main(["diagnose", str(path), "--compass", "2"]) == 2
     assert "no magnetometer 2" in capsys.readouterr().err
+
+
+def test_priority_order_of_ardupilot_4(tmp_path):
+    """ArduPilot 4.x logs compasses in priority order: logged compass 0 is the one whose
+    COMPASS_DEV_IDn equals COMPASS_PRIO1_ID, and its parameters are that set's (here OFS2)."""
+    path = tmp_path / "prio.bin"
+    a, b = OFS[0], OFS[1]
+    swapped = {"COMPASS_DEV_ID": 97795, "COMPASS_DEV_ID2": 97539,
+               "COMPASS_PRIO1_ID": 97539, "COMPASS_PRIO2_ID": 97795}
+    swapped.update({f"COMPASS_OFS_{x}": v for x, v in zip("XYZ", b)})
+    swapped.update({f"COMPASS_OFS2_{x}": v for x, v in zip("XYZ", a)})
+    write_flight(path, [{"ofs": a}, {"ofs": b}], layout="instance", extra_params=swapped)
+    first, second = read_compasses(path)
+    assert first.metadata["compass_params_index"] == "1"
+    assert first.metadata["compass_device_id"] == "97539"
+    np.testing.assert_allclose(autopilot_calibration(first).b, -np.array(a) / 10.0)
+    assert second.metadata["compass_params_index"] == "0"
+    np.testing.assert_allclose(autopilot_calibration(second).b, -np.array(b) / 10.0)

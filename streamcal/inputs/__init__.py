@@ -130,10 +130,11 @@ def autopilot_calibration(track: Track) -> "Calibration":
     if field is None:
         raise InputError(f"{where}: no autopilot_field_uT in the metadata")
     if ardupilot:
-        instance = int(md.get("compass_instance", 0))
+        instance = int(md.get("compass_params_index", md.get("compass_instance", 0)))
         return calibration_from_ardupilot(ardupilot, float(field),
-                                          source=f"{where} COMPASS_* parameters of compass "
-                                                 f"{instance}", instance=instance)
+                                          source=f"{where} (compass "
+                                                 f"{md.get('compass_instance', 0)}) COMPASS_* "
+                                                 "parameters", instance=instance)
     undone = md.get("mag_calibration_undone", "")
     if undone.startswith("could not"):
         raise InputError(f"{where}: mx,my,mz are PX4's calibrated field ({undone}): its "

@@ -52,7 +52,7 @@ PX4_KA_PER_A = 0.001
 MOTCT_CHANNELS = {1: "throttle", 2: "battery_current_a"}
 #: Compass parameters of every instance (COMPASS_OFS_X, COMPASS_OFS2_X, …) and the shared ones.
 COMPASS_PARAMS = re.compile(r"COMPASS_(?:(?:OFS|DIA|ODI|MOT)[23]?_[XYZ]|MOTCT|PRIMARY"
-                            r"|(?:SCALE|ORIENT|DEV_ID|USE)[23]?|EXTERNAL|EXTERN[23])")
+                            r"|(?:SCALE|ORIENT|DEV_ID|USE)[23]?|EXTERNAL|EXTERN[23]|PRIO[123]_ID)")
 #: Per-compass parameter kinds (``AP_Compass`` var_info); MOTCT and PRIMARY are shared.
 _PER_COMPASS = ("OFS", "DIA", "ODI", "MOT", "SCALE", "ORIENT", "DEV_ID", "USE", "EXTERNAL")
 _SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY")
@@ -66,6 +66,19 @@ def ardupilot_param(kind: str, instance: int = 0, axis: str | None = None) -> st
     if kind == "EXTERNAL" and instance:
         kind = "EXTERN"
     return f"COMPASS_{kind}{suffix}" + (f"_{axis}" if axis else "")
+
+
+def ardupilot_param_index(params: Mapping[str, float], instance: int) -> int:
+    """The parameter set (0: COMPASS_OFS_*, 1: COMPASS_OFS2_*, …) of logged compass
+    ``instance``. From ArduPilot 4.0 the logged instance is the compass's priority and its
+    parameters are those whose COMPASS_DEV_IDn equals COMPASS_PRIO{instance+1}_ID
+    (``Compass::_get_state_id``); without priorities they are the instance's own."""
+    wanted = params.get(f"COMPASS_PRIO{instance + 1}_ID")
+    if wanted:
+        for n in range(3):
+            if params.get(ardupilot_param("DEV_ID", n)) == wanted:
+                return n
+    return instance
 
 
 def compass_params(params: Mapping[str, float], instance: int = 0) -> dict:

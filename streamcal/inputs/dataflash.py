@@ -21,7 +21,8 @@ Time is ``TimeUS`` (µs) or ``TimeMS`` (ms), shifted to start at 0 s; each messa
 Compasses: instance ``N`` (from 0) is ``MAG``/``MAG2``/``MAG3`` in older layouts, the rows of
 ``MAG`` whose field ``I`` is ``N`` in newer ones; its parameters are COMPASS_OFS_*, DIA_*, ODI_*,
 MOT_* for instance 0 and COMPASS_OFS2_*, DIA2_*, … (``3`` for instance 2) for the others
-(:func:`~.autopilot_cal.ardupilot_param`). The default compass is COMPASS_PRIMARY when it is
+(:func:`~.autopilot_cal.ardupilot_param`), or, when COMPASS_PRIOn_ID are logged (4.0 on, where
+the logged instance is the priority), the set whose COMPASS_DEV_IDn is that compass's. The default compass is COMPASS_PRIMARY when it is
 logged and that compass has rows, else instance 0. IMU, BAT, BARO: instance 0.
 
 The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with (``motors->get_throttle()``)
@@ -52,21 +53,16 @@ import numpy as np
 
 from ..errors import InputError
 from .track import Track
-from .autopilot_cal import MG_PER_UT, ardupilot_matrix, ardupilot_param, compass_params
+from .autopilot_cal import (MG_PER_UT, ardupilot_matrix, ardupilot_param, ardupilot_param_index,
+                            compass_params)
 from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
+from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
 
 MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BARO", "CTUN", "PARM", "MSG")
 MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
 PWM_RANGE_US = (0.0, 3000.0)
-#: CURR.Throttle / ThrOut and CTUN.ThrOut run 0..1000 in the firmware versions that log them;
-#: CTUN.ThO runs 0..1.
-THROTTLE_FULL = 1000.0
-#: ArduCopter's default motor PWM range (µs) when MOT_PWM_MIN/MAX are 0 or not logged.
-MOTOR_PWM_US = (1000.0, 2000.0)
-#: SERVOn_FUNCTION values of motors 1..8 (ArduPilot's SRV_Channel k_motor1..k_motor8).
-MOTOR_FUNCTIONS = range(33, 41)
 #: Integer-typed CURR Volt/Curr fields are centivolts / centiamps (older layouts).
 CENTI = 0.01
 _INT_TYPES = set("bBhHiIqQ")
@@ -248,6 +244,8 @@ def _mag_rows(msgs: _Messages, path: Path, instance: int) -> tuple[_Messages, st
 
 
 def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
+    params_of = ardupilot_param_index(msgs.params, instance)
+    meta["compass_params_index"] = str(params_of)
     msgs, name = _mag_rows(msgs, path, instance)
     t = _time(msgs, name, path)
     logged = np.column_stack([msgs.array(name, c) for c in ("MagX", "MagY", "MagZ")])
@@ -262,8 +260,8 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
     else:
         mofs = None
         meta["mag_motor_offsets_undone"] = f"could not: {name} has no MOfsX/Y/Z"
-    S = ardupilot_matrix(msgs.params, instance)
-    dia, odi = ardupilot_param("DIA", instance, "*"), ardupilot_param("ODI", instance, "*")
+    S = ardupilot_matrix(msgs.params, params_of)
+    dia, odi = ardupilot_param("DIA", params_of, "*"), ardupilot_param("ODI", params_of, "*")
     if np.allclose(S, np.eye(3)):
         meta["mag_soft_iron_undone"] = f"none ({dia}/{odi} identity or not logged)"
     else:
@@ -271,7 +269,7 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
         meta["mag_soft_iron_undone"] = f"inverse of the PARM {dia}/{odi} matrix applied" + (
             " (assumes motor offsets added after the matrix, ArduPilot 4.x order)"
             if mofs is not None and np.any(mofs) else "")
-    ofs_names = [ardupilot_param("OFS", instance, a) for a in "XYZ"]
+    ofs_names = [ardupilot_param("OFS", params_of, a) for a in "XYZ"]
     if msgs.has(name, "OfsX", "OfsY", "OfsZ"):
         ofs = np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")])
         raw -= ofs
@@ -373,49 +371,6 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
     return out
 
 
-def _ctun_throttle(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
-    """CTUN.ThO (0..1, 3.4 on) or CTUN.ThrOut (0..1000): the motors' throttle."""
-    for field_name, full in (("ThO", 1.0), ("ThrOut", THROTTLE_FULL)):
-        if msgs.count("CTUN") and msgs.has("CTUN", field_name):
-            values = msgs.array("CTUN", field_name) / full
-            if np.all(values == values[0]):
-                return None
-            meta["throttle_source"] = f"CTUN.{field_name}" + (
-                f" / {full:g}" if full != 1.0 else "") + " (0..1)"
-            return Stream("CTUN", _time(msgs, "CTUN", path), {"throttle": values})
-    return None
-
-
-def _motor_channels(params: dict) -> tuple[list[int], str]:
-    """RCOU channel numbers of the motors and where they come from."""
-    motors = [n for n in range(1, 33)
-              if int(params.get(f"SERVO{n}_FUNCTION", -1)) in MOTOR_FUNCTIONS]
-    if motors:
-        return motors, "SERVOn_FUNCTION 33-40"
-    return [1, 2, 3, 4], "channels 1-4 assumed (no SERVOn_FUNCTION logged: a quadcopter)"
-
-
-def _rcou_throttle(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
-    """Mean motor output normalised by the PWM range, 0..1 (clipped)."""
-    if not msgs.count("RCOU"):
-        return None
-    channels, origin = _motor_channels(msgs.params)
-    names = [next((f for f in (f"C{n}", f"Ch{n}", f"Chan{n}") if msgs.has("RCOU", f)), None)
-             for n in channels]
-    names = [f for f in names if f is not None]
-    if not names:
-        return None
-    lo = float(msgs.params.get("MOT_PWM_MIN", 0) or MOTOR_PWM_US[0])
-    hi = float(msgs.params.get("MOT_PWM_MAX", 0) or MOTOR_PWM_US[1])
-    pwm = np.column_stack([msgs.array("RCOU", f) for f in names])
-    if hi <= lo or pwm.max() > PWM_RANGE_US[1] or np.all(pwm == pwm[0]):
-        return None
-    values = np.clip((pwm.mean(axis=1) - lo) / (hi - lo), 0.0, 1.0)
-    meta["throttle_source"] = (f"RCOU {','.join(names)} ({origin}): mean output, "
-                               f"(PWM - {lo:g}) / ({hi:g} - {lo:g}) clipped to 0..1")
-    return Stream("RCOU_throttle", _time(msgs, "RCOU", path), {"throttle": values})
-
-
 def read_dataflash(path, *, skip_bad_rows: bool = False, compass: int | None = None) -> Track:
     """Read compass ``compass`` (instance from 0; default: the one ArduPilot uses first) of an
     ArduPilot DataFlash ``.bin`` log into a Track (see the module docstring).
@@ -478,13 +433,17 @@ def _track(msgs: _Messages, path: Path, instance: int) -> Track:
         streams.append(rcou)
     streams += _battery(msgs, path, meta)
     if "throttle_source" not in meta:
-        throttle = _ctun_throttle(msgs, path, meta) or _rcou_throttle(msgs, path, meta)
+        def time_of(name):
+            return _time(msgs, name, path)
+
+        throttle = ctun_throttle(msgs, time_of, meta) or rcou_throttle(msgs, time_of, meta)
         if throttle is not None:
             streams.append(throttle)
-    device = msgs.params.get(ardupilot_param("DEV_ID", instance))
+    params_of = int(meta["compass_params_index"])
+    device = msgs.params.get(ardupilot_param("DEV_ID", params_of))
     if device:
         meta["compass_device_id"] = f"{int(device)}"
-    for name, value in compass_params(msgs.params, instance).items():
+    for name, value in compass_params(msgs.params, params_of).items():
         meta[f"param.{name}"] = f"{value:g}"
     notes = [m for m in msgs.texts if m.startswith(("truncated", "Skipped"))]
     if notes:
