@@ -114,6 +114,10 @@ def test_text_and_report_with_every_compass(two, tmp_path, capsys):
     assert main(["report", str(path), "--compass", "all", "-o", str(html)]) == 0
     page = html.read_text()
     assert 'id="compasses"' in page and 'id="fig-compass-consistency"' in page
+    plots = tmp_path / "plots"
+    assert main(["diagnose", str(path), "--compass", "all", "--plots", str(plots)]) == 0
+    assert (plots / "compass-consistency.png").read_bytes()[:4] == b"\x89PNG"
+    assert list((plots / "compass_0").glob("*.png")) and list((plots / "compass_1").glob("*.png"))
 
 
 def test_compass_all_refused_where_one_is_read(two, tmp_path, capsys):

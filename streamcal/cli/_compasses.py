@@ -98,12 +98,35 @@ def _text(entries: list[dict], pairs: list[dict], describe) -> str:
     return "\n\n".join(parts + [_table(pairs)])
 
 
+def _plots(directory, entries: list[dict], pairs) -> str:
+    """Each compass's figures into ``DIRECTORY/compass_N/``, the consistency figure into
+    ``DIRECTORY``; the line saying how many PNG files were written where."""
+    from pathlib import Path
+
+    from ..atomic import atomic_write_bytes
+    from ..report import write_diagnosis_plots
+    from ..report.figures_compasses import consistency_figure
+
+    written = []
+    for e in entries:
+        written += write_diagnosis_plots(e["diagnosis"], e["track"],
+                                         Path(directory) / f"compass_{e['instance']}",
+                                         reason=e["error"])
+    if pairs:
+        fig = consistency_figure(pairs)
+        path = Path(directory) / f"{fig.name}.png"
+        atomic_write_bytes(path, fig.png, mode=0o644)
+        written.append(path)
+    return f"plots: {len(written)} PNG files written to {Path(directory).resolve()}"
+
+
 def diagnose_all(args, model, describe=str) -> int:
     """Print the per-compass diagnoses (``describe(diagnosis)`` each) and the consistency table
     (or one JSON object); exit 1 when no compass could be calibrated."""
     entries = _diagnose_each(args, model)
     pairs = _consistency(entries)
     dicts = [p.to_dict() for p in pairs]
+    plots = _plots(args.plots, entries, pairs) if getattr(args, "plots", None) else ""
     if args.json:
         from ..diagnosis.compass_consistency import LIMITS
 
@@ -112,6 +135,8 @@ def diagnose_all(args, model, describe=str) -> int:
                          allow_nan=False))
     else:
         print(_text(entries, dicts, describe))
+    if plots:
+        print(plots, file=sys.stderr if args.json else sys.stdout)
     return 0 if any(e["diagnosis"] is not None for e in entries) else 1
 
 
