@@ -2,7 +2,8 @@
 
 Bytes per the ULog file format (docs.px4.io "ULog File Format"): a 16-byte header (magic, version,
 start timestamp), then messages ``uint16 size, uint8 type, payload``: ``F`` formats, ``P``
-parameters, ``A`` subscriptions (multi-instance + message id + name), ``D`` data.
+parameters, ``A`` subscriptions (multi-instance + message id + name), ``D`` data, ``S`` sync
+(a magic to resynchronise on after damaged bytes).
 
 Compass ``k`` (``sensor_mag`` instance ``k``, device id ``ids[k]``) reads ``r = f + o_k`` gauss
 (PX4 corrects ``c = S (r − o)`` with S = I, so the corrected field is the true body field ``f``).
@@ -16,6 +17,7 @@ import numpy as np
 from ._dataflash_log import EARTH_NED, G, tumble
 
 GAUSS_PER_MG = 1e-3
+SYNC = b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"   # the sync message's magic
 
 
 def _msg(kind: bytes, payload: bytes) -> bytes:
@@ -54,6 +56,8 @@ def write_ulog(path, offsets_g, *, ids=(197388, 197644, 197900), prio=None, seco
     for k in range(len(offsets_g)):
         out.append(_msg(b"A", struct.pack("<BH", k, k + 1) + b"sensor_mag"))
     for i in range(len(t)):
+        if i % 50 == 0:     # a sync message each second, as PX4's logger writes them
+            out.append(_msg(b"S", SYNC))
         out.append(_msg(b"D", struct.pack("<HQ6f", 0, int(t_us[i]), *rates[i], *accel[i])))
         if i % 5:
             continue

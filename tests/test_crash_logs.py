@@ -124,3 +124,21 @@ def test_self_made_ulog_fuzz_never_a_traceback(tmp_path):
     assert len(data) > 50 * KB
     seen = _fuzz(data, tmp_path, ".ulg", seed=4)
     assert seen[0] > 40
+
+
+def test_ulog_damaged_middle_skipped_and_counted(tmp_path):
+    from ._ulog_log import write_ulog
+
+    path = tmp_path / "ok.ulg"
+    write_ulog(path, [(0.05, -0.1, 0.02)], seconds=40)
+    data = bytearray(path.read_bytes())
+    mid = len(data) // 2
+    data[mid:mid + 300] = np.random.default_rng(5).integers(0, 256, 300, dtype=np.uint8).tobytes()
+    bad = tmp_path / "damaged.ulg"
+    bad.write_bytes(bytes(data))
+    whole, track = read_recording(path), read_recording(bad)
+    warning = track.metadata["read_warnings"]
+    assert "Skipped damaged data" in warning and "bytes in" in warning, warning
+    assert 0.9 * len(whole.t_mag) < len(track.t_mag) < len(whole.t_mag)
+    code, lines = _convert(bad, tmp_path / "o.csv")
+    assert code == 0 and len(lines) == 1 and "Skipped damaged data" in lines[0]

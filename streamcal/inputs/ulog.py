@@ -53,15 +53,29 @@ def looks_like_ulog(head: bytes) -> bool:
     return head[:7] == MAGIC
 
 
-def _complete_until(data: bytes) -> int:
-    """End of the last complete message: pyulog stops silently at a cut message."""
-    offset = HEADER_BYTES
+#: ULog message types (flag bits, format, info, info multiple, parameter, parameter default,
+#: subscription, unsubscription, data, logging, tagged logging, sync, dropout).
+MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
+
+
+def _framing(data: bytes) -> tuple[int, int, int]:
+    """``(end, skipped, runs)``: the end of the last complete message, and the bytes (in how
+    many runs) that do not start a message of a known type, stepped over one at a time as pyulog
+    resynchronises; pyulog itself says only that it did."""
+    offset, skipped, runs, in_run = HEADER_BYTES, 0, 0, False
+    end = offset
     while offset + 3 <= len(data):
-        size = struct.unpack_from("<H", data, offset)[0]
-        if offset + 3 + size > len(data):
-            break
-        offset += 3 + size
-    return offset
+        size, kind = struct.unpack_from("<HB", data, offset)
+        if kind in MESSAGE_TYPES:
+            if offset + 3 + size > len(data):
+                break
+            offset += 3 + size
+            end, in_run = offset, False
+        else:
+            skipped += 1
+            runs += not in_run
+            offset, in_run = offset + 1, True
+    return end, skipped, runs
 
 
 class _PaddedReads(io.BytesIO):
@@ -94,14 +108,14 @@ def _load(path: Path):
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-    end = _complete_until(data)
+    end, skipped, runs = _framing(data)
     chatter = io.StringIO()
     try:
         with contextlib.redirect_stdout(chatter):   # pyulog prints its warnings
             ulog = ULog(_PaddedReads(data))
     except Exception as exc:  # pyulog raises assorted exception types on damaged bytes
         raise InputError(f"{path}: cannot read the ULog ({type(exc).__name__}: {exc})") from None
-    return ulog, len(data) - end
+    return ulog, len(data) - end, (skipped, runs)
 
 
 def _topic(ulog, name: str, instance: int | None = None):
@@ -301,17 +315,18 @@ def read_ulog(path, *, skip_bad_rows: bool = False, compass: int | None = None) 
     when it has no magnetometer topic (or not that instance).
     """
     path = Path(path)
-    ulog, cut = _load(path)
+    ulog, cut, skipped = _load(path)
     with _damaged(path):
-        return _track(ulog, path, cut, default_compass(ulog) if compass is None else compass)
+        return _track(ulog, path, cut, default_compass(ulog) if compass is None else compass,
+                      skipped)
 
 
 def read_ulog_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
     """One Track per magnetometer instance of the log (the log is parsed once)."""
     path = Path(path)
-    ulog, cut = _load(path)
+    ulog, cut, skipped = _load(path)
     with _damaged(path):
-        tracks = [_track(ulog, path, cut, i) for i in compass_instances(ulog) or [0]]
+        tracks = [_track(ulog, path, cut, i, skipped) for i in compass_instances(ulog) or [0]]
         for track in tracks:
             track.metadata["compass_default"] = str(default_compass(ulog))
     return tracks
@@ -328,7 +343,7 @@ def _damaged(path: Path):
                          f"({type(exc).__name__}: {exc})") from None
 
 
-def _track(ulog, path: Path, cut: int, instance: int) -> Track:
+def _track(ulog, path: Path, cut: int, instance: int, skipped=(0, 0)) -> Track:
     info = ulog.msg_info_dict
     meta = {"sensor": f"px4 magnetometer (instance {instance})",
             "source": f"PX4 ULog {path.name}", "compass_instance": str(instance),
@@ -353,9 +368,11 @@ def _track(ulog, path: Path, cut: int, instance: int) -> Track:
     if cut:
         meta["read_warnings"] = (f"truncated: {cut} trailing bytes ignored (the log ends inside "
                                  "a message; read to the last complete one)")
-    if ulog.file_corruption:
+    if ulog.file_corruption or skipped[0]:
+        count = (f": {skipped[0]} bytes in {skipped[1]} runs do not start a message"
+                 if skipped[0] else "")
         meta["read_warnings"] = (meta.get("read_warnings", "") + "; " if "read_warnings" in meta
-                                 else "") + "pyulog reports file corruption (some data skipped)"
+                                 else "") + f"Skipped damaged data (pyulog resynchronised{count})"
     streams = drop_nonfinite(streams, meta)
     if not len(streams[0].t):
         raise InputError(f"{path}: no intact magnetometer sample ({meta['read_warnings']})")
