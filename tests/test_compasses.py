@@ -67,6 +67,14 @@ def test_ctun_throttle_makes_motct1_autopilot_cal_work(two, capsys):
     assert main(["diagnose", str(path), "--compass", "1", "--cal", "autopilot", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert "aux_interference" in out["model"]
+    # the autopilot's correction rebuilt from COMPASS_OFS/MOT and CTUN's throttle gives back the
+    # field it logged (the true body field; 3 mG noise, offsets rounded to 1 mG)
+    from streamcal.diagnosis.compass_consistency import calibrated_field
+
+    track0 = read_recording(path, compass=0)
+    _, field = calibrated_field(track0, autopilot_calibration(track0))
+    err = np.linalg.norm(field - truth["field"] / 10.0, axis=1)
+    assert np.median(err) < 0.6 and np.max(err) < 2.5   # µT; noise 0.3 µT per axis
 
 
 def test_rcou_throttle_when_ctun_has_none(tmp_path):
