@@ -141,6 +141,8 @@ def test_compass_on_a_track_refused(tmp_path, capsys):
     track.write_text("t,mx,my,mz\n0,1,2,3\n0.1,1,2,3\n")
     assert main(["fit", str(track), "--compass", "0"]) == 2
     assert "--compass applies to autopilot logs" in capsys.readouterr().err
+    assert main(["diagnose", str(track), "--compass", "all"]) == 2
+    assert "--compass applies to autopilot logs" in capsys.readouterr().err
 
 
 @pytest.mark.slow

@@ -94,7 +94,7 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
 
 def read_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
     """Every compass of an autopilot log, one Track each in instance order (metadata
-    ``compass_instance``); a recording of one magnetometer gives a list of one Track."""
+    ``compass_instance``); InputError for a recording of one magnetometer."""
     path = Path(path)
     fmt = detect(path)
     if fmt == "dataflash":
@@ -106,7 +106,8 @@ def read_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
 
         tracks = read_ulog_compasses(path, skip_bad_rows=skip_bad_rows)
     else:
-        return [read_recording(path, skip_bad_rows=skip_bad_rows)]
+        raise InputError(f"{path}: --compass applies to autopilot logs (ArduPilot .bin, PX4 "
+                         "ULog); this recording holds one magnetometer")
     for track in tracks:
         track.path = path
     return tracks
