@@ -56,6 +56,7 @@ def _fuzz(data: bytes, tmp_path, suffix: str, seed: int) -> dict:
     return seen
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")   # a warning is a second line
 def test_dataflash_fuzz_never_a_traceback(small_bin, tmp_path):
     data = small_bin.read_bytes()
     assert len(data) > 50 * KB
@@ -63,6 +64,7 @@ def test_dataflash_fuzz_never_a_traceback(small_bin, tmp_path):
     assert seen[0] > 50 and seen[2] > 0    # most cuts still hold MAG; the first ones none
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")   # a warning is a second line
 def test_ulog_fuzz_never_a_traceback(flight_dir, tmp_path):
     seen = _fuzz((flight_dir / "px4_pyulog_sample.ulg").read_bytes(), tmp_path, ".ulg", seed=2)
     assert seen[0] > 0
@@ -115,6 +117,7 @@ def test_batch_reads_logs_and_says_what_a_cut_lost(small_bin, tmp_path):
     assert "not UTF-8" not in out.read_text()
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")   # a warning is a second line
 def test_self_made_ulog_fuzz_never_a_traceback(tmp_path):
     from ._ulog_log import write_ulog
 
