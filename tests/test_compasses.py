@@ -159,6 +159,14 @@ def test_real_logs_every_compass(flight_dir, capsys):
     assert [t.metadata["compass_instance"] for t in tracks] == ["0", "1"]
     assert [t.metadata["compass_device_id"] for t in tracks] == ["197388", "197644"]
     assert [t.metadata["mag_cal_params"] for t in tracks] == ["CAL_MAG0_", "CAL_MAG1_"]
+    # too few samples to calibrate either (exit 1), but the two compasses of that board, each
+    # with its CAL_MAGn, agree within a degree or two, and the output says why each was not fitted
+    assert main(["diagnose", str(ulg), "--compass", "all", "--json"]) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert all(c["diagnosis"] is None and c["error"] for c in out["compasses"])
+    (pair,) = out["consistency"]
+    assert pair["calibration"] == "autopilot" and pair["n"] > 10
+    assert pair["angle_deg_median"] < 3.0 and pair["fraction_inconsistent"] == 0.0
     # the Erle-Brain3 log (ArduPilot 3.4) logs its throttle in CTUN.ThO only
     eb = read_recording(flight_dir / "ardupilot_erle_Erle-Brain3.BIN")
     assert eb.metadata["throttle_source"].startswith("CTUN.ThO")
