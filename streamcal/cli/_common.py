@@ -49,8 +49,9 @@ def add_input_options(parser, skip_bad_rows: bool = False) -> None:
 def add_skip_bad_rows(parser) -> None:
     """Add ``--skip-bad-rows`` alone (for commands without ``--columns``/``--unit``)."""
     parser.add_argument("--skip-bad-rows", action="store_true",
-                        help="skip and count malformed rows (or a cut last log message); the "
-                             "count and the first one are printed on stderr")
+                        help="skip and count malformed rows of a text recording; the count and "
+                             "the first one are printed on stderr (an autopilot log is always read "
+                             "to its last complete message, what was lost said on stderr)")
 
 
 def skipped_text(path, skipped: int, reasons) -> str:
