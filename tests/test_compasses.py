@@ -85,6 +85,15 @@ def test_rcou_throttle_when_ctun_has_none(tmp_path):
     got = track.columns["throttle"][~np.isnan(track.columns["throttle"])]
     # PWM rounded to 1 µs over a 1000 µs range
     np.testing.assert_allclose(got, np.clip(truth["throttle"], 0, 1), atol=0.6e-3)
+    # a plane: the SERVOn_FUNCTION 70 channel over its SERVOn_MIN/MAX
+    plane = tmp_path / "plane.bin"
+    write_flight(plane, [{"ofs": OFS[0]}], throttle_in="RCOU",
+                 extra_params={"SERVO3_FUNCTION": 70, "SERVO3_MIN": 1200, "SERVO3_MAX": 1800})
+    track = read_recording(plane)
+    assert track.metadata["throttle_source"].startswith("RCOU C3 (SERVO3_FUNCTION 70")
+    got = track.columns["throttle"][~np.isnan(track.columns["throttle"])]
+    pwm = np.round(1000 + 1000 * truth["throttle"])
+    np.testing.assert_allclose(got, np.clip((pwm - 1200) / 600, 0, 1), atol=1e-9)
 
 
 def test_consistency_against_the_truth(two, capsys):

@@ -28,8 +28,8 @@ logged and that compass has rows, else instance 0. IMU, BAT, BARO: instance 0.
 The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with (``motors->get_throttle()``)
 is CURR.Throttle/ThrOut in 3.2–3.3, CTUN.ThO from 3.4 on; when neither is logged it is
 approximated by the motor outputs: the mean over the motor channels of RCOU normalised by the
-PWM range (MOT_PWM_MIN/MAX, else 1000..2000 µs), the motors being the SERVOn_FUNCTION 33–40
-channels when logged, else channels 1–4 (a quadcopter), said in ``throttle_source``.
+PWM range (:mod:`.dataflash_throttle`: the SERVOn_FUNCTION 33–40 motors, a plane's throttle
+channel, else channels 1–4), said in ``throttle_source``.
 
 A log cut inside a message (a crash, a power cut) is read to its last complete message; a
 damaged stretch is skipped to the next valid message header; both are counted in

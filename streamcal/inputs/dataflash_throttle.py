@@ -21,6 +21,9 @@ MOTOR_PWM_US = (1000.0, 2000.0)
 PWM_MAX_US = 3000.0
 #: SERVOn_FUNCTION values of motors 1..8 (ArduPilot's SRV_Channel k_motor1..k_motor8).
 MOTOR_FUNCTIONS = range(33, 41)
+#: SERVOn_FUNCTION of a plane's throttle (k_throttle) and ArduPilot's default SERVOn_MIN/MAX.
+THROTTLE_FUNCTION = 70
+SERVO_PWM_US = (1100.0, 1900.0)
 
 
 def ctun_throttle(msgs, time_of, meta: dict) -> Stream | None:
@@ -36,27 +39,35 @@ def ctun_throttle(msgs, time_of, meta: dict) -> Stream | None:
     return None
 
 
-def _motor_channels(params: dict) -> tuple[list[int], str]:
-    """RCOU channel numbers of the motors and where they come from."""
-    motors = [n for n in range(1, 33)
-              if int(params.get(f"SERVO{n}_FUNCTION", -1)) in MOTOR_FUNCTIONS]
+def _motor_channels(params: dict) -> tuple[list[int], str, float, float]:
+    """RCOU channel numbers of the motors, where they come from and their PWM range (µs): the
+    SERVOn_FUNCTION 33–40 motors over MOT_PWM_MIN/MAX; else a plane's throttle channel
+    (SERVOn_FUNCTION 70) over its SERVOn_MIN/MAX; else channels 1–4 (a quadcopter)."""
+    lo = float(params.get("MOT_PWM_MIN", 0) or MOTOR_PWM_US[0])
+    hi = float(params.get("MOT_PWM_MAX", 0) or MOTOR_PWM_US[1])
+    functions = {n: int(params.get(f"SERVO{n}_FUNCTION", -1)) for n in range(1, 33)}
+    motors = [n for n, f in functions.items() if f in MOTOR_FUNCTIONS]
     if motors:
-        return motors, "SERVOn_FUNCTION 33-40"
-    return [1, 2, 3, 4], "channels 1-4 assumed (no SERVOn_FUNCTION logged: a quadcopter)"
+        return motors, "SERVOn_FUNCTION 33-40", lo, hi
+    plane = [n for n, f in functions.items() if f == THROTTLE_FUNCTION]
+    if plane:
+        n = plane[0]
+        return ([n], f"SERVO{n}_FUNCTION 70, throttle",
+                float(params.get(f"SERVO{n}_MIN", 0) or SERVO_PWM_US[0]),
+                float(params.get(f"SERVO{n}_MAX", 0) or SERVO_PWM_US[1]))
+    return [1, 2, 3, 4], "channels 1-4 assumed (no SERVOn_FUNCTION logged: a quadcopter)", lo, hi
 
 
 def rcou_throttle(msgs, time_of, meta: dict) -> Stream | None:
     """Mean motor output normalised by the PWM range, 0..1 (clipped)."""
     if not msgs.count("RCOU"):
         return None
-    channels, origin = _motor_channels(msgs.params)
+    channels, origin, lo, hi = _motor_channels(msgs.params)
     names = [next((f for f in (f"C{n}", f"Ch{n}", f"Chan{n}") if msgs.has("RCOU", f)), None)
              for n in channels]
     names = [f for f in names if f is not None]
     if not names:
         return None
-    lo = float(msgs.params.get("MOT_PWM_MIN", 0) or MOTOR_PWM_US[0])
-    hi = float(msgs.params.get("MOT_PWM_MAX", 0) or MOTOR_PWM_US[1])
     pwm = np.column_stack([msgs.array("RCOU", f) for f in names])
     if hi <= lo or pwm.max() > PWM_MAX_US or np.all(pwm == pwm[0]):
         return None
