@@ -22,7 +22,8 @@ from typing import Callable, Iterable
 #: Columns of a summary row, in CSV order. ``rms`` is on the residual named in ``residual``
 #: (``sensor``: paper eq. 41 over inliers; the diagnosis may name a tied residual), sensor unit.
 COLUMNS = ("path", "status", "n", "rms", "residual", "unit", "field", "coverage", "verdict",
-           "top_candidate", "seconds", "error", "skipped_rows", "first_skipped")
+           "top_candidate", "rms_after", "n_compared", "seconds", "error", "skipped_rows",
+           "first_skipped")
 
 
 def _read(path: str, skip_bad_rows: bool, compass: int | None = None):
@@ -64,7 +65,11 @@ def diagnose_task(path: str, skip_bad_rows: bool = False, compass: int | None = 
     return {**cells, "n": d.n, "rms": d.rms, "residual": d.residual,
             "unit": getattr(cal, "unit", None), "field": getattr(cal, "field", None),
             "coverage": getattr(cal, "coverage", None), "verdict": d.verdict,
-            "top_candidate": d.candidates[0].effect if d.candidates else None}
+            "top_candidate": d.candidates[0].effect if d.candidates else None,
+            # the ladder's last step: what `streamcal fit … --add …` gives, over n_compared samples
+            # (``rms`` is the ladder's first step over the same samples)
+            "rms_after": d.ladder[-1]["rms"] if len(d.ladder) > 1 else None,
+            "n_compared": d.ladder[0].get("n") if d.ladder else None}
 
 
 TASKS: dict[str, Callable[[str], dict]] = {"fit": fit_task, "diagnose": diagnose_task}

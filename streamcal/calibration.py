@@ -136,9 +136,12 @@ class Calibration:
         :meth:`to_json`)."""
         from .units import effect_params, quantity
 
+        from .units import display_unit
+
         u = self.unit
         lines = [f"Calibration of {self.sensor} ({self.method}"
-                 + (f", {self.kernel} kernel" if self.kernel else "") + f"): {', '.join(self.model)}",
+                 + (f", {self.kernel} kernel" if self.kernel else "") + f"): {', '.join(self.model)}"
+                 + ("" if display_unit(u) else "; unit unknown"),
                  f"  K diagonal {quantity(np.diag(self.K), u, 4)} per unit direction"
                  + ("" if not np.any(np.triu(self.K, 1)) else
                     f" (off-diagonal up to {quantity(np.abs(np.triu(self.K, 1)).max(), u)})"),
@@ -318,14 +321,22 @@ def jsonable(value):
     return value
 
 
+#: Keys every calibration file has (docs/calibration_file.md).
+REQUIRED_KEYS = ("format", "sensor", "model", "K", "b", "n")
+
+
 def _parse(data, source: str) -> Calibration:
     def fail(key, what):
         raise CalibrationFileError(f"{source}: key '{key}': {what}")
 
     if not isinstance(data, Mapping):
         raise CalibrationFileError(f"{source}: expected a JSON object, found {type(data).__name__}")
-    if data.get("format") != FORMAT:
+    if "format" in data and data["format"] != FORMAT:
         fail("format", f"expected '{FORMAT}', found {data.get('format')!r} (not a streamcal calibration?)")
+    for key in REQUIRED_KEYS:
+        if key not in data:
+            raise CalibrationFileError(f"{source}: missing key '{key}'" + (
+                " (not a streamcal calibration?)" if key == "format" else ""))
     sensor = data.get("sensor")
     if sensor not in SENSORS:
         fail("sensor", f"expected one of {SENSORS}, found {sensor!r}")

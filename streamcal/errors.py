@@ -20,11 +20,12 @@ class InputError(StreamcalError):
 
 class TrackError(InputError):
     """A track file that violates the track format (docs/tracks_and_inputs.md), located by file,
-    line (1-based) and column name."""
+    line (1-based) and column name; arrays (no file) by ``row`` (0-based), which a file reader
+    turns into its line."""
 
     def __init__(self, message: str, path: str | None = None, line: int | None = None,
-                 column: str | None = None):
-        self.path, self.line, self.column, self.reason = path, line, column, message
+                 column: str | None = None, row: int | None = None):
+        self.path, self.line, self.column, self.reason, self.row = path, line, column, message, row
         where = ":".join(str(p) for p in (path, line) if p is not None)
         if column is not None:
             where += f" column '{column}'" if where else f"column '{column}'"

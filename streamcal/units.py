@@ -12,6 +12,11 @@ from typing import Any, Mapping
 
 import numpy as np
 
+#: The unit of a track or calibration that does not say it in words streamcal knows
+#: (``# mag_unit: probably uT``): written nowhere after a number; where the source is named,
+#: "unit unknown" is said once instead.
+UNKNOWN = "unknown"
+
 #: Display form of a unit name as it appears in tracks and calibration files.
 _DISPLAY = {"uT": "µT", "μT": "µT", "ut": "µT", "m/s2": "m/s²", "m/s^2": "m/s²", "degC": "°C"}
 
@@ -34,10 +39,18 @@ PARAM_UNITS: dict[tuple[str, str], str] = {
 
 
 def display_unit(unit: str | None) -> str:
-    """The unit as a reader writes it: ``uT`` → ``µT``, ``m/s^2`` → ``m/s²``; others unchanged."""
-    if unit is None:
+    """The unit as a reader writes it: ``uT`` → ``µT``, ``m/s^2`` → ``m/s²``; others unchanged;
+    "" for None and :data:`UNKNOWN`."""
+    if unit is None or unit == UNKNOWN:
         return ""
     return _DISPLAY.get(unit, unit)
+
+
+def with_unit(text: str, unit: str | None) -> str:
+    """``text`` followed by the display form of ``unit`` (``"0.37 µT"``); ``text`` alone when the
+    unit is unknown or none."""
+    shown = display_unit(unit)
+    return f"{text} {shown}" if shown else text
 
 
 def param_unit(effect: str, param: str, sensor_unit: str = "uT") -> str:

@@ -1,7 +1,5 @@
 """convert and apply read section-1 tracks in chunks: output identical to the whole-file path
 (real tracks and a simulated one with asynchronous mag / IMU / temp rows), atomic on error."""
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -13,8 +11,9 @@ from streamcal.export.apply import apply_calibration, write_applied
 from streamcal.inputs.track import Track
 from streamcal.sim import simulate
 
-REAL = Path(__file__).resolve().parent.parent.parent / "shared" / "data" / "real" / "tracks"
-REAL_TRACK = REAL / "broad_02_undisturbed_slow_rotation_B.csv.gz"
+from .conftest import REAL_TRACKS, real_path
+
+REAL_TRACK = REAL_TRACKS / "broad_02_undisturbed_slow_rotation_B.csv.gz"
 
 
 @pytest.fixture(params=["temp on IMU rows", "sparse temp", "sparse temp on mag rows"])
@@ -62,8 +61,7 @@ def _whole_apply(cal, track_path, cal_path, out):
 @pytest.mark.parametrize("suffix", [".csv", ".csv.gz"])
 @pytest.mark.parametrize("rows", [997, 100_000])
 def test_convert_chunked_equals_whole(tmp_path, monkeypatch, suffix, rows):
-    if not REAL_TRACK.exists():
-        pytest.skip("real data not available")
+    real_path(REAL_TRACK)
     monkeypatch.setattr(convert_cli, "CHUNK_ROWS", rows)
     out, ref = tmp_path / f"out{suffix}", tmp_path / f"ref{suffix}"
     assert main(["convert", str(REAL_TRACK), "-o", str(out)]) == 0
@@ -73,8 +71,7 @@ def test_convert_chunked_equals_whole(tmp_path, monkeypatch, suffix, rows):
 
 @pytest.mark.parametrize("rows", [500, 4096])
 def test_apply_chunked_equals_whole_real(tmp_path, monkeypatch, rows):
-    if not REAL_TRACK.exists():
-        pytest.skip("real data not available")
+    real_path(REAL_TRACK)
     monkeypatch.setattr(apply_cli, "CHUNK_ROWS", rows)
     cal_path, out, ref = tmp_path / "cal.json", tmp_path / "out.csv", tmp_path / "ref.csv"
     cal = Calibration(K=np.diag([30.0, 31.0, 29.0]), b=np.array([5.0, -3.0, 1.0]), field=48.0,

@@ -30,7 +30,7 @@ def test_demo_finds_the_hidden_effect_and_writes_the_report(tmp_path, capsys):
     coverages = [int(c) for _, c, _, _ in accepted]
     assert max(coverages) > min(coverages)          # printed as coverage grows
     hidden = _hidden_effect()
-    assert f"missing effect: {hidden} " in out
+    assert f"misses {hidden}:" in out
     table = out.split("rank candidate", 1)[1]
     assert re.search(rf"^1 +{hidden} ", table, re.M)
     # the ladder reaches the noise floor once the effect is added
@@ -53,4 +53,4 @@ def test_demo_quiet_prints_little(tmp_path, capsys):
     assert main(["demo", "--track", str(track), "--quiet", "-o", str(out_file)]) == 0
     out = capsys.readouterr().out
     assert "accepted" not in out and "rank candidate" not in out
-    assert "missing effect: time_drift" in out and out_file.is_file()
+    assert "misses time_drift:" in out and out_file.is_file()

@@ -86,7 +86,7 @@ def test_json_has_the_spec_keys():
             "outlier_spans"} <= set(out)
     assert out["model"] == ["hard_iron", "soft_iron"]
     for c in out["candidates"]:
-        assert set(c) == {"effect", "rms_after", "p_value", "evidence", "residual", "rms_before",
+        assert set(c) == {"effect", "rms_after", "p_value", "evidence", "residual", "rms_before", "n",
                           "significant", "material"}
         assert c["effect"] not in out["model"]
     rms_after = [c["rms_after"] for c in out["candidates"]]

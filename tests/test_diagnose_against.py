@@ -155,4 +155,7 @@ def test_full_sphere_without_cal_is_the_fresh_diagnosis():
     track = simulate(20, seed=4, temp_profile="constant").track
     d = streamcal.diagnose(track, ladder=False)
     assert not isinstance(d, HeldDiagnosis) and "held" not in d.to_dict()
-    assert d.to_dict() == fresh(track, ladder=False).to_dict()
+    advice = ("summary", "next_step", "heading_error_deg", "heading_error_reason")
+    engine = {k: v for k, v in d.to_dict().items() if k not in advice}
+    assert engine == {k: v for k, v in fresh(track, ladder=False).to_dict().items()
+                      if k not in advice}

@@ -142,3 +142,95 @@ def test_table_rows_have_as_many_cells_as_the_header(path):
         if rows is None:
             rows = cells
         assert cells == rows, f"{path.name}:{number}: {cells} cells, the header has {rows}"
+
+
+def _sections() -> dict[str, str]:
+    """docs/cli.md cut at its ``## `` headings: heading → text."""
+    text = (DOCS / "cli.md").read_text(encoding="utf-8")
+    parts = re.split(r"^## +(.+)$", text, flags=re.M)
+    return {head.strip(): body for head, body in zip(parts[1::2], parts[2::2])}
+
+
+#: An option as docs write it in code: ``--alt-km``, ``-o`` (also in ``-o/--output``).
+_OPTION = re.compile(r"(?<![\w.-])(--[a-z][a-z0-9-]*|-[a-zA-Z])(?![\w-])")
+#: Sections of shared options a command section takes in by naming them ("the recording
+#: options").
+_SHARED = {"recording options": "Options shared by commands that read a recording",
+           "place options": "Options that place the recording"}
+
+
+def _documented_options(section: str) -> set[str]:
+    """Options named in code (inline backticks and fenced blocks) of one section."""
+    code = re.findall(r"```.*?```", section, flags=re.S)
+    code += re.findall(r"`([^`\n]+)`", re.sub(r"```.*?```", "", section, flags=re.S))
+    return {m for piece in code for m in _OPTION.findall(piece)}
+
+
+def _parser_options(command: str) -> set[str]:
+    """Every option string of ``command`` as argparse has it (``--help`` left out)."""
+    parser = build_parser()
+    sub = next(a for a in parser._actions if a.dest == "command").choices[command]
+    return {s for a in sub._actions for s in a.option_strings if s not in ("-h", "--help")}
+
+
+@pytest.mark.parametrize("command", _commands())
+def test_cli_md_documents_every_option_and_no_other(command):
+    """Each command's section of docs/cli.md names every option its parser has (the shared
+    recording options by naming them), and names no option the command lacks."""
+    sections = _sections()
+    assert command in sections, f"docs/cli.md has no '## {command}' section"
+    section = sections[command]
+    documented = _documented_options(section)
+    words = " ".join(section.split())
+    for phrase, shared in _SHARED.items():
+        if phrase in words:
+            documented |= _documented_options(sections[shared])
+    actual = _parser_options(command)
+    assert not actual - documented, \
+        f"docs/cli.md '## {command}' lacks {sorted(actual - documented)}"
+    own = _documented_options(section)
+    assert not own - actual, \
+        f"docs/cli.md '## {command}' names options {command} does not have: {sorted(own - actual)}"
+
+
+def test_batch_md_lists_the_summary_columns_in_order():
+    from streamcal.batching import COLUMNS
+
+    text = (DOCS / "batch.md").read_text(encoding="utf-8")
+    documented = tuple(re.findall(r"^\| `(\w+)` \|", text, flags=re.M))
+    assert documented == COLUMNS
+
+
+@pytest.mark.slow
+def test_batch_top_candidate_is_filled_whatever_the_verdict_as_batch_md_says(tmp_path):
+    """A clean simulated track is at the noise floor, and its row still names the best-ranked
+    candidate (docs/batch.md says so, rather than "empty unless an effect is missing")."""
+    from streamcal.batching import diagnose_task
+    from streamcal.diagnosis import diagnose
+    from streamcal.sim import simulate
+
+    track = simulate(duration_s=60, seed=4).track
+    track.write(tmp_path / "clean.csv")
+    row = diagnose_task(str(tmp_path / "clean.csv"))
+    d = diagnose(track)
+    assert row["verdict"] == d.verdict == "at_noise_floor"
+    assert row["top_candidate"] == d.candidates[0].effect
+    text = " ".join((DOCS / "batch.md").read_text(encoding="utf-8").split())
+    assert "`top_candidate` | `diagnose` only: the best-ranked candidate effect, whatever the " \
+           "verdict" in text
+
+
+def test_the_fit_example_in_cli_md_is_what_fit_prints(capsys):
+    """The example's lines, numbers aside, are the lines ``streamcal fit`` prints (units
+    spelled as the program spells them: ``K [µT]``)."""
+    section = _sections()["fit"]
+    example = re.search(r"```\w*\n\$ streamcal fit (\S+) -o cal.json\n(.*?)```", section, re.S)
+    track, shown = example.group(1), example.group(2)
+    assert main(["fit", str(ROOT / track)]) == 0
+    printed = capsys.readouterr().out.replace(str(ROOT / track), track)
+
+    def shape(text):
+        return [re.sub(r"-?\d+(\.\d+)?", "N", line) for line in text.splitlines()
+                if not line.startswith("written:")]
+
+    assert shape(printed) == shape(shown)

@@ -8,13 +8,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import pytest
 
 from firmware_bridge import registers as R
 from streamcal.inputs.track import Track
 
+from .conftest import REAL_TRACKS, real_path
+
 REPO = Path(__file__).resolve().parent.parent
-TIVA_03 = REPO / ".." / "shared" / "data" / "real" / "tracks" / "tiva_mpu9250_mag_03.csv"
+TIVA_03 = REAL_TRACKS / "tiva_mpu9250_mag_03.csv"
 
 
 def record(*args):
@@ -23,8 +24,7 @@ def record(*args):
 
 
 def test_record_from_fake_board_on_a_counts_log_writes_the_field_in_uT(tmp_path):
-    if not TIVA_03.exists():
-        pytest.skip("real tracks not available")
+    real_path(TIVA_03)
     src = Track.read(TIVA_03)
     assert src.mag_unit == "counts" and "chip" in src.metadata["mag_axes"]
     out = tmp_path / "x.csv"

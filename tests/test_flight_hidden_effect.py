@@ -1,9 +1,10 @@
 """A motor field hidden in a real flight log is found by diagnosing it against the autopilot's own
 calibration (issue #10 item 5).
 
-Real logs from ../shared/data/real/flight (README there). The injected field is proportional to a
-real channel of the log (throttle, or one motor output), 3 µT at the channel's full range along a
-fixed direction, added to the real magnetometer samples; nothing else is changed.
+Real logs from data/real/flight under STREAMCAL_SHARED (README there). The injected field is
+proportional to a real channel of the log (throttle, or one motor output), 3 µT at the channel's
+full range along a fixed direction, added to the real magnetometer samples; nothing else is
+changed.
 """
 from __future__ import annotations
 
@@ -16,9 +17,8 @@ import streamcal
 from streamcal.inputs import autopilot_calibration, read_recording
 from streamcal.inputs.track import Track
 
-from .conftest import SHARED
+from .conftest import real_flight
 
-FLIGHT = SHARED / "data" / "real" / "flight"
 #: 152 s quadcopter flight, older DataFlash layout, carries throttle and rcou_c1..c6.
 LOG_16 = "ardupilot_erle_15-12-2014_16.BIN"
 #: 1231 s flight that carries throttle and battery current.
@@ -28,10 +28,7 @@ AMPLITUDE_UT = 3.0
 
 
 def _read(name: str) -> Track:
-    path = FLIGHT / name
-    if not path.exists():
-        pytest.skip(f"{path} not found (set STREAMCAL_SHARED)")
-    return read_recording(path)
+    return read_recording(real_flight(name))
 
 
 def _inject(track: Track, channel: str, amplitude: float = AMPLITUDE_UT) -> Track:
@@ -120,9 +117,7 @@ def test_log_without_motor_channel_does_not_invent_one(log16):
 def test_cli_cal_autopilot_names_its_source_and_refuses_a_track_without_one(capsys):
     from streamcal.cli import main
 
-    path = FLIGHT / LOG_16
-    if not path.exists():
-        pytest.skip(f"{path} not found")
+    path = real_flight(LOG_16)
     assert main(["diagnose", str(path), "--cal", "autopilot", "--json"]) == 0
     import json
 

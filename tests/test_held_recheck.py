@@ -17,17 +17,13 @@ from streamcal.inputs import autopilot_calibration, read_recording
 from streamcal.model.aux import AuxInterference
 from streamcal.model.nonlinear import AxisNonlinearity
 
-from .conftest import SHARED
-
-FLIGHT = SHARED / "data" / "real" / "flight"
+from .conftest import real_flight
 
 
 @pytest.fixture(scope="module", params=["ardupilot_erle_PXFv2.0b_Rpi.BIN",
                                         "ardupilot_erle_15-12-2014_16.BIN"])
 def flight(request):
-    path = FLIGHT / request.param
-    if not path.exists():
-        pytest.skip(f"{path} not found (set STREAMCAL_SHARED)")
+    path = real_flight(request.param)
     track = read_recording(path)
     cal = autopilot_calibration(track)
     return cal, streamcal.diagnose(track, calibration=cal)
@@ -84,9 +80,7 @@ def test_real_hidden_effects_stay_while_degenerate_fits_are_marked(flight):
 def test_cli_text_says_how_the_held_fit_ended(capsys):
     from streamcal.cli import main
 
-    path = FLIGHT / "ardupilot_erle_15-12-2014_16.BIN"
-    if not path.exists():
-        pytest.skip(f"{path} not found")
+    path = real_flight("ardupilot_erle_15-12-2014_16.BIN")
     assert main(["diagnose", str(path), "--cal", "autopilot"]) == 0
     text = capsys.readouterr().out
     assert "held fit   " in text and " iterations" in text

@@ -1,5 +1,5 @@
-"""Real flight-controller logs (../shared/data/real/flight): read, convert, offsets undone,
-truncated copies read to their last complete message."""
+"""Real flight-controller logs (data/real/flight under STREAMCAL_SHARED): read, convert, offsets
+undone, truncated copies read to their last complete message."""
 import shutil
 from pathlib import Path
 

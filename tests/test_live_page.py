@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import signal
 import socket
 import subprocess
 import sys
@@ -11,6 +12,7 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from streamcal.service.http_page import PEER_CHECK_S, LivePage, parse_http
@@ -21,25 +23,65 @@ TRACK = REPO / "streamcal" / "data" / "demo_track.csv.gz"
 
 def start_daemon(tmp_path, *extra, speed="3", seconds="60", device=None):
     """``streamcal daemon --bus fake:TRACK --speed SPEED --http 127.0.0.1:0`` (``device``: other
-    leading arguments, e.g. ``serial --port fake:TRACK``); returns (process, base URL)."""
+    leading arguments, e.g. ``serial --port fake:TRACK``); returns (process, base URL) once the
+    process has said where its page listens (it listens before it says so). Its stderr goes on
+    being collected into ``process.stderr_lines`` (and ``tmp_path/stderr.txt``)."""
     env = {**os.environ, "PYTHONPATH": str(REPO)}
-    err = open(tmp_path / "stderr.txt", "w+")
     device = device or ["daemon", "--bus", f"fake:{TRACK}", "--speed", speed]
     proc = subprocess.Popen([sys.executable, "-m", "streamcal", *device, "--no-socket", "--state-dir", str(tmp_path / "s"),
                              "--max-seconds", seconds, "--http", "127.0.0.1:0", *extra],
-                            stdout=subprocess.DEVNULL, stderr=err, env=env, cwd=REPO)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        err.seek(0)
-        found = re.search(r"live page at (http://[\d.]+:\d+/)", err.read())
-        if found:
-            return proc, found.group(1)
-        if proc.poll() is not None:
-            err.seek(0)
-            pytest.fail(f"daemon exited: {err.read()[-2000:]}")
-        time.sleep(0.1)
-    proc.kill()
-    pytest.fail("daemon did not print the live page address")
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env,
+                            cwd=REPO)
+    lines = StderrLines(proc, tmp_path / "stderr.txt")
+    found = lines.wait_for(r"live page at (http://[\d.]+:\d+/)", 60)
+    if found is None:
+        proc.kill()
+        pytest.fail(f"daemon did not print the live page address: {lines.text()[-2000:]}")
+    return proc, found.group(1)
+
+
+class StderrLines:
+    """A process's stderr, read line by line on a thread (the pipe never fills) and copied to
+    ``path``; :meth:`wait_for` blocks until a line matches, without polling."""
+
+    def __init__(self, proc, path):
+        self.lines: list[str] = []
+        self._changed = threading.Condition()
+        self._done = False
+        self._copy = open(path, "w")
+        proc.stderr_lines = self
+        threading.Thread(target=self._read, args=(proc.stderr,), daemon=True).start()
+
+    def _read(self, stream) -> None:
+        for line in stream:
+            self._copy.write(line)
+            self._copy.flush()
+            with self._changed:
+                self.lines.append(line)
+                self._changed.notify_all()
+        with self._changed:
+            self._done = True
+            self._changed.notify_all()
+
+    def text(self) -> str:
+        with self._changed:
+            return "".join(self.lines)
+
+    def wait_for(self, pattern: str, timeout: float):
+        """The first match of ``pattern`` in a line, or None at end of stream or ``timeout``."""
+        regex = re.compile(pattern)
+        seen = 0
+        deadline = time.monotonic() + timeout
+        with self._changed:
+            while True:
+                for line in self.lines[seen:]:
+                    if (found := regex.search(line)):
+                        return found
+                seen = len(self.lines)
+                left = deadline - time.monotonic()
+                if self._done or left <= 0:
+                    return None
+                self._changed.wait(left)
 
 
 def _addr(url):
@@ -62,8 +104,9 @@ def request(url, raw: bytes, timeout=5.0) -> bytes:
         return out
 
 
-def sse_events(url, path="/events", seconds=3.0) -> list[dict]:
-    """JSON of the ``data:`` lines received on ``path`` during ``seconds``."""
+def sse_events(url, path="/events", seconds=3.0, until=None) -> list[dict]:
+    """JSON of the ``data:`` lines received on ``path`` during ``seconds``, or up to the first
+    for which ``until(event)`` holds (then within ``seconds``: else the test fails)."""
     buf = b""
     end = time.monotonic() + seconds
     with socket.create_connection(_addr(url), timeout=1.0) as s:
@@ -76,11 +119,23 @@ def sse_events(url, path="/events", seconds=3.0) -> list[dict]:
             if not chunk:
                 break
             buf += chunk
+            if until is not None and any(until(e) for e in _data_lines(buf.partition(b"\r\n\r\n")[2])):
+                break
     head, _, body = buf.partition(b"\r\n\r\n")
     assert head.startswith(b"HTTP/1.0 200"), head[:200]
     assert b"Content-Type: text/event-stream" in head
-    events = [json.loads(line[6:]) for line in body.split(b"\n") if line.startswith(b"data: ")]
+    events = _data_lines(body)
+    if until is not None:
+        hit = next((i for i, e in enumerate(events) if until(e)), None)
+        assert hit is not None, f"no event met the condition in {seconds} s: {events[-1:]}"
+        events = events[:hit + 1]
     return events
+
+
+def _data_lines(body: bytes) -> list[dict]:
+    """The complete ``data:`` events of an SSE body (a line still arriving is left out)."""
+    done = body[:body.rfind(b"\n\n") + 2] if b"\n\n" in body else b""
+    return [json.loads(line[6:]) for line in done.split(b"\n") if line.startswith(b"data: ")]
 
 
 @pytest.fixture(scope="module")
@@ -301,28 +356,182 @@ def test_non_loopback_warns_on_stderr(tmp_path):
 
 @pytest.mark.slow
 def test_serial_host_serves_the_page(tmp_path):
-    proc, url = start_daemon(tmp_path, device=["serial", "--port", f"fake:{TRACK}"], seconds="30")
+    """A fake board at 10× its pace: the events are read until one carries a calibration and
+    a calibrated magnitude (a block applied with it; the capture that first sees a calibration
+    may be of a poll without a block). The page stays up after the replay (until terminated),
+    so however slow the machine, nothing races the end of the track."""
+    proc, url = start_daemon(tmp_path, device=["serial", "--port", f"fake:{TRACK}", "--speed",
+                                               "10"], seconds="300")
     try:
-        events = sse_events(url, seconds=3.0)
-        deadline = time.monotonic() + 25
-        while time.monotonic() < deadline:
-            body = request(url, b"GET /state.json HTTP/1.0\r\n\r\n").partition(b"\r\n\r\n")[2]
-            state = json.loads(body)
-            if state and state["calibration"] is not None:
-                break
-            time.sleep(0.5)
+        events = sse_events(url, seconds=120.0, until=lambda e: e["calibration"] is not None
+                            and any(v is not None for v in e["magnitude"]["calibrated"]))
+        state = events[-1]
         assert proc.poll() is None
     finally:
         proc.terminate()
         proc.wait(timeout=30)
-    assert events and events[-1]["device"]["bus_errors_name"] == "frames lost"
-    assert "restarts" in events[-1]["device"]["counters"]
-    assert events[-1]["coverage"] > 0
+    assert state["device"]["bus_errors_name"] == "frames lost"
+    assert "restarts" in state["device"]["counters"]
+    assert state["coverage"] > 0
     cal = state["calibration"]
-    assert cal is not None, state["fits"]
     assert cal["version"] >= 1 and cal["rms"] > 0 and "inliers" in cal["residual"]
     assert state["fits"]["accepted"] >= 1
     accepted = [e for e in state["fits"]["recent"] if e["kind"] == "accepted"]
     assert accepted and accepted[-1]["reason"]            # the guard's named rule
     cal_mag = [v for v in state["magnitude"]["calibrated"] if v is not None]
     assert cal_mag and abs(cal_mag[-1] / cal["field"] - 1) < 0.5
+    # no "after calibration" figure while there was no calibration
+    before = [e for e in events if e["calibration"] is None]
+    assert before, "the stream began after the first calibration: nothing checked"
+    assert all(v is None for e in before for v in e["magnitude"]["calibrated"])
+
+
+@pytest.mark.slow
+def test_watched_replay_keeps_its_page_after_the_end(tmp_path):
+    """``--http`` on a fake bus: the replay ends, the page stays with the final state (replay
+    over, 0 samples/s) until SIGINT, which ends it cleanly."""
+    proc, url = start_daemon(tmp_path, speed="60", seconds="300")
+    lines = proc.stderr_lines
+    try:
+        assert lines.wait_for(r"replaying demo_track\.csv\.gz at 60× the recorded pace \(3 s\); "
+                              r"--speed N to change; the page stays up after the end; Ctrl-C",
+                              5), lines.text()
+        over = lines.wait_for(r"replay over; the live page stays at (http://\S+) until Ctrl-C",
+                              120)
+        assert over and over.group(1) == url, lines.text()[-2000:]
+        state = json.loads(request(url, b"GET /state.json HTTP/1.0\r\n\r\n").partition(
+            b"\r\n\r\n")[2])
+        assert state["device"]["state"] == "replay over"
+        assert state["device"]["samples_per_s"] == 0
+        assert state["device"]["samples"] > 0
+        assert state["calibration"] is not None
+        assert request(url, b"GET / HTTP/1.0\r\n\r\n").startswith(b"HTTP/1.0 200")
+        assert proc.poll() is None
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert lines.wait_for(r"live page closed \(SIGINT\)", 5), lines.text()[-500:]
+    with pytest.raises(OSError):
+        request(url, b"GET / HTTP/1.0\r\n\r\n")
+
+
+def _track_rows() -> int:
+    from streamcal.inputs.track import Track
+
+    track = Track.read(TRACK)
+    return int(np.isfinite(track.mag).all(axis=1).sum())
+
+
+@pytest.mark.slow
+def test_watched_replay_follows_the_recorded_pace_by_default(tmp_path):
+    """``daemon --bus fake: --http`` without ``--speed``: one stderr line says so, and the
+    samples arrive at the track's own rate (full speed would be tens of times faster)."""
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "streamcal", "daemon", "--bus", f"fake:{TRACK}",
+                             "--no-socket", "--state-dir", str(tmp_path / "s"), "--http",
+                             "127.0.0.1:0"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            text=True, env=env, cwd=REPO)
+    lines = StderrLines(proc, tmp_path / "stderr.txt")
+    try:
+        found = lines.wait_for(r"replaying demo_track\.csv\.gz at the recorded pace \((\d+) s\); "
+                               r"--speed N to change", 60)
+        assert found, lines.text()
+        from streamcal.inputs.track import Track
+
+        track = Track.read(TRACK)
+        assert int(found.group(1)) == round(track.t[-1] - track.t[0])
+        url = lines.wait_for(r"live page at (http://[\d.]+:\d+/)", 5).group(1)
+        events = sse_events(url, seconds=60.0, until=lambda e: e["device"]["samples"] > 0)
+        first = events[-1]
+        events = sse_events(url, seconds=60.0,
+                            until=lambda e: e["uptime_s"] >= first["uptime_s"] + 4)
+        last = events[-1]
+    finally:
+        proc.terminate()
+        proc.wait(timeout=30)
+    rate = _track_rows() / (track.t[-1] - track.t[0])            # samples per track second
+    pace = (last["device"]["samples"] - first["device"]["samples"]) / rate / (
+        last["uptime_s"] - first["uptime_s"])
+    assert 0.7 < pace < 1.3, pace
+
+
+def test_snapshot_before_and_after_the_first_calibration():
+    """The bundled track through a streaming calibrator into a LiveState on the track's clock:
+    before the first calibration no 'after calibration' magnitude (apply() then scales by the
+    running sphere estimate, not a calibration); after it, calibrated values near the fitted
+    field. Directions: unit vectors, at most MAX_DIRECTIONS, none before a sphere frames them."""
+    from streamcal.inputs.track import Track
+    from streamcal.service.live_state import MAX_DIRECTIONS, LiveState
+    from streamcal.service.replay_feed import ReplayFeed
+    from streamcal.stream import StreamingCalibrator
+
+    track = Track.read(TRACK)
+    now = [0.0]
+    state = LiveState(clock=lambda: now[0])
+    calibrator = StreamingCalibrator(synchronous=True, unit=track.mag_unit)
+    feed = ReplayFeed(calibrator, [state])
+    snaps = []
+    for i, block in enumerate(track.blocks(50)):
+        now[0] = float(block.t[-1])
+        feed.observe(block, calibrator.ingest(block))
+        if i % 8 == 0 or calibrator.calibration is not None:
+            snaps.append(state.build())
+        if calibrator.calibration is not None and now[0] > 40:
+            break
+    before = [s for s in snaps if s and s["calibration"] is None]
+    after = [s for s in snaps if s and s["calibration"] is not None]
+    assert before and after
+    assert all(v is None for s in before for v in s["magnitude"]["calibrated"])
+    assert any(v is not None for v in before[-1]["magnitude"]["raw"])
+    cal = [v for v in after[-1]["magnitude"]["calibrated"] if v is not None]
+    assert cal and abs(np.median(cal) / after[-1]["calibration"]["field"] - 1) < 0.05
+    unframed = [s for s in snaps if s and s["coverage"] is None]
+    assert unframed and all(s["directions"] == [] for s in unframed)
+    d = np.array(after[-1]["directions"])
+    assert 0 < len(d) <= MAX_DIRECTIONS and d.shape[1] == 3
+    assert np.allclose(np.linalg.norm(d, axis=1), 1, atol=3e-3)
+
+
+@pytest.mark.slow
+def test_realtime_replay_keeps_its_page_after_the_end(tmp_path):
+    """``replay --realtime --http`` over a 3 s recording: after the summary the page stays with
+    the final state until SIGINT (the exit code is still the replay's: 1, no calibration)."""
+    from streamcal.sim.scenario import simulate
+
+    track = tmp_path / "short.csv"
+    simulate(3, seed=5, motor=False).track.write(track)
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    proc = subprocess.Popen([sys.executable, "-m", "streamcal", "replay", str(track), "--realtime",
+                             "--http", "127.0.0.1:0"], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, env=env, cwd=REPO)
+    lines = StderrLines(proc, tmp_path / "stderr.txt")
+    try:
+        over = lines.wait_for(r"replay over; the live page stays at (http://\S+) until Ctrl-C", 120)
+        assert over, lines.text()[-2000:]
+        state = json.loads(request(over.group(1), b"GET /state.json HTTP/1.0\r\n\r\n").partition(
+            b"\r\n\r\n")[2])
+        assert state["device"]["state"] == "replay over"
+        assert state["device"]["samples_per_s"] == 0 and state["device"]["samples"] > 0
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(timeout=30) == 1
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert "coverage" in proc.stdout.read()             # the summary came before the wait
+    assert lines.wait_for(r"live page closed \(SIGINT\)", 5), lines.text()[-500:]
+
+
+@pytest.mark.parametrize("device", [["serial", "--port", "/dev/ttyNOPE"],
+                                    ["serial", "--port", f"simavr:{TRACK}"],
+                                    ["daemon", "--bus", "1"]])
+def test_speed_on_a_device_without_a_recorded_pace_is_one_line(tmp_path, device):
+    done = subprocess.run([sys.executable, "-m", "streamcal", *device, "--speed", "2",
+                           "--no-socket", "--state-dir", str(tmp_path / "s")],
+                          capture_output=True, text=True, cwd=REPO, timeout=60,
+                          env={**os.environ, "PYTHONPATH": str(REPO)})
+    assert done.returncode == 2
+    assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr, done.stderr
+    assert "--speed applies to a fake:TRACK.csv device only" in done.stderr
+    assert ("simavr runs as fast as the host reads" in done.stderr) == ("simavr:" in device[2])

@@ -10,8 +10,9 @@ import pytest
 import streamcal
 from streamcal.cli import main
 
-REAL = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "tracks"
-TIVA_06 = REAL / "tiva_mpu9250_mag_06.csv"
+from .conftest import REAL_TRACKS, real_path
+
+TIVA_06 = REAL_TRACKS / "tiva_mpu9250_mag_06.csv"
 DEMO = Path(streamcal.__file__).parent / "data" / "demo_track.csv.gz"
 
 
@@ -21,15 +22,13 @@ def _replay(capsys, *argv):
 
 
 def _runs(capsys, track, *flags, n=3):
-    if not track.exists():
-        pytest.skip(f"{track} not available")
     return [_replay(capsys, track, *flags) for _ in range(n)]
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("track", [TIVA_06, DEMO], ids=["tiva_06", "demo"])
 def test_three_json_replays_are_identical(track, capsys):
-    runs = _runs(capsys, track, "--json")
+    runs = _runs(capsys, real_path(track), "--json")
     assert all(code == 0 for code, _ in runs)
     assert runs[0][1] == runs[1][1] == runs[2][1]
     summary = json.loads(runs[0][1].splitlines()[-1])

@@ -7,15 +7,14 @@ import pytest
 from streamcal.cli import main
 from streamcal.inputs import autopilot_calibration, read_recording
 
-from .conftest import SHARED
+from .conftest import REAL_FLIGHTS, real_path
 
-LOG = SHARED / "data" / "real" / "flight" / "ardupilot_erle_15-12-2014_16.BIN"
+LOG = REAL_FLIGHTS / "ardupilot_erle_15-12-2014_16.BIN"
 
 
 @pytest.mark.slow
 def test_report_against_a_calibration_file_shows_aux_figure_and_held_table(tmp_path, capsys):
-    if not LOG.exists():
-        pytest.skip(f"{LOG} not found")
+    real_path(LOG)
     cal_path = tmp_path / "autopilot.json"
     autopilot_calibration(read_recording(LOG)).save(cal_path)
     out = tmp_path / "out.html"

@@ -19,7 +19,7 @@ from streamcal.sim import simulate
 
 MISALIGNED = "mag_accel_misalignment"
 SPEC_CANDIDATE_KEYS = {"effect", "rms_after", "p_value", "evidence", "residual", "rms_before",
-                       "significant", "material"}
+                       "significant", "material", "n"}
 
 
 @pytest.fixture(scope="module")
@@ -69,7 +69,7 @@ def test_each_candidate_carries_the_residual_and_rms_it_is_compared_with(tied):
     assert out["residual"] == "sensor"
     assert out["candidate_baselines"][MISALIGNED]["rms_before"] == pytest.approx(tied_before)
     step = out["ladder"][1]
-    assert step["residual"] == "gravity_tied" and step["gravity_tied"]
+    assert step["residual"] == "gravity_tied"
     assert step["rms_before"] == pytest.approx(tied_before) and step["rms"] < step["rms_before"]
 
 
@@ -132,12 +132,12 @@ def test_html_and_terminal_tables_name_the_residual_of_every_row(tied):
     cells = [c.split(">", 1)[1] for c in tied_row.split("</td>") if "<td" in c]
     assert cells[5] == "–"                                   # no "× floor" on a tied residual
     summary = page.split('class="box missing"', 1)[1].split("</div>", 1)[0]
-    assert "gravity-tied residual" in summary and f"{before:.4g}" in summary
+    assert "gravity-tied residual" in summary and f"{before:.3g}" in summary   # 3 digits there
     text = _text(d)
     line = next(s for s in text.splitlines() if s.startswith(MISALIGNED))
     assert "gravity-tied" in line and f"{before:.4g}" in line
     step = next(s for s in text.splitlines() if s.startswith("+ " + MISALIGNED))
-    assert step.split()[-1] == "–"
+    assert step.split()[-2] == "–"                          # then the step's outlier count
 
 
 @pytest.mark.slow
@@ -162,8 +162,9 @@ def test_outlier_count_spans_and_mask_come_from_one_model(hidden):
     data = FigureData.build(track, d)                        # the figures mark the same ones
     assert np.array_equal(data.inliers, ~d.outliers)
     page = render_html(track, d)
-    assert f"<b>{d.n_outliers_model}</b> of {d.n} samples are outliers of the model " \
-           f"<code>{', '.join(d.outliers_model)}</code>" in page
+    assert f"<b>{d.n_outliers_model}</b> of {d.n} samples are outliers of the last model of " \
+           f"the ladder, <code>{', '.join(d.outliers_model)}</code>" in page
+    assert d.ladder[-1]["n_outliers"] == d.n_outliers_model   # the same count the ladder shows
 
 
 def test_without_a_ladder_outliers_are_the_base_models(hidden):

@@ -79,14 +79,16 @@ def test_file_path_spans_over_the_whole_recording_and_json_says_so(tmp_path):
 
 
 @pytest.mark.slow
-def test_cli_takes_the_chunked_path_above_the_size_and_full_says_every_sample(
-        tmp_path, monkeypatch, capsys):
+@pytest.mark.parametrize("name", ["track.csv", "track.csv.gz"])
+def test_cli_takes_the_subsample_above_the_sample_count_and_full_says_every_sample(
+        tmp_path, monkeypatch, capsys, name):
+    """Decided by the number of magnetometer samples, the same for any file format."""
     from streamcal.cli import main
     from streamcal.diagnosis import subsample
 
-    path = tmp_path / "track.csv"
+    path = tmp_path / name
     simulate(120.0, 7, noise_uT=0.4).track.write(path)
-    monkeypatch.setattr(subsample, "LONG_FILE_BYTES", 1000)
+    monkeypatch.setattr(subsample, "LONG_SAMPLES", 5000)
     assert main(["diagnose", str(path), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["samples_used"] < out["samples_total"] and "stratified" in out["subsample_rule"]
@@ -95,3 +97,19 @@ def test_cli_takes_the_chunked_path_above_the_size_and_full_says_every_sample(
     assert out["samples_used"] == out["samples_total"] == out["n"]
     assert main(["diagnose", str(path)]) == 0
     assert "magnetometer samples (stratified" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_against_a_calibration_a_long_recording_is_subsampled_too(tmp_path, monkeypatch, capsys):
+    from streamcal.calibration import Calibration
+    from streamcal.cli import main
+    from streamcal.diagnosis import subsample
+
+    res = simulate(120.0, 8, noise_uT=0.4)
+    path, cal = tmp_path / "track.csv.gz", tmp_path / "cal.json"
+    res.track.write(path)
+    Calibration(K=res.truth.K, b=res.truth.b).save(cal)
+    monkeypatch.setattr(subsample, "LONG_SAMPLES", 5000)
+    assert main(["diagnose", str(path), "--cal", str(cal), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["samples_used"] < out["samples_total"] and out["held"] is not None

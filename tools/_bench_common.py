@@ -18,7 +18,10 @@ if str(REPO) not in sys.path:
     sys.path.insert(0, str(REPO))
 
 SHARED = Path(os.environ.get("STREAMCAL_SHARED", REPO.parent / "shared"))
-REAL_TRACKS = SHARED / "data" / "real" / "tracks"
+#: The real recordings (not in the repository): ``STREAMCAL_SHARED``, as for the tests.
+REAL_DATA = SHARED / "data" / "real"
+REAL_TRACKS = REAL_DATA / "tracks"
+REAL_FLIGHTS = REAL_DATA / "flight"
 
 
 def normalized_error(K, b, K_ref, b_ref) -> float:

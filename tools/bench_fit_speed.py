@@ -41,13 +41,13 @@ import warnings
 
 import numpy as np
 
-from _bench_common import REPO, median_seconds, run_stamp
+from _bench_common import REAL_DATA, REPO, median_seconds, run_stamp
 from _bench_peers import peers_table
 
 PAPER_TABLE_VI = {"l2_ellipsoid": 0.002, "dorveaux": 0.035, "kok_schon": 3.891, "vasconcelos": 0.014,
                   "magical": 0.032, "l1_ellipsoid": 0.177, "autocal/l1": 1.086, "autocal/cauchy": 0.303,
                   "autocal/gm": 0.353, "autocal/huber": 0.297}
-FREEIMUCAL = REPO.parent / "shared" / "data" / "real" / "freeimucal_mag_data.txt"
+FREEIMUCAL = REAL_DATA / "freeimucal_mag_data.txt"
 TARGETS = {"freeimucal_s": 0.003, "freeimucal_vs_l2": 8.0, "e2e_1000_s": 0.015, "lm_us": 0.5, "e2e_1e5_s": 2.0, "rss_1e5_mb": 250.0}
 
 

@@ -9,7 +9,7 @@ to match. Per seed and reading noise, the error of K_zz and b_z after the diagno
 calibration (``streamcal.diagnose(track, calibration=cal)``) with the gyro link (as shipped)
 and with it switched off (the track's gyro columns removed): held vs gyro.
 
-``--flights``: each ArduPilot log of ../shared/data/real/flight against its autopilot
+``--flights``: each ArduPilot log of data/real/flight (under STREAMCAL_SHARED) against its autopilot
 calibration: what the gyro link did (``gyro_link`` of the diagnosis) and the time it took,
 beside the same diagnosis without gyro columns, in the same run.
 
@@ -21,10 +21,10 @@ from __future__ import annotations
 
 import argparse
 import time
-from pathlib import Path
 
 import numpy as np
 
+from _bench_common import REAL_FLIGHTS
 import streamcal
 from streamcal.calibration import Calibration
 from streamcal.inputs.track import Track
@@ -32,7 +32,7 @@ from streamcal.sim.yaw_slice import yaw_slice
 
 K = np.array([[47.0, 1.2, -0.8], [0.0, 49.0, 0.6], [0.0, 0.0, 46.5]])
 B = np.array([12.0, -7.0, 20.0])
-FLIGHT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "flight"
+FLIGHT = REAL_FLIGHTS
 
 
 def without_gyro(track: Track) -> Track:

@@ -1,4 +1,5 @@
-"""The core fit on real recorded logs (``../shared/data/real/tracks``, see its SOURCES.md).
+"""The core fit on real recorded logs (``data/real/tracks`` under ``STREAMCAL_SHARED``, see its
+SOURCES.md).
 
     python tools/bench_real_logs.py [--part a|b|c] [--seed 0]
 

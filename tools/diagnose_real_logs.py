@@ -18,8 +18,9 @@ import traceback
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from _bench_common import REAL_TRACKS  # noqa: E402
 
-DEFAULT_TRACKS = Path("/work/shared/data/real/tracks")
+DEFAULT_TRACKS = REAL_TRACKS
 DEFAULT_OUT = Path(__file__).resolve().parent.parent / "results" / "diagnose_real_logs.md"
 
 

@@ -1,12 +1,12 @@
 #!/usr/bin/env python3
 """Replay every real track through the streaming calibrator and compare with the batch fit.
 
-For each track in ``../shared/data/real/tracks``: the streaming calibrator (synchronous fits, so
-the result is reproducible; blocks of 100 rows; covariates ``temp`` and aux channels kept) is fed
-the whole track, and its final calibration is compared with :func:`streamcal.fitting.fit` on the whole
-track by the normalized model deviation of the paper (eq. 40, ``Calibration.model_error``). When
-``fit`` refuses the track for lack of coverage, the comparison is with
-``fit(..., check_coverage=False)`` and the table says so.
+For each track in ``data/real/tracks`` under ``STREAMCAL_SHARED``: the streaming calibrator
+(synchronous fits, so the result is reproducible; blocks of 100 rows; covariates ``temp`` and aux
+channels kept) is fed the whole track, and its final calibration is compared with
+:func:`streamcal.fitting.fit` on the whole track by the normalized model deviation of the paper
+(eq. 40, ``Calibration.model_error``). When ``fit`` refuses the track for lack of coverage, the
+comparison is with ``fit(..., check_coverage=False)`` and the table says so.
 
 Then the environment-change scenarios (``tests/test_stream_environment.py``): BROAD 32 with a
 magnet on the board for t ∈ [34, 100] s (with BROAD 02's calibration in the state directory, and

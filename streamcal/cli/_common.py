@@ -140,3 +140,21 @@ def _counted(args, chunks):
         reasons = reasons or list(chunk.skip_reasons)
         yield chunk
     say_skipped(args.track, skipped, reasons, _command(args))
+
+
+#: The input options a recording was read with, as ``(dest, flag)``: repeated in a command a
+#: diagnosis recommends, so that it reads the recording the same way.
+INPUT_FLAGS = (("columns", "--columns"), ("unit", "--unit"), ("topic", "--topic"),
+               ("compass", "--compass"), ("skip_bad_rows", "--skip-bad-rows"))
+
+
+def recording_argv(args) -> list[str]:
+    """The recording and the input options it was read with, as command-line words."""
+    words = [str(args.track)]
+    for dest, flag in INPUT_FLAGS:
+        value = getattr(args, dest, None)
+        if value is True:
+            words.append(flag)
+        elif value not in (None, False):
+            words += [flag, str(value)]
+    return words

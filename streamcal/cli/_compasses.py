@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import sys
+from pathlib import Path
 
 from ..calibration import jsonable
 from ..errors import InsufficientDataError
@@ -142,21 +143,23 @@ def diagnose_all(args, model, describe=str) -> int:
 
 def report_all(args, model, output) -> int:
     """Write the report of the compass the autopilot uses first, with a section comparing every
-    compass."""
+    compass (``output``: a path or ``-``)."""
     from ..report import write_report
     from ..report.figures_compasses import compasses_section, consistency_figure
+    from ._output import check_output, messages_to
 
+    check_output(output)
     entries = _diagnose_each(args, model)
     pairs = _consistency(entries)
     default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
     first = next((e for e in entries if str(e["instance"]) == default), entries[0])
     figure = consistency_figure(pairs) if pairs else None
     section = compasses_section([_entry_json(e) for e in entries], pairs, figure)
-    output.parent.mkdir(parents=True, exist_ok=True)
     out = write_report(output, first["track"], first["diagnosis"], reason=first["error"],
-                       intro=section, command_path=args.track)
-    print(_table([p.to_dict() for p in pairs]))
-    print(f"report written to {out}")
+                       intro=section, name=Path(args.track).name)
+    say = messages_to(out)
+    print(_table([p.to_dict() for p in pairs]), file=say)
+    print(f"report written to {out}", file=say)
     if all(e["diagnosis"] is None for e in entries):
         print(f"streamcal report: no calibration of any compass ({first['error']})",
               file=sys.stderr)

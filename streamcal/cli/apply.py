@@ -7,6 +7,7 @@ import sys
 import numpy as np
 
 from ._common import RECORDING_HELP, add_input_options, read_track, recording_chunks
+from ._output import messages_to
 
 
 def register(sub) -> None:
@@ -18,7 +19,8 @@ def register(sub) -> None:
     p.add_argument("calibration", metavar="CAL.json",
                    help="calibration file (docs/calibration_file.md)")
     p.add_argument("track", metavar="LOG", help=RECORDING_HELP)
-    p.add_argument("-o", "--output", required=True, metavar="OUT.csv", help="file to write (atomic)")
+    p.add_argument("-o", "--output", required=True, metavar="OUT.csv",
+                   help="file to write (atomic; - for stdout)")
     add_input_options(p, skip_bad_rows=True)
     p.set_defaults(func=run)
 
@@ -75,7 +77,8 @@ def run(args) -> int:
     from ..units import display_unit
 
     print(f"{args.output}: {int(n)} samples, |field| {mean:.4g} ± "
-          f"{np.sqrt(max(squares / n - mean * mean, 0.0)):.2g} {display_unit(cal.unit)}")
+          f"{np.sqrt(max(squares / n - mean * mean, 0.0)):.2g} {display_unit(cal.unit)}",
+          file=messages_to(args.output))
     if not field["known"]:
         print("streamcal apply: the calibration has no field strength; |field| is in units of "
               "K's mean radius", file=sys.stderr)

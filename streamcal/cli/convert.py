@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from ._common import RECORDING_HELP, add_input_options, read_track, recording_chunks
+from ._output import messages_to
 
 #: Rows per chunk of a section-1 track (memory is bounded by a chunk, not by the recording;
 #: 20 000 rows keep the parser's temporaries near 20 MiB: bench_replay_memory).
@@ -17,7 +18,7 @@ def register(sub) -> None:
                                    "docs/tracks_and_inputs.md).")
     p.add_argument("track", metavar="LOG", help=RECORDING_HELP)
     p.add_argument("-o", "--output", required=True, metavar="TRACK.csv",
-                   help="track to write (atomic; .csv.gz compresses)")
+                   help="track to write (atomic; .csv.gz compresses; - for stdout)")
     add_input_options(p, skip_bad_rows=True)
     p.set_defaults(func=run)
 
@@ -44,8 +45,9 @@ def run(args) -> int:
 
 
 def _say(args, rows: int, mag: int, seconds: float, track) -> None:
+    say = messages_to(args.output)
     print(f"{args.output}: {rows} rows, {mag} mag samples, {seconds:.1f} s, columns "
-          f"{','.join(track.columns)}")
+          f"{','.join(track.columns)}", file=say)
     for key in ("mag_offsets_undone", "mag_calibration_undone", "read_warnings"):
         if key in track.metadata:
-            print(f"  {key}: {track.metadata[key]}")
+            print(f"  {key}: {track.metadata[key]}", file=say)

@@ -33,11 +33,15 @@ def register(sub) -> None:
     add_service_options(p)
     p.add_argument("--rate", type=float, metavar="HZ",
                    help="poll rate while waiting for a sample (default: twice the 100 Hz mag rate)")
-    p.add_argument("--speed", type=float, metavar="X",
-                   help="with --bus fake:…: replay at X times real time (default: as fast as it "
-                        "can be read, in track time)")
+    add_speed_option(p, "--bus fake:…")
     add_skip_bad_rows(p)   # of a --bus fake: replay's track
     p.set_defaults(func=run)
+
+
+def add_speed_option(p, device: str) -> None:
+    p.add_argument("--speed", type=float, metavar="X",
+                   help=f"with {device}: replay at X times the recorded pace (default: the "
+                        "recorded pace with --http, else as fast as it can be read)")
 
 
 def add_service_options(p) -> None:
@@ -141,16 +145,23 @@ def build(args, source, name: str, on_calibration=None):
     if not args.no_socket:
         sinks.append(SocketOutput(args.socket or os.path.join(store.dir, SOCKET_NAME),
                                   mode=args.socket_mode))
-    observers = [live_page(args, name)] if getattr(args, "http", None) else []
+    observers = [live_page(args, name, lingers=_replayed(args))] \
+        if getattr(args, "http", None) else []
     return Service(make_calibrator, source, outputs=Outputs(sinks), on_calibration=on_calibration,
                    on_coverage=None if args.json_lines else show_coverage,
                    max_seconds=args.max_seconds, grace_s=args.grace, name=name,
                    observers=observers)
 
 
-def live_page(args, name: str):
+def _replayed(args) -> bool:
+    """A ``fake:`` or ``simavr:`` device: its page stays up after the replay (_live_replay)."""
+    spec = str(getattr(args, "bus", None) or getattr(args, "port", None) or "")
+    return spec.startswith(("fake:", "simavr:"))
+
+
+def live_page(args, name: str, lingers: bool = False):
     """Start the ``--http`` page; returns the service observer feeding it (closing it stops
-    the server)."""
+    the server, unless it ``lingers`` after a replay: then ``close_page`` does)."""
     from ..service.http_page import LivePage, is_loopback, parse_http
     from ..service.live_state import LiveState
 
@@ -165,7 +176,7 @@ def live_page(args, name: str):
     state = LiveState(reference=location_reference(args))
     page = LivePage(state, host, port, token=args.http_token).start()
     print(f"streamcal {name}: live page at {page.url}", file=sys.stderr, flush=True)
-    return _PageObserver(state, page)
+    return _PageObserver(state, page, lingers)
 
 
 def replay_page(args, calibrator):
@@ -180,17 +191,21 @@ def replay_page(args, calibrator):
     if not args.realtime:
         raise InputError("--http needs --realtime (a replay at full speed is over before a "
                          "page could follow it)")
-    return ReplayFeed(calibrator, [live_page(args, "replay")])
+    return ReplayFeed(calibrator, [live_page(args, "replay", lingers=True)])
 
 
 class _PageObserver:
     """The :class:`~streamcal.service.live_state.LiveState` observer that also stops the page."""
 
-    def __init__(self, state, page):
-        self.state, self.page = state, page
+    def __init__(self, state, page, lingers: bool = False):
+        self.state, self.page, self.lingers = state, page, lingers
         self.on_block, self.on_events = state.on_block, state.on_events
 
     def close(self) -> None:
+        if not self.lingers:
+            self.close_page()
+
+    def close_page(self) -> None:
         self.state.close()
         self.page.close()
 
@@ -204,19 +219,26 @@ def show_coverage(calibrator) -> None:
 
 
 def run(args) -> int:
+    import time
+
     from ..service import I2CBlocks
 
     from ._common import fake_track_reader
+    from ._live_replay import TrackSpan, announce, replay_speed, serve_after_replay
 
-    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=args.speed,
-                       read_track=fake_track_reader(args))
+    started = time.monotonic()
+    span = TrackSpan(fake_track_reader(args))
+    speed = replay_speed(args, args.bus)
+    source = I2CBlocks(args.bus, args.address, rate_hz=args.rate, speed=speed, read_track=span)
     try:
         service = build(args, source, "daemon")
     except BaseException:
         source.close()
         raise
+    announce(args, "daemon", args.bus, speed, span)
     service.install_signal_handlers()
     code = service.run()
     print(json.dumps(jsonable(service.summary()), allow_nan=False), file=sys.stderr if args.json_lines else sys.stdout,
           flush=True)
+    serve_after_replay(service, "daemon", args.max_seconds, started)
     return code

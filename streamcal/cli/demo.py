@@ -15,6 +15,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import html
 import importlib.resources
 import math
@@ -26,6 +27,8 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL
 from ..stream.coverage import coverage_words, percent
+from ..atomic import is_stdout, output_dir, prepare_output
+from ._output import messages_to
 from .diagnose import candidate_table, residual_name
 
 DEFAULT_REPORT = "streamcal-demo-report.html"
@@ -47,7 +50,8 @@ def register(subparsers) -> None:
     p.add_argument("--track", metavar="PATH", help="demo another track instead of the bundled one")
     p.add_argument("-o", "--output", metavar="HTML",
                    help=f"report file (default: {DEFAULT_REPORT}; relative to --out-dir when "
-                        "given, else to the current directory)")
+                        "given, else to the current directory; - for stdout, the messages then "
+                        "go to stderr)")
     p.add_argument("--out-dir", metavar="DIR", help="directory for the report and the track "
                    "(created; default: a new temporary directory unless -o is given)")
     p.add_argument("--quiet", action="store_true",
@@ -65,26 +69,40 @@ def bundled_track():
 
 def report_path(output: str | None, out_dir: str | None) -> Path:
     """Where the report goes: ``output`` (relative to ``out_dir`` when given, else to the
-    current directory); with neither, ``DEFAULT_REPORT`` in a new temporary directory."""
+    current directory); with neither, ``DEFAULT_REPORT`` in a new temporary directory.
+    ``-`` (stdout) stays ``-``."""
     if output is None and out_dir is None:
         out_dir = tempfile.mkdtemp(prefix="streamcal-demo-")
     path = Path(output or DEFAULT_REPORT)
-    if out_dir and not path.is_absolute():
+    if out_dir and not path.is_absolute() and not is_stdout(path):
         path = Path(out_dir) / path
     return path
+
+
+def track_dir(out: Path, out_dir: str | None) -> Path:
+    """Where the driver's track goes: beside the report, or in ``out_dir`` (a new temporary
+    directory when neither is a place) when the report goes to stdout."""
+    if not is_stdout(out):
+        return out.parent
+    return Path(out_dir or tempfile.mkdtemp(prefix="streamcal-demo-"))
 
 
 def run(args) -> int:
     with contextlib.ExitStack() as stack:
         track_path = Path(args.track) if args.track else stack.enter_context(bundled_track())
-        return _demo(track_path, report_path(args.output, args.out_dir), args.quiet)
+        out = report_path(args.output, args.out_dir)
+        directory = track_dir(out, args.out_dir)
+        prepare_output(out)             # a place that cannot be written is said before the work
+        output_dir(directory)
+        return _demo(track_path, out, directory, args.quiet)
 
 
-def _demo(track_path: Path, out: Path, quiet: bool) -> int:
+def _demo(track_path: Path, out: Path, directory: Path, quiet: bool) -> int:
     from ..report import diagnose_or_reason, write_report
     from ..inputs.track import Track
 
-    say = (lambda *a, **k: None) if quiet else print
+    tell = functools.partial(print, file=messages_to(out))
+    say = (lambda *a, **k: None) if quiet else tell
     start = time.monotonic()
     say(f"streamcal demo: replaying {track_path.name} through the MPU-9250 driver on a "
         f"simulated I²C bus (fake:{track_path})")
@@ -101,25 +119,25 @@ def _demo(track_path: Path, out: Path, quiet: bool) -> int:
                                                 "MPU-9250 driver", "description": "streamcal demo"})
     say(f"\ndiagnosing the {len(track.t_mag)} recorded samples "
         f"(model {', '.join(DEFAULT_MODEL)}; every candidate effect is refitted)…")
-    diagnosis, reason = diagnose_or_reason(track, DEFAULT_MODEL)
+    recorded = (directory / TRACK_NAME).resolve()
+    diagnosis, reason = diagnose_or_reason(track, DEFAULT_MODEL, recording=[str(recorded)])
     if diagnosis is None:
-        print(f"no diagnosis: {reason}")
+        tell(f"no diagnosis: {reason}")
     else:
-        print(_verdict(diagnosis))
+        tell(_verdict(diagnosis))
         say(_candidates(diagnosis))
         say(_ladder(diagnosis))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    recorded = (out.parent / TRACK_NAME).resolve()
     track.write(recorded)
-    if diagnosis is not None and diagnosis.verdict == "effect_missing" and diagnosis.candidates:
-        from ..report.html import fit_command
+    if diagnosis is not None and diagnosis.next_step:
+        import shlex
 
-        print(f"\nto fit with it: {fit_command(recorded, diagnosis.candidates[0].effect)}")
+        tell(f"\nnext step (gives the rms promised above): "
+             f"{' '.join(shlex.quote(w) for w in diagnosis.next_step)}")
     path = write_report(out, track, diagnosis, reason=reason, name=track_path.name,
                         title=f"streamcal demo: {track_path.name}",
-                        intro=_stream_html(accepted, track.mag_unit), command_path=recorded)
-    print(f"\nreport written to {path.resolve()}")
-    print(f"track the driver produced: {recorded}")
+                        intro=_stream_html(accepted, track.mag_unit))
+    tell(f"\nreport written to {path if is_stdout(path) else path.resolve()}")
+    tell(f"track the driver produced: {recorded}")
     say(f"(done in {time.monotonic() - start:.0f} s)")
     return 0 if diagnosis is not None else 1
 
@@ -177,21 +195,18 @@ def _unit(unit: str) -> str:
 
 
 def _verdict(d) -> str:
+    """The diagnosis' plain sentences, then the verdict with its numbers."""
+    import textwrap
+
     u = _unit(d.calibration.unit if d.calibration is not None else "uT")
+    cmd = " ".join(d.next_step) if d.next_step else ""
+    text = d.summary.replace(f" To do: {cmd}", "") if cmd else d.summary
     floor = (f"noise floor {d.noise_floor:.3f} {u} ({d.rms / d.noise_floor:.2f}× the floor)"
              if d.floor_known else f"noise floor not measurable ({d.noise_floor_reason})")
-    head = (f"\nverdict: {d.verdict} — rms {d.rms:.3f} {u} on the "
-            f"{residual_name(d.residual)} residual with {', '.join(d.model)}, {floor}; "
-            f"{d.n_outliers} of {d.n} samples are outliers")
-    if d.verdict == "effect_missing" and d.candidates:
-        top = d.candidates[0]
-        residual, before = d.baseline(top)
-        head += (f"\nmissing effect: {top.effect} ({top.evidence}); adding it gives rms "
-                 f"{top.rms_after:.3f} {u}")
-        if residual != "sensor":
-            head += (f" on the {residual_name(residual)} residual (the model without it: "
-                     f"{before:.3f} {u})")
-    return head
+    return ("\n" + "\n".join(textwrap.wrap(text, 96)) + f"\n\nverdict: {d.verdict} — rms "
+            f"{d.rms:.3f} {u} on the {residual_name(d.residual)} residual with "
+            f"{', '.join(d.model)} over {d.ladder[0]['n']} samples, {floor}; "
+            f"{d.n_outliers} of {d.n} samples are outliers of that model")
 
 
 def _candidates(d) -> str:

@@ -2,13 +2,14 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import importlib
 import json
 import sys
 
 from ..calibration import jsonable
 from ..errors import InputError
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import RECORDING_HELP, add_input_options, recording_argv, recording_chunks
 from ._location import add_location_options, location_reference
 
 
@@ -33,8 +34,9 @@ def register(subparsers) -> None:
                    "CAL_MAGn_*): re-estimate only what the track determines, hold the rest")
     add_location_options(p)
     p.add_argument("--full", action="store_true", help="diagnose every sample even of a long "
-                   "track file (default: files over 30 MB are diagnosed from a stratified "
-                   "subsample, read in chunks; the output says which samples were used)")
+                   "recording (default: recordings of more than 60 000 magnetometer samples, "
+                   "in any format, are diagnosed from a stratified subsample; the output says "
+                   "which samples were used)")
     p.set_defaults(func=run)
 
 
@@ -48,7 +50,7 @@ def _report_module():
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..diagnosis import diagnose
+    from ..diagnosis.subsample import LONG_SAMPLES, diagnose_recording
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
     if getattr(args, "compass", None) == "all":
@@ -59,21 +61,15 @@ def run(args: argparse.Namespace) -> int:
 
     report = _report_module() if args.plots else None
     ref = location_reference(args)
-    long_path = _long_file(args)
-    track = None if long_path else read_track(args)
-    if long_path:
-        from ..diagnosis.subsample import diagnose_chunks
-        from ._common import recording_chunks
-
-        result = diagnose_chunks(recording_chunks(args, rows=100_000), model=model)
-        track = result.subsample
-    elif getattr(args, "cal", None):
+    calibration_of = None
+    if getattr(args, "cal", None):
         from ._calarg import calibration_for
 
-        cal, source = calibration_for(args.cal, track)
-        result = diagnose(track, model=model, calibration=cal, calibration_source=source)
-    else:
-        result = diagnose(track, model=model)
+        calibration_of = functools.partial(calibration_for, args.cal)
+    result, track = diagnose_recording(
+        recording_chunks(args, rows=100_000), model,
+        long_samples=float("inf") if args.full else LONG_SAMPLES, calibration_of=calibration_of,
+        recording=recording_argv(args), cal_arg=getattr(args, "cal", None), location=ref)
     plots = ""
     if report is not None:
         written = report.write_diagnosis_plots(result, track, args.plots)
@@ -86,10 +82,25 @@ def run(args: argparse.Namespace) -> int:
         if plots:   # stdout stays one JSON object
             print(plots, file=sys.stderr)
         return 0
-    print(_text(result) + held_text(result) + "\n\n" + "\n".join(text_lines(local)))
+    print(_headline(result) + "\n\n" + _text(result) + held_text(result) + "\n\n"
+          + "\n".join(text_lines(local)))
     if plots:
         print(plots)
     return 0
+
+
+def _headline(d) -> str:
+    """The plain sentences first, wrapped, then the command they advise on a line of its own."""
+    import textwrap
+
+    text = d.summary or ""
+    cmd = " ".join(d.next_step) if d.next_step else ""
+    if cmd:
+        text = text.replace(f" To do: {cmd}", "")
+    lines = textwrap.wrap(text, 96)
+    if cmd:
+        lines += ["", "next step: " + cmd]
+    return "\n".join(lines)
 
 
 def plots_written(directory, paths) -> str:
@@ -99,22 +110,6 @@ def plots_written(directory, paths) -> str:
     n = len(paths)
     return (f"plots: {n} PNG file{'s' if n != 1 else ''} written to "
             f"{Path(directory).resolve()}")
-
-
-def _long_file(args) -> bool:
-    """A section-1 track file above :data:`streamcal.diagnosis.subsample.LONG_FILE_BYTES`,
-    without ``--full`` or ``--cal``."""
-    import os
-
-    from ..diagnosis.subsample import LONG_FILE_BYTES
-    from ..inputs.detect import detect
-
-    if args.full or getattr(args, "cal", None) or getattr(args, "columns", None) is not None:
-        return False
-    try:
-        return os.path.getsize(args.track) > LONG_FILE_BYTES and detect(args.track) == "track"
-    except OSError:
-        return False
 
 
 def held_text(d) -> str:
@@ -131,7 +126,8 @@ def held_text(d) -> str:
     n_r = getattr(d, "n_ranked", 0) or d.n
     if n_r < d.n:
         lines.append(f"ranked     candidates refitted on {n_r} of {d.n} samples (every cell of "
-                     "direction × stretch of time kept); their before/after are on those")
+                     "direction × stretch of time kept); the effects the ladder adds were refitted "
+                     "on every sample, the others' numbers are on those")
     scores = list(getattr(d, "aux_channels", {}).items())[:4]
     if scores:
         lines.append("channels   residual follows, each alone: "
@@ -163,6 +159,14 @@ def _gyro_lines(d, unit: str) -> list[str]:
     return lines
 
 
+def _held_value(d, name: str, entry) -> str:
+    """The value a held core parameter keeps (the report's "held" value), as text."""
+    try:
+        return f"{entry(d.calibration.K, d.calibration.b, name):.5g}"
+    except (KeyError, ValueError, IndexError):
+        return "the given value"
+
+
 def _recheck_lines(d, unit: str) -> list[str]:
     """The re-check at the fitted point (:mod:`streamcal.diagnosis.held_check`) and how the
     held fit ended."""
@@ -176,7 +180,10 @@ def _recheck_lines(d, unit: str) -> list[str]:
         lines.append("held after the fit (rule: at the fitted point σ ≤ the tolerance and the "
                      "value within its plausible range ± 3 σ, else the worst is held and the "
                      "fit repeated)")
-        lines += [f"  {h['parameter']:<8}{h['value']:>12.5g} ± {h['sigma']:.3g} {unit}: "
+        from ..fitting.entries import entry
+
+        lines += [f"  {h['parameter']:<8} held at {_held_value(d, h['parameter'], entry)} {unit} "
+                  f"(the fit had moved it to {h['value']:.5g} ± {h['sigma']:.3g}): "
                   f"{h['reason']}" for h in after]
     for k, v in getattr(d, "suspicious", {}).items():
         lines.append(f"SUSPICIOUS {k} {v['value']:.5g} ± {v['sigma']:.3g} {unit}: {v['reason']} "
@@ -186,8 +193,10 @@ def _recheck_lines(d, unit: str) -> list[str]:
 
 
 
-def _change(before: float, after: float) -> str:
-    """``after / before − 1`` in percent ("-39%", "±0%")."""
+def _change(before: float, after: float, digits: int = 4) -> str:
+    """``after / before − 1`` in percent ("-39%", "±0%"), of the two numbers as shown
+    (``digits`` significant digits)."""
+    before, after = float(f"{before:.{digits}g}"), float(f"{after:.{digits}g}")
     if not (before > 0 and after == after):
         return ""
     pct = round(100.0 * (after / before - 1.0))
@@ -208,16 +217,19 @@ def candidate_table(d, numbered: bool = False) -> list[str]:
     decides them printed below."""
     def rank(k):
         return f"{k:<5}" if numbered else ""
+    u = _diagnosis_unit(d)
     lines = [f"{rank('rank')}{'candidate':<24}{'residual':>13}{'before':>9}{'after':>9}{'change':>8}"
-             f"{'p-value':>11}{'signif.':>8}{'material':>9}  evidence"]
+             f"{'n':>8}{'p-value':>11}{'signif.':>8}{'material':>9}  evidence (rms in {u} over "
+             "the n samples the model with the effect keeps)"]
     for k, c in enumerate(d.candidates, 1):
         row = d.candidate_dict(c)
         before = row["rms_before"]
         lines.append(f"{rank(k)}{c.effect:<24}{residual_name(row['residual']):>13}{before:>9.4g}"
-                     f"{c.rms_after:>9.4g}{_change(before, c.rms_after):>8}"
+                     f"{c.rms_after:>9.4g}{_change(before, c.rms_after):>8}{row['n']:>8}"
                      f"{c.p_value:>11.2e}{'yes' if row['significant'] else 'no':>8}"
                      f"{'yes' if row['material'] else 'no':>9}  {c.evidence}")
-    lines.append(f"(rule: {d.significance_rule}; an effect is missing only when both hold)")
+    if d.verdict != "effect_missing":
+        lines.append(f"(rule: {d.significance_rule}; an effect is missing only when both hold)")
     if any(d.baseline(c)[0] != "sensor" for c in d.candidates):
         lines.append("(each candidate against the model without it on the same residual; "
                      "the tied residuals include the gravity reference's or the gyro's error "
@@ -238,15 +250,18 @@ def _text(d) -> str:
     when the recording measured the floor."""
     from ..diagnosis.misfit import summary
 
-    out_by = tuple(d.outliers_model or d.model)
     known = d.floor_known
     u = _diagnosis_unit(d)
     floor = f"noise floor {d.noise_floor:.4g} {u}" if known else "noise floor not measurable"
+    last = d.ladder[-1] if d.ladder else {"n_outliers": d.n_outliers}
+    outliers = (f"{d.n_outliers} outliers" if len(d.ladder) < 2 else
+                f"outliers: {last['n_outliers']} of the last model of the ladder, {d.n_outliers} "
+                f"of the model as given, whose missing effects push samples out")
     lines = [f"model      {', '.join(d.model)}",
-             f"samples    {d.n} ({d.n_outliers} outliers"
-             + ("" if out_by == tuple(d.model) else
-                f"; {d.n_outliers_model} of {', '.join(out_by)}, from which the spans come") + ")",
-             f"rms        {d.rms:.4g} {u} ({residual_name(d.residual)} residual)   {floor}"]
+             f"samples    {d.n} ({outliers})",
+             f"rms        {d.rms:.4g} {u} ({residual_name(d.residual)} residual, over the "
+             f"{d.ladder[0]['n'] if d.ladder else d.n - d.n_outliers} samples of the ladder)   "
+             f"{floor}"]
     if getattr(d, "sampling", None):
         s = d.sampling
         lines.insert(2, f"used       {s['samples_used']} of {s['samples_total']} magnetometer "
@@ -254,7 +269,8 @@ def _text(d) -> str:
                         f"{s['outlier_spans_over']}")
     if not known:
         lines.append(f"           why: {d.noise_floor_reason}")
-    lines += [f"verdict    {d.verdict}   ({d.noise_floor_rule})"]
+    rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
+    lines += [f"verdict    {d.verdict}   (rule: {rule})"]
     if d.verdict == "unexplained" and d.misfit:
         lines += ["", "where the misfit sits (share of the residual energy vs share of samples)"]
         lines += ["  " + line for line in summary(d.misfit)]
@@ -262,8 +278,11 @@ def _text(d) -> str:
         lines += [""] + candidate_table(d)
     if d.ladder:
         ratio_head = f"{'× floor':>9}" if known else ""
-        lines += ["", "model ladder", f"{'step':<34}{'residual':>13}{'before':>9}{'rms':>9}"
-                                      + ratio_head]
+        n = d.ladder[0].get("n")
+        lines += ["", f"model ladder (rms in {u} over the same {n} samples: those the last model "
+                      "keeps; outliers: each model's own)",
+                  f"{'step':<34}{'residual':>13}{'before':>9}{'rms':>9}" + ratio_head
+                  + f"{'outliers':>10}"]
         for step in d.ladder:
             name = "+ " + step["added"] if "added" in step else ", ".join(step["model"])
             residual = step.get("residual", "sensor")
@@ -273,7 +292,7 @@ def _text(d) -> str:
                 ratio = f"{step['rms'] / d.noise_floor:>9.2f}" if residual == "sensor" \
                     else f"{'–':>9}"
             lines.append(f"{name:<34}{residual_name(residual):>13}{before}"
-                         f"{step['rms']:>9.4g}{ratio}")
+                         f"{step['rms']:>9.4g}{ratio}{step.get('n_outliers', ''):>10}")
         if known:
             lines.append(f"{'noise floor':<34}{'sensor':>13}{'':>9}{d.noise_floor:>9.4g}"
                          f"{1.0:>9.2f}")

@@ -17,7 +17,7 @@ def register(sub) -> None:
     p.add_argument("calibration", metavar="CAL.json",
                    help="calibration file (docs/calibration_file.md)")
     p.add_argument("--format", required=True, choices=FORMATS)
-    p.add_argument("-o", "--output", metavar="FILE", help="file to write (atomic); default stdout")
+    p.add_argument("-o", "--output", metavar="FILE", help="file to write (atomic); default (or -): stdout")
     p.set_defaults(func=run)
 
 
@@ -30,7 +30,7 @@ def run(args) -> int:
     text, notes = export(cal, args.format)
     for note in notes:
         print(f"streamcal export: {args.format} cannot express: {note}", file=sys.stderr)
-    if args.output:
+    if args.output and args.output != "-":
         atomic_write_text(args.output, text, mode=0o644)
         print(f"written: {args.output}", file=sys.stderr)
     else:

@@ -8,6 +8,7 @@ import numpy as np
 from ..calibration import DEFAULT_MODEL, jsonable
 from ..model.catalog import EFFECT_NAMES
 from ._common import RECORDING_HELP, add_input_options, read_track
+from ._output import check_output, messages_to
 
 
 def register(sub) -> None:
@@ -31,10 +32,18 @@ def register(sub) -> None:
                         "vasconcelos, kok_schon, sphere_stream")
     p.add_argument("--tau", default=None,
                    help="kernel width in sensor units, or 'paper' for √3 (default: from the data)")
-    p.add_argument("-o", "--output", metavar="CAL.json", help="write the calibration file (atomic)")
+    p.add_argument("-o", "--output", metavar="CAL.json",
+                   help="write the calibration file (atomic; - for stdout, the messages then "
+                        "go to stderr)")
     p.add_argument("--json", action="store_true", help="print the calibration as one JSON object")
     p.add_argument("--initial", metavar="CAL", help="warm start from this calibration (JSON "
                    "file or state dir): the LM starts from its K and b")
+    p.add_argument("--cal", metavar="CAL", help="refine this calibration (JSON file, state "
+                   "dir, 'autopilot'/'log': the one in the log's parameters, or 'default': the "
+                   "stated default a diagnosis without a calibration holds) on a recording that "
+                   "covers only a slice of the sphere: what the recording determines is "
+                   "re-estimated, the rest held, and each --add effect fitted (what `diagnose "
+                   "--cal` recommends); --model is then the calibration's")
     p.add_argument("--no-coverage-check", action="store_true",
                    help="fit even when the directions seen leave the model undetermined")
     p.set_defaults(func=run)
@@ -56,7 +65,10 @@ def _tau(value):
 
 def run(args) -> int:
     from ..fitting import fit
+    check_output(args.output)
     track = read_track(args)
+    if getattr(args, "cal", None):
+        return _refine(args, track)
     initial = None
     if getattr(args, "initial", None):
         from ._calarg import load_calibration_arg
@@ -73,15 +85,46 @@ def run(args) -> int:
         residual = calibration_residual(cal)
         if residual != "sensor":   # the tied fit's rms is not on the sensor residual
             sensor = sensor_rms(cal, track)
+    say = messages_to(args.output)
     if args.json:
         out = cal.to_dict()
         if sensor is not None:
             out["rms_sensor"] = sensor
-        print(json.dumps(jsonable(out), allow_nan=False))
+        print(json.dumps(jsonable(out), allow_nan=False), file=say)
     else:
-        print(format_calibration(cal, args.track, residual, sensor))
+        print(format_calibration(cal, args.track, residual, sensor), file=say)
         if args.output:
-            print(f"written: {args.output}")
+            print(f"written: {args.output}", file=say)
+    return 0
+
+
+def _refine(args, track) -> int:
+    """``fit TRACK --cal CAL [--add EFFECT …]``: :func:`streamcal.diagnosis.against.refine`."""
+    from ..diagnosis.against import refine
+    from ..errors import InputError
+    from ._calarg import calibration_for
+
+    if args.sensor != "mag" or args.method != "autocal" or args.initial:
+        raise InputError("--cal refines a magnetometer calibration with the held fit: it takes "
+                         "neither --sensor accel, --method nor --initial")
+    from pathlib import Path
+
+    if args.cal == "default" and not Path(args.cal).exists():
+        given, source = None, None   # the stated default a diagnosis without --cal holds
+    else:
+        given, source = calibration_for(args.cal, track)
+    cal = refine(track, given, args.add, calibration_source=source)
+    if args.output:
+        cal.save(args.output)
+    if args.json:
+        print(json.dumps(jsonable(cal.to_dict()), allow_nan=False))
+        return 0
+    print(format_calibration(cal, args.track))
+    held = (cal.extra or {}).get("held") or []
+    print(f"  held      {', '.join(held) or 'none'} (at the values of "
+          f"{source or 'the stated default'}: this recording cannot determine them)")
+    if args.output:
+        print(f"written: {args.output}")
     return 0
 
 
@@ -93,22 +136,25 @@ def format_calibration(cal, source: str = "", residual: str = "sensor",
     from ..units import display_unit, effect_params
 
     u = display_unit(cal.unit)
+    unit = f" {u}" if u else ""       # an unknown unit is said once, in the first line
     rows = [f"calibration of {cal.sensor} from {source} ({cal.method}"
-            + (f", {cal.kernel} kernel" if cal.kernel else "") + ")",
+            + (f", {cal.kernel} kernel" if cal.kernel else "") + ")"
+            + ("" if u else "; unit unknown (the recording does not name one streamcal knows)"),
             f"  model     {', '.join(cal.model)}",
-            "  K [" + u + "]" + "".join(f"\n    {row[0]:10.4f} {row[1]:10.4f} {row[2]:10.4f}" for row in cal.K),
-            f"  b [{u}]  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
+            "  K" + (f" [{u}]" if u else "")
+            + "".join(f"\n    {row[0]:10.4f} {row[1]:10.4f} {row[2]:10.4f}" for row in cal.K),
+            f"  b {f'[{u}]' if u else '':<4}  {cal.b[0]:10.4f} {cal.b[1]:10.4f} {cal.b[2]:10.4f}"]
     for name, params in cal.effects.items():
         rows.append(f"  {name}: {effect_params(name, params, cal.unit)}")
-    rows.append(f"  rms       {cal.rms:.4g} {u} on the {RESIDUAL_LABELS.get(residual, residual)} "
+    rows.append(f"  rms       {cal.rms:.4g}{unit} on the {RESIDUAL_LABELS.get(residual, residual)} "
                 f"residual over {cal.n - cal.n_outliers} inliers "
                 f"({cal.n_outliers} outliers of {cal.n})")
     if sensor_rms is not None:
-        rows.append(f"  rms       {sensor_rms:.4g} {u} on the sensor residual (every direction "
+        rows.append(f"  rms       {sensor_rms:.4g}{unit} on the sensor residual (every direction "
                     f"free; the {RESIDUAL_LABELS.get(residual, residual)} one includes the "
                     f"reference's own error)")
     if cal.coverage is not None:
         rows.append(f"  coverage  {cal.coverage:.0%} of the sphere")
     if cal.field:
-        rows.append(f"  field     {cal.field:.4g} {u}")
+        rows.append(f"  field     {cal.field:.4g}{unit}")
     return "\n".join(rows)

@@ -40,7 +40,7 @@ def register(sub) -> None:
     p.add_argument("--address", default="0x68", help="MPU-9250 I2C address (default: %(default)s)")
     p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default: %(default)s)")
     p.add_argument("-o", "--output", required=True, metavar="TRACK.csv",
-                   help="track file to write (.csv or .csv.gz)")
+                   help="track file to write (.csv or .csv.gz; - for stdout)")
     p.add_argument("--seconds", type=float, metavar="S", help="stop after S seconds of samples")
     add_skip_bad_rows(p)   # of a fake:/simavr: replay's track
     p.set_defaults(func=run)
@@ -49,17 +49,30 @@ def register(sub) -> None:
 class TrackWriter:
     """Stream sample blocks into a temp file beside ``path``; :meth:`commit` renames it over
     ``path``, :meth:`abort` removes it. Columns are fixed at the first block (the standard ones
-    plus that block's auxiliary channels)."""
+    plus that block's auxiliary channels). ``-`` (stdout), ``/dev/stdout`` and pipes are written
+    directly (``tmp`` is then None), by the rule of :mod:`streamcal.atomic`."""
 
     def __init__(self, path: str | os.PathLike, metadata: dict):
+        from ..atomic import is_stdout, is_stream, output_error, prepare_output
         from ..inputs.trackio import check_metadata
 
         self.path = Path(path)
         self.metadata = check_metadata(metadata)
-        directory = self.path.parent if str(self.path.parent) else Path(".")
-        fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp", dir=directory)
-        os.fchmod(fd, 0o644)
-        self._raw = os.fdopen(fd, "wb")
+        directory = prepare_output(path)
+        self.tmp = None
+        if is_stdout(path):
+            sys.stdout.flush()
+            self._raw = sys.stdout.buffer
+        elif is_stream(self.path):          # a pipe, a device
+            self._raw = open(self.path, "ab")
+        else:
+            try:
+                fd, self.tmp = tempfile.mkstemp(prefix=f".{self.path.name}.", suffix=".tmp",
+                                                dir=directory)
+            except OSError as exc:
+                raise output_error(path, exc, f"cannot write: {exc.strerror or exc}") from None
+            os.fchmod(fd, 0o644)
+            self._raw = os.fdopen(fd, "wb")
         self._out = gzip.GzipFile(fileobj=self._raw, mode="wb", mtime=0) \
             if self.path.name.endswith(".gz") else self._raw
         self.columns: tuple[str, ...] | None = None
@@ -103,7 +116,7 @@ class TrackWriter:
         self.rows += n
         self.mag_rows += int(np.all(np.isfinite(table[:, 7:10]), axis=1).sum())
         self._out.flush()
-        if time.monotonic() - self._synced > FSYNC_EVERY_S:
+        if self.tmp is not None and time.monotonic() - self._synced > FSYNC_EVERY_S:
             os.fsync(self._raw.fileno())
             self._synced = time.monotonic()
 
@@ -112,6 +125,10 @@ class TrackWriter:
         if self._out is not self._raw:
             self._out.close()
         self._raw.flush()
+        if self.tmp is None:               # a stream: written as it came
+            if self._raw is not sys.stdout.buffer:
+                self._raw.close()
+            return
         os.fsync(self._raw.fileno())
         self._raw.close()
         os.replace(self.tmp, self.path)
@@ -122,6 +139,10 @@ class TrackWriter:
             os.close(dir_fd)
 
     def abort(self) -> None:
+        if self.tmp is None:
+            if self._raw is not sys.stdout.buffer:
+                self._raw.close()
+            return
         try:
             self._raw.close()
         finally:
@@ -129,6 +150,7 @@ class TrackWriter:
 
 
 def run(args) -> int:
+    from ..atomic import prepare_output
     from ..errors import InputError
     from ..service import I2CBlocks, SerialBlocks, SourceUnavailable
     from ._common import fake_track_reader
@@ -137,8 +159,7 @@ def run(args) -> int:
     if args.seconds is not None and not args.seconds > 0:
         raise InputError(f"--seconds must be positive, got {args.seconds}")
     out = Path(args.output)
-    if out.is_dir() or not (out.parent if str(out.parent) else Path(".")).is_dir():
-        raise InputError(f"-o {out}: not a file in an existing directory")
+    prepare_output(out)                  # a place that cannot be written is said before the work
     if args.bus is not None:
         source = I2CBlocks(args.bus, _address(args.address), read_track=fake_track_reader(args))
     else:

@@ -86,6 +86,7 @@ def run(args) -> int:
     from .daemon import replay_page
 
     page = replay_page(args, calibrator)
+    finished = False
     try:
         for block in iter_track_blocks(itertools.chain([track], chunks), args.block):
             start_t = float(block.t[0]) if start_t is None else start_t
@@ -107,11 +108,14 @@ def run(args) -> int:
             counts[event.kind] = counts.get(event.kind, 0) + 1
             _note_refusal(event, refusals)
             emit(event, bar)
+        finished = True
     finally:
         bar.close()
         if page is not None:
-            page.close()
+            page.close(finished)
     if not calibrator.n_ingested:
+        if page is not None:
+            page.observers[0].close_page()
         raise InputError(f"{args.track}: no magnetometer rows (mx,my,mz) to calibrate from")
     summary = _summary(calibrator, counts, track, args)
     if calibrator.calibration is None:
@@ -123,8 +127,11 @@ def run(args) -> int:
     if calibrator.calibration is None:
         print(f"streamcal replay: no calibration: {summary['why']}; {summary['hint']}",
               file=sys.stderr)
-        return 1
-    return 0
+    if page is not None:
+        from ._live_replay import serve_after_replay
+
+        serve_after_replay(page, "replay", None, start_wall)
+    return 1 if calibrator.calibration is None else 0
 
 
 def _synchronous(args) -> bool:
@@ -190,10 +197,11 @@ def _summary(calibrator, counts, track, args) -> dict:
     if cal is not None:
         out.update({"K": cal.K.tolist(), "b": cal.b.tolist(),
                     "rms": float(cal.rms) if math.isfinite(cal.rms) else None, "unit": cal.unit})
-        from ..units import display_unit
+        from ..units import display_unit, with_unit
 
-        u = display_unit(cal.unit)
-        result = f"calibration rms {cal.rms:.3g} {u}, b = {np.round(cal.b, 2).tolist()} {u}"
+        result = (f"calibration rms {with_unit(f'{cal.rms:.3g}', cal.unit)}, b = "
+                  f"{with_unit(str(np.round(cal.b, 2).tolist()), cal.unit)}"
+                  + ("" if display_unit(cal.unit) else " (unit unknown)"))
     else:
         result = "no calibration accepted"
     out["message"] = (f"replayed {calibrator.n_ingested} magnetometer samples of {args.track}: "

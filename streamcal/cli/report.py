@@ -10,8 +10,9 @@ import sys
 from pathlib import Path
 
 from ..calibration import DEFAULT_MODEL
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import recording_argv, RECORDING_HELP, add_input_options, read_track
 from ._location import add_location_options, location_reference
+from ._output import check_output, messages_to
 
 
 def register(subparsers) -> None:
@@ -28,7 +29,8 @@ def register(subparsers) -> None:
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
                    help="add an effect to the model (repeatable, or comma-separated)")
     p.add_argument("-o", "--output", metavar="HTML",
-                   help="report file (default: <track name>-report.html in the current directory)")
+                   help="report file (default: <track name>-report.html in the current directory; "
+                        "- for stdout)")
     p.add_argument("--cal", metavar="CAL", help="diagnose against this calibration (JSON file or "
                    "state dir; 'autopilot' or 'log': the one in the log's own parameters, "
                    "ArduPilot COMPASS_* or PX4 CAL_MAGn_*), holding what the track does not determine")
@@ -60,23 +62,26 @@ def run(args) -> int:
     model = model_from_args(args.model, args.add)
     if getattr(args, "compass", None) == "all":
         from ._compasses import report_all
-        return report_all(args, model, Path(args.output) if args.output else default_output(args.track))
+        return report_all(args, model, args.output or default_output(args.track))
     ref = location_reference(args)
+    out = args.output or default_output(args.track)
+    check_output(out)
     track = read_track(args)
     kwargs = {}
     if getattr(args, "cal", None):
         from ._calarg import calibration_for
 
         cal, source = calibration_for(args.cal, track)
-        kwargs = {"calibration": cal, "calibration_source": source}
-    diagnosis, reason = diagnose_or_reason(track, model, **kwargs)
-    out = Path(args.output) if args.output else default_output(args.track)
-    out.parent.mkdir(parents=True, exist_ok=True)
+        kwargs = {"calibration": cal, "calibration_source": source, "cal_arg": args.cal}
+    diagnosis, reason = diagnose_or_reason(track, model, recording=recording_argv(args),
+                                           location=ref, **kwargs)
     local = reference_field(track, getattr(diagnosis, "calibration", None), ref)
-    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name, command_path=args.track,
+    out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name,
                        intro=_reference_html(text_lines(local)))
-    print("\n".join(text_lines(local)))
-    print(f"report written to {out}")
+    say = messages_to(out)
+    if local.get("source") is not None:    # without a reference, the page says why
+        print("\n".join(text_lines(local)), file=say)
+    print(f"report written to {out}", file=say)
     if diagnosis is None:
         print(f"streamcal report: no calibration: {reason} (the report shows the raw data)",
               file=sys.stderr)

@@ -19,7 +19,7 @@ import sys
 
 from ..calibration import jsonable
 from ._common import add_skip_bad_rows
-from .daemon import add_service_options, build
+from .daemon import add_service_options, add_speed_option, build
 from ._selfcal import board_self_cal, format_board_self_cal
 
 
@@ -33,6 +33,7 @@ def register(sub) -> None:
                         "board) or simavr:TRACK.csv (the compiled sketch in simavr)")
     p.add_argument("--baud", type=int, default=115200, help="baud rate (default: %(default)s)")
     add_service_options(p)
+    add_speed_option(p, "--port fake:…")
     add_skip_bad_rows(p)   # of a fake:/simavr: replay's track
     p.set_defaults(func=run)
 
@@ -92,17 +93,25 @@ def close_count(source) -> dict:
 
 
 def run(args) -> int:
+    import time
+
     from ..service import SerialBlocks
 
     from ._common import fake_track_reader
+    from ._live_replay import TrackSpan, announce, replay_speed, serve_after_replay
 
-    source = SerialBlocks(args.port, args.baud, read_track=fake_track_reader(args))
+    started = time.monotonic()
+    span = TrackSpan(fake_track_reader(args))
+    speed = replay_speed(args, args.port)
+    source = SerialBlocks(args.port, args.baud, read_track=span,
+                          board_options=None if speed is None else {"speed": speed})
     try:
         sync = BoardSync(source)
         service = build(args, source, "serial", on_calibration=sync)
     except BaseException:
         source.close()
         raise
+    announce(args, "serial", args.port, speed, span)
     service.install_signal_handlers()
     source_close, source.close = source.close, lambda: None   # keep the port for the count
     try:
@@ -117,6 +126,7 @@ def run(args) -> int:
         if not args.json_lines:
             print(format_board_self_cal(board), flush=True)
     print(json.dumps(jsonable(summary), allow_nan=False), file=sys.stderr if args.json_lines else sys.stdout, flush=True)
+    serve_after_replay(service, "serial", args.max_seconds, started)
     return code
 
 

@@ -3,6 +3,6 @@ outlier spans and the ranking of missing effects."""
 from .diagnosis import Diagnosis
 from .entry import diagnose
 from .noise import NoiseFloor, noise_floor
-from .spans import outlier_spans
+from ..fitting.outlier_rule import outlier_spans
 
 __all__ = ["Diagnosis", "NoiseFloor", "diagnose", "noise_floor", "outlier_spans"]

@@ -62,11 +62,17 @@ class Candidate:
     #: rms of the model without the effect on that same residual (None: the diagnosis' rms).
     residual: str = "sensor"
     rms_before: float | None = None
+    #: Samples ``rms_before`` and ``rms_after`` are over: those that are not outliers of the
+    #: model with the effect (for an effect the ladder adds, the ladder's samples).
+    n: int = 0
+    #: Why the fitted effect is physically implausible (then neither significant nor material).
+    implausible: str = ""
     _evaluated: object = field(default=None, repr=False, compare=False)
+    _reference: object = field(default=None, repr=False, compare=False)
 
     def to_dict(self) -> dict:
         return {"effect": self.effect, "rms_after": self.rms_after, "p_value": self.p_value,
-                "evidence": self.evidence}
+                "evidence": self.evidence, "n": int(self.n)}
 
 
 def n_global_params(cal) -> int:

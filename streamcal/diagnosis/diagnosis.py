@@ -10,6 +10,7 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL, RESIDUALS
 from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
+from . import story
 from ..errors import StreamcalError
 from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
 from ..model.build import check_known
@@ -19,7 +20,7 @@ from . import misfit as misfit_mod
 from . import verdict as verdict_mod
 from .noise import noise_floor
 from .residuals import families, rms, sensor_residual
-from .spans import outlier_spans, widen_outliers
+from ..fitting.outlier_rule import outlier_mask, outlier_spans
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
 OUTLIER_SIGMAS = 5.0
@@ -89,6 +90,13 @@ class Diagnosis:
     misfit: dict | None = None
     #: Which samples the figures used (:mod:`streamcal.diagnosis.subsample`); None: every one.
     sampling: dict | None = None
+    #: Plain sentences (:func:`streamcal.diagnosis.advice.summary`), the command they advise
+    #: (argv, None: nothing to do) and the heading error the ladder's first and last rms imply
+    #: (None: the horizontal field is unknown, ``heading_error_reason`` says why).
+    summary: str = ""
+    next_step: list | None = None
+    heading_error_deg: dict | None = None
+    heading_error_reason: str = ""
 
     def __str__(self) -> str:
         from .text import summary
@@ -141,6 +149,9 @@ class Diagnosis:
                 "outliers_model": list(self.outliers_model or self.model),
                 "n_outliers_model": (self.n_outliers if self.n_outliers_model is None
                                      else self.n_outliers_model),
+                "summary": self.summary, "next_step": self.next_step,
+                "heading_error_deg": self.heading_error_deg,
+                "heading_error_reason": self.heading_error_reason,
                 "ladder": self.ladder, "noise": self.noise,
                 "residual_families": self.residual_families,
                 **(self.sampling or {"samples_used": self.n, "samples_total": self.n,
@@ -193,20 +204,17 @@ class _Evaluated:
             norm = np.linalg.norm(self.r, axis=1)
             inl = getattr(cal, "inliers", None)
             width = (getattr(cal, "extra", None) or {}).get("tau")
-            if (inl is None or np.shape(inl) != (len(m),)) and width:
-                inl = norm <= OUTLIER_WIDTHS * float(width)   # the fit's own inlier rule
-            elif inl is None or np.shape(inl) != (len(m),):
-                scale = floor if np.isfinite(floor) else np.median(norm) / HALF_NORMAL_MEDIAN
-                inl = norm <= OUTLIER_SIGMAS * scale
-            inl = np.asarray(inl, bool)
-            # the ramps of a disturbance are outliers too (spans.widen_outliers); the
-            # calibration then carries the same inliers, so its rms, outlier count and mask are
-            # the diagnosis' (one model, one sample set)
-            self.inliers = ~widen_outliers(t, norm, ~inl) if t is not None else inl
-            if not np.array_equal(self.inliers, inl) and hasattr(cal, "replace"):
-                self.cal = cal = cal.replace(inliers=self.inliers,
-                                             n_outliers=int((~self.inliers).sum()),
-                                             rms=rms(self.r, self.inliers))
+            if inl is None or np.shape(inl) != (len(m),):
+                # a fit on a subset, or without a kernel: the one outlier rule on every sample
+                if not width:
+                    width = (floor if np.isfinite(floor) else
+                             np.median(norm) / HALF_NORMAL_MEDIAN) * OUTLIER_SIGMAS / OUTLIER_WIDTHS
+                inl = ~outlier_mask(norm, width, t)
+                if hasattr(cal, "replace"):
+                    cal = cal.replace(inliers=inl, n_outliers=int((~inl).sum()),
+                                      rms=rms(self.r, inl), n=len(m))
+            self.cal = cal
+            self.inliers = np.asarray(inl, bool)
             self.p = cand.n_global_params(cal)
         self.rms = rms(self.r, self.inliers)
         self.rss = np.sum(self.r ** 2, axis=1)
@@ -316,20 +324,16 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             ev = ctx.evaluate((*model, name), base.cal, quick=True)
         except StreamcalError:
             continue  # the data cannot support this effect (e.g. a constant temperature)
-        p_value = _f_test(ref, ev)
+        numbers = story.compare(ref, ev)   # on the samples the model with it keeps
         if name in REGISTRATION_EFFECTS:
-            text = _registration_text(ctx, model, base, name, ref.rms, ev)
+            text = _registration_text(ctx, model, base, name, numbers.before, ev)
         elif base.s is not None:
             term = build_effects([name], ctx.cov)[0] if name in TERMS else None
             text = cand.evidence(name, term, base.s, base.normal, base.x @ base.cal.K.T, ctx.cov,
                                  base.inliers)
         else:
-            text = f"{ev.kind}-tied rms {ref.rms:.3g} → {ev.rms:.3g} {ctx.track.mag_unit}"
-        c = cand.Candidate(name, ev.rms, p_value, text, ev.p - ref.p,
-                           cand.is_significant(ref.rms, ev.rms, p_value, ctx.material_floor), ev.cal)
-        c.rms_before, c.residual = ref.rms, RESIDUAL_OF_KIND[ev.kind]
-        c._evaluated = ev
-        out.append(c)
+            text = f"{ev.kind}-tied rms {numbers.before:.3g} → {numbers.after:.3g} {ctx.track.mag_unit}"
+        out.append(_candidate(ctx, name, numbers, text, ref, ev))
     # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
     # the rms each was compared with (the same order as rms_after among the others).
     out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
@@ -344,10 +348,8 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
             ev = ctx.evaluate((*model, top.effect), top.calibration)
         except StreamcalError:
             return out
-        top.rms_after, top.calibration, top._evaluated = ev.rms, ev.cal, ev
-        if top.effect not in REGISTRATION_EFFECTS:
-            break
-        if not base.tied:
+        ref = top._reference
+        if top.effect in REGISTRATION_EFFECTS and not base.tied:
             # compare like with like: the tied model without the effect refitted on every
             # sample too (its subset fit, evaluated on every sample, is a little worse)
             if tied_full is None:
@@ -355,22 +357,24 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
                     tied_full = ctx.evaluate(model, base.cal, tied=True)
                 except StreamcalError:
                     tied_full = False
-            if tied_full:
-                top.p_value = _f_test(tied_full, ev)
-                top.rms_before = tied_full.rms
-                top.significant = cand.is_significant(tied_full.rms, ev.rms, top.p_value,
-                                                      ctx.material_floor)
+            ref = tied_full or ref
+        out[0] = top = _candidate(ctx, top.effect, story.compare(ref, ev), top.evidence, ref, ev)
+        if top.effect not in REGISTRATION_EFFECTS:
+            break
         top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
         out.sort(key=lambda c: not c.significant)
     return out
 
 
-def _f_test(ref: _Evaluated, ev: _Evaluated) -> float:
-    """p-value of adding ``ev``'s effect to ``ref`` on the samples both call inliers, counted
-    by their effective number (residuals of the larger model, time order)."""
-    common = ref.inliers & ev.inliers
-    return cand.f_test(float(ref.rss[common].sum()), float(ev.rss[common].sum()),
-                       max(ev.p - ref.p, 1), cand.effective_n(ev.r[common]), ev.p)
+def _candidate(ctx: _Context, name: str, numbers, text: str, ref: _Evaluated,
+               ev: _Evaluated) -> cand.Candidate:
+    """A ranked candidate from its :class:`~streamcal.diagnosis.story.Comparison`."""
+    c = cand.Candidate(name, numbers.after, numbers.p_value, text, ev.p - ref.p,
+                       cand.is_significant(numbers.before, numbers.after, numbers.p_value,
+                                           ctx.material_floor), ev.cal)
+    c.rms_before, c.n, c.residual = numbers.before, numbers.n, RESIDUAL_OF_KIND[ev.kind]
+    c._evaluated, c._reference = ev, ref
+    return c
 
 
 def _registration_text(ctx: _Context, model, base: _Evaluated, name: str, rms_before: float,
@@ -454,24 +458,29 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
-    steps = [{"model": list(model), "rms": base.rms, "residual": RESIDUAL_OF_KIND[base.kind]}]
-    current, cur_model, cur_ranked = base, tuple(model), ranked
+    added, current, cur_model, cur_ranked = [], base, tuple(model), ranked
     spans_from, spans_model = base, tuple(model)
-    while ladder and cur_ranked and cur_ranked[0].significant and len(steps) <= LADDER_STEPS:
+    while ladder and cur_ranked and cur_ranked[0].significant and len(added) < LADDER_STEPS:
         top = cur_ranked[0]
+        added.append(top)
         cur_model, current = (*cur_model, top.effect), top._evaluated
-        # rms_before: the previous model on this step's residual (another residual than the
-        # previous step's rms when the step is the first gravity- or gyro-tied one).
-        steps.append({"model": list(cur_model), "added": top.effect, "rms": current.rms,
-                      "rms_before": top.rms_before, "residual": RESIDUAL_OF_KIND[current.kind],
-                      "p_value": top.p_value, "gravity_tied": current.kind == "gravity",
-                      "gyro_tied": current.kind == "gyro"})
         if not current.tied:
             spans_from, spans_model = current, cur_model
         # Effects that explained nothing significant alone are not retried (saves refits).
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
-    verdict = verdict_mod.decide(base.rms, residual, nf.floor, reliable, ranked)
+    steps = story.ladder(model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added)
+    for c in added:   # the numbers the ladder shows, judged by the same rule
+        c.significant = cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor)
+    by_effect = {c.effect: c for c in added}
+    ranked = [by_effect.get(c.effect, c) for c in ranked]
+    sensor = None
+    if base.tied:   # judged on the residual the floor is for: the same calibration, free directions
+        from .scales import sensor_rms
+
+        sensor = sensor_rms(base.cal, track)
+    verdict = verdict_mod.decide(steps[0]["rms"], residual, nf.floor, reliable, ranked,
+                                 sensor_rms=sensor)
     misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float),
                                  ctx.cov, gyro)
     # Spans and mask from the last magnetometer-only model of the ladder: a missing effect
@@ -479,8 +488,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     # outliers.
     outliers = ~np.asarray(spans_from.inliers, bool)
     return Diagnosis(
-        model=tuple(model), n=len(m), n_outliers=int((~np.asarray(base.inliers, bool)).sum()),
-        n_outliers_model=int(outliers.sum()), rms=base.rms,
+        model=tuple(model), n=len(m), n_outliers=steps[0]["n_outliers"],
+        n_outliers_model=int(outliers.sum()), rms=steps[0]["rms"],
         noise_floor=floor, verdict=verdict, candidates=ranked,
         noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
         outlier_spans=outlier_spans(t, outliers), ladder=steps,

@@ -57,21 +57,23 @@ def theta_sigmas(estimated: dict, name: str, n: int) -> np.ndarray:
                      for k in range(n)])
 
 
-def implausible_effect(terms_thetas, u: np.ndarray, cov, r: float, sigmas=None) -> str:
+def implausible_effect(terms_thetas, u: np.ndarray, cov, r: float, sigmas=None,
+                       unit: str = "µT") -> str:
     """Why an added effect is implausible (module doc, rules 1 and 2), or "" when it is not.
 
     ``terms_thetas``: [(term, θ)] of the candidate (the first term names the kind); ``u`` (N,3)
     the base model's field points and ``r`` the field radius (sensor unit); ``sigmas``: the
     refit's σ of each θ, concatenated in the order of ``terms_thetas`` (rule 2 is skipped when
-    None)."""
+    None); ``unit``: the sensor unit as shown."""
     f = sum(np.asarray(term.term(th, u, cov), float) for term, th in terms_thetas)
     rms = float(np.sqrt(np.mean(np.sum(np.square(f), axis=1))))
     kind = terms_thetas[0][0].name
     frac = BOUND.get(kind, DEFAULT_BOUND)
     reasons = []
     if not (np.isfinite(rms) and rms <= frac * r):
-        reasons.append(f"its field at the reference model's points is {rms:.3g} rms, above "
-                       f"{frac:g} × the field radius {r:.3g} (the bound for {kind})")
+        size = f"{rms:.3g} {unit}" if rms < 1e3 * r else "over 1000 × the field radius"
+        reasons.append(f"its field at the reference model's points is {size} rms, above "
+                       f"{frac:g} × the field radius {r:.3g} {unit} (the bound for {kind})")
     if sigmas is not None:
         theta = np.concatenate([np.ravel(th) for _, th in terms_thetas]).astype(float)
         sd = np.asarray(sigmas, dtype=float)

@@ -8,12 +8,14 @@ from typing import Sequence
 from ..calibration import DEFAULT_MODEL
 from ..errors import InsufficientDataError
 from ..model import REGISTRATION_EFFECTS
+from . import advice
 from . import diagnosis as _fresh
 from .against import diagnose_against
 
 
 def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
-             calibration_source: str | None = None, **kwargs):
+             calibration_source: str | None = None, recording: Sequence[str] | None = None,
+             cal_arg: str | None = None, location: dict | None = None, **kwargs):
     """Diagnose ``track``.
 
     - ``calibration`` given (a :class:`~streamcal.calibration.Calibration` without registration
@@ -21,12 +23,29 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
       (:func:`streamcal.diagnosis.against.diagnose_against`; ``calibration_source`` names where
       it came from in the result). A calibration with registration effects goes to the fresh
       diagnosis as before (used instead of fitting the base model).
+    Then the plain words of :mod:`streamcal.diagnosis.advice`: ``next_step`` names the
+    recording as ``recording`` (argv words; default its path) and a held calibration as
+    ``cal_arg``; ``location`` (:func:`streamcal.geomag.wmm_field`) gives the horizontal field
+    for ``heading_error_deg`` when the recording cannot.
+
     - otherwise :func:`streamcal.diagnosis.diagnosis.diagnose` (every keyword passed on,
       unchanged); when that refuses because the recording cannot determine a fresh fit, and
       no custom ``fitter`` was given, the recording is diagnosed against the stated default
       calibration instead (held parameters listed), which refuses in turn only when even the
       hard-iron offset cannot be determined.
     """
+    d = _engine(track, model, calibration, calibration_source, kwargs)
+    if recording is None:
+        recording = [str(track.path) if getattr(track, "path", None) else "TRACK"]
+    h, why = advice.horizontal_field(track, d.calibration, location)
+    d.heading_error_deg = advice.heading_error(d, h)
+    d.heading_error_reason = "" if d.heading_error_deg else why
+    d.next_step = advice.next_step(d, list(recording), cal_arg)
+    d.summary = advice.summary(d)
+    return d
+
+
+def _engine(track, model, calibration, calibration_source, kwargs):
     if calibration is not None and not any(n in REGISTRATION_EFFECTS for n in calibration.model):
         return diagnose_against(track, calibration, candidates=kwargs.get("candidates"),
                                 ladder=kwargs.get("ladder", True),

@@ -34,7 +34,7 @@ from ..inputs.track import Track
 from ..sphere_cells import SphereCells
 from .entry import diagnose as _diagnose
 from .residuals import sensor_residual
-from .spans import outlier_spans, widen_outliers
+from ..fitting.outlier_rule import outlier_spans, widen_outliers
 
 #: Length of one kept block of consecutive rows, s.
 BLOCK_S = 0.2
@@ -44,8 +44,9 @@ TIME_BINS = 32
 PER_BIN = 10
 #: Equal-area sphere cells for the direction stratum.
 N_CELLS = 100
-#: Tracks files larger than this (bytes) are diagnosed from a subsample by ``streamcal diagnose``.
-LONG_FILE_BYTES = 30_000_000
+#: Recordings with more magnetometer samples than this are diagnosed from a subsample (10 min
+#: at 100 Hz); up to it every sample is used. Decided by the samples, whatever the format.
+LONG_SAMPLES = 60_000
 #: Rows per chunk read from the file.
 CHUNK_ROWS = 100_000
 #: Samples per piece when the whole-recording residual is evaluated.
@@ -271,6 +272,49 @@ def _spans_calibration(d):
         if cal is not None and tuple(cal.model) == want:
             return cal
     return None
+
+
+def _concatenate(chunks: list[Track]) -> Track:
+    """Consecutive chunks of one recording as one Track (the first chunk's metadata)."""
+    if len(chunks) == 1:
+        return chunks[0]
+    names = list(chunks[0].columns)
+    return Track({n: np.concatenate([c.columns[n] for c in chunks]) for n in names},
+                 chunks[0].metadata, chunks[0].path)
+
+
+def diagnose_recording(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODEL, *,
+                       long_samples: int = LONG_SAMPLES, calibration_of=None,
+                       diagnose=_diagnose, **kwargs):
+    """``(diagnosis, track diagnosed)`` of a recording given as consecutive chunks: every
+    sample when it has at most ``long_samples`` magnetometer samples, else the stratified
+    subsample of :func:`diagnose_chunks` (its ``sampling`` says so). At most
+    ``long_samples`` samples' rows are held before the choice is made, so the memory is
+    bounded for any length and any format.
+
+    ``calibration_of(first chunk) -> (calibration, source)``: the calibration to diagnose
+    against (e.g. the autopilot's, from the log's parameters); ``kwargs`` go to ``diagnose``
+    (:func:`streamcal.diagnosis.diagnose`)."""
+    import itertools
+
+    held, n = [], 0
+    chunks = iter(chunks)
+    for chunk in chunks:
+        if not held and calibration_of is not None:
+            cal, source = calibration_of(chunk)
+            kwargs.update(calibration=cal, calibration_source=source)
+        held.append(chunk)
+        n += len(chunk.t_mag)
+        if n > long_samples:
+            d = diagnose_chunks(itertools.chain(held, chunks), model, diagnose=diagnose,
+                                **kwargs)
+            return d, d.subsample
+    if not held:
+        from ..errors import InputError
+
+        raise InputError("the recording holds no samples")
+    track = _concatenate(held)
+    return diagnose(track, model, **kwargs), track
 
 
 def diagnose_file(path: str | os.PathLike, model: Sequence[str] = DEFAULT_MODEL, *, diagnose=_diagnose,

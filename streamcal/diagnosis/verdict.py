@@ -27,7 +27,9 @@ FLOOR_OVER_RMS_MAX = 1.5
 def floor_rule(factor: float = FLOOR_FACTOR) -> str:
     """The ``at_noise_floor`` rule in words (``noise_floor_rule``)."""
     return (f"at_noise_floor only when the noise floor is measurable and the sensor-residual "
-            f"rms is at most {factor:g}× the floor")
+            f"rms is at most {factor:g}× the floor (for a model with a registration effect: the "
+            f"same calibration's sensor-residual rms, every direction free, while no effect is "
+            f"significant on its gravity- or gyro-tied residual)")
 
 
 def significance_rule() -> str:
@@ -60,12 +62,15 @@ def reported_floor(floor: float, reliable: bool) -> float:
 
 
 def decide(rms: float, residual: str, floor: float, reliable: bool, ranked,
-           factor: float = FLOOR_FACTOR) -> str:
+           factor: float = FLOOR_FACTOR, sensor_rms: float | None = None) -> str:
     """The verdict from the base model's ``rms`` on ``residual``, the noise ``floor`` (sensor
     residual; ``reliable`` False when it cannot be measured) and the ranked candidates (best
-    first, each with ``significant``, which already includes materiality)."""
+    first, each with ``significant``, which already includes materiality). A model on a tied
+    residual is judged by ``sensor_rms``, the same calibration on the sensor residual (the
+    residual the floor is measured for)."""
     if ranked and ranked[0].significant:
         return "effect_missing"
-    if reliable and residual == "sensor" and np.isfinite(floor) and rms <= factor * floor:
+    judged = rms if residual == "sensor" else sensor_rms
+    if reliable and judged is not None and np.isfinite(floor) and judged <= factor * floor:
         return "at_noise_floor"
     return "unexplained"

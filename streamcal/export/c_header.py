@@ -7,6 +7,7 @@ as not expressed.
 from __future__ import annotations
 
 from ..calibration import Calibration
+from ..units import display_unit, effect_params
 from .common import CORE
 
 GUARD = "SC_INITIAL_CAL_H"
@@ -25,11 +26,12 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
 
         raise InputError(f"export: c-header carries a magnetometer calibration, this one is "
                          f"for {cal.sensor!r}")
-    notes = [f"{name} {dict(params)}" for name, params in cal.effects.items()]
+    notes = [f"{name}: {effect_params(name, params, cal.unit, digits=4)}"
+             for name, params in cal.effects.items()]
     notes += [f"{name} (in the model)" for name in cal.model
               if name not in CORE and name not in cal.effects]
     if cal.unit != "uT":
-        notes.append(f"values are in {cal.unit}, not uT")
+        notes.append(f"values are in {display_unit(cal.unit) or 'an unknown unit'}, not µT")
     K, b = cal.K, cal.b
     k = [K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2], K[2, 2]]
     lines = [f"/* streamcal initial calibration ({cal.created}): m = K x + b, uT;",

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import InputError
+from ..units import effect_params
 
 #: Effects that are part of the matrix and offsets themselves.
 CORE = ("hard_iron", "soft_iron", "scale")
@@ -76,7 +77,7 @@ def correction(cal: Calibration) -> Correction:
                 offset = offset - g * float(p.get("a0", 0.0))  # term g (a − a0) = g a − g a0
                 channels[chan] = g
         elif name not in CORE:
-            notes.append(f"{name} {dict(params)}")
+            notes.append(f"{name}: {effect_params(name, params, cal.unit, digits=4)}")
     for name in cal.model:
         if name not in CORE and name not in cal.effects and name != "aux_interference":
             notes.append(f"{name} (in the model)")

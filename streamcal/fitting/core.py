@@ -18,7 +18,8 @@ from ..errors import InputError, InsufficientDataError, UnknownEffectError
 from ..inputs.track import Track
 from ..model.build import build_effects, check_needs
 from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
-from ..units import display_unit
+from ..units import with_unit
+from .outlier_rule import widened_inliers
 from .lm import estimation_error, optimal_directions
 from .normalize import denormalize_model, normalize
 from .observability import assess
@@ -135,8 +136,8 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
     if not np.isfinite(spread) or spread <= MIN_RELATIVE_SPREAD * max(1.0, float(np.max(np.abs(m)))) \
             or spread < np.finfo(float).tiny * 1e6:
         raise InsufficientDataError(
-            f"the {sensor} readings hardly change (largest per-axis spread {spread:.3g} "
-            f"{display_unit(unit)}): "
+            f"the {sensor} readings hardly change (largest per-axis spread "
+            f"{with_unit(f'{spread:.3g}', unit)}): "
             "the sensor was not rotated while recording")
     structure = "full" if "soft_iron" in names else "diag" if "scale" in names else "sphere"
     fit_b = "hard_iron" in names
@@ -147,7 +148,8 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
         effects = build_effects(extra, cov)
 
     try:
-        cal, solver = _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, sensor=sensor,
+        t = _sample_times(track, sensor, len(m))
+        cal, solver = _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, t, sensor=sensor,
                             kernel=kernel, method=method, tau=tau, check_coverage=check_coverage,
                             stage1_max=stage1_max, max_iter=max_iter, rtol=rtol, initial=initial)
     except (np.linalg.LinAlgError, FloatingPointError) as exc:
@@ -161,7 +163,16 @@ def fit_core(data, *, sensor: str = "mag", model: str | Sequence[str] = DEFAULT_
     return FitResult(cal, solver.status, solver.iterations, solver.message)
 
 
-def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, sensor, kernel, method,
+def _sample_times(track, sensor: str, n: int) -> np.ndarray | None:
+    """(N,) s times of the samples fitted, in order, or None (an array input, or times out of
+    order): what the outlier rule needs to follow a disturbance's ramps."""
+    if track is None or sensor != "mag":
+        return None
+    t = np.asarray(track.t_mag, dtype=float)
+    return t if len(t) == n and np.all(np.diff(t) >= 0) else None
+
+
+def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, t, *, sensor, kernel, method,
                  tau, check_coverage, stage1_max, max_iter, rtol, initial) -> Calibration:
     if method == "autocal":
         from .autocal import autocal
@@ -191,6 +202,8 @@ def _fit_checked(m, unit, cov, names, extra, effects, structure, fit_b, *, senso
         sigma, tau_used = float(np.sqrt(np.mean(residual_norm ** 2) / 3)), None
     if check_coverage and not obs.ok:
         raise InsufficientDataError(obs.message)
+    if method == "autocal":   # reported over the one outlier rule (also a disturbance's ramps)
+        inliers = widened_inliers(inliers, residual_norm, t)
     kept = residual_norm if inliers.all() else residual_norm[inliers]
     rms = float(np.sqrt(np.mean(kept * kept))) if len(kept) else float("nan")
     field = GRAVITY if sensor == "accel" else (field_radius(K) if unit == "uT" else None)

@@ -47,7 +47,10 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
     """
     path = Path(path)
     fmt = detect(path)
-    columns = parse_columns(columns)
+    try:
+        columns = parse_columns(columns)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
     if (columns is not None or unit is not None) and fmt in ("dataflash", "ulog", "raw"):
         raise InputError(f"{path}: --columns/--unit apply to CSV/TSV files; this is a "
                          f"{fmt} recording with its own units")

@@ -42,7 +42,16 @@ def parse_columns(spec: str | Mapping[str, str] | None) -> dict[str, str] | None
             key, eq, name = item.partition("=")
             if not eq or not key.strip() or not name.strip():
                 raise InputError(f"--columns: expected KEY=NAME, got {item.strip()!r}")
+            if key.strip() in pairs:
+                raise InputError(f"--columns: {key.strip()} is mapped twice "
+                                 f"({key.strip()}={pairs[key.strip()]}, {item.strip()})")
             pairs[key.strip()] = name.strip()
+    twice = {name for name in pairs.values() if list(pairs.values()).count(name) > 1}
+    if twice:
+        name = sorted(twice)[0]
+        keys = ", ".join(f"{k}={v}" for k, v in pairs.items() if v == name)
+        raise InputError(f"--columns: the file's column {name!r} is mapped twice ({keys}); "
+                         "one file column cannot be two track columns")
     for key in pairs:
         if not COLUMN_NAME.fullmatch(key):
             raise InputError(f"--columns: {key!r} is not a valid track column name")
@@ -150,7 +159,14 @@ def read_columns_file(path, text: str, columns: Mapping[str, str], unit: str | N
 
     accel, gyro = triple(ACCEL), triple(GYRO)
     temp = values.pop(TEMP, None)
-    track = Track.from_arrays(t, mag=mag, accel=accel, gyro=gyro, temp=temp, aux=values,
-                              metadata=meta)
+    try:
+        track = Track.from_arrays(t, mag=mag, accel=accel, gyro=gyro, temp=temp, aux=values,
+                                  metadata=meta)
+    except TrackError as exc:     # located by array row: say the file's line and the mapping
+        if exc.row is None or exc.column not in columns:
+            raise
+        what = exc.reason.split(": ", 1)[-1]
+        raise TrackError(f"{what} (--columns {exc.column}={columns[exc.column]})", str(path),
+                         int(lines[keep][exc.row]), exc.column) from None
     track.skipped_rows = int((~keep).sum())
     return track

@@ -261,7 +261,7 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
         mofs = None
         meta["mag_motor_offsets_undone"] = f"could not: {name} has no MOfsX/Y/Z"
     S = ardupilot_matrix(msgs.params, params_of)
-    dia, odi = ardupilot_param("DIA", params_of, "*"), ardupilot_param("ODI", params_of, "*")
+    dia, odi = ardupilot_param("DIA", params_of), ardupilot_param("ODI", params_of)[8:]
     if np.allclose(S, np.eye(3)):
         meta["mag_soft_iron_undone"] = f"none ({dia}/{odi} identity or not logged)"
     else:
@@ -364,7 +364,7 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
         if constant:
             meta[f"{name.lower()}_constant_dropped"] = ",".join(constant) + \
                 " (constant over the log: no sensor fitted or not logged)"
-        if "throttle" not in cols:
+        if "throttle" in constant:     # a constant throttle is no signal: let CTUN/RCOU try
             meta.pop("throttle_source", None)
         if cols:
             out.append(Stream(name, _time(msgs_i, name, path), cols))

@@ -23,18 +23,26 @@ import numpy as np
 from . import trackio
 from ..errors import InputError, TrackError
 from ..samples import SampleBlock
+from ..units import UNKNOWN
 from .trackio import ACCEL, GYRO, KNOWN, MAG, TEMP, TIME, TRIPLES
 
 _UNIT_ALIASES = {"ut": "uT", "µt": "uT", "μt": "uT", "microtesla": "uT", "m/s^2": "m/s^2",
                  "m/s²": "m/s^2", "m/s2": "m/s^2"}
 
 
+#: Units a track may declare; anything else (``probably uT``, ``unknown (normalized?)``) is
+#: :data:`~streamcal.units.UNKNOWN`, its words kept in the metadata.
+_KNOWN_UNITS = {"uT", "nT", "mG", "G", "counts", "m/s^2", "g", "mg"}
+
+
 def _unit(text: str | None, default: str) -> str:
-    """The unit of a ``# mag_unit: counts (0.15 uT/LSB)`` line: the words before any remark."""
+    """The unit of a ``# mag_unit: counts (0.15 uT/LSB)`` line: the words before any remark;
+    ``unknown`` when they name no unit streamcal knows."""
     if text is None:
         return default
     unit = re.split(r"[(;]", text, maxsplit=1)[0].strip()
-    return _UNIT_ALIASES.get(unit.lower(), unit) or default
+    unit = _UNIT_ALIASES.get(unit.lower(), unit) or default
+    return unit if unit in _KNOWN_UNITS else UNKNOWN
 
 
 def _readonly(values: np.ndarray) -> np.ndarray:
@@ -302,15 +310,16 @@ def _validate(columns: dict[str, np.ndarray]) -> None:
     t = columns[TIME]
     if np.isnan(t).any() or np.isinf(t).any():
         row = int(np.flatnonzero(~np.isfinite(t))[0])
-        raise TrackError(f"row {row}: every row needs a finite time, got {t[row]!r}", column=TIME)
+        raise TrackError(f"row {row}: every row needs a finite time, got {float(t[row])!r}",
+                         column=TIME, row=row)
     if len(t) > 1 and (np.diff(t) < 0).any():
         row = int(np.flatnonzero(np.diff(t) < 0)[0]) + 1
-        raise TrackError(f"row {row}: time goes backwards: t={t[row]!r} after t={t[row - 1]!r}",
-                         column=TIME)
+        raise TrackError(f"row {row}: time goes backwards: t={float(t[row])!r} after "
+                         f"t={float(t[row - 1])!r}", column=TIME, row=row)
     for name, values in columns.items():
         if np.isinf(values).any():
             row = int(np.flatnonzero(np.isinf(values))[0])
-            raise TrackError(f"row {row}: infinite value", column=name)
+            raise TrackError(f"row {row}: infinite value", column=name, row=row)
     for kind, triple in TRIPLES.items():
         if triple[0] not in columns:
             continue
@@ -319,4 +328,4 @@ def _validate(columns: dict[str, np.ndarray]) -> None:
         if partial.any():
             row = int(np.flatnonzero(partial)[0])
             raise TrackError(f"row {row}: partial {kind} sample (all three axes or none)",
-                             column=triple[int(np.argmin(present[row]))])
+                             column=triple[int(np.argmin(present[row]))], row=row)

@@ -36,12 +36,11 @@ def write_diagnosis_plots(diagnosis, track, directory: str | os.PathLike,
     """Write every figure of ``diagnosis`` (None: the raw-data figures, ``reason`` saying why)
     on ``track`` as ``DIRECTORY/<name>.png`` (atomically; the directory is created). Returns the
     paths written."""
-    from ..atomic import atomic_write_bytes
+    from ..atomic import atomic_write_bytes, output_dir
     from .figure_data import FigureData
     from .figures import render_figures
 
-    directory = Path(directory)
-    directory.mkdir(parents=True, exist_ok=True)
+    directory = output_dir(directory)
     paths = []
     for fig in render_figures(FigureData.build(track, diagnosis, reason)):
         path = directory / f"{fig.name}.png"

@@ -12,10 +12,12 @@ from ..constants import HALF_NORMAL_MEDIAN
 
 
 def unit_label(unit: str) -> str:
-    """Display form of a sensor unit (``uT`` → ``µT``): :func:`streamcal.units.display_unit`."""
+    """Display form of a sensor unit (``uT`` → ``µT``): :func:`streamcal.units.display_unit`;
+    ``unit unknown`` for a unit the track does not name in words streamcal knows (an axis
+    label keeps its brackets meaningful)."""
     from ..units import display_unit
 
-    return display_unit(unit)
+    return display_unit(unit) or "unit unknown"
 
 
 @dataclass

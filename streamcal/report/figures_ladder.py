@@ -63,10 +63,12 @@ def candidate_groups(d) -> list[tuple[str, float, list]]:
     return [(name, before, cands) for name, (before, cands) in groups.items()]
 
 
-def relative_change(before: float, after: float) -> str:
-    """Relative change ``after / before − 1`` as text ("−39 %", "±0 %")."""
+def relative_change(before: float, after: float, digits: int = 4) -> str:
+    """Relative change ``after / before − 1`` as text ("−39 %", "±0 %") of the two numbers as
+    shown with ``digits`` significant digits."""
     if not (before > 0 and np.isfinite(after)):
         return ""
+    before, after = float(f"{before:.{digits}g}"), float(f"{after:.{digits}g}")
     pct = round(100.0 * (after / before - 1.0))
     return "±0 %" if pct == 0 else f"{'+' if pct > 0 else '−'}{abs(pct)} %"
 
@@ -90,7 +92,7 @@ def _ladder_panel(ax, d, unit: str) -> None:
             ax.annotate(f"same model on the {label}: {before:.3g}", (k - 1, before),
                         xytext=(8, 4), textcoords="offset points", fontsize=8, color=colour)
         ax.plot([k - 1, k], [before, step["rms"]], "-", color=colour, lw=2)
-        ax.annotate(relative_change(before, step["rms"]), ((k - 0.5), (before + step["rms"]) / 2),
+        ax.annotate(relative_change(before, step["rms"], 3), ((k - 0.5), (before + step["rms"]) / 2),
                     xytext=(4, 4), textcoords="offset points", ha="left", va="bottom", fontsize=9,
                     color=colour, fontweight="bold")
     families = list(dict.fromkeys(s["residual"] for s in steps))
@@ -146,8 +148,10 @@ def _candidate_panel(ax, d, residual: str, before: float, cands: list, unit: str
     ax.set_xlim(0, xmax)
     right = ax.get_yaxis_transform()
     for yi, c, a in zip(y, cands, after):
-        worse = a > before * 1.005
-        ax.text(0.995, yi, f"{a:.3g}  {relative_change(before, a)}", transform=right, ha="right",
+        own = d.baseline(c)[1]   # on the samples the model with this candidate keeps
+        worse = a > own * 1.005
+        ax.text(0.995, yi, f"{own:.3g} → {a:.3g}  {relative_change(own, a, 3)}", transform=right,
+                ha="right",
                 va="center", fontsize=8, color=OUTLIER if worse else
                 (AFTER if c.significant else "#555555"),
                 fontweight="bold" if c.significant else "normal")

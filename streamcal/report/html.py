@@ -110,13 +110,18 @@ def _residual_name(residual: str) -> str:
     return f"{label} ({what})"
 
 
+def _u(unit: str) -> str:
+    """`` µT`` after a number in prose; nothing for an unknown unit (said once, at the top)."""
+    return f" {unit}" if unit else ""
+
+
 def _floor_text(d, unit: str) -> str:
     """"x× the noise floor (f unit)", or why there is no floor to compare with."""
     if not d.floor_known:
         return (f"the noise floor cannot be measured from this recording "
                 f"({_e(d.noise_floor_reason)})")
     return (f"{_num(d.rms / d.noise_floor, '.2f')}× the noise floor "
-            f"({_num(d.noise_floor)} {unit})")
+            f"({_num(d.noise_floor)}{_u(unit)})")
 
 
 def _misfit(d) -> str:
@@ -130,46 +135,25 @@ def _misfit(d) -> str:
                                           for line in lines) + "</ul>")
 
 
-def fit_command(track_path, effect: str) -> str:
-    """The ``streamcal fit PATH --add EFFECT`` a reader can paste (the path shell-quoted)."""
+_HEADLINES = {"effect_missing": "An effect is missing.",
+              "unexplained": "The misfit is not explained.",
+              "at_noise_floor": "The model is at the noise floor."}
+
+
+def _summary(d, unit: str) -> str:
+    """The diagnosis' own plain sentences and the command they advise (the same words as the
+    command line's), with the rule its verdict follows."""
     import shlex
 
-    return f"streamcal fit {shlex.quote(str(track_path))} --add {effect}"
-
-
-def _summary(d, track_name: str, unit: str) -> str:
-    rule = f'<br><span class="sub">{_e(d.noise_floor_rule)}.</span>'
-    if d.verdict == "effect_missing" and d.candidates:
-        top = d.candidates[0]
-        residual, before = d.baseline(top)
-        cmd = fit_command(track_name, top.effect)
-        if residual == "sensor":
-            ratio = (f" ({_num(top.rms_after / d.noise_floor, '.2f')}× the floor)"
-                     if d.floor_known else "")
-            gives = f"<b>{_num(top.rms_after)} {unit}</b> on the sensor residual{ratio}"
-        else:   # another residual: compare with the model on that residual, not with d.rms
-            floor = (f"; that residual cannot go below about "
-                     f"{_num(RESIDUAL_FAMILIES[residual][3] * d.noise_floor)} {unit}, noise alone"
-                     if d.floor_known else "")
-            gives = (f"<b>{_num(top.rms_after)} {unit}</b> on the {_e(_residual_name(residual))}, "
-                     f"where the model without it gives {_num(before)} {unit} "
-                     f"({_e(relative_change(before, top.rms_after))}{floor})")
-        return (f'<div class="box missing"><b>An effect is missing.</b> The model '
-                f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
-                f"<b>{_num(d.rms)} {unit}</b> on the {_e(_residual_name(d.residual))}, "
-                f"{_floor_text(d, unit)}. The best candidate is "
-                f"<b>{_e(top.effect)}</b> ({_e(top.evidence)}): adding it gives {gives}. Try "
-                f"<code>{_e(cmd)}</code>.{rule}</div>")
-    if d.verdict == "unexplained":
-        return (f'<div class="box missing"><b>The misfit is not explained.</b> The model '
-                f"<code>{_e(', '.join(d.model))}</code> leaves an rms residual of "
-                f"<b>{_num(d.rms)} {unit}</b> on the {_e(_residual_name(d.residual))}, "
-                f"{_floor_text(d, unit)}, and no candidate effect is both significant and "
-                f"material.{rule}{_misfit(d)}</div>")
-    return (f'<div class="box floor"><b>The model is at the noise floor.</b> rms residual '
-            f"{_num(d.rms)} {unit} on the {_e(_residual_name(d.residual))} against a noise "
-            f"floor of {_num(d.noise_floor)} {unit}; no candidate effect lowers it "
-            f"materially.{rule}</div>")
+    cmd = " ".join(d.next_step) if d.next_step else ""
+    text = d.summary.replace(f" To do: {cmd}", "") if cmd else d.summary
+    rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
+    todo = (f"<br>Next step (gives the rms promised): "
+            f"<code>{_e(' '.join(shlex.quote(w) for w in d.next_step))}</code>" if cmd else "")
+    box = "floor" if d.verdict == "at_noise_floor" else "missing"
+    return (f'<div class="box {box}"><b>{_e(_HEADLINES.get(d.verdict, d.verdict))}</b> '
+            f"{_e(text)}{todo}<br><span class=\"sub\">Verdict {_e(d.verdict)}; rule: "
+            f"{_e(rule)}.</span>{_misfit(d) if d.verdict == 'unexplained' else ''}</div>")
 
 
 def _floor_ratio(rms: float, residual: str, floor: float) -> str:
@@ -279,7 +263,7 @@ _SHOWN_METADATA = ("sensor", "source", "origin", "description")
 
 def render_html(track, diagnosis=None, *, reason: str | None = None, title: str | None = None,
                 figures: list[RenderedFigure] | None = None, intro: str = "",
-                name: str | None = None, command_path: str | os.PathLike | None = None) -> str:
+                name: str | None = None) -> str:
     """The report page as a string.
 
     Args:
@@ -290,8 +274,6 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         figures: already rendered figures (default: rendered here).
         intro: extra HTML placed under the title (e.g. the demo's streaming summary).
         name: how to call the track file in the text (default: its file name).
-        command_path: the track's path in the suggested ``streamcal fit … --add`` command, as
-            it works from the reader's directory (default: the track's own path, else ``name``).
     """
     data = None
     if figures is None:
@@ -299,11 +281,12 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
         figures = render_figures(data)
     if name is None:
         name = track.path.name if getattr(track, "path", None) else "track.csv"
-    unit = unit_label(track.mag_unit)
+    unit = unit_label(track.mag_unit)              # tables and headers: "unit unknown" if so
+    shown = "" if unit == "unit unknown" else unit  # prose: no unit after a number then
     title = title or f"streamcal report: {name}"
     parts = [f"<h1>{_e(title)}</h1>",
              f'<p class="sub">{len(track.t_mag)} magnetometer samples over '
-             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(unit)}; "
+             f"{_num(track.t[-1] - track.t[0] if len(track) else 0, '.1f')} s, unit {_e(shown or 'unknown')}; "
              f"columns {_e(', '.join(track.columns))}</p>", _metadata(track), intro]
     if diagnosis is None:
         parts.append(f'<div class="box refused"><b>No calibration: the fit refused this track.'
@@ -311,19 +294,16 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                      f"no calibration: the raw readings, their magnitude and the directions "
                      f"seen from the centre of a one-pass sphere fit.</div>")
     else:
-        if command_path is None:
-            command_path = track.path if getattr(track, "path", None) else name
-        parts.append(_summary(diagnosis, command_path, unit))
+        parts.append(_summary(diagnosis, shown))
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
-            by = tuple(getattr(diagnosis, "outliers_model", ()) or diagnosis.model)
-            of = "" if by == tuple(diagnosis.model) else (
-                f" of the model <code>{_e(', '.join(by))}</code> (the last step of the ladder "
-                f"fitted on the magnetometer alone: the model as given also leaves a large "
-                f"residual wherever its missing effect acts, and those samples are not outliers)")
-            n_out = diagnosis.n_outliers if diagnosis.n_outliers_model is None \
-                else diagnosis.n_outliers_model
-            parts.append(f"<p><b>{n_out}</b> of {diagnosis.n} samples are "
+            last = diagnosis.ladder[-1] if diagnosis.ladder else {}
+            n_last = last.get("n_outliers", diagnosis.n_outliers)
+            of = "" if len(diagnosis.ladder) < 2 else (
+                f" of the last model of the ladder, <code>{_e(', '.join(last['model']))}</code> "
+                f"({diagnosis.n_outliers} of the model as given: its missing effects push "
+                f"samples out)")
+            parts.append(f"<p><b>{n_last}</b> of {diagnosis.n} samples are "
                          f"outliers{of}; they cluster in {_e(spans)}.</p>")
     parts += [_img(f) for f in figures]
     if data is not None and diagnosis is not None:
@@ -339,10 +319,14 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                   "<h2>Model ladder</h2>", _ladder(diagnosis, unit),
                   "<h2>Calibration of the model as given</h2>",
                   _parameters(diagnosis.calibration, unit)]
-        top = diagnosis.candidates[0] if diagnosis.candidates else None
-        if diagnosis.verdict == "effect_missing" and top is not None and top.calibration is not None:
-            parts += [f"<h2>Calibration with {_e(top.effect)} added</h2>",
-                      _parameters(top.calibration, unit)]
+        added = [c for c in diagnosis.candidates
+                 if c.effect in {s.get("added") for s in diagnosis.ladder[1:]}]
+        last = max(added, key=lambda c: len(c.calibration.model), default=None) \
+            if added else None
+        if last is not None and last.calibration is not None:
+            names = ", ".join(s["added"] for s in diagnosis.ladder[1:])
+            parts += [f"<h2>Calibration with {_e(names)} added (what the next step gives)</h2>",
+                      _parameters(last.calibration, unit)]
         parts += ["<h2>Noise floor</h2>", _noise(diagnosis, unit)]
     from .. import __version__
 

@@ -258,9 +258,9 @@ class Service:
         parts = [f"device {self.device_state}" + (f" ({extra})" if extra else ""),
                  coverage_words(cov)]
         if cal is not None:
-            from ..units import display_unit
+            from ..units import with_unit
 
-            rms = f"{cal.rms:.3g} {display_unit(cal.unit)}" if math.isfinite(cal.rms) else "n/a"
+            rms = with_unit(f"{cal.rms:.3g}", cal.unit) if math.isfinite(cal.rms) else "n/a"
             parts.append(f"calibration v{self.cal_version} rms {rms}")
         else:
             parts.append("no calibration yet")

@@ -2,8 +2,9 @@
 
 ``streamcal daemon|serial … --http [HOST:]PORT`` starts it. Routes (GET only):
 
-- ``/``: the page (``static/live.html``: HTML, CSS and JS in one small file; the latest snapshot
-  is inlined so the page shows figures before its first event arrives).
+- ``/``: the page (``static/live.html``: HTML, CSS and JS in one small file, with
+  ``static/sphere3d.js``, the rotatable 3-D sphere, and the latest snapshot inlined, so the page
+  shows figures before its first event arrives).
 - ``/events``: Server-Sent Events (``text/event-stream``), one ``data:`` line of JSON
   (:mod:`.live_state` snapshot) per capture, at most ``1/period_s`` per second; a comment line
   every 10 s keeps proxies from closing an idle stream.
@@ -105,6 +106,8 @@ class LivePage:
         self._clients: set[_Client] = set()
         self._connections = 0
         self.latest = b""                # the last event's JSON, UTF-8
+        self.published = 0               # the state's capture number ``latest`` was built from
+        self._published = threading.Condition()
         self.stats = {"streams": 0, "refused_busy": 0, "dropped_slow": 0, "events": 0,
                       "bad_requests": 0, "forbidden": 0, "not_found": 0, "build_errors": 0}
         self._stop = threading.Event()
@@ -139,6 +142,12 @@ class LivePage:
             t.start()
         return self
 
+    def wait_published(self, seq: int, timeout: float) -> bool:
+        """Block until capture ``seq`` (or a later one) is what the page serves; False after
+        ``timeout`` s."""
+        with self._published:
+            return self._published.wait_for(lambda: self.published >= seq, timeout)
+
     def close(self) -> None:
         self._stop.set()
         self.server.shutdown()
@@ -165,6 +174,9 @@ class LivePage:
                 self.stats["build_errors"] += 1
                 continue
             self.latest = data
+            with self._published:
+                self.published = new
+                self._published.notify_all()
             self.stats["events"] += 1
             with self._lock:
                 clients = list(self._clients)
@@ -361,8 +373,10 @@ _TEMPLATE: str | None = None
 def _page_html(latest: bytes) -> bytes:
     global _TEMPLATE
     if _TEMPLATE is None:
-        _TEMPLATE = resources.files("streamcal.service").joinpath("static/live.html").read_text(
-            encoding="utf-8")
+        static = resources.files("streamcal.service").joinpath("static")
+        sphere = static.joinpath("sphere3d.js").read_text(encoding="utf-8")
+        _TEMPLATE = static.joinpath("live.html").read_text(encoding="utf-8").replace(
+            "/*SPHERE3D*/", sphere, 1)     # the script holds no "</"
     # JSON inside <script>: "</" cannot close the element once escaped.
     initial = (latest.decode() if latest else "null").replace("</", "<\\/")
     return _TEMPLATE.replace("/*INITIAL*/null", initial, 1).encode("utf-8")

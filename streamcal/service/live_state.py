@@ -19,11 +19,13 @@ Snapshot keys (JSON, what ``/events`` sends and ``/state.json`` returns):
   [...]}`` the equal-area partition (:class:`~streamcal.sphere_cells.SphereCells`: cells per
   band north first, band edges in z) and ``occupied``: one ``"0"``/``"1"`` per cell;
   ``n_samples``; ``gap``: ``{"deg", "center": [x, y, z]}`` the largest empty cap (body axes of
-  the current frame); ``hint``: where to turn next (the same words as the terminal report).
+  the current frame); ``hint``: where to turn next (the same words as the terminal report);
+  ``directions``: at most ``MAX_DIRECTIONS`` of the stored samples as unit vectors ``[x, y, z]``
+  in the same frame (evenly picked; empty until a sphere frames them), the 3-D sphere's dots.
 - ``magnitude``: ``{"t": [...], "raw": [...], "calibrated": [...], "unit"}`` over the last
   ``window_s`` (60 s): wall seconds relative to now (≤ 0), the median ``‖m‖`` of the latest
-  block before calibration (sensor unit) and the median ``‖field‖`` after it (µT; null before an
-  estimate exists).
+  block before calibration and the median ``‖field‖`` after it (null before the first
+  calibration), both in ``unit`` (``"uT"`` for µT).
 - ``calibration``: null, or ``{"version", "rms", "residual", "unit", "field", "coverage",
   "method", "model", "created", "stale"}`` — ``rms`` is the sensor estimation error over inliers
   (``residual`` names it), ``stale`` true after an environment change until a refit.
@@ -59,6 +61,8 @@ from ..stream.coverage import not_measured
 
 #: The residual the calibration's ``rms`` is computed on.
 RMS_RESIDUAL = "sensor estimation error over inliers (paper eq. 41)"
+#: The most stored directions a snapshot carries (about 7 kB of JSON).
+MAX_DIRECTIONS = 300
 _FIT_KINDS = ("accepted", "rejected", "fit_failed", "discarded", "recalled")
 _DISTURB_KINDS = ("disturbance", "drift", "forgot")
 
@@ -92,6 +96,7 @@ class LiveState:
         self._fit_events = deque(maxlen=12)
         self._disturb_events = deque(maxlen=8)
         self.closed = False
+        self._ended = False
         self.capture_errors = 0
         self.gap_every_s = 0.5
         self._gap = None                                  # (occupied bytes, wall s, center, deg)
@@ -133,6 +138,16 @@ class LiveState:
         f = np.median(f / np.linalg.norm(f, axis=1, keepdims=True), axis=0)
         self._ring = (down / np.linalg.norm(down), f / np.linalg.norm(f))
 
+    def final(self, service) -> int:
+        """One last capture after the loop ended (a replay over, its page kept up): taken now
+        whatever the period, with no samples arriving any more (0 samples/s); returns its
+        capture number."""
+        self._ended = True
+        self._next = -math.inf
+        self.on_block(service, None)
+        with self._lock:
+            return self._seq
+
     def close(self) -> None:
         with self._changed:
             self.closed = True
@@ -151,7 +166,10 @@ class LiveState:
                 vec = cal.apply(block)
                 f = np.linalg.norm(vec, axis=1)
                 f = f[np.isfinite(f)]
-                calibrated = float(np.median(f)) if len(f) else None
+                # before the first calibration apply() scales by the running sphere estimate:
+                # not a calibrated field, so no "after calibration" figure
+                if cal.calibration is not None and len(f):
+                    calibrated = float(np.median(f))
                 if block.accel is not None and len(f):
                     self._ring_inputs(now, vec, np.asarray(block.accel, dtype=float))
         if raw is not None:
@@ -171,7 +189,7 @@ class LiveState:
             "fit_events": list(self._fit_events), "disturb_events": list(self._disturb_events),
             "unit": getattr(cal, "unit", "uT"), "reference": self.reference,
             "dips": [d for t, d in self._dips if now - t <= self.window_s],
-            "ring": self._ring,
+            "ring": self._ring, "ended": self._ended,
         }
 
     # -- reader side (any thread) ----------------------------------------------------------------
@@ -179,8 +197,8 @@ class LiveState:
         """Block until a capture newer than ``seq`` exists (or ``timeout`` s, or close); returns
         the latest capture number."""
         with self._changed:
-            if self._seq <= seq and not self.closed:
-                self._changed.wait(timeout)
+            if self._seq <= seq:
+                self._changed.wait(timeout)     # closed: still waits, a reader must not spin
             return self._seq
 
     def build(self) -> dict | None:
@@ -223,7 +241,7 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
     rate = cap["rate"]
     recent = [r for r in rate if now - r[0] <= 2.0] or rate
     sps = 0.0
-    if len(recent) >= 2 and recent[-1][0] > recent[0][0]:
+    if len(recent) >= 2 and recent[-1][0] > recent[0][0] and not cap["ended"]:
         sps = (recent[-1][1] - recent[0][1]) / (recent[-1][0] - recent[0][0])
     held = cap["held"]
     held_recent = held[-1][1] - held[0][1] if len(held) >= 2 else 0
@@ -247,6 +265,7 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
         "occupied": "".join("1" if o else "0" for o in occupied.tolist()),
         "gap": {"deg": round(radius, 1), "center": [round(float(v), 3) for v in center]}
         if framed else None,
+        "directions": _directions(cap) if framed else [],
         "hint": hint(center, radius, cap["fraction"]) if framed
         else not_measured(cap["unframed"]),
         "magnitude": {"t": [round(r[0] - now, 2) for r in keep],
@@ -270,6 +289,19 @@ def _snapshot(cap: dict, seq: int, start: float, gap) -> dict:
                    "counters": {k: v for k, v in counters.items()
                                 if isinstance(v, (int, float))}},
     }
+
+
+def _directions(cap: dict) -> list:
+    """Up to :data:`MAX_DIRECTIONS` stored samples, evenly picked, as unit vectors (3 decimals)
+    in the frame of the running sphere (``center``, ``A``)."""
+    m = cap["stored"]
+    if not len(m):
+        return []
+    pick = m[np.unique(np.linspace(0, len(m) - 1, min(len(m), MAX_DIRECTIONS)).astype(int))]
+    x = (pick - cap["center"]) @ cap["A"].T
+    norm = np.linalg.norm(x, axis=1)
+    ok = np.isfinite(norm) & (norm > 0)
+    return np.round(x[ok] / norm[ok, None], 3).tolist()
 
 
 def _reference(cap: dict, c) -> dict:

@@ -43,7 +43,11 @@ class ReplayFeed:
                 o.on_events(events)
             o.on_block(self, block)
 
-    def close(self) -> None:
+    def close(self, finished: bool = False) -> None:
+        """``finished``: the whole recording was replayed (``stats.stop_reason`` says so, as a
+        service's does at the end of a replay)."""
         self.device_state = "ended"
+        if finished:
+            self.stats.stop_reason = "end of replay"
         for o in self.observers:
             o.close()

@@ -136,11 +136,15 @@ class SerialBlocks:
     ``spec``: device path, pyserial URL or ``fake:TRACK.csv``; ``link``: an already open
     :class:`~firmware_bridge.serial_link.SerialLink` (tests). A port that fails (USB unplugged)
     is closed and reopened on later reads. ``read_track``: as for :class:`I2CBlocks`.
+    ``board_options``: for a simulated board (``speed``: multiple of real time, None as fast as
+    the host reads; fake: boards only).
     """
 
     def __init__(self, spec: str | None = None, baud: int = 115200, *, link=None,
-                 block_size: int = 256, timeout: float = 0.2, read_track=None):
+                 block_size: int = 256, timeout: float = 0.2, read_track=None,
+                 board_options: dict | None = None):
         self.spec, self.baud = spec, int(baud)
+        self.board_options = dict(board_options or {})
         self.read_track = read_track or Track.read
         self.block_size, self.timeout = int(block_size), float(timeout)
         self.link = link
@@ -155,7 +159,8 @@ class SerialBlocks:
     def _open(self) -> None:
         from firmware_bridge.ports import open_link
 
-        self.link = open_link(self.spec, self.baud, read_track=self.read_track)
+        self.link = open_link(self.spec, self.baud, read_track=self.read_track,
+                              **self.board_options)
         self.reopens += 1
 
     @property

@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..units import display_unit
+from ..units import with_unit
 
 
 @dataclass(frozen=True)
@@ -73,8 +73,9 @@ def verdict(cand, decision, unit: str, t: float) -> Event:
             "rms": rms if np.isfinite(rms) else None, "coverage_at_fit": cand.coverage}
     if not decision.accepted:
         return Event("rejected", f"candidate rejected: {decision.text()}", data, t)
-    return Event("accepted", f"calibration accepted ({decision.text()}): rms {cand.rms:.3g} "
-                 f"{display_unit(unit)}, b = {np.round(cand.b, 2).tolist()}", data, t)
+    return Event("accepted", f"calibration accepted ({decision.text()}): rms "
+                 f"{with_unit(f'{cand.rms:.3g}', unit)}, b = {np.round(cand.b, 2).tolist()}",
+                 data, t)
 
 
 def coverage(report, t: float) -> Event:

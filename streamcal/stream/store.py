@@ -20,7 +20,7 @@ import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from ..atomic import atomic_write_text, sweep_stale_temps
+from ..atomic import atomic_write_text, output_dir, sweep_stale_temps
 from ..calibration import Calibration
 from ..errors import CalibrationFileError, InputError
 
@@ -118,7 +118,7 @@ def _private_dir(path: Path) -> None:
     if path.is_symlink():
         raise InputError(f"{path}: state directory is a symbolic link; refusing to use it")
     if not path.exists():
-        os.makedirs(path, mode=0o700, exist_ok=True)
+        output_dir(path, mode=0o700)       # its parents too; says when it cannot be made
     info = os.lstat(path)
     if not stat.S_ISDIR(info.st_mode):
         raise InputError(f"{path}: exists and is not a directory")

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..units import display_unit
+from ..units import with_unit
 from .disturbance import Disturbance, DisturbanceRule, Quarantine
 from .events import Event
 from .reference import Reference, beyond
@@ -149,7 +149,8 @@ class DisturbanceTracker:
         what = ("field no longer fits the calibration" if in_force else
                 "field left the running sphere estimate (no calibration in force)")
         moved = ("" if shift is None else
-                 f"; the shell's centre moved by {np.round(shift, 2).tolist()} {display_unit(self.unit)} "
+                 f"; the shell's centre moved by "
+                 f"{with_unit(str(np.round(shift, 2).tolist()), self.unit)} "
                  "(the hard-iron change, if the soft iron is unchanged)")
         events.append(Event("drift", f"{what}: median relative error {check.stat:.3f} "
                             f"{'>' if check.disagrees else '≤'} {check.limit:.3f} since "
@@ -183,7 +184,7 @@ class DisturbanceTracker:
                 f"undecided: too few samples in the directions the calibration covers to judge "
                 f"it within {self.rule.persist_s:g} s"}[outcome]
         events.append(Event(
-            "disturbance", f"{what}: peak error {dist.peak * R:.3g} {display_unit(self.unit)} "
+            "disturbance", f"{what}: peak error {with_unit(f'{dist.peak * R:.3g}', self.unit)} "
             f"({100 * dist.peak:.0f}% of the field) at t={dist.peak_t:.2f} s; {dist.n_held} "
             "samples " + ("held back" + (", buffer kept" if outcome == "transient" else "")
                           if dist.hold else "disagreed with the running estimate"),

@@ -1,7 +1,15 @@
-"""Outlier spans: time intervals where outliers cluster."""
+"""The one outlier rule of every fit and diagnosis, and the spans where outliers cluster.
+
+A sample is an outlier of a fitted model when its residual norm lies beyond
+:data:`~streamcal.constants.OUTLIER_WIDTHS` kernel widths of that model's fit, or on the ramp of a
+disturbance around such outliers (:func:`widen_outliers`). ``streamcal fit`` reports its rms over
+the complement, and a diagnosis counts the same way, model by model: a sample that an added
+effect explains is an inlier of the model with it."""
 from __future__ import annotations
 
 import numpy as np
+
+from ..constants import OUTLIER_WIDTHS
 
 #: Outliers closer than this (s) belong to the same span.
 MAX_GAP_S = 1.0
@@ -68,3 +76,35 @@ def widen_outliers(t: np.ndarray, norm: np.ndarray, outlier: np.ndarray,
         j = int(np.argmin(right)) if right.size and not right.all() else right.size
         out[i0 - k:i1 + 1 + j] = True
     return out
+
+
+def outlier_mask(norm: np.ndarray, width: float, t: np.ndarray | None = None) -> np.ndarray:
+    """(N,) bool: outliers of a model whose residual norms are ``norm`` (N,) under a kernel of
+    ``width`` (sensor unit): beyond :data:`OUTLIER_WIDTHS` widths, widened over disturbance
+    ramps when the sample times ``t`` (N,) s are known."""
+    norm = np.asarray(norm, dtype=float)
+    out = ~(norm <= OUTLIER_WIDTHS * float(width))
+    return widen_outliers(t, norm, out) if t is not None else out
+
+
+def residual_width(norm: np.ndarray, kernel: str = "cauchy") -> float:
+    """The kernel width (sensor unit) a fit takes from residual norms ``norm`` (N,): the
+    kernel's 95 %-efficiency multiple of σ̂, the truncated robust scale of the norms
+    (:func:`streamcal.fitting.autocal.truncated_sigma`)."""
+    from .autocal import HALF_NORMAL_QUANTILE_KEEP, KEEP, truncated_sigma
+    from .kernels import EFFICIENCY_TAU
+    from .order_stats import quantile
+
+    norm = np.asarray(norm, dtype=float)
+    norm = norm[np.isfinite(norm)]
+    if not norm.size:
+        return float("nan")
+    start = max(quantile(norm, KEEP) / HALF_NORMAL_QUANTILE_KEEP, 1e-9)
+    return float(EFFICIENCY_TAU[kernel] * truncated_sigma(norm, start))
+
+
+def widened_inliers(inliers: np.ndarray, norm: np.ndarray, t: np.ndarray | None) -> np.ndarray:
+    """A fit's own (N,) inlier mask with the ramps of each disturbance removed too (the rule of
+    :func:`outlier_mask` for a fit that already cut at its widths)."""
+    inliers = np.asarray(inliers, bool)
+    return inliers if t is None else ~widen_outliers(t, norm, ~inliers)

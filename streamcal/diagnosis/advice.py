@@ -1,0 +1,120 @@
+"""What a diagnosis tells its user first: the plain sentences (``summary``), the command that
+does what they advise (``next_step``, an argv list) and the heading error its residual implies
+(``heading_error_deg``).
+
+Every number here is one the ladder shows (:mod:`streamcal.diagnosis.story`): the rms before is
+``ladder[0]``, the rms promised is the last step's, both over the ladder's ``n`` samples, and the
+percentage is computed from those two numbers.
+"""
+from __future__ import annotations
+
+import math
+from typing import Sequence
+
+import numpy as np
+
+from ..units import display_unit
+
+#: How the heading error is estimated from an rms field error (``heading_error_deg["rule"]``).
+HEADING_RULE = ("heading error at worst: atan(rms / H), the angle a field error of the rms "
+                "turns the horizontal field H when it lies across it")
+
+
+def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
+              output: str = "refined.json") -> list[str] | None:
+    """The argv that fits the ladder's last model on this recording (None when the ladder adds
+    nothing): ``fit REC --add E …`` for a fresh diagnosis, ``fit REC --cal CAL --add E … -o
+    OUTPUT`` for one against a held calibration."""
+    added = [s["added"] for s in d.ladder[1:]]
+    if not added:
+        return None
+    argv = ["streamcal", "fit", *recording]
+    if hasattr(d, "held"):
+        default = str(getattr(d, "calibration_source", "")).startswith("default")
+        argv += ["--cal", "default" if default else (cal_arg or "CAL.json")]
+    elif tuple(d.model) != ("hard_iron", "soft_iron"):
+        argv += ["--model", ",".join(d.model)]
+    for name in added:
+        argv += ["--add", name]
+    if hasattr(d, "held"):
+        argv += ["-o", output]
+    return argv
+
+
+def horizontal_field(track, calibration, location: dict | None) -> tuple[float | None, str]:
+    """``(H, where)``: the horizontal field (µT) from the World Magnetic Model at ``location``
+    (:func:`streamcal.geomag.wmm_field`), else from the recording (fitted field × cos dip, dip
+    from the accelerometer); ``(None, why not)`` otherwise."""
+    if location is not None:
+        h = location["intensity_uT"] * math.cos(math.radians(location["inclination_deg"]))
+        return h, "World Magnetic Model at the given place"
+    unit = getattr(calibration, "unit", None) or track.mag_unit
+    if unit != "uT":
+        return None, f"the readings are in {display_unit(unit) or 'an unknown unit'}, not µT"
+    if not track.has("accel"):
+        return None, ("the horizontal field is unknown: the recording has no accelerometer "
+                      "and no place was given (--lat/--lon)")
+    from .reference_field import fitted_dip
+
+    dip, _ = fitted_dip(track, calibration)
+    strength = calibration.field or calibration.radius
+    if dip is None or not strength:
+        return None, "the fitted dip could not be measured"
+    return strength * math.cos(math.radians(dip)), "fitted field and dip of this recording"
+
+
+def heading_error(d, h: float | None) -> dict | None:
+    """``{"before", "after", "H_uT", "rule"}`` (degrees) for the ladder's first and last rms on
+    the sensor residual; None when ``h`` is unknown or the ladder is on another residual."""
+    steps = [s for s in d.ladder if s.get("residual", "sensor") == "sensor"]
+    if h is None or not h > 0 or not steps:
+        return None
+
+    def deg(rms):
+        return float(math.degrees(math.atan2(rms, h))) if np.isfinite(rms) else None
+    return {"before": deg(steps[0]["rms"]), "after": deg(steps[-1]["rms"]), "H_uT": float(h),
+            "rule": HEADING_RULE}
+
+
+def summary(d) -> str:
+    """Two to four plain sentences: what is wrong, how large, what to do."""
+    u = display_unit(getattr(d.calibration, "unit", None) or getattr(d, "unit", "") or "uT") \
+        or "sensor units"
+    first, last = d.ladder[0], d.ladder[-1]
+    heading = d.heading_error_deg or {}
+    size = f"{first['rms']:.3g} {u}"
+    if heading.get("before") is not None:
+        size += f" (a heading error of up to {heading['before']:.1f}°)"
+    if len(d.ladder) > 1:
+        added = [s["added"] for s in d.ladder[1:]]
+        what = added[0] if len(added) == 1 else ", ".join(added[:-1]) + " and " + added[-1]
+        text = [f"The model {', '.join(d.model)} misses {what}: the field error is {size}."]
+        if last["residual"] == first["residual"]:
+            start, where = first["rms"], ""
+        else:   # compared on the tied residual, from the model without it on that residual
+            start = next(s["rms_before"] for s in d.ladder[1:]
+                         if s["residual"] == last["residual"])
+            where = f" on the {last['residual'].replace('_', '-')} residual"
+        shown = [float(f"{v:.3g}") for v in (start, last["rms"])]
+        pct = 100.0 * (shown[1] / shown[0] - 1.0)   # of the two numbers as shown
+        after = f"{shown[1]:.3g} {u}"
+        if heading.get("after") is not None and not where:
+            after += f", {heading['after']:.1f}°"
+        text.append(f"With {what} added the rms{where} falls from {shown[0]:.3g} to {after} "
+                    f"({pct:+.0f}%, over the same {first['n']} samples).")
+        cmd = " ".join(d.next_step) if d.next_step else ""
+        if cmd:
+            text.append(f"To do: {cmd}")
+        return " ".join(text)
+    if d.verdict == "at_noise_floor":
+        return (f"The model {', '.join(d.model)} explains this recording: its field error "
+                f"{size} is the sensor's noise. Nothing to do.")
+    from .misfit import summary as misfit_lines
+
+    lines = misfit_lines(d.misfit) if d.misfit else []
+    where = f" Where it sits: {' '.join(lines[0].split())}." if lines else ""
+    floor = (f" above the noise floor {d.noise_floor:.3g} {u}" if d.floor_known
+             else " and the noise floor cannot be measured here")
+    return (f"The field error is {size}{floor}, and no catalog effect explains it.{where} "
+            "To do: record again away from steel and electronics, or look at the report's "
+            "residual-vs-time and sphere pictures for what changed.")

@@ -1,0 +1,82 @@
+"""One story: every before/after pair a diagnosis shows, on one sample set, with its n.
+
+Both starting points (a fresh fit, a calibration held where the slice cannot determine it) hand
+their fitted models here as *evaluations*: objects with ``rss`` (N,) squared residual norms,
+``r`` (N,3) residuals, ``inliers`` (N,) bool (the one outlier rule of
+:mod:`streamcal.fitting.outlier_rule`, applied per model) and ``p`` (free parameters).
+
+- A candidate is compared with the model it extends on the samples that are not outliers of the
+  model *with* the candidate: what the effect explains is counted, true outliers are not.
+- The ladder is computed on the samples that are not outliers of its last model: every step has
+  the same ``n`` and its ``rms_before`` is the rms of the step above on the same residual; the
+  candidates the ladder adds carry its numbers.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import candidates as cand
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """A model without (``before``) and with (``after``) one effect, rms on one residual over
+    the same ``n`` samples, and the F test's ``p_value`` on them."""
+
+    before: float
+    after: float
+    n: int
+    p_value: float
+
+
+def rms_over(ev, mask: np.ndarray) -> float:
+    """rms (sensor unit) of an evaluation's residual over the (N,) bool ``mask``."""
+    mask = np.asarray(mask, bool)
+    return float(np.sqrt(np.mean(ev.rss[mask]))) if mask.any() else float("nan")
+
+
+def compare(ref, ev, mask: np.ndarray | None = None) -> Comparison:
+    """``ref`` (the model without the effect) against ``ev`` (with it) on ``mask`` (default: the
+    samples that are not outliers of ``ev``), the samples in the F test counted by their
+    effective number (lag-1 autocorrelation of ``ev``'s residuals)."""
+    mask = np.asarray(ev.inliers if mask is None else mask, bool)
+    if len(ref.rss) != len(mask):
+        raise ValueError(f"the two models were evaluated on different samples "
+                         f"({len(ref.rss)} and {len(mask)})")
+    p_value = cand.f_test(float(ref.rss[mask].sum()), float(ev.rss[mask].sum()),
+                          max(ev.p - ref.p, 1), cand.effective_n(ev.r[mask]), ev.p)
+    return Comparison(rms_over(ref, mask), rms_over(ev, mask), int(mask.sum()), p_value)
+
+
+def ladder(model, base, residual_of, added) -> list[dict]:
+    """The ladder's steps (SPEC §4 "One story") and, on each added candidate, the same numbers.
+
+    ``base``: the diagnosed model's evaluation; ``residual_of(ev)`` names an evaluation's
+    residual; ``added``: the candidates in the order added, each with ``_evaluated`` (the model
+    with it) and ``_reference`` (the model without it on the same residual: the step above, or
+    its tied refit when the step is the first on a tied residual)."""
+    last = added[-1]._evaluated if added else base
+    keep = np.asarray(last.inliers, bool)
+    n = int(keep.sum())
+    steps = [{"model": list(model), "residual": residual_of(base), "rms": rms_over(base, keep),
+              "n": n, "n_outliers": int((~np.asarray(base.inliers, bool)).sum())}]
+    names = list(model)
+    for c in added:
+        ev, ref = c._evaluated, c._reference
+        names.append(c.effect)
+        step = compare(ref, ev, keep)
+        c.rms_before, c.rms_after, c.n, c.p_value = step.before, step.after, step.n, step.p_value
+        steps.append({"model": list(names), "added": c.effect, "residual": residual_of(ev),
+                      "rms": step.after, "rms_before": step.before, "n": n,
+                      "n_outliers": int((~np.asarray(ev.inliers, bool)).sum()),
+                      "p_value": step.p_value})
+    return steps
+
+
+def change_percent(before: float, after: float) -> float | None:
+    """``100 (after / before − 1)``: the percentage shown beside the two numbers it is from."""
+    if not (np.isfinite(before) and np.isfinite(after) and before > 0):
+        return None
+    return 100.0 * (after / before - 1.0)

@@ -1,0 +1,150 @@
+"""PX4 ULog logs on a self-made log (tests/_selfmade_logs.py): what tests/test_inputs_flight.py
+checks on the bundled pyulog samples — convert, content detection, each magnetometer topic
+(sensor_mag; vehicle_magnetometer and sensor_combined with PX4's CAL_MAG0_* undone), aux channels
+and units, the calibration in force (``--cal log``), a rotated calibration refused, truncated
+logs."""
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from streamcal.calibration import canonical_form
+from streamcal.cli import main
+from streamcal.errors import InputError
+from streamcal.export.px4 import apply_px4
+from streamcal.inputs import autopilot_calibration, detect, read_recording
+from streamcal.inputs.track import Track
+
+from ._selfmade_logs import A_TRUE, B_TRUE, flight_slice, px4_params, write_ulog
+
+#: PX4 logs its parameters as float32: what the reader finds is the value rounded to that.
+FLOAT32 = 1e-6
+
+
+@pytest.fixture(scope="module")
+def flight():
+    return flight_slice(40.0, seed=4)
+
+
+#: The three magnetometer topics the reader takes: the driver's reading, PX4's corrected field,
+#: and that field riding in sensor_combined (older logs, as the bundled pyulog samples).
+TOPICS = {"sensor_mag": {}, "vehicle_magnetometer": {"calibrated": True},
+          "sensor_combined": {"calibrated": True, "combined": True}}
+
+
+@pytest.fixture(scope="module", params=list(TOPICS))
+def log(request, flight, tmp_path_factory):
+    path = write_ulog(tmp_path_factory.mktemp("ulog") / "flight.ulg", flight,
+                      **TOPICS[request.param])
+    assert read_recording(path).metadata["mag_topic"].startswith(request.param)
+    return path
+
+
+def test_convert_writes_the_track_read_recording_gives(log, flight, tmp_path):
+    out = tmp_path / "track.csv"
+    assert main(["convert", str(log), "-o", str(out)]) == 0
+    track, direct = Track.read(out), read_recording(log)
+    assert len(track) == len(direct) and len(track.t_mag) == len(flight.t_mag)
+    assert np.all(np.diff(track.t) >= 0) and track.t[0] == 0.0
+    np.testing.assert_allclose(track.mag, direct.mag, atol=1e-6)
+    assert track.mag_unit == "uT" and track.has("accel") and track.has("gyro")
+    for key in ("input_format", "source", "mag_axes", "units", "time_origin", "mag_topic"):
+        assert key in track.metadata, key
+
+
+def test_detected_from_content_not_name(log, tmp_path):
+    renamed = tmp_path / "renamed.txt"
+    shutil.copy(log, renamed)
+    assert detect(renamed) == "ulog"
+    assert read_recording(renamed).metadata["input_format"] == "px4-ulog"
+
+
+def test_the_reading_is_the_sensors_whichever_topic_was_logged(log, flight):
+    """sensor_mag is taken as read; vehicle_magnetometer (PX4's S (r − o)) has CAL_MAG0_* undone:
+    both give back what the sensor read, in µT (gauss × 100)."""
+    track = read_recording(log)
+    np.testing.assert_allclose(track.mag, flight.mag_uT, atol=1e-4)   # float32 gauss
+    np.testing.assert_allclose(track.t_mag, flight.t_mag - flight.t_mag[0], atol=1e-6)
+    meta = track.metadata
+    if meta["mag_calibrated_by_px4"] == "yes":
+        assert meta["mag_calibration_undone"].startswith("CAL_MAG0_XOFF.. added back")
+        assert meta["mag_axes"] == "body frame (PX4 rotated it)"
+    else:
+        assert meta["mag_topic"].startswith("sensor_mag")
+        assert "temp" in track.columns and "sensor_mag.temperature" in meta["temp_source"]
+
+
+def test_aux_channels_and_units(log, flight):
+    track = read_recording(log)
+    for name in ("act_out0", "act_out4", "throttle", "battery_current_a", "battery_voltage_v"):
+        assert track.has(name), name
+    assert "act_out5" not in track.columns   # a constant output is left out, and said
+    assert track.metadata["actuator_outputs_dropped"] == "3 outputs constant or non-finite"
+    rows = np.isfinite(track.columns["throttle"])
+    np.testing.assert_allclose(track.columns["throttle"][rows], flight.throttle, atol=1e-6)
+    # gauss × 100 = µT: PX4's corrected field has the simulated strength
+    assert float(track.metadata["autopilot_field_uT"]) == pytest.approx(48.0, abs=0.1)
+
+
+def test_calibration_in_force_maps_the_readings_as_px4_does(log, tmp_path, capsys):
+    """--cal log: the CAL_MAG0_* in force as a Calibration gives PX4's own correction
+    (export.px4.apply_px4) at the strength PX4's field has, and the true sensor model; diagnose
+    runs against it and names its source; a converted track carries the same parameters."""
+    track = read_recording(log)
+    cal = autopilot_calibration(track)
+    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
+              if k.startswith("param.CAL_MAG0_")}
+    px4 = apply_px4({"CAL_MAG0_XODIAG": 0.0, "CAL_MAG0_YODIAG": 0.0, "CAL_MAG0_ZODIAG": 0.0,
+                     **params}, track.mag / 100.0) * 100.0
+    np.testing.assert_allclose(np.linalg.norm(cal.apply_field(track.mag), axis=1),
+                               np.linalg.norm(px4, axis=1), rtol=1e-9)
+    assert cal.field == pytest.approx(np.median(np.linalg.norm(px4, axis=1)), rel=1e-3)
+    np.testing.assert_allclose(cal.b, B_TRUE, atol=1e-4)
+    K, _ = canonical_form(A_TRUE)
+    np.testing.assert_allclose(cal.K * 48.0 / cal.field, K, rtol=FLOAT32)
+    assert main(["diagnose", str(log), "--cal", "log"]) == 0
+    assert "CAL_MAG0_* parameters" in capsys.readouterr().out
+    converted = tmp_path / "flight.csv"
+    assert main(["convert", str(log), "-o", str(converted)]) == 0
+    again = autopilot_calibration(read_recording(converted))
+    np.testing.assert_array_equal(again.K, cal.K)
+    np.testing.assert_array_equal(again.b, cal.b)
+
+
+def test_a_rotated_calibration_is_kept_and_cal_log_refused(flight, tmp_path):
+    """CAL_MAG0_ROT > 0 rotates PX4's field: the reader keeps the calibrated field and says why,
+    and --cal log refuses to apply a calibration already applied."""
+    path = write_ulog(tmp_path / "rot.ulg", flight, calibrated=True, params=px4_params(rot=4))
+    track = read_recording(path)
+    assert track.metadata["mag_calibration_undone"].startswith("could not: CAL_MAG0_ROT=4")
+    assert np.linalg.norm(track.mag, axis=1).std() < 1.0   # PX4's (calibrated) field stays
+    with pytest.raises(InputError, match="already applied to them"):
+        autopilot_calibration(track)
+
+
+@pytest.mark.parametrize("fraction", [0.5, 0.81])
+def test_truncated_log_read_to_last_message_naming_file(flight, tmp_path, capsys, fraction):
+    """A crash or a power cut: exit 0 without --skip-bad-rows, one stderr line naming the file
+    and what was lost, the complete messages kept."""
+    whole = write_ulog(tmp_path / "whole.ulg", flight)
+    data = whole.read_bytes()
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    out = tmp_path / "out.csv"
+    assert main(["convert", str(cut), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert str(cut) in err and "truncated" in err and len(err.strip().splitlines()) == 1
+    track = Track.read(out)
+    assert "truncated" in track.metadata["read_warnings"]
+    assert 0.3 * len(read_recording(whole).t_mag) < len(track.t_mag) < len(
+        read_recording(whole).t_mag)
+
+
+def test_log_without_magnetometer_names_the_topics_it_has(flight, tmp_path, capsys):
+    path = write_ulog(tmp_path / "nomag.ulg", flight, with_mag=False)
+    with pytest.raises(InputError, match="no magnetometer topic.*sensor_combined"):
+        read_recording(path)
+    assert main(["fit", str(path)]) == 2
+    assert str(path) in capsys.readouterr().err
