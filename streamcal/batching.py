@@ -26,34 +26,40 @@ COLUMNS = ("path", "status", "n", "rms", "residual", "unit", "field", "coverage"
            "first_skipped")
 
 
-def _read(path: str, skip_bad_rows: bool):
-    """The track at ``path`` and its summary cells on skipped rows (``skipped_rows``, the first
-    reason), filled only with ``skip_bad_rows``."""
+def _read(path: str, skip_bad_rows: bool, compass: int | None = None):
+    """The recording at ``path`` (any format the other commands read: track, autopilot log,
+    capture; compass ``compass`` of a log) and its summary cells on skipped rows
+    (``skipped_rows``, the first reason), filled only with ``skip_bad_rows``, and on what a cut
+    or damaged log lost (``first_skipped``)."""
     from .inputs import read_recording
 
-    track = read_recording(path, skip_bad_rows=skip_bad_rows)
+    track = read_recording(path, skip_bad_rows=skip_bad_rows, compass=compass)
     cells = {}
     if skip_bad_rows:
-        cells = {"skipped_rows": track.skipped_rows,
-                 "first_skipped": track.skip_reasons[0] if track.skip_reasons else None}
+        cells = {"skipped_rows": getattr(track, "skipped_rows", 0),
+                 "first_skipped": track.skip_reasons[0] if getattr(track, "skip_reasons", ())
+                 else None}
+    if track.metadata.get("read_warnings"):
+        cells["first_skipped"] = cells.get("first_skipped") or track.metadata["read_warnings"]
     return track, cells
 
 
-def fit_task(path: str, skip_bad_rows: bool = False) -> dict:
-    """Fit the default model to the track at ``path`` (``streamcal fit`` defaults)."""
+def fit_task(path: str, skip_bad_rows: bool = False, compass: int | None = None) -> dict:
+    """Fit the default model to the recording at ``path`` (``streamcal fit`` defaults)."""
     from .fitting import fit
 
-    track, cells = _read(path, skip_bad_rows)
+    track, cells = _read(path, skip_bad_rows, compass)
     cal = fit(track)
     return {"n": cal.n, "rms": cal.rms, "residual": "sensor", "unit": cal.unit,
             "field": cal.field, "coverage": cal.coverage, **cells}
 
 
-def diagnose_task(path: str, skip_bad_rows: bool = False) -> dict:
-    """Diagnose the track at ``path`` with the default model (``streamcal diagnose`` defaults)."""
+def diagnose_task(path: str, skip_bad_rows: bool = False, compass: int | None = None) -> dict:
+    """Diagnose the recording at ``path`` with the default model (``streamcal diagnose``
+    defaults)."""
     from .diagnosis import diagnose
 
-    track, cells = _read(path, skip_bad_rows)
+    track, cells = _read(path, skip_bad_rows, compass)
     d = diagnose(track)
     cal = d.calibration
     return {**cells, "n": d.n, "rms": d.rms, "residual": d.residual,
@@ -82,12 +88,16 @@ def run_one(task: Callable[[str], dict], path: str) -> dict:
     return {key: row.get(key) for key in COLUMNS}
 
 
-def _resolve(task, skip_bad_rows: bool = False) -> Callable[[str], dict]:
+def _resolve(task, skip_bad_rows: bool = False,
+             compass: int | None = None) -> Callable[[str], dict]:
     if callable(task):
         return task
     try:
-        return functools.partial(TASKS[task], skip_bad_rows=True) if skip_bad_rows \
-            else TASKS[task]
+        func = TASKS[task]
+        kwargs = {"skip_bad_rows": True} if skip_bad_rows else {}
+        if compass is not None:
+            kwargs["compass"] = compass
+        return functools.partial(func, **kwargs) if kwargs else func
     except KeyError:
         from .errors import InputError
 
@@ -96,7 +106,7 @@ def _resolve(task, skip_bad_rows: bool = False) -> Callable[[str], dict]:
 
 def batch(paths: Iterable[str | os.PathLike], task="fit", executor: cf.Executor | None = None,
           jobs: int | None = None, progress: Callable[[dict], None] | None = None,
-          skip_bad_rows: bool = False) -> list[dict]:
+          skip_bad_rows: bool = False, compass: int | None = None) -> list[dict]:
     """Run ``task`` (``"fit"``, ``"diagnose"`` or a picklable top-level ``(path) -> dict``) over
     every file; one row per file in input order (keys :data:`COLUMNS`).
 
@@ -104,9 +114,10 @@ def batch(paths: Iterable[str | os.PathLike], task="fit", executor: cf.Executor 
     default a :class:`~concurrent.futures.ProcessPoolExecutor` with ``jobs`` workers (default
     ``os.cpu_count()``), closed on return. ``progress(row)`` is called as each file finishes, in
     completion order. ``skip_bad_rows`` (named tasks): malformed rows are skipped and counted in
-    the ``skipped_rows`` and ``first_skipped`` cells instead of failing the file.
+    the ``skipped_rows`` and ``first_skipped`` cells instead of failing the file. ``compass``
+    (named tasks): the compass instance of each autopilot log (default: its first).
     """
-    func = _resolve(task, skip_bad_rows)
+    func = _resolve(task, skip_bad_rows, compass)
     paths = [os.fspath(p) for p in paths]
     own = executor is None
     if own:

@@ -9,8 +9,33 @@ RECORDING_HELP = ("recording: track (.csv/.csv.gz), ArduPilot DataFlash .bin, PX
                   "--columns")
 
 
+def compass_choice(text: str):
+    """``--compass`` value: an instance number from 0, or ``"all"``."""
+    import argparse
+
+    if text == "all":
+        return text
+    try:
+        value = int(text)
+    except ValueError:
+        value = -1
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected an instance number from 0 or 'all', got "
+                                         f"{text!r}")
+    return value
+
+
+def add_compass_option(parser) -> None:
+    """Add ``--compass N|all`` (which compass of an autopilot log)."""
+    parser.add_argument("--compass", type=compass_choice, default=None, metavar="N|all",
+                        help="autopilot log: compass instance from 0 (ArduPilot MAG=0, MAG2=1, "
+                             "MAG3=2; PX4 the sensor_mag instance); 'all' (diagnose, report) "
+                             "diagnoses and compares every compass; default: the compass the "
+                             "autopilot uses first")
+
+
 def add_input_options(parser, skip_bad_rows: bool = False) -> None:
-    """Add ``--columns``, ``--unit`` and ``--topic`` (and ``--skip-bad-rows`` when asked) to
+    """Add ``--columns``, ``--unit``, ``--topic`` and ``--compass`` (and ``--skip-bad-rows`` when asked) to
     ``parser``."""
     parser.add_argument("--columns", metavar="MAP",
                         help="for another CSV/TSV: mx=NAME,my=NAME,mz=NAME[,t=NAME,ax=NAME,…,"
@@ -20,6 +45,7 @@ def add_input_options(parser, skip_bad_rows: bool = False) -> None:
     parser.add_argument("--topic", action="append", metavar="NAME",
                         help="for a ROS bag with several topics of a message type: the one to "
                              "read (repeatable, one per type)")
+    add_compass_option(parser)
     if skip_bad_rows:
         add_skip_bad_rows(parser)
 
@@ -27,8 +53,9 @@ def add_input_options(parser, skip_bad_rows: bool = False) -> None:
 def add_skip_bad_rows(parser) -> None:
     """Add ``--skip-bad-rows`` alone (for commands without ``--columns``/``--unit``)."""
     parser.add_argument("--skip-bad-rows", action="store_true",
-                        help="skip and count malformed rows (or a cut last log message); the "
-                             "count and the first one are printed on stderr")
+                        help="skip and count malformed rows of a text recording; the count and "
+                             "the first one are printed on stderr (an autopilot log is always read "
+                             "to its last complete message, what was lost said on stderr)")
 
 
 def skipped_text(path, skipped: int, reasons) -> str:
@@ -46,18 +73,31 @@ def say_skipped(path, skipped: int, reasons, command: str = "streamcal") -> None
         print(f"{command}: {text}", file=sys.stderr)
 
 
+def say_read_warnings(path, track, command: str = "streamcal") -> None:
+    """One line on stderr when an autopilot log was cut or damaged: what was lost."""
+    text = track.metadata.get("read_warnings")
+    if text:
+        print(f"{command}: {path}: read what was intact; lost: {text}", file=sys.stderr)
+
+
 def read_track(args, path=None):
     """The recording named by ``path`` (default ``args.track``) as a Track; rows skipped by
-    ``--skip-bad-rows`` are counted on stderr."""
+    ``--skip-bad-rows`` are counted on stderr, so is what a cut or damaged log lost."""
+    from ..errors import InputError
     from ..inputs import read_recording
 
     path = args.track if path is None else path
+    compass = getattr(args, "compass", None)
+    if compass == "all":
+        raise InputError(f"--compass all: {_command(args)} reads one compass; give its instance "
+                         "number (diagnose and report compare every compass)")
     track = read_recording(path, columns=getattr(args, "columns", None),
                            unit=getattr(args, "unit", None),
                            skip_bad_rows=getattr(args, "skip_bad_rows", False),
-                           topics=getattr(args, "topic", None))
+                           topics=getattr(args, "topic", None), compass=compass)
     say_skipped(path, getattr(track, "skipped_rows", 0), getattr(track, "skip_reasons", ()),
                 _command(args))
+    say_read_warnings(path, track, _command(args))
     return track
 
 
@@ -88,7 +128,8 @@ def recording_chunks(args, rows: int):
     from ..inputs.chunks import iter_track_chunks
     from ..inputs.detect import detect
 
-    if getattr(args, "columns", None) is None and detect(args.track) == "track":
+    if getattr(args, "columns", None) is None and getattr(args, "compass", None) is None \
+            and detect(args.track) == "track":
         return _counted(args, iter_track_chunks(args.track, rows=rows,
                                                 skip_bad_rows=getattr(args, "skip_bad_rows",
                                                                       False)))

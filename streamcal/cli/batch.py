@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import sys
 
-from ._common import add_skip_bad_rows, say_skipped
+from ._common import add_skip_bad_rows, compass_choice, say_skipped
 from ._output import check_output, messages_to
 
 
@@ -13,11 +13,16 @@ def register(sub) -> None:
                                    "write one CSV row per file (a failing file is a row with its "
                                    "error, not the end of the run).")
     p.add_argument("task", choices=("fit", "diagnose"))
-    p.add_argument("files", nargs="+", metavar="FILE", help="track files (.csv or .csv.gz)")
+    p.add_argument("files", nargs="+", metavar="FILE",
+                   help="recordings: tracks, autopilot logs (.bin, .ulg), captures (the formats "
+                        "the other commands read)")
     p.add_argument("--jobs", type=int, default=None, metavar="N",
                    help="worker processes (default: the number of CPUs)")
     p.add_argument("-o", "--output", required=True, metavar="SUMMARY.csv",
                    help="summary CSV (written atomically; - for stdout)")
+    p.add_argument("--compass", type=compass_choice, default=None, metavar="N",
+                   help="autopilot logs: compass instance from 0 (default: the one the autopilot "
+                        "uses first)")
     add_skip_bad_rows(p)
     p.set_defaults(func=run)
 
@@ -29,12 +34,15 @@ def run(args) -> int:
     from ..batching import batch, write_summary
     from ..errors import InputError
 
+    if args.compass == "all":
+        raise InputError("--compass all: batch reads one compass per log; give its instance "
+                         "number")
     if args.jobs is not None and args.jobs < 1:
         raise InputError(f"--jobs: expected a positive number of workers, got {args.jobs}")
     check_output(args.output)
     with tqdm(total=len(args.files), file=sys.stderr, unit="file", desc=args.task) as bar:
         rows = batch(args.files, args.task, jobs=args.jobs, progress=lambda row: bar.update(1),
-                     skip_bad_rows=args.skip_bad_rows)
+                     skip_bad_rows=args.skip_bad_rows, compass=args.compass)
     for r in rows:
         say_skipped(r["path"], r.get("skipped_rows") or 0,
                     [r["first_skipped"]] if r.get("first_skipped") else [], "streamcal batch")

@@ -53,6 +53,9 @@ def run(args: argparse.Namespace) -> int:
     from ..diagnosis.subsample import LONG_SAMPLES, diagnose_recording
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
+    if getattr(args, "compass", None) == "all":
+        from ._compasses import diagnose_all
+        return diagnose_all(args, model, describe=lambda d: _text(d) + held_text(d))
     from ..diagnosis.reference_field import reference_field
     from ..geomag import text_lines
 

@@ -26,13 +26,13 @@ from .detect import FORMATS, detect
 if TYPE_CHECKING:   # for the return annotation of autopilot_calibration only
     from ..calibration import Calibration
 
-__all__ = ["read_recording", "detect", "FORMATS", "autopilot_calibration",
+__all__ = ["read_recording", "read_compasses", "detect", "FORMATS", "autopilot_calibration",
            "calibration_from_ardupilot", "calibration_from_px4"]
 
 
 def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
                    unit: str | None = None, skip_bad_rows: bool = False,
-                   topics=None) -> Track:
+                   topics=None, compass: int | None = None) -> Track:
     """Read any supported recording into a Track.
 
     Args:
@@ -41,7 +41,10 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
             is not a docs/tracks_and_inputs.md track; also accepted for a track, to rename its
             columns.
         unit: the magnetometer unit of such a file: ``uT``, ``nT``, ``mG``, ``G`` or ``counts``.
-        skip_bad_rows: skip and count malformed rows (text) or a cut last message (logs).
+        skip_bad_rows: skip and count malformed rows (text); an autopilot log is always read to
+            its last complete message (what was lost is in ``read_warnings``).
+        compass: an autopilot log's compass instance from 0 (default: the one the autopilot
+            uses first); refused for other recordings.
         topics: ROS bags only: topic names picking one topic per message type where the bag
             has several (``--topic``, repeatable).
     """
@@ -57,6 +60,9 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
                          f"{fmt} recording with its own units")
     if topics and fmt not in ("rosbag1", "rosbag2"):
         raise InputError(f"{path}: --topic applies to ROS bags; this is a {fmt} recording")
+    if compass is not None and fmt not in ("dataflash", "ulog"):
+        raise InputError(f"{path}: --compass applies to autopilot logs (ArduPilot .bin, PX4 "
+                         "ULog); this recording holds one magnetometer")
     if fmt in ("rosbag1", "rosbag2"):
         from .rosbag import read_rosbag
 
@@ -64,11 +70,11 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
     elif fmt == "dataflash":
         from .dataflash import read_dataflash
 
-        track = read_dataflash(path, skip_bad_rows=skip_bad_rows)
+        track = read_dataflash(path, skip_bad_rows=skip_bad_rows, compass=compass)
     elif fmt == "ulog":
         from .ulog import read_ulog
 
-        track = read_ulog(path, skip_bad_rows=skip_bad_rows)
+        track = read_ulog(path, skip_bad_rows=skip_bad_rows, compass=compass)
     elif fmt == "raw":
         from .raw_capture import read_raw_capture
         from .detect import read_whole
@@ -99,6 +105,27 @@ def read_recording(path, *, columns: str | Mapping[str, str] | None = None,
     return track
 
 
+def read_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
+    """Every compass of an autopilot log, one Track each in instance order (metadata
+    ``compass_instance``); InputError for a recording of one magnetometer."""
+    path = Path(path)
+    fmt = detect(path)
+    if fmt == "dataflash":
+        from .dataflash import read_dataflash_compasses
+
+        tracks = read_dataflash_compasses(path, skip_bad_rows=skip_bad_rows)
+    elif fmt == "ulog":
+        from .ulog import read_ulog_compasses
+
+        tracks = read_ulog_compasses(path, skip_bad_rows=skip_bad_rows)
+    else:
+        raise InputError(f"{path}: --compass applies to autopilot logs (ArduPilot .bin, PX4 "
+                         "ULog); this recording holds one magnetometer")
+    for track in tracks:
+        track.path = path
+    return tracks
+
+
 def autopilot_calibration(track: Track) -> "Calibration":
     """The autopilot's own calibration from a track read from a flight log: ArduPilot's
     ``param.COMPASS_*``, or PX4's ``param.CAL_MAGn_*`` of the magnetometer the track holds, with
@@ -117,8 +144,11 @@ def autopilot_calibration(track: Track) -> "Calibration":
     if field is None:
         raise InputError(f"{where}: no autopilot_field_uT in the metadata")
     if ardupilot:
+        instance = int(md.get("compass_params_index", md.get("compass_instance", 0)))
         return calibration_from_ardupilot(ardupilot, float(field),
-                                          source=f"{where} COMPASS_* parameters")
+                                          source=f"{where} (compass "
+                                                 f"{md.get('compass_instance', 0)}) COMPASS_* "
+                                                 "parameters", instance=instance)
     undone = md.get("mag_calibration_undone", "")
     if undone.startswith("could not"):
         raise InputError(f"{where}: mx,my,mz are PX4's calibrated field ({undone}): its "

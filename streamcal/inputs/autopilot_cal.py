@@ -50,22 +50,57 @@ PX4_COMP_CHANNELS = {1: "throttle", 2: "battery_current_a"}
 PX4_KA_PER_A = 0.001
 #: COMPASS_MOTCT values (ArduPilot): 0 disabled, 1 throttle, 2 current.
 MOTCT_CHANNELS = {1: "throttle", 2: "battery_current_a"}
-#: Parameters of the first compass kept in a track's metadata (``param.NAME``).
-COMPASS_PARAMS = re.compile(r"COMPASS_(?:(?:OFS|DIA|ODI|MOT)_[XYZ]|MOTCT|SCALE|ORIENT|EXTERNAL"
-                            r"|DEV_ID|USE)")
+#: Compass parameters of every instance (COMPASS_OFS_X, COMPASS_OFS2_X, …) and the shared ones.
+COMPASS_PARAMS = re.compile(r"COMPASS_(?:(?:OFS|DIA|ODI|MOT)[23]?_[XYZ]|MOTCT|PRIMARY"
+                            r"|(?:SCALE|ORIENT|DEV_ID|USE)[23]?|EXTERNAL|EXTERN[23]|PRIO[123]_ID)")
+#: Per-compass parameter kinds (``AP_Compass`` var_info); MOTCT and PRIMARY are shared.
+_PER_COMPASS = ("OFS", "DIA", "ODI", "MOT", "SCALE", "ORIENT", "DEV_ID", "USE", "EXTERNAL")
+_SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY")
 
 
-def ardupilot_matrix(params: Mapping[str, float]) -> np.ndarray:
-    """The symmetric soft-iron matrix ``S`` (3,3) of the first compass (identity when absent)."""
-    dia = np.array([params.get(f"COMPASS_DIA_{a}", 0.0) for a in "XYZ"], dtype=float)
+def ardupilot_param(kind: str, instance: int = 0, axis: str | None = None) -> str:
+    """ArduPilot's name of parameter ``kind`` of compass ``instance`` (from 0):
+    ``("OFS", 1, "X")`` → ``COMPASS_OFS2_X``, ``("DEV_ID", 2)`` → ``COMPASS_DEV_ID3``,
+    ``("EXTERNAL", 1)`` → ``COMPASS_EXTERN2``."""
+    suffix = "" if instance == 0 else str(instance + 1)
+    if kind == "EXTERNAL" and instance:
+        kind = "EXTERN"
+    return f"COMPASS_{kind}{suffix}" + (f"_{axis}" if axis else "")
+
+
+def ardupilot_param_index(params: Mapping[str, float], instance: int) -> int:
+    """The parameter set (0: COMPASS_OFS_*, 1: COMPASS_OFS2_*, …) of logged compass
+    ``instance``. From ArduPilot 4.0 the logged instance is the compass's priority and its
+    parameters are those whose COMPASS_DEV_IDn equals COMPASS_PRIO{instance+1}_ID
+    (``Compass::_get_state_id``); without priorities they are the instance's own."""
+    wanted = params.get(f"COMPASS_PRIO{instance + 1}_ID")
+    if wanted:
+        for n in range(3):
+            if params.get(ardupilot_param("DEV_ID", n)) == wanted:
+                return n
+    return instance
+
+
+def compass_params(params: Mapping[str, float], instance: int = 0) -> dict:
+    """The logged parameters of compass ``instance`` and the shared ones, under their names."""
+    names = [ardupilot_param(k, instance, a) for k in ("OFS", "DIA", "ODI", "MOT") for a in "XYZ"]
+    names += [ardupilot_param(k, instance) for k in _PER_COMPASS[4:]] + list(_SHARED)
+    return {n: float(params[n]) for n in names if n in params}
+
+
+def ardupilot_matrix(params: Mapping[str, float], instance: int = 0) -> np.ndarray:
+    """The symmetric soft-iron matrix ``S`` (3,3) of compass ``instance`` (identity when
+    absent)."""
+    dia = np.array([params.get(ardupilot_param("DIA", instance, a), 0.0) for a in "XYZ"],
+                   dtype=float)
     if not np.any(dia):
         dia = np.ones(3)
-    odi = [params.get(f"COMPASS_ODI_{a}", 0.0) for a in "XYZ"]
+    odi = [params.get(ardupilot_param("ODI", instance, a), 0.0) for a in "XYZ"]
     S = np.diag(dia)
     S[0, 1] = S[1, 0] = odi[0]
     S[0, 2] = S[2, 0] = odi[1]
     S[1, 2] = S[2, 1] = odi[2]
-    scale = float(params.get("COMPASS_SCALE", 0.0) or 1.0)
+    scale = float(params.get(ardupilot_param("SCALE", instance), 0.0) or 1.0)
     return S * scale
 
 
@@ -85,8 +120,10 @@ def _check(params: Mapping[str, float], offsets: list[str], S: np.ndarray, matri
 
 
 def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
-                               source: str = "ArduPilot parameters") -> Calibration:
-    """Calibration equivalent to the first compass's ``COMPASS_*`` parameters.
+                               source: str = "ArduPilot parameters",
+                               instance: int = 0) -> Calibration:
+    """Calibration equivalent to the ``COMPASS_*`` parameters of compass ``instance`` (from 0:
+    COMPASS_OFS_*, …; 1: COMPASS_OFS2_*, …; 2: COMPASS_OFS3_*, …).
 
     Args:
         params: ``{name: value}`` as logged in PARM messages (the last value of each).
@@ -95,16 +132,18 @@ def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
         source: said in the calibration's ``extra["source"]``.
     Raises :class:`InputError` if the offsets are missing or the matrix is not invertible.
     """
-    S = ardupilot_matrix(params)
-    _check(params, [f"COMPASS_OFS_{a}" for a in "XYZ"], S, "COMPASS_DIA/ODI", field_uT, source)
+    S = ardupilot_matrix(params, instance)
+    ofs = [ardupilot_param("OFS", instance, a) for a in "XYZ"]
+    _check(params, ofs, S, f"{ardupilot_param('DIA', instance)}/ODI", field_uT, source)
     S_inv = np.linalg.inv(S)
     K, Q = canonical_form(field_uT * S_inv)
-    offsets = np.array([params[f"COMPASS_OFS_{a}"] for a in "XYZ"], dtype=float)
+    offsets = np.array([params[n] for n in ofs], dtype=float)
     b = -offsets / MG_PER_UT
     model = ["hard_iron", "soft_iron"]
     effects = {}
     motct = int(params.get("COMPASS_MOTCT", 0) or 0)
-    mot = np.array([params.get(f"COMPASS_MOT_{a}", 0.0) for a in "XYZ"], dtype=float)
+    mot = np.array([params.get(ardupilot_param("MOT", instance, a), 0.0) for a in "XYZ"],
+                   dtype=float)
     if motct in MOTCT_CHANNELS and np.any(mot):
         g = -(S_inv @ mot) / MG_PER_UT
         model.append("aux_interference")

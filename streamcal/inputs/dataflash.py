@@ -11,12 +11,29 @@ IMU    AccX/Y/Z m/s², GyrX/Y/Z rad/s     ``ax..az``, ``gx..gz``; ``Temp`` → `
 RCOU   C1…C14 or Ch1…Ch12, µs            ``rcou_c1``… (PWM outputs; unused ones left out)
 CURR   Volt, Curr, Throttle or ThrOut    ``battery_voltage_v``, ``battery_current_a``, ``throttle``
 BAT    Volt, Curr (newer firmware)       as CURR
+CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later)
 BARO   Temp °C                           ``temp`` when IMU has no temperature (said so)
-PARM   Name, Value                       COMPASS_* in the metadata (``param.NAME``)
+PARM   Name, Value                       the compass's COMPASS_* in the metadata (``param.NAME``)
 ====== ================================ ==================================================
 
 Time is ``TimeUS`` (µs) or ``TimeMS`` (ms), shifted to start at 0 s; each message is its own row.
-Only instance 0 of MAG and IMU is read (a field ``I`` names the instance in newer layouts).
+
+Compasses: instance ``N`` (from 0) is ``MAG``/``MAG2``/``MAG3`` in older layouts, the rows of
+``MAG`` whose field ``I`` is ``N`` in newer ones; its parameters are COMPASS_OFS_*, DIA_*, ODI_*,
+MOT_* for instance 0 and COMPASS_OFS2_*, DIA2_*, … (``3`` for instance 2) for the others
+(:func:`~.autopilot_cal.ardupilot_param`), or, when COMPASS_PRIOn_ID are logged (4.0 on, where
+the logged instance is the priority), the set whose COMPASS_DEV_IDn is that compass's. The default compass is COMPASS_PRIMARY when it is
+logged and that compass has rows, else instance 0. IMU, BAT, BARO: instance 0.
+
+The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with (``motors->get_throttle()``)
+is CURR.Throttle/ThrOut in 3.2–3.3, CTUN.ThO from 3.4 on; when neither is logged it is
+approximated by the motor outputs: the mean over the motor channels of RCOU normalised by the
+PWM range (:mod:`.dataflash_throttle`: the SERVOn_FUNCTION 33–40 motors, a plane's throttle
+channel, else channels 1–4), said in ``throttle_source``.
+
+A log cut inside a message (a crash, a power cut) is read to its last complete message; a
+damaged stretch is skipped to the next valid message header; both are counted in
+``read_warnings``.
 
 ArduPilot logs the *corrected* field: with COMPASS_OFS = ``o`` (added, ``AP_Compass``), motor
 offsets ``MOfs`` and the soft-iron matrix ``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs``
@@ -36,17 +53,18 @@ import numpy as np
 
 from ..errors import InputError
 from .track import Track
-from .autopilot_cal import COMPASS_PARAMS, MG_PER_UT, ardupilot_matrix
-from .streams import Stream, merge
+from .autopilot_cal import (MG_PER_UT, ardupilot_matrix, ardupilot_param, ardupilot_param_index,
+                            compass_params)
+from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
 from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
+from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
 
-MESSAGES = ("MAG", "IMU", "RCOU", "CURR", "BAT", "BARO", "PARM", "MSG")
+MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BARO", "CTUN", "PARM", "MSG")
 MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
+MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
 PWM_RANGE_US = (0.0, 3000.0)
-#: CURR.Throttle / ThrOut run 0..1000 in the firmware versions that log them.
-THROTTLE_FULL = 1000.0
 #: Integer-typed CURR Volt/Curr fields are centivolts / centiamps (older layouts).
 CENTI = 0.01
 _INT_TYPES = set("bBhHiIqQ")
@@ -91,18 +109,10 @@ def _read_bytes(path: Path) -> bytes:
         raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
 
 
-def _refuse_cut(path: Path, left: int, skip_bad_rows: bool) -> None:
-    if left > 0 and not skip_bad_rows:
-        raise InputError(f"{path}: DataFlash log ends inside a message (its last {left} bytes): "
-                         "the file is truncated or damaged (--skip-bad-rows reads the complete "
-                         "messages)")
-
-
-def _parse(path: Path, skip_bad_rows: bool) -> _Messages:
+def _parse(path: Path) -> _Messages:
     """The wanted messages, decoded in bulk (:mod:`.dataflash_bulk`)."""
     data = _read_bytes(path)
     chain = walk(data)
-    _refuse_cut(path, chain.cut, skip_bad_rows)
     out = _Messages(path=path)
     for name in MESSAGES:
         ftype = chain.name_to_type.get(name)
@@ -124,7 +134,8 @@ def _parse(path: Path, skip_bad_rows: bool) -> _Messages:
             out.cols[name] = cols
             out.types[name] = dict(zip(fmt.columns, fmt.format))
     if chain.cut > 0:
-        out.texts.append(f"truncated: {chain.cut} trailing bytes ignored")
+        out.texts.append(f"truncated: {chain.cut} trailing bytes ignored (the log ends inside a "
+                         "message; read to the last complete one)")
     if chain.skipped:
         runs = ", ".join(f"{n} at offset {at}" for at, n in chain.skipped[:5])
         more = f" and {len(chain.skipped) - 5} more runs" if len(chain.skipped) > 5 else ""
@@ -136,13 +147,12 @@ def _parse(path: Path, skip_bad_rows: bool) -> _Messages:
     return out
 
 
-def _parse_pymavlink(path: Path, skip_bad_rows: bool) -> _Messages:
+def _parse_pymavlink(path: Path) -> _Messages:
     """The same through :class:`pymavlink.DFReader.DFReader_binary` (an object per message,
     ~10× slower): the reference the equivalence test compares :func:`_parse` against."""
     from pymavlink import DFReader  # heavy (lxml, ~0.5 s): imported only when asked for
 
     cut = walk(_read_bytes(path)).cut
-    _refuse_cut(path, cut, skip_bad_rows)
     out = _Messages(path=path)
     rows: dict = {}
     chatter = io.StringIO()
@@ -178,7 +188,8 @@ def _parse_pymavlink(path: Path, skip_bad_rows: bool) -> _Messages:
                 out.cols[name][column] = np.array(values, dtype=object)
         out.types[name] = dict(zip(formats[name].columns, formats[name].format))
     if cut > 0:
-        out.texts.append(f"truncated: {cut} trailing bytes ignored")
+        out.texts.append(f"truncated: {cut} trailing bytes ignored (the log ends inside a "
+                         "message; read to the last complete one)")
     if "Skipped" in chatter.getvalue():
         out.texts.append(chatter.getvalue().strip().splitlines()[0])
     return out
@@ -193,66 +204,101 @@ def _time(msgs: _Messages, name: str, path: Path) -> np.ndarray:
                      f"{', '.join(msgs.fields[name])}): unknown layout")
 
 
-def _instance0(msgs: _Messages, name: str) -> None:
-    """Keep the rows of instance 0 when the layout has an instance field ``I``."""
-    if msgs.has(name, "I"):
-        keep = msgs.array(name, "I") == 0
-        msgs.cols[name] = {k: v[keep] for k, v in msgs.cols[name].items()}
+def _instance(msgs: _Messages, name: str, instance: int = 0) -> _Messages:
+    """``msgs`` with only the rows of ``instance`` of ``name`` when its layout has an instance
+    field ``I`` (the other message types shared, not copied)."""
+    if not msgs.has(name, "I"):
+        return msgs
+    keep = msgs.array(name, "I") == instance
+    cols = dict(msgs.cols)
+    cols[name] = {k: v[keep] for k, v in msgs.cols[name].items()}
+    return _Messages(msgs.fields, msgs.types, cols, msgs.params, msgs.texts, msgs.path)
 
 
-def _mag(msgs: _Messages, path: Path, meta: dict) -> Stream:
-    if not msgs.count("MAG"):
+def compass_instances(msgs: _Messages) -> list[int]:
+    """The compass instances (from 0) that have MAG rows in the log."""
+    if msgs.has("MAG", "I"):
+        return sorted(int(i) for i in np.unique(msgs.array("MAG", "I")))
+    return [i for i, name in enumerate(MAG_NAMES) if msgs.count(name)]
+
+
+def default_compass(msgs: _Messages) -> int:
+    """The compass ArduPilot uses first: COMPASS_PRIMARY when logged and present, else 0."""
+    present = compass_instances(msgs)
+    primary = int(msgs.params.get("COMPASS_PRIMARY", 0) or 0)
+    return primary if primary in present else 0
+
+
+def _mag_rows(msgs: _Messages, path: Path, instance: int) -> tuple[_Messages, str]:
+    """(messages with the rows of compass ``instance``, the message name holding them)."""
+    present = compass_instances(msgs)
+    if not present:
         raise InputError(f"{path}: no MAG messages: this log has no magnetometer data "
                          f"(messages found: {', '.join(sorted(msgs.cols)) or 'none'})")
-    if not msgs.has("MAG", "MagX", "MagY", "MagZ"):
-        raise InputError(f"{path}: MAG message without MagX/MagY/MagZ (fields: "
-                         f"{', '.join(msgs.fields['MAG'])}): unknown layout")
-    _instance0(msgs, "MAG")
-    t = _time(msgs, "MAG", path)
-    logged = np.column_stack([msgs.array("MAG", c) for c in ("MagX", "MagY", "MagZ")])
+    if instance not in present:
+        raise InputError(f"{path}: no compass {instance} in this log (compasses with data: "
+                         f"{', '.join(map(str, present))})")
+    name = "MAG" if msgs.has("MAG", "I") else MAG_NAMES[instance]
+    if not msgs.has(name, "MagX", "MagY", "MagZ"):
+        raise InputError(f"{path}: {name} message without MagX/MagY/MagZ (fields: "
+                         f"{', '.join(msgs.fields[name])}): unknown layout")
+    return _instance(msgs, name, instance), name
+
+
+def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
+    params_of = ardupilot_param_index(msgs.params, instance)
+    meta["compass_params_index"] = str(params_of)
+    msgs, name = _mag_rows(msgs, path, instance)
+    t = _time(msgs, name, path)
+    logged = np.column_stack([msgs.array(name, c) for c in ("MagX", "MagY", "MagZ")])
     meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(logged, axis=1)) / MG_PER_UT:.4g}"
     raw = logged.copy()
-    if msgs.has("MAG", "MOfsX", "MOfsY", "MOfsZ"):
-        mofs = np.column_stack([msgs.array("MAG", c) for c in ("MOfsX", "MOfsY", "MOfsZ")])
+    if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ"):
+        mofs = np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")])
         raw -= mofs
         meta["mag_motor_offsets_undone"] = (
-            "MAG.MOfsX/Y/Z subtracted per sample" if np.any(mofs) else "none (MAG.MOfs all 0)")
+            f"{name}.MOfsX/Y/Z subtracted per sample" if np.any(mofs)
+            else f"none ({name}.MOfs all 0)")
     else:
         mofs = None
-        meta["mag_motor_offsets_undone"] = "could not: MAG has no MOfsX/Y/Z"
-    S = ardupilot_matrix(msgs.params)
+        meta["mag_motor_offsets_undone"] = f"could not: {name} has no MOfsX/Y/Z"
+    S = ardupilot_matrix(msgs.params, params_of)
+    dia, odi = ardupilot_param("DIA", params_of), ardupilot_param("ODI", params_of)[8:]
     if np.allclose(S, np.eye(3)):
-        meta["mag_soft_iron_undone"] = "none (COMPASS_DIA/ODI identity or not logged)"
+        meta["mag_soft_iron_undone"] = f"none ({dia}/{odi} identity or not logged)"
     else:
         raw = np.linalg.solve(S, raw.T).T
-        meta["mag_soft_iron_undone"] = "inverse of the PARM COMPASS_DIA/ODI matrix applied" + (
+        meta["mag_soft_iron_undone"] = f"inverse of the PARM {dia}/{odi} matrix applied" + (
             " (assumes motor offsets added after the matrix, ArduPilot 4.x order)"
             if mofs is not None and np.any(mofs) else "")
-    if msgs.has("MAG", "OfsX", "OfsY", "OfsZ"):
-        ofs = np.column_stack([msgs.array("MAG", c) for c in ("OfsX", "OfsY", "OfsZ")])
+    ofs_names = [ardupilot_param("OFS", params_of, a) for a in "XYZ"]
+    if msgs.has(name, "OfsX", "OfsY", "OfsZ"):
+        ofs = np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")])
         raw -= ofs
         values = np.unique(ofs, axis=0)
         shown = ",".join(f"{v:g}" for v in values[0]) if len(values) == 1 else \
             f"{len(values)} different sets over the log"
-        meta["mag_offsets_undone"] = (f"MAG.OfsX/Y/Z subtracted per sample (ArduPilot adds "
+        meta["mag_offsets_undone"] = (f"{name}.OfsX/Y/Z subtracted per sample (ArduPilot adds "
                                       f"them: logged = raw + Ofs); Ofs = {shown} mG")
-    elif all(f"COMPASS_OFS_{a}" in msgs.params for a in "XYZ"):
-        ofs = np.array([msgs.params[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    elif all(n in msgs.params for n in ofs_names):
+        ofs = np.array([msgs.params[n] for n in ofs_names])
         raw -= ofs
-        meta["mag_offsets_undone"] = ("PARM COMPASS_OFS_X/Y/Z subtracted (MAG has no OfsX/Y/Z; "
-                                      f"assumed constant) = {','.join(f'{v:g}' for v in ofs)} mG")
+        meta["mag_offsets_undone"] = (f"PARM {ofs_names[0][:-2]}_X/Y/Z subtracted ({name} has no "
+                                      f"OfsX/Y/Z; assumed constant) = "
+                                      f"{','.join(f'{v:g}' for v in ofs)} mG")
     else:
-        meta["mag_offsets_undone"] = ("could not: MAG has no OfsX/Y/Z and no COMPASS_OFS_* "
-                                      "parameter was logged; mx,my,mz are the corrected field")
+        meta["mag_offsets_undone"] = (f"could not: {name} has no OfsX/Y/Z and no "
+                                      f"{ofs_names[0][:-2]}_* parameter was logged; mx,my,mz are "
+                                      "the corrected field")
     mag = raw / MG_PER_UT
-    return Stream("MAG", t, {"mx": mag[:, 0], "my": mag[:, 1], "mz": mag[:, 2]})
+    return Stream(name, t, {"mx": mag[:, 0], "my": mag[:, 1], "mz": mag[:, 2]})
 
 
 def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
     names = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
     if not msgs.has("IMU", *names) or not msgs.count("IMU"):
         return None
-    _instance0(msgs, "IMU")
+    msgs = _instance(msgs, "IMU")
     cols = dict(zip(("ax", "ay", "az", "gx", "gy", "gz"), (msgs.array("IMU", c) for c in names)))
     if msgs.has("IMU", "Temp"):
         temp = msgs.array("IMU", "Temp")
@@ -265,7 +311,7 @@ def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
 def _baro_temp(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
     if not msgs.has("BARO", "Temp") or not msgs.count("BARO"):
         return None
-    _instance0(msgs, "BARO")
+    msgs = _instance(msgs, "BARO")
     meta["temp_source"] = ("BARO.Temp (the barometer's temperature, not the magnetometer's; "
                            "IMU logs no temperature)")
     return Stream("BARO", _time(msgs, "BARO", path), {"temp": msgs.array("BARO", "Temp")})
@@ -302,16 +348,16 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
     for name in ("CURR", "BAT"):
         if not msgs.count(name):
             continue
-        _instance0(msgs, name)
-        types = msgs.types.get(name, {})
+        msgs_i = _instance(msgs, name)
+        types = msgs_i.types.get(name, {})
         cols = {}
         for field_name, label in (("Volt", "battery_voltage_v"), ("Curr", "battery_current_a")):
-            if msgs.has(name, field_name):
+            if msgs_i.has(name, field_name):
                 scale = CENTI if types.get(field_name) in _INT_TYPES else 1.0
-                cols[label] = msgs.array(name, field_name) * scale
+                cols[label] = msgs_i.array(name, field_name) * scale
         for field_name in ("Throttle", "ThrOut"):
-            if msgs.has(name, field_name):
-                cols["throttle"] = msgs.array(name, field_name) / THROTTLE_FULL
+            if msgs_i.has(name, field_name):
+                cols["throttle"] = msgs_i.array(name, field_name) / THROTTLE_FULL
                 meta["throttle_source"] = f"{name}.{field_name} / {THROTTLE_FULL:g} (0..1)"
                 break
         constant = [k for k, v in cols.items() if np.all(v == v[0])]
@@ -320,31 +366,55 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
         if constant:
             meta[f"{name.lower()}_constant_dropped"] = ",".join(constant) + \
                 " (constant over the log: no sensor fitted or not logged)"
+        if "throttle" in constant:     # a constant throttle is no signal: let CTUN/RCOU try
+            meta.pop("throttle_source", None)
         if cols:
-            out.append(Stream(name, _time(msgs, name, path), cols))
+            out.append(Stream(name, _time(msgs_i, name, path), cols))
     return out
 
 
-def read_dataflash(path, *, skip_bad_rows: bool = False) -> Track:
-    """Read an ArduPilot DataFlash ``.bin`` log into a Track (see the module docstring).
+def read_dataflash(path, *, skip_bad_rows: bool = False, compass: int | None = None) -> Track:
+    """Read compass ``compass`` (instance from 0; default: the one ArduPilot uses first) of an
+    ArduPilot DataFlash ``.bin`` log into a Track (see the module docstring).
 
-    Raises :class:`InputError` naming the file and the message when the log is truncated
-    (unless ``skip_bad_rows``), has no MAG messages or a layout without the needed fields.
+    A log cut inside a message is read to its last complete message and a damaged stretch is
+    skipped; both are said in ``read_warnings`` (``skip_bad_rows`` changes nothing for a log).
+    Raises :class:`InputError` naming the file and the message when the log has no MAG messages
+    (or not that compass) or a layout without the needed fields.
     """
     path = Path(path)
-    return _track(_parse(path, skip_bad_rows), path)
+    msgs = _parse(path)
+    return _track(msgs, path, default_compass(msgs) if compass is None else compass)
 
 
-def read_dataflash_pymavlink(path, *, skip_bad_rows: bool = False) -> Track:
+def read_dataflash_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
+    """One Track per compass of the log, in instance order (the log is parsed once)."""
+    path = Path(path)
+    msgs = _parse(path)
+    present = compass_instances(msgs)
+    if not present:
+        _mag_rows(msgs, path, 0)   # raises: no MAG messages
+    tracks = [_track(msgs, path, i) for i in present]
+    for track in tracks:
+        track.metadata["compass_default"] = str(default_compass(msgs))
+    return tracks
+
+
+def read_dataflash_pymavlink(path, *, skip_bad_rows: bool = False,
+                             compass: int | None = None) -> Track:
     """:func:`read_dataflash` with the messages decoded by pymavlink's DFReader instead of the
     bulk decoder (much slower): the reference of the equivalence test and the read benchmark."""
     path = Path(path)
-    return _track(_parse_pymavlink(path, skip_bad_rows), path)
+    msgs = _parse_pymavlink(path)
+    return _track(msgs, path, default_compass(msgs) if compass is None else compass)
 
 
-def _track(msgs: _Messages, path: Path) -> Track:
-    meta = {"sensor": "ardupilot compass (instance 0)", "source": f"ArduPilot DataFlash log {path.name}",
+def _track(msgs: _Messages, path: Path, instance: int) -> Track:
+    meta = {"sensor": f"ardupilot compass (instance {instance})",
+            "source": f"ArduPilot DataFlash log {path.name}",
             "input_format": "ardupilot-dataflash", "mag_unit": "uT",
+            "compass_instance": str(instance),
+            "compasses_in_log": ",".join(map(str, compass_instances(msgs))),
             "mag_axes": "body frame (ArduPilot rotates by COMPASS_ORIENT/AHRS_ORIENTATION "
                         "before logging)",
             "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
@@ -352,7 +422,7 @@ def _track(msgs: _Messages, path: Path) -> Track:
     firmware = next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
     if firmware:
         meta["firmware"] = firmware
-    streams = [_mag(msgs, path, meta)]
+    streams = [_mag(msgs, path, meta, instance)]
     imu = _imu(msgs, path, meta)
     if imu is not None:
         streams.append(imu)
@@ -365,13 +435,28 @@ def _track(msgs: _Messages, path: Path) -> Track:
         streams.append(rcou)
     streams += _battery(msgs, path, meta)
     streams += dataflash_attitude(msgs, lambda name: _time(msgs, name, path), meta)
-    for name, value in msgs.params.items():
-        if COMPASS_PARAMS.fullmatch(name):
-            meta[f"param.{name}"] = f"{value:g}"
+    if "throttle_source" not in meta:
+        def time_of(name):
+            return _time(msgs, name, path)
+
+        throttle = ctun_throttle(msgs, time_of, meta) or rcou_throttle(msgs, time_of, meta)
+        if throttle is not None:
+            streams.append(throttle)
+    params_of = int(meta["compass_params_index"])
+    device = msgs.params.get(ardupilot_param("DEV_ID", params_of))
+    if device:
+        meta["compass_device_id"] = f"{int(device)}"
+    for name, value in compass_params(msgs.params, params_of).items():
+        meta[f"param.{name}"] = f"{value:g}"
     notes = [m for m in msgs.texts if m.startswith(("truncated", "Skipped"))]
     if notes:
         meta["read_warnings"] = "; ".join(notes)
+    streams = drop_nonfinite(streams, meta)
+    if not any(len(s.t) for s in streams if "mx" in s.columns):
+        raise InputError(f"{path}: no intact MAG message of compass {instance} "
+                         f"({meta.get('read_warnings', 'all damaged')})")
     t0 = min(float(s.t.min()) for s in streams if len(s.t))
     meta["time_origin"] = f"log time {t0:.6f} s since boot is t = 0"
+    meta["log_t0_s"] = f"{t0:.6f}"
     meta["messages"] = ", ".join(f"{s.name} {len(s.t)}" for s in streams)
     return merge(streams, meta, t0=t0)

@@ -179,7 +179,8 @@ def decode(data: bytes, fmt: Format, offsets: np.ndarray) -> dict:
         elif char == "a":
             out[column] = values.astype(np.int16)
         else:
-            values = values.astype(np.float64)
+            with np.errstate(invalid="ignore", over="ignore"):   # damaged bytes: NaN, inf
+                values = values.astype(np.float64)
             mult = FORMATS[char][1]
             if mult is not None:  # pymavlink divides by 1/mult (more accurate than × mult)
                 values = values / (1 / mult) if 0.0 < mult < 1.0 else values * mult

@@ -77,3 +77,21 @@ def merge(streams: Sequence[Stream], metadata: Mapping[str, str], *,
     temp = columns.pop(TEMP, None)
     return Track.from_arrays(t, mag=mag, accel=accel, gyro=gyro, temp=temp, aux=columns,
                              metadata=metadata)
+
+
+def drop_nonfinite(streams: Sequence[Stream], meta: dict) -> list[Stream]:
+    """The streams without rows whose time or any value is NaN or infinite (damaged bytes of a
+    log decode to such values); the rows dropped are counted in ``meta["read_warnings"]``."""
+    out, dropped = [], []
+    for s in streams:
+        ok = np.isfinite(s.t)
+        for values in s.columns.values():
+            ok &= np.isfinite(values)
+        if not ok.all():
+            dropped.append(f"{int((~ok).sum())} {s.name}")
+            s = Stream(s.name, s.t[ok], {k: v[ok] for k, v in s.columns.items()})
+        out.append(s)
+    if dropped:
+        note = "dropped rows with non-finite values (damaged bytes): " + ", ".join(dropped)
+        meta["read_warnings"] = "; ".join(filter(None, (meta.get("read_warnings"), note)))
+    return out

@@ -1,7 +1,8 @@
 """PX4 ULog files (``.ulg``) → Track, read with :mod:`pyulog`.
 
-Magnetometer, from whichever of these topics (instance 0) has the most samples; ties go to the
-uncalibrated one:
+Magnetometer ``N`` (``--compass N``: the topics' multi-instance ``N``; default the first by
+CAL_MAGn_PRIO among the ``sensor_mag`` instances, else 0), from whichever of these topics has the
+most samples of that instance; ties go to the uncalibrated one:
 
 ===================== ============================= =========================================
 ``sensor_mag``        x, y, z (G), temperature (°C)  the driver's reading, not calibrated
@@ -22,9 +23,15 @@ Also: ``sensor_combined`` accelerometer_m_s2 / gyro_rad → ``ax..az``, ``gx..gz
 compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
 ``battery_voltage_v``.
 Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
+
+A log cut inside a message (a crash, a power cut) is read to its last complete message; pyulog
+skips a damaged stretch to the next sync marker or valid message. Both are said in
+``read_warnings``.
 """
 from __future__ import annotations
 
+import contextlib
+import io
 import struct
 from pathlib import Path
 
@@ -33,7 +40,7 @@ import numpy as np
 from ..errors import InputError
 from .autopilot_cal import UT_PER_GAUSS, px4_matrix, px4_offsets
 from .track import Track
-from .streams import Stream, merge
+from .streams import Stream, drop_nonfinite, merge
 from .attitude_streams import ulog_attitude
 
 MAGIC = b"ULog\x01\x12\x35"
@@ -47,41 +54,113 @@ def looks_like_ulog(head: bytes) -> bool:
     return head[:7] == MAGIC
 
 
-def _complete_until(path: Path) -> tuple[int, int]:
-    """(end of the last complete message, file size): pyulog stops silently at a cut message."""
-    data = path.read_bytes()
-    offset = HEADER_BYTES
+#: ULog message types (flag bits, format, info, info multiple, parameter, parameter default,
+#: subscription, unsubscription, data, logging, tagged logging, sync, dropout).
+MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
+
+
+def _framing(data: bytes) -> tuple[int, int, int]:
+    """``(end, skipped, runs)``: the end of the last complete message, and the bytes (in how
+    many runs) that do not start a message of a known type, stepped over one at a time as pyulog
+    resynchronises; pyulog itself says only that it did."""
+    offset, skipped, runs, in_run = HEADER_BYTES, 0, 0, False
+    end = offset
     while offset + 3 <= len(data):
-        size = struct.unpack_from("<H", data, offset)[0]
-        if offset + 3 + size > len(data):
-            break
-        offset += 3 + size
-    return offset, len(data)
+        size, kind = struct.unpack_from("<HB", data, offset)
+        if kind in MESSAGE_TYPES:
+            if offset + 3 + size > len(data):
+                break
+            offset += 3 + size
+            end, in_run = offset, False
+        else:
+            skipped += 1
+            runs += not in_run
+            offset, in_run = offset + 1, True
+    return end, skipped, runs
 
 
-def _load(path: Path, skip_bad_rows: bool):
+class _PaddedReads(io.BytesIO):
+    """The log's bytes for pyulog, as if the file went on past its end for relative seeks.
+
+    pyulog, on a damaged header near the end, reads the message size it announces and seeks back
+    by that size + 2 to advance one byte; a read cut short by the end of the file turns that
+    into a step backwards and an endless loop. Here a relative seek after a short read counts
+    from where the full read would have ended, so the step is one byte forward as intended."""
+
+    _virtual: int | None = None
+
+    def read(self, n=-1):
+        start = self.tell()
+        data = super().read(n)
+        self._virtual = start + n if n is not None and 0 <= len(data) < n else None
+        return data
+
+    def seek(self, offset, whence=0):
+        if whence == 1 and self._virtual is not None:
+            offset, whence = max(self._virtual + offset, 0), 0
+        self._virtual = None
+        return super().seek(offset, whence)
+
+
+def _load(path: Path):
     from pyulog import ULog  # imported only when a ULog is read
 
     try:
-        end, size = _complete_until(path)
+        data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-    if end < size and not skip_bad_rows:
-        raise InputError(f"{path}: ULog ends inside a message ({size - end} bytes after the last "
-                         f"complete message at byte {end}): the file is truncated or damaged "
-                         "(--skip-bad-rows reads the complete messages)")
+    end, skipped, runs = _framing(data)
+    chatter = io.StringIO()
     try:
-        ulog = ULog(str(path))
+        with contextlib.redirect_stdout(chatter):   # pyulog prints its warnings
+            ulog = ULog(_PaddedReads(data))
     except Exception as exc:  # pyulog raises assorted exception types on damaged bytes
         raise InputError(f"{path}: cannot read the ULog ({type(exc).__name__}: {exc})") from None
-    return ulog, size - end
+    return ulog, len(data) - end, (skipped, runs)
 
 
-def _topic(ulog, name: str):
-    found = [d for d in ulog.data_list if d.name == name]
+def _topic(ulog, name: str, instance: int | None = None):
+    """The data of topic ``name``: its multi-instance ``instance``, or the lowest one."""
+    found = [d for d in ulog.data_list if d.name == name
+             and (instance is None or d.multi_id == instance)]
     if not found:
         return None
     return min(found, key=lambda d: d.multi_id)
+
+
+def _mag_topics(ulog, instance: int | None = None) -> list:
+    """[(samples, uncalibrated, name, fields, calibrated, data)] of the magnetometer topics with
+    samples (of multi-instance ``instance`` when given)."""
+    out = []
+    for name, fields, calibrated in MAG_TOPICS:
+        for d in ulog.data_list:
+            if d.name != name or (instance is not None and d.multi_id != instance):
+                continue
+            if all(f in d.data for f in fields) and len(d.data["timestamp"]):
+                out.append((len(d.data["timestamp"]), not calibrated, name, fields, calibrated, d))
+    return out
+
+
+def compass_instances(ulog) -> list[int]:
+    """The magnetometer instances (topic multi-instances) with samples."""
+    return sorted({c[5].multi_id for c in _mag_topics(ulog)})
+
+
+def default_compass(ulog) -> int:
+    """The magnetometer PX4 uses first: the ``sensor_mag`` instance whose CAL_MAGn_PRIO is the
+    highest (the lowest instance on ties), else 0."""
+    params = ulog.initial_parameters
+    best = None
+    for d in sorted((d for d in ulog.data_list if d.name == "sensor_mag"),
+                    key=lambda d: d.multi_id):
+        if "device_id" not in d.data or not len(d.data["device_id"]):
+            continue
+        i = _cal_index(params, int(d.data["device_id"][0]))
+        prio = params.get(f"CAL_MAG{i}_PRIO", 0) if i is not None else 0
+        if best is None or prio > best[0]:
+            best = (prio, d.multi_id)
+    present = compass_instances(ulog)
+    return best[1] if best is not None and best[1] in present else (present or [0])[0]
 
 
 def _cal_index(params: dict, device_id) -> int | None:
@@ -129,13 +208,13 @@ def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndar
     return raw
 
 
-def _mag(ulog, path: Path, meta: dict) -> Stream:
-    candidates = []
-    for name, fields, calibrated in MAG_TOPICS:
-        d = _topic(ulog, name)
-        if d is not None and all(f in d.data for f in fields) and len(d.data["timestamp"]):
-            candidates.append((len(d.data["timestamp"]), not calibrated, name, fields, calibrated, d))
+def _mag(ulog, path: Path, meta: dict, instance: int) -> Stream:
+    candidates = _mag_topics(ulog, instance)
     if not candidates:
+        present = compass_instances(ulog)
+        if present:
+            raise InputError(f"{path}: no magnetometer {instance} in this log (magnetometers "
+                             f"with data: {', '.join(map(str, present))})")
         raise InputError(f"{path}: no magnetometer topic (looked for sensor_mag.x/y/z, "
                          "vehicle_magnetometer.magnetometer_ga, sensor_combined.magnetometer_ga; "
                          f"topics found: {', '.join(sorted({d.name for d in ulog.data_list}))})")
@@ -151,6 +230,8 @@ def _mag(ulog, path: Path, meta: dict) -> Stream:
     meta["mag_topic"] = f"{name} (instance {d.multi_id}, {len(t)} samples, gauss x100 = uT)"
     meta["mag_calibrated_by_px4"] = "yes" if calibrated else "no (driver reading)"
     device_id = int(d.data["device_id"][0]) if "device_id" in d.data else None
+    if device_id:
+        meta["compass_device_id"] = str(device_id)
     params = ulog.initial_parameters
     if calibrated:
         # the strength PX4's corrected field has: the scale of its calibration (--cal log)
@@ -226,16 +307,48 @@ def _battery(ulog, meta: dict) -> Stream | None:
     return Stream("battery_status", d.data["timestamp"] * 1e-6, cols) if cols else None
 
 
-def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
-    """Read a PX4 ``.ulg`` log into a Track (see the module docstring).
+def read_ulog(path, *, skip_bad_rows: bool = False, compass: int | None = None) -> Track:
+    """Read magnetometer ``compass`` (default: the one PX4 uses first) of a PX4 ``.ulg`` log
+    into a Track (see the module docstring).
 
-    Raises :class:`InputError` naming the file when it is truncated (unless ``skip_bad_rows``)
-    or has no magnetometer topic.
+    A cut or damaged log is read as far as it goes (``read_warnings`` says what was lost;
+    ``skip_bad_rows`` changes nothing for a log). Raises :class:`InputError` naming the file
+    when it has no magnetometer topic (or not that instance).
     """
     path = Path(path)
-    ulog, cut = _load(path, skip_bad_rows)
+    ulog, cut, skipped = _load(path)
+    with _damaged(path):
+        return _track(ulog, path, cut, default_compass(ulog) if compass is None else compass,
+                      skipped)
+
+
+def read_ulog_compasses(path, *, skip_bad_rows: bool = False) -> list[Track]:
+    """One Track per magnetometer instance of the log (the log is parsed once)."""
+    path = Path(path)
+    ulog, cut, skipped = _load(path)
+    with _damaged(path):
+        tracks = [_track(ulog, path, cut, i, skipped) for i in compass_instances(ulog) or [0]]
+        for track in tracks:
+            track.metadata["compass_default"] = str(default_compass(ulog))
+    return tracks
+
+
+@contextlib.contextmanager
+def _damaged(path: Path):
+    """InputError naming the file when pyulog parsed damaged definitions into fields of the
+    wrong type (a flipped byte in a format message makes ``device_id`` a string, …)."""
+    try:
+        yield
+    except (ValueError, TypeError, KeyError, IndexError, OverflowError) as exc:
+        raise InputError(f"{path}: the ULog's message definitions are damaged "
+                         f"({type(exc).__name__}: {exc})") from None
+
+
+def _track(ulog, path: Path, cut: int, instance: int, skipped=(0, 0)) -> Track:
     info = ulog.msg_info_dict
-    meta = {"sensor": "px4 magnetometer", "source": f"PX4 ULog {path.name}",
+    meta = {"sensor": f"px4 magnetometer (instance {instance})",
+            "source": f"PX4 ULog {path.name}", "compass_instance": str(instance),
+            "compasses_in_log": ",".join(map(str, compass_instances(ulog))),
             "input_format": "px4-ulog", "mag_unit": "uT",
             "units": "mx,my,mz uT (from gauss x100); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
                      "act_out* as logged by actuator_outputs; throttle 0..1; battery_current_a A; "
@@ -243,7 +356,7 @@ def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
     for key in ("ver_hw", "ver_sw", "sys_name"):
         if key in info:
             meta[f"px4_{key}"] = str(info[key]).strip() or "?"
-    streams = [_mag(ulog, path, meta)]
+    streams = [_mag(ulog, path, meta, instance)]
     meta["mag_axes"] = ("body frame (PX4 rotated it)" if meta["mag_calibrated_by_px4"] == "yes"
                         else "board frame of the driver (sensor_mag); body if SENS_BOARD_ROT = 0")
     for stream in (_imu(ulog), _actuators(ulog, meta), _throttle(ulog, meta), _battery(ulog, meta)):
@@ -255,11 +368,18 @@ def read_ulog(path, *, skip_bad_rows: bool = False) -> Track:
                 or name in ("CAL_MAG_PRIME", "CAL_MAG_COMP_TYP", "SENS_BOARD_ROT"):
             meta[f"param.{name}"] = f"{value:g}"
     if cut:
-        meta["read_warnings"] = f"truncated: {cut} trailing bytes ignored"
-    if ulog.file_corruption:
+        meta["read_warnings"] = (f"truncated: {cut} trailing bytes ignored (the log ends inside "
+                                 "a message; read to the last complete one)")
+    if ulog.file_corruption or skipped[0]:
+        count = (f": {skipped[0]} bytes in {skipped[1]} runs do not start a message"
+                 if skipped[0] else "")
         meta["read_warnings"] = (meta.get("read_warnings", "") + "; " if "read_warnings" in meta
-                                 else "") + "pyulog reports file corruption (some data skipped)"
+                                 else "") + f"Skipped damaged data (pyulog resynchronised{count})"
+    streams = drop_nonfinite(streams, meta)
+    if not len(streams[0].t):
+        raise InputError(f"{path}: no intact magnetometer sample ({meta['read_warnings']})")
     t0 = min(float(s.t.min()) for s in streams if len(s.t))
     meta["time_origin"] = f"ULog timestamp {t0:.6f} s is t = 0"
+    meta["log_t0_s"] = f"{t0:.6f}"
     meta["messages"] = ", ".join(f"{s.name} {len(s.t)}" for s in streams)
     return merge(streams, meta, t0=t0)

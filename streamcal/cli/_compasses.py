@@ -1,0 +1,167 @@
+"""``diagnose``/``report`` with ``--compass all``: each compass of an autopilot log diagnosed,
+then the compasses compared (SPEC §6; :mod:`streamcal.diagnosis.compass_consistency`)."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+from ..calibration import jsonable
+from ..errors import InsufficientDataError
+from ._common import _command, say_read_warnings
+
+
+def _diagnose_each(args, model) -> list[dict]:
+    """Per compass: ``{"instance", "device_id", "track", "diagnosis" (object or None),
+    "error", "autopilot_cal" (or None)}``; a compass the data cannot calibrate keeps its error."""
+    from ..diagnosis import diagnose
+    from ..errors import InputError
+    from ..inputs import autopilot_calibration, read_compasses
+
+    tracks = read_compasses(args.track)
+    say_read_warnings(args.track, tracks[0], _command(args))
+    out = []
+    for track in tracks:
+        md = track.metadata
+        entry = {"instance": int(md.get("compass_instance", 0)),
+                 "device_id": int(md["compass_device_id"]) if md.get("compass_device_id")
+                 else None, "track": track, "diagnosis": None, "error": None}
+        try:
+            entry["autopilot_cal"] = autopilot_calibration(track)
+        except InputError:
+            entry["autopilot_cal"] = None
+        kwargs = {}
+        if getattr(args, "cal", None):
+            from ._calarg import calibration_for
+
+            cal, source = calibration_for(args.cal, track)
+            kwargs = {"calibration": cal, "calibration_source": source}
+        try:
+            entry["diagnosis"] = diagnose(track, model=model, **kwargs)
+        except InsufficientDataError as exc:
+            entry["error"] = str(exc)
+        out.append(entry)
+    return out
+
+
+def _consistency(entries: list[dict]) -> list:
+    """Pairs under the autopilot's calibration (where every compass has one) and under
+    streamcal's (the diagnosed compasses)."""
+    from ..diagnosis.compass_consistency import compare_all, compass_field
+
+    pairs = []
+    for label, get in (("autopilot", lambda e: e["autopilot_cal"]),
+                       ("streamcal", lambda e: getattr(e["diagnosis"], "calibration", None))):
+        fields = [compass_field(e["track"], get(e), e["instance"],
+                                float(e["track"].metadata.get("log_t0_s", 0.0)))
+                  for e in entries if get(e) is not None]
+        pairs += compare_all(fields, label)
+    return pairs
+
+
+def _entry_json(e: dict) -> dict:
+    out = {"instance": e["instance"], "device_id": e["device_id"],
+           "diagnosis": e["diagnosis"].to_dict() if e["diagnosis"] is not None else None}
+    if e["error"]:
+        out["error"] = e["error"]
+    return out
+
+
+def _pair_line(p: dict) -> str:
+    def f(v, fmt=".3g"):
+        return "–" if v is None else format(v, fmt)
+
+    return (f"  {p['a']}–{p['b']}  {p['calibration']:<9} {f(p['angle_deg_median']):>8} "
+            f"{f(p['angle_deg_p95']):>8} {f(p['xy_angle_deg_median']):>10} "
+            f"{f(p['xy_angle_deg_p95']):>10} {f(p['fraction_inconsistent']):>12}   {p['n']}")
+
+
+def _table(pairs: list[dict]) -> str:
+    from ..diagnosis.compass_consistency import LIMITS_TEXT
+
+    table = ["consistency (angles in degrees between calibrated field vectors; horizontal: "
+             + (pairs[0]["xy_plane"] if pairs else "-") + ")",
+             "  pair calibration  median      p95  horiz med  horiz p95  inconsistent   n"]
+    table += [_pair_line(p) for p in pairs] or ["  (fewer than two compasses: nothing to compare)"]
+    table.append(f"limits: {LIMITS_TEXT}")
+    return "\n".join(table)
+
+
+def _text(entries: list[dict], pairs: list[dict], describe) -> str:
+    """One paragraph per compass (``describe(diagnosis)``), then the consistency table."""
+    parts = []
+    for e in entries:
+        head = f"compass {e['instance']}" + (f" (device id {e['device_id']})"
+                                              if e["device_id"] else "")
+        body = (describe(e["diagnosis"]) if e["diagnosis"] is not None
+                else f"no calibration: {e['error']}")
+        parts.append(f"{head}\n{body}")
+    return "\n\n".join(parts + [_table(pairs)])
+
+
+def _plots(directory, entries: list[dict], pairs) -> str:
+    """Each compass's figures into ``DIRECTORY/compass_N/``, the consistency figure into
+    ``DIRECTORY``; the line saying how many PNG files were written where."""
+    from pathlib import Path
+
+    from ..atomic import atomic_write_bytes
+    from ..report import write_diagnosis_plots
+    from ..report.figures_compasses import consistency_figure
+
+    written = []
+    for e in entries:
+        written += write_diagnosis_plots(e["diagnosis"], e["track"],
+                                         Path(directory) / f"compass_{e['instance']}",
+                                         reason=e["error"])
+    if pairs:
+        fig = consistency_figure(pairs)
+        path = Path(directory) / f"{fig.name}.png"
+        atomic_write_bytes(path, fig.png, mode=0o644)
+        written.append(path)
+    return f"plots: {len(written)} PNG files written to {Path(directory).resolve()}"
+
+
+def diagnose_all(args, model, describe=str) -> int:
+    """Print the per-compass diagnoses (``describe(diagnosis)`` each) and the consistency table
+    (or one JSON object); exit 1 when no compass could be calibrated."""
+    entries = _diagnose_each(args, model)
+    pairs = _consistency(entries)
+    dicts = [p.to_dict() for p in pairs]
+    plots = _plots(args.plots, entries, pairs) if getattr(args, "plots", None) else ""
+    if args.json:
+        from ..diagnosis.compass_consistency import LIMITS
+
+        print(json.dumps(jsonable({"compasses": [_entry_json(e) for e in entries],
+                                   "consistency": dicts, "consistency_limits": LIMITS}),
+                         allow_nan=False))
+    else:
+        print(_text(entries, dicts, describe))
+    if plots:
+        print(plots, file=sys.stderr if args.json else sys.stdout)
+    return 0 if any(e["diagnosis"] is not None for e in entries) else 1
+
+
+def report_all(args, model, output) -> int:
+    """Write the report of the compass the autopilot uses first, with a section comparing every
+    compass (``output``: a path or ``-``)."""
+    from ..report import write_report
+    from ..report.figures_compasses import compasses_section, consistency_figure
+    from ._output import check_output, messages_to
+
+    check_output(output)
+    entries = _diagnose_each(args, model)
+    pairs = _consistency(entries)
+    default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
+    first = next((e for e in entries if str(e["instance"]) == default), entries[0])
+    figure = consistency_figure(pairs) if pairs else None
+    section = compasses_section([_entry_json(e) for e in entries], pairs, figure)
+    out = write_report(output, first["track"], first["diagnosis"], reason=first["error"],
+                       intro=section, name=Path(args.track).name)
+    say = messages_to(out)
+    print(_table([p.to_dict() for p in pairs]), file=say)
+    print(f"report written to {out}", file=say)
+    if all(e["diagnosis"] is None for e in entries):
+        print(f"streamcal report: no calibration of any compass ({first['error']})",
+              file=sys.stderr)
+        return 1
+    return 0

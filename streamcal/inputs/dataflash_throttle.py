@@ -1,0 +1,77 @@
+"""The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with, where CURR does not log
+it: ``CTUN.ThO`` (0..1, 3.4 on) or ``CTUN.ThrOut`` (0..1000), else the motor outputs of ``RCOU``
+normalised by the PWM range (see :mod:`.dataflash`).
+
+Both take the parsed messages (``msgs.count``, ``msgs.has``, ``msgs.array``, ``msgs.params``) and
+``time_of(name)`` → the message type's times (s); they return a ``throttle`` Stream (0..1) and
+say in ``meta["throttle_source"]`` where it came from, or None.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .streams import Stream
+
+#: CURR.Throttle / ThrOut and CTUN.ThrOut run 0..1000 in the firmware versions that log them;
+#: CTUN.ThO runs 0..1.
+THROTTLE_FULL = 1000.0
+#: ArduCopter's default motor PWM range (µs) when MOT_PWM_MIN/MAX are 0 or not logged.
+MOTOR_PWM_US = (1000.0, 2000.0)
+#: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; above this is not PWM.
+PWM_MAX_US = 3000.0
+#: SERVOn_FUNCTION values of motors 1..8 (ArduPilot's SRV_Channel k_motor1..k_motor8).
+MOTOR_FUNCTIONS = range(33, 41)
+#: SERVOn_FUNCTION of a plane's throttle (k_throttle) and ArduPilot's default SERVOn_MIN/MAX.
+THROTTLE_FUNCTION = 70
+SERVO_PWM_US = (1100.0, 1900.0)
+
+
+def ctun_throttle(msgs, time_of, meta: dict) -> Stream | None:
+    """CTUN.ThO (0..1, 3.4 on) or CTUN.ThrOut (0..1000): the motors' throttle."""
+    for field_name, full in (("ThO", 1.0), ("ThrOut", THROTTLE_FULL)):
+        if msgs.count("CTUN") and msgs.has("CTUN", field_name):
+            values = msgs.array("CTUN", field_name) / full
+            if np.all(values == values[0]):
+                return None
+            meta["throttle_source"] = f"CTUN.{field_name}" + (
+                f" / {full:g}" if full != 1.0 else "") + " (0..1)"
+            return Stream("CTUN", time_of("CTUN"), {"throttle": values})
+    return None
+
+
+def _motor_channels(params: dict) -> tuple[list[int], str, float, float]:
+    """RCOU channel numbers of the motors, where they come from and their PWM range (µs): the
+    SERVOn_FUNCTION 33–40 motors over MOT_PWM_MIN/MAX; else a plane's throttle channel
+    (SERVOn_FUNCTION 70) over its SERVOn_MIN/MAX; else channels 1–4 (a quadcopter)."""
+    lo = float(params.get("MOT_PWM_MIN", 0) or MOTOR_PWM_US[0])
+    hi = float(params.get("MOT_PWM_MAX", 0) or MOTOR_PWM_US[1])
+    functions = {n: int(params.get(f"SERVO{n}_FUNCTION", -1)) for n in range(1, 33)}
+    motors = [n for n, f in functions.items() if f in MOTOR_FUNCTIONS]
+    if motors:
+        return motors, "SERVOn_FUNCTION 33-40", lo, hi
+    plane = [n for n, f in functions.items() if f == THROTTLE_FUNCTION]
+    if plane:
+        n = plane[0]
+        return ([n], f"SERVO{n}_FUNCTION 70, throttle",
+                float(params.get(f"SERVO{n}_MIN", 0) or SERVO_PWM_US[0]),
+                float(params.get(f"SERVO{n}_MAX", 0) or SERVO_PWM_US[1]))
+    return [1, 2, 3, 4], "channels 1-4 assumed (no SERVOn_FUNCTION logged: a quadcopter)", lo, hi
+
+
+def rcou_throttle(msgs, time_of, meta: dict) -> Stream | None:
+    """Mean motor output normalised by the PWM range, 0..1 (clipped)."""
+    if not msgs.count("RCOU"):
+        return None
+    channels, origin, lo, hi = _motor_channels(msgs.params)
+    names = [next((f for f in (f"C{n}", f"Ch{n}", f"Chan{n}") if msgs.has("RCOU", f)), None)
+             for n in channels]
+    names = [f for f in names if f is not None]
+    if not names:
+        return None
+    pwm = np.column_stack([msgs.array("RCOU", f) for f in names])
+    if hi <= lo or pwm.max() > PWM_MAX_US or np.all(pwm == pwm[0]):
+        return None
+    values = np.clip((pwm.mean(axis=1) - lo) / (hi - lo), 0.0, 1.0)
+    meta["throttle_source"] = (f"RCOU {','.join(names)} ({origin}): mean output, "
+                               f"(PWM - {lo:g}) / ({hi:g} - {lo:g}) clipped to 0..1")
+    return Stream("RCOU_throttle", time_of("RCOU"), {"throttle": values})
