@@ -87,7 +87,7 @@ def format_board_self_cal(info: dict) -> str:
         line = (f"  latest board fit 0x{fit['cal_id']:04X}: sphere R {fit['R']:.2f} uT, b [{b}] uT, "
                 f"{fit['n_fit']} samples, mean squared residual (1 - |u|^2/R^2)^2 {fit['fit_cost']:.5f}")
         if info["board_fit_vs_host"] is not None:
-            line += f"; differs from the host's calibration by {100 * info['board_fit_vs_host']:.2f} % (eq. 40)"
+            line += f"; differs from the host's calibration by {100 * info['board_fit_vs_host']:.2f} % (relative model error, eq. 40 of the paper)"
         else:
             line += "; the host has no calibration yet"
         lines.append(line)

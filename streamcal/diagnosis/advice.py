@@ -15,6 +15,11 @@ import numpy as np
 
 from ..units import display_unit
 
+#: A phrase that says what a tied residual is, the first time the summary names it.
+RESIDUAL_GLOSS = {"gravity_tied": "gravity-tied residual (each reading's direction tied to the "
+                                  "accelerometer's gravity)",
+                  "gyro_tied": "gyro-tied residual (each reading's direction carried by the "
+                               "gyro)"}
 #: How the heading error is estimated from an rms field error (``heading_error_deg["rule"]``).
 HEADING_RULE = ("heading error at worst: atan(rms / H), the angle a field error of the rms "
                 "turns the horizontal field H when it lies across it")
@@ -94,7 +99,7 @@ def summary(d) -> str:
         else:   # compared on the tied residual, from the model without it on that residual
             start = next(s["rms_before"] for s in d.ladder[1:]
                          if s["residual"] == last["residual"])
-            where = f" on the {last['residual'].replace('_', '-')} residual"
+            where = f" on the {RESIDUAL_GLOSS.get(last['residual'], last['residual'])}"
         shown = [float(f"{v:.3g}") for v in (start, last["rms"])]
         pct = 100.0 * (shown[1] / shown[0] - 1.0)   # of the two numbers as shown
         after = f"{shown[1]:.3g} {u}"

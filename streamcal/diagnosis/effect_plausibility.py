@@ -78,10 +78,11 @@ def implausible_effect(terms_thetas, u: np.ndarray, cov, r: float, sigmas=None,
         theta = np.concatenate([np.ravel(th) for _, th in terms_thetas]).astype(float)
         sd = np.asarray(sigmas, dtype=float)
         if not np.all(np.isfinite(sd)) or not np.all(sd > 0):
-            reasons.append("its θ is not determined (σ not finite)")
+            reasons.append("its parameters are not determined (their uncertainty is not finite)")
         else:
             chi2 = float(np.sum((theta / sd) ** 2))
             if not chi2 > len(theta):
-                reasons.append(f"its θ is not determined: Σ(θ/σ)² = {chi2:.3g} ≤ "
-                               f"{len(theta)} parameters")
+                reasons.append(f"its parameters are not determined: they lie within their own "
+                               f"uncertainty of zero (Σ(θ/σ)² = {chi2:.3g} for {len(theta)} "
+                               f"parameters)")
     return ("implausible: " + "; ".join(reasons)) if reasons else ""

@@ -18,7 +18,7 @@ from .figure_data import FigureData, unit_label
 #: the gravity reference's own error adds to that; the gyro-tied residual compares two samples,
 #: two components each (≈ 2 × floor, :mod:`streamcal.fitting.gyro_lag`).
 RESIDUAL_FAMILIES = {
-    "sensor": (f"{RESIDUAL_LABELS['sensor']} residual", "every direction free (eq. 41)",
+    "sensor": (f"{RESIDUAL_LABELS['sensor']} residual", "the reading's distance to the fitted surface",
                INLIER, 1.0),
     "gravity_tied": (f"{RESIDUAL_LABELS['gravity_tied']} residual",
                      "directions tied to gravity, includes the accelerometer's error",

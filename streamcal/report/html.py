@@ -163,7 +163,8 @@ def _floor_ratio(rms: float, residual: str, floor: float) -> str:
 
 
 _SCALES_NOTE = ("<p class=\"sub\">Each rms is on the residual named in its row, and is compared "
-                "with the rms before on that same residual. The sensor residual (eq. 41) is the "
+                "with the rms before on that same residual. The sensor residual (the autocalibration "
+                "paper's estimation error) is the "
                 "reading's distance to the fitted surface with every direction free; "
                 "misalignment and lag leave no trace there, so they are measured on the "
                 "gravity-tied residual (each direction tied to the accelerometer's gravity, "
