@@ -219,3 +219,27 @@ def test_priority_order_of_ardupilot_4(tmp_path):
     np.testing.assert_allclose(autopilot_calibration(first).b, -np.array(a) / 10.0)
     assert second.metadata["compass_params_index"] == "0"
     np.testing.assert_allclose(autopilot_calibration(second).b, -np.array(b) / 10.0)
+
+
+def test_a_calibration_of_compass_1_exports_as_compass_1(tmp_path, capsys):
+    """The tumbled log's compass 1, fitted, exports as COMPASS_OFS2_* (ArduPilot) — not as the
+    first compass's parameters, which would overwrite compass 0's calibration when loaded —
+    and as CAL_MAG1_* for PX4; a refinement against the autopilot's calibration too."""
+    path = tmp_path / "two.bin"
+    write_flight(path, [{"ofs": OFS[0]}, {"ofs": OFS[1], "err": ERR1}])
+    cal_path = tmp_path / "c1.json"
+    assert main(["fit", str(path), "--compass", "1", "-o", str(cal_path)]) == 0
+    from streamcal.calibration import Calibration
+
+    assert Calibration.load(cal_path).extra["compass_params_index"] == 1
+    for fmt, want, not_want in (("ardupilot", "COMPASS_OFS2_X,", "COMPASS_OFS_X,"),
+                                ("px4", "\tCAL_MAG1_XOFF\t", "CAL_MAG0_")):
+        out = tmp_path / f"c1.{fmt}"
+        assert main(["export", str(cal_path), "--format", fmt, "-o", str(out)]) == 0
+        text = out.read_text()
+        assert want in text and not_want not in text, text
+    capsys.readouterr()
+    refined = tmp_path / "r1.json"
+    assert main(["fit", str(path), "--compass", "1", "--cal", "autopilot", "-o",
+                 str(refined)]) == 0
+    assert Calibration.load(refined).extra["compass_params_index"] == 1

@@ -170,6 +170,7 @@ def run(args) -> int:
                 f"{exc} A vehicle that cannot be tumbled: --planar for one turning in the plane, "
                 "--heading DEG for a few still seconds at a known heading (with --lat/--lon/"
                 "--date or a GPS in the log).") from None
+    cal = _for_compass(cal, track)
     if args.output:
         cal.save(args.output)
     residual, sensor = "sensor", None
@@ -192,6 +193,15 @@ def run(args) -> int:
     return 0
 
 
+def _for_compass(cal, track):
+    """``cal`` marked with the autopilot compass it was fitted for (its parameter set), so that
+    ``export`` writes that compass's parameter names."""
+    from ..inputs.autopilot_cal import compass_slot
+
+    slot = compass_slot(track.metadata)
+    return cal.replace(extra={**dict(cal.extra or {}), **slot}) if slot else cal
+
+
 def _refine(args, track) -> int:
     """``fit TRACK --cal CAL [--add EFFECT …]``: :func:`streamcal.diagnosis.against.refine`."""
     from ..diagnosis.against import refine
@@ -207,7 +217,7 @@ def _refine(args, track) -> int:
         given, source = None, None   # the stated default a diagnosis without --cal holds
     else:
         given, source = calibration_for(args.cal, track)
-    cal = refine(track, given, args.add, calibration_source=source)
+    cal = _for_compass(refine(track, given, args.add, calibration_source=source), track)
     if args.output:
         cal.save(args.output)
     if args.json:

@@ -14,6 +14,8 @@ MOTCT 1, ``battery_current_a`` / ``motor_current`` / ``current`` (A) to MOTCT 2.
 """
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from ..calibration import Calibration
@@ -38,8 +40,26 @@ def apply_ardupilot(params: dict, r_mG: np.ndarray, c=None) -> np.ndarray:
     return f
 
 
+def slot_suffix(cal: Calibration) -> str:
+    """The parameter-set suffix of the compass ``cal`` was fitted for (``extra
+    ["compass_params_index"]``): "" for the first (``COMPASS_OFS_X``), "2", "3"."""
+    index = int((cal.extra or {}).get("compass_params_index", 0))
+    return "" if index == 0 else str(index + 1)
+
+
+def _named(params: dict, suffix: str) -> dict:
+    """The first compass's parameter names turned into those of parameter set ``suffix``
+    (``COMPASS_OFS2_X``, ``COMPASS_ORIENT2``; COMPASS_MOTCT is shared by all compasses)."""
+    if not suffix:
+        return params
+    return {re.sub(r"^COMPASS_(OFS|DIA|ODI|MOT)_", rf"COMPASS_\g<1>{suffix}_", name)
+            .replace("COMPASS_ORIENT", f"COMPASS_ORIENT{suffix}"): value
+            for name, value in params.items()}
+
+
 def export(cal: Calibration) -> tuple[str, list[str]]:
-    """(file text, notes on what ArduPilot cannot express)."""
+    """(file text, notes on what ArduPilot cannot express), in the parameter names of the
+    compass the calibration was fitted for."""
     corr = correction(cal)
     S, notes = corr.S, list(corr.not_expressed)
     rot, orient, more = mounting(cal, "ardupilot")
@@ -68,7 +88,10 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         params["COMPASS_MOTCT"] = motct
     if orient is not None:
         params["COMPASS_ORIENT"] = orient
-    lines = [f"# streamcal calibration for ArduPilot (first compass), {cal.created}",
+    suffix = slot_suffix(cal)
+    params = _named(params, suffix)
+    which = "first compass" if not suffix else f"compass {int(suffix) - 1}: COMPASS_*{suffix}_"
+    lines = [f"# streamcal calibration for ArduPilot ({which}), {cal.created}",
              "# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG",
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
              + ("" if corr.field_known else " (K's mean radius: field strength unknown)"),

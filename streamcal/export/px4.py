@@ -97,14 +97,18 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                      + ("battery_status instance 0 current in kA, G/kA" if comp_type == 2
                         else "throttle 0..1, G at full throttle")
                      + "; PX4 applies it only while armed)")
+    index = int((cal.extra or {}).get("compass_params_index", 0))
+    if index:   # the compass the calibration was fitted for keeps it in CAL_MAG<index>_*
+        params = {k.replace("CAL_MAG0_", f"CAL_MAG{index}_"): v for k, v in params.items()}
+        lines = [line.replace("CAL_MAG0", f"CAL_MAG{index}") for line in lines]
     lines.append("# Vehicle-Id\tComponent-Id\tName\tValue\tType")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
     lines += [f"1\t1\t{name}\t{fmt(value)}\t{FLOAT_TYPE}" for name, value in params.items()]
     if chosen is not None:
         lines.append(f"1\t1\tCAL_MAG_COMP_TYP\t{comp_type}\t{INT_TYPE}")
     if orient is not None:
-        lines.insert(2, f"# CAL_MAG0_ROT {orient}: the compass is mounted rotated "
+        lines.insert(2, f"# CAL_MAG{index}_ROT {orient}: the compass is mounted rotated "
                         f"({orientation_words(cal)}); PX4 applies it after the "
                         "offsets and scale")
-        lines.append(f"1\t1\tCAL_MAG0_ROT\t{orient}\t{INT_TYPE}")
+        lines.append(f"1\t1\tCAL_MAG{index}_ROT\t{orient}\t{INT_TYPE}")
     return "\n".join(lines) + "\n", notes

@@ -216,3 +216,18 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
     extra = {"source": source, "frame_rotation_Q": Q.tolist(), "note": "; ".join(notes)}
     return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),
                        method="px4_params", unit="uT", extra=extra)
+
+
+def compass_slot(metadata: dict) -> dict:
+    """``{"compass_params_index": i, "compass_instance": j}`` of an autopilot log's compass:
+    which parameter set the autopilot keeps its calibration in (ArduPilot 0 → ``COMPASS_OFS_*``,
+    1 → ``COMPASS_OFS2_*``, 2 → ``COMPASS_OFS3_*``; PX4 ``CAL_MAGi_*``) and which compass it
+    is; empty for a recording of one magnetometer."""
+    out = {}
+    if "compass_params_index" in metadata:
+        out["compass_params_index"] = int(metadata["compass_params_index"])
+    elif re.fullmatch(r"CAL_MAG\d+_", str(metadata.get("mag_cal_params", ""))):
+        out["compass_params_index"] = int(metadata["mag_cal_params"][7:-1])
+    if "compass_instance" in metadata:
+        out["compass_instance"] = int(metadata["compass_instance"])
+    return out
