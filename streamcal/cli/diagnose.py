@@ -74,21 +74,52 @@ def run(args: argparse.Namespace) -> int:
     if report is not None:
         written = report.write_diagnosis_plots(result, track, args.plots)
         plots = plots_written(args.plots, written)
-    local = reference_field(track, result.calibration, ref)
+    from ..fitting.attitude_reference import log_attitude_reference, log_location
+
+    place = ref or log_location(track)[0]
+    local = reference_field(track, result.calibration, place)
+    attitude = log_attitude_reference(track, ref, result.calibration)
     if args.json:
         out = result.to_dict()
         out["reference_field"] = local
-        from ..fitting.attitude_reference import log_attitude_reference
-        out.update(log_attitude_reference(track, ref, result.calibration))
+        out.update(attitude)
         print(json.dumps(jsonable(out), allow_nan=False))
         if plots:   # stdout stays one JSON object
             print(plots, file=sys.stderr)
         return 0
     print(_headline(result) + "\n\n" + _text(result) + held_text(result) + "\n\n"
-          + "\n".join(text_lines(local)))
+          + "\n".join(text_lines(local) + attitude_lines(attitude)))
     if plots:
         print(plots)
     return 0
+
+
+def attitude_lines(out: dict) -> list[str]:
+    """The attitude reference and the mounting found (``diagnose --json``'s
+    ``attitude_reference`` and ``orientation``) as text lines; none when the log has neither."""
+    lines = []
+    a = out.get("attitude_reference")
+    if a:
+        h = a.get("heading_error_deg") or {}
+
+        def pair(before, after, unit):
+            if before is None:
+                return "–"
+            return f"{before:.3g} {unit}" + ("" if after is None else f" → {after:.3g} {unit}")
+        lines += ["", f"attitude   the expected field (World Magnetic Model rotated by the logged "
+                      f"attitude) against the calibration in force → streamcal's fit: rms "
+                      f"{pair(a.get('rms_uT_before'), a.get('rms_uT_after'), 'µT')}, heading "
+                      f"error rms {pair(h.get('rms_before'), h.get('rms_after'), '°')}, p95 "
+                      f"{pair(h.get('p95_before'), h.get('p95_after'), '°')}"]
+        if a.get("reason"):
+            lines.append(f"           {a['reason']}")
+        if a.get("caveat"):
+            lines.append(f"           caveat: {a['caveat']}")
+    o = out.get("orientation")
+    if o:
+        lines.append(f"mounting   {o.get('name')} (ArduPilot {o.get('ardupilot')}, PX4 "
+                     f"{o.get('px4')})")
+    return lines
 
 
 def _headline(d) -> str:

@@ -25,8 +25,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
       diagnosis as before (used instead of fitting the base model).
     Then the plain words of :mod:`streamcal.diagnosis.advice`: ``next_step`` names the
     recording as ``recording`` (argv words; default its path) and a held calibration as
-    ``cal_arg``; ``location`` (:func:`streamcal.geomag.wmm_field`) gives the horizontal field
-    for ``heading_error_deg`` when the recording cannot.
+    ``cal_arg``; ``location`` (:func:`streamcal.geomag.wmm_field`; default the log's GPS
+    position and date when it has them) gives the horizontal field for ``heading_error_deg``.
 
     - otherwise :func:`streamcal.diagnosis.diagnosis.diagnose` (every keyword passed on,
       unchanged); when that refuses because the recording cannot determine a fresh fit, and
@@ -37,6 +37,14 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     d = _engine(track, model, calibration, calibration_source, kwargs)
     if recording is None:
         recording = [str(track.path) if getattr(track, "path", None) else "TRACK"]
+    if location is None:   # the log's own GPS position and date, when it has them
+        from ..errors import InputError
+        from ..fitting.attitude_reference import log_location
+
+        try:
+            location = log_location(track)[0]
+        except InputError:
+            location = None
     h, why = advice.horizontal_field(track, d.calibration, location)
     d.heading_error_deg = advice.heading_error(d, h)
     d.heading_error_reason = "" if d.heading_error_deg else why
