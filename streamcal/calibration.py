@@ -265,6 +265,13 @@ class Calibration:
         atomic_write_text(path, self.to_json() + "\n")
 
     @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: str = "<calibration>") -> "Calibration":
+        """The calibration :meth:`to_dict` (a calibration file's parsed JSON) describes,
+        validated as :meth:`load` does (``CalibrationFileError`` naming ``source`` and the key);
+        ``Calibration.from_dict(cal.to_dict()) == cal``."""
+        return _parse(data, source)
+
+    @classmethod
     def from_json(cls, text: str, source: str = "<calibration>") -> "Calibration":
         try:
             data = json.loads(text, parse_constant=_reject_constant)

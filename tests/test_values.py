@@ -124,6 +124,14 @@ def test_calibration_equality_ignores_the_created_stamp(fresh):
     assert later != cal.replace(rms=cal.rms * 1.001)
     again = streamcal.Calibration.from_json(later.to_json())
     assert again == cal
+    assert streamcal.Calibration.from_dict(later.to_dict()) == cal
+
+
+def test_calibration_from_dict_validates_like_load(fresh):
+    bad = fresh.calibration.to_dict()
+    bad["K"] = [[1.0, 0.0, 0.0], [1.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
+    with pytest.raises(streamcal.CalibrationFileError, match="here.json: key 'K'"):
+        streamcal.Calibration.from_dict(bad, source="here.json")
 
 
 def test_track_html_is_a_small_escaped_table():
@@ -158,6 +166,7 @@ def test_diagnosis_html_has_verdict_summary_and_the_ladder_with_n(fresh, held):
         assert d.verdict in text and "ladder" in text
         for step in d.ladder:
             assert f"<td>{step['n']}</td>" in text
+    assert "bench.json" in held._repr_html_() and ", ".join(held.held) in held._repr_html_()
     odd = fresh.replace(summary="a <b> & c")
     text = odd._repr_html_()
     assert "a &lt;b&gt; &amp; c" in text and "<b>" not in text

@@ -63,6 +63,10 @@ class HeldDiagnosis(Diagnosis):
     gyro_pinned: dict = field(default_factory=dict)
     gyro_link: dict = field(default_factory=dict)
 
+    def _html_rows(self, u: str) -> list[tuple[str, str]]:
+        return [*super()._html_rows(u), ("against", self.calibration_source),
+                ("held", ", ".join(self.held) or "none")]
+
     def to_dict(self) -> dict:
         out = self._held_dict()
         out["n_ranked"] = int(self.n_ranked or self.n)

@@ -10,9 +10,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..calibration import jsonable
+from ..units import quantity
 from ..values import html_table, same
 from . import candidates as cand
 from . import verdict as verdict_mod
+from .text import TOP, diagnosis_unit, short_repr, summary as summary_lines
 
 
 #: The keys of a diagnosis' JSON that say which samples its figures used (``sampling``).
@@ -149,18 +151,10 @@ class Diagnosis:
     def _repr_html_(self) -> str:
         """Jupyter's view: verdict, summary sentences, rms and floor with units, the ladder
         (each step with its n) and the top candidates; every text escaped."""
-        from ..units import quantity
-        from .text import TOP, diagnosis_unit
-
         u = diagnosis_unit(self)
-        floor = quantity(self.noise_floor, u, 4) if self.floor_known else "not measurable"
-        head = html_table([("verdict", self.verdict), ("model", ", ".join(self.model)),
-                           ("rms", f"{quantity(self.rms, u, 4)} ({self.residual} residual)"),
-                           ("noise floor", floor),
-                           ("samples", f"{self.n} ({self.n_outliers} outliers)")],
-                          caption=f"{type(self).__name__}")
+        head = html_table(self._html_rows(u), caption=f"{type(self).__name__}")
         steps = html_table(
-            [(s.get("added") or ", ".join(s["model"]), s["residual"],
+            [(f"+ {s['added']}" if s.get("added") else ", ".join(s["model"]), s["residual"],
               quantity(s["rms_before"], u, 4) if "rms_before" in s else "–",
               quantity(s["rms"], u, 4), s["n"], s["n_outliers"]) for s in self.ladder],
             header=("step", "residual", "rms before", "rms", "n", "outliers"), caption="ladder")
@@ -171,17 +165,20 @@ class Diagnosis:
             header=("effect", "residual", "rms before", "rms after", "n", "p", "evidence"),
             caption=f"candidates (top {min(TOP, len(self.candidates))} of "
                     f"{len(self.candidates)})")
-        summary = f"<p>{html.escape(self.summary)}</p>" if self.summary else ""
-        return f"<div>{head}{summary}{steps}{cands}</div>"
+        sentences = f"<p>{html.escape(self.summary)}</p>" if self.summary else ""
+        return f"<div>{head}{sentences}{steps}{cands}</div>"
+
+    def _html_rows(self, u: str) -> list[tuple[str, str]]:
+        """The label and value rows at the head of :meth:`_repr_html_` (``u``: sensor unit)."""
+        floor = quantity(self.noise_floor, u, 4) if self.floor_known else "not measurable"
+        return [("verdict", self.verdict), ("model", ", ".join(self.model)),
+                ("rms", f"{quantity(self.rms, u, 4)} ({self.residual} residual)"),
+                ("noise floor", floor), ("samples", f"{self.n} ({self.n_outliers} outliers)")]
 
     def __str__(self) -> str:
-        from .text import summary
-
-        return summary(self)
+        return summary_lines(self)
 
     def __repr__(self) -> str:
-        from .text import short_repr
-
         return short_repr(self)
 
     @property
