@@ -107,6 +107,10 @@ def test_to_dict_from_dict_round_trip(which, request):
     assert [c.effect for c in again.candidates] == [c.effect for c in d.candidates]
     assert again.candidates == d.candidates
     assert str(again) == str(d) and repr(again) == repr(d)
+    plain = d.to_dict()
+    kept = streamcal.Diagnosis.from_dict(plain)
+    plain["ladder"][0]["rms"] = -1.0                 # the value does not share the dict
+    assert kept == d
 
 
 def test_round_trip_of_a_diagnosis_with_no_floor(fresh):

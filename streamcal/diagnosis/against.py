@@ -67,7 +67,7 @@ class HeldDiagnosis(Diagnosis):
         return [*super()._html_rows(u), ("against", self.calibration_source),
                 ("held", ", ".join(self.held) or "none")]
 
-    def to_dict(self) -> dict:
+    def _json_fields(self) -> dict:
         out = self._held_dict()
         out["n_ranked"] = int(self.n_ranked or self.n)
         out["aux_channels"] = dict(self.aux_channels)
@@ -89,7 +89,7 @@ class HeldDiagnosis(Diagnosis):
         return out
 
     def _held_dict(self) -> dict:
-        out = super().to_dict()
+        out = super()._json_fields()
         out.update(held=list(self.held), estimated=self.estimated,
                    predicted_sigma=self.predicted_sigma, tolerance=self.tolerance, unit=self.unit,
                    calibration_source=self.calibration_source)

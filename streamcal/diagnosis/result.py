@@ -3,6 +3,7 @@ when its JSON content is, round-tripping through :meth:`Diagnosis.to_dict` and
 :meth:`Diagnosis.from_dict`, shown as HTML in Jupyter."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 import html
 from dataclasses import dataclass, field
@@ -108,8 +109,8 @@ class Diagnosis:
     def __eq__(self, other) -> bool:
         if not isinstance(other, Diagnosis):
             return NotImplemented
-        return type(self) is type(other) and same(jsonable(self.to_dict()),
-                                                   jsonable(other.to_dict()))
+        return type(self) is type(other) and same(jsonable(self._json_fields()),
+                                                   jsonable(other._json_fields()))
 
     __hash__ = None   # holds lists and dicts
 
@@ -127,7 +128,8 @@ class Diagnosis:
         """The diagnosis a :meth:`to_dict` (or the JSON of ``streamcal diagnose --json``)
         describes: a :class:`~streamcal.diagnosis.against.HeldDiagnosis` when it has ``held``.
         Null numbers come back as NaN; ``outliers``, ``calibration`` and the candidates' refits
-        are None (the JSON does not carry them)."""
+        are None (the JSON does not carry them). ``d`` is copied, not shared."""
+        d = copy.deepcopy(dict(d))
         for kind in _KINDS:
             if cls is not kind and issubclass(kind, cls) and kind.KEY in d:
                 return kind.from_dict(d)
@@ -209,6 +211,11 @@ class Diagnosis:
                 "significant": significant, "material": material}
 
     def to_dict(self) -> dict:
+        """The JSON content (plain containers of its own: changing them leaves the value as it
+        is)."""
+        return copy.deepcopy(self._json_fields())
+
+    def _json_fields(self) -> dict:
         return {"model": list(self.model), "n": self.n, "n_outliers": self.n_outliers,
                 "rms": self.rms,
                 "noise_floor": float(self.noise_floor) if self.floor_known else None,
