@@ -74,7 +74,8 @@ def canonical_form(A: np.ndarray, directions: np.ndarray | None = None):
 @dataclass(frozen=True, eq=False)
 class Calibration:
     """A fitted sensor model: a value. ``K`` and ``b`` are read-only arrays; two calibrations
-    are equal when their saved content (:meth:`to_dict`) is; the per-sample results
+    are equal (and hash equal) when their saved content (:meth:`to_dict`) is, but for the
+    ``created`` stamp: the same fit made twice is the same calibration. The per-sample results
     (``inliers``, ``weights``, ``directions``) travel with it but are neither saved nor compared.
 
     Attributes:
@@ -105,7 +106,7 @@ class Calibration:
     field: float | None = None
     method: str = "autocal"
     kernel: str | None = None
-    created: str = _field(default_factory=_utc_now)
+    created: str = _field(default_factory=_utc_now, compare=False)
     inliers: np.ndarray | None = _field(default=None, compare=False, repr=False)
     weights: np.ndarray | None = _field(default=None, compare=False, repr=False)
     directions: np.ndarray | None = _field(default=None, compare=False, repr=False)
@@ -119,10 +120,34 @@ class Calibration:
     def __eq__(self, other) -> bool:
         if not isinstance(other, Calibration):
             return NotImplemented
-        return self.to_dict() == other.to_dict()
+        return self._content() == other._content()
 
     def __hash__(self) -> int:
-        return hash(self.to_json(indent=None))
+        return hash(json.dumps(self._content(), allow_nan=False))
+
+    def _content(self) -> dict:
+        """What equality compares: :meth:`to_dict` without ``created``."""
+        out = self.to_dict()
+        out.pop("created")
+        return out
+
+    def _repr_html_(self) -> str:
+        """Jupyter's view: model, K and b, each effect's parameters, rms, n and outliers, all
+        with units; every text escaped."""
+        from .units import effect_params, quantity
+        from .values import html_table
+
+        u = self.unit
+        rows = [("model", ", ".join(self.model)), ("sensor", self.sensor),
+                *((f"K row {i + 1}", quantity(row, u, 5)) for i, row in enumerate(self.K)),
+                ("b", quantity(self.b, u, 5)),
+                *((name, effect_params(name, params, u)) for name, params in self.effects.items()),
+                ("rms", f"{quantity(self.rms, u, 4)} ({self.residual} residual)"
+                 if math.isfinite(self.rms) else "unknown"),
+                ("n", f"{self.n} samples, {self.n_outliers} outliers"),
+                ("coverage", "unknown" if self.coverage is None else f"{self.coverage:.0%}"),
+                ("method", self.method + (f", {self.kernel} kernel" if self.kernel else ""))]
+        return html_table(rows, caption="Calibration")
 
     @property
     def residual(self) -> str:
@@ -238,6 +263,13 @@ class Calibration:
     def save(self, path: str | os.PathLike) -> None:
         """Write the calibration file atomically (temp file, fsync, rename)."""
         atomic_write_text(path, self.to_json() + "\n")
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any], source: str = "<calibration>") -> "Calibration":
+        """The calibration :meth:`to_dict` (a calibration file's parsed JSON) describes,
+        validated as :meth:`load` does (``CalibrationFileError`` naming ``source`` and the key);
+        ``Calibration.from_dict(cal.to_dict()) == cal``."""
+        return _parse(data, source)
 
     @classmethod
     def from_json(cls, text: str, source: str = "<calibration>") -> "Calibration":

@@ -6,7 +6,7 @@ ladder on the samples its last model keeps, each winner refitted on every sample
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Sequence
+from typing import ClassVar, Sequence
 
 import numpy as np
 
@@ -21,7 +21,8 @@ from . import misfit as misfit_mod
 from . import story
 from . import verdict as verdict_mod
 from .aux_channels import channel_scores
-from .diagnosis import LADDER_STEPS, Diagnosis
+from .diagnosis import LADDER_STEPS
+from .result import Diagnosis
 from .effect_plausibility import implausible_effect, theta_sigmas
 from .held import TOLERANCE
 from .held_start import MIN_SAMPLES, HeldEval, HeldStart, default_calibration  # noqa: F401
@@ -29,20 +30,22 @@ from .rank_subset import RANK_MAX, rank_subset
 from .residuals import families
 
 
-@dataclass(repr=False)   # the short repr of Diagnosis, not every field
+@dataclass(frozen=True, eq=False, repr=False)   # the short repr of Diagnosis, not every field
 class HeldDiagnosis(Diagnosis):
-    """A :class:`~streamcal.diagnosis.diagnosis.Diagnosis` against a given (or default)
+    """A :class:`~streamcal.diagnosis.result.Diagnosis` against a given (or default)
     calibration: ``held`` names the parameters kept at their given values, ``estimated`` maps
     each re-estimated one to ``{"value", "sigma"}`` (sensor unit; σ from σ̂²(AᵀWA)⁻¹),
     ``predicted_sigma`` the Cramér–Rao error each had when chosen, ``tolerance`` the bound they
     were held to, ``calibration_source`` where the held values came from."""
+
+    #: The JSON key that marks a held diagnosis (for :meth:`Diagnosis.from_dict`).
+    KEY: ClassVar[str] = "held"
 
     held: list = field(default_factory=list)
     estimated: dict = field(default_factory=dict)
     predicted_sigma: dict = field(default_factory=dict)
     tolerance: float = float("nan")
     calibration_source: str = ""
-    unit: str = ""
     #: Samples the candidate refits (and ladder steps after the first) used; ``n`` when all.
     n_ranked: int = 0
     #: ``{channel: r}``: how closely the base model's residual (every sample) follows each
@@ -60,7 +63,11 @@ class HeldDiagnosis(Diagnosis):
     gyro_pinned: dict = field(default_factory=dict)
     gyro_link: dict = field(default_factory=dict)
 
-    def to_dict(self) -> dict:
+    def _html_rows(self, u: str) -> list[tuple[str, str]]:
+        return [*super()._html_rows(u), ("against", self.calibration_source),
+                ("held", ", ".join(self.held) or "none")]
+
+    def _json_fields(self) -> dict:
         out = self._held_dict()
         out["n_ranked"] = int(self.n_ranked or self.n)
         out["aux_channels"] = dict(self.aux_channels)
@@ -82,7 +89,7 @@ class HeldDiagnosis(Diagnosis):
         return out
 
     def _held_dict(self) -> dict:
-        out = super().to_dict()
+        out = super()._json_fields()
         out.update(held=list(self.held), estimated=self.estimated,
                    predicted_sigma=self.predicted_sigma, tolerance=self.tolerance, unit=self.unit,
                    calibration_source=self.calibration_source)
@@ -118,18 +125,16 @@ def _candidate(start: HeldStart, name: str, ref: HeldEval, ev: HeldEval, floor: 
     numbers = story.compare(ref, ev)
     term = ev.terms[-1]
     text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov, ref.inliers)
-    c = cand.Candidate(name, numbers.after, numbers.p_value, text, ev.p - ref.p,
-                       cand.is_significant(numbers.before, numbers.after, numbers.p_value, floor),
-                       ev.cal)
-    c.rms_before, c.residual, c.n = numbers.before, "sensor", numbers.n
-    c._evaluated, c._reference = ev, ref
-    c.implausible = implausible_effect(
+    implausible = implausible_effect(
         [(term, ev.fit.thetas[-1])], u_fit, cov, start.radius,
         theta_sigmas(ev.fit.estimated, name, term.n_params()),
         display_unit(start.unit) or "sensor units")
-    if c.implausible:
-        c.significant, c.evidence = False, f"{c.implausible}; {c.evidence}"
-    return c
+    significant = not implausible and cand.is_significant(numbers.before, numbers.after,
+                                                          numbers.p_value, floor)
+    return cand.Candidate(name, numbers.after, numbers.p_value,
+                          f"{implausible}; {text}" if implausible else text, ev.p - ref.p,
+                          significant, ev.cal, residual="sensor", rms_before=numbers.before,
+                          n=numbers.n, implausible=implausible, _evaluated=ev, _reference=ref)
 
 
 def _on_every_sample(start: HeldStart, c: cand.Candidate, ref: HeldEval,
@@ -175,10 +180,10 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         ref_r = current if idx is None else start.evaluate(
             list(zip(current.terms, current.fit.thetas)), current, idx)
         cur_ranked = _rank(start, ref_r, rest, floor, idx) if rest else []
-    steps = story.ladder(start.model, base, lambda ev: "sensor", added)
-    for c in added:
-        c.significant = cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor) \
-            and not c.implausible
+    steps, added = story.ladder(start.model, base, lambda ev: "sensor", added)
+    added = [c.replace(significant=cand.is_significant(c.rms_before, c.rms_after, c.p_value,
+                                                       floor) and not c.implausible)
+             for c in added]
     by_effect = {c.effect: c for c in added}
     ranked = [by_effect.get(c.effect, c) for c in ranked]
     verdict = verdict_mod.decide(steps[0]["rms"], "sensor", nf.floor, reliable, ranked)

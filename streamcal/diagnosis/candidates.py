@@ -37,10 +37,13 @@ its evidence adds what the gyro alone says.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
 import scipy.stats
+
+from ..values import fields_equal
 
 P_VALUE = 1e-6
 MIN_DROP = 0.10
@@ -49,15 +52,24 @@ ABOVE_FLOOR = 1.10
 CORE_PARAMS = {"hard_iron": 3, "scale": 3, "soft_iron": 6}
 
 
-@dataclass
+@dataclass(frozen=True, eq=False)
 class Candidate:
+    """One effect tried on top of a model: a value (:func:`dataclasses.replace` derives a
+    changed one). Equal when the fields a diagnosis' JSON carries are
+    (:func:`streamcal.values.same`: NaN equal to NaN): ``n_params``, the refit ``calibration``
+    and the engine's fitted models (``_evaluated``, ``_reference``) take no part in equality
+    and are not saved (``n_params`` is 0 after :meth:`from_dict`)."""
+
     effect: str
     rms_after: float
     p_value: float
     evidence: str
-    n_params: int = 0
+    #: Parameters the effect adds to the model it extends (not in the JSON, not compared).
+    n_params: int = field(default=0, compare=False)
+    #: Both tests of :func:`tests` pass: the effect is called missing (the JSON gives them apart,
+    #: ``significant`` the F test and ``material`` the drop).
     significant: bool = False
-    calibration: object = field(default=None, repr=False)
+    calibration: object = field(default=None, repr=False, compare=False)
     #: The residual family ``rms_after`` is on ("sensor", "gravity_tied", "gyro_tied") and the
     #: rms of the model without the effect on that same residual (None: the diagnosis' rms).
     residual: str = "sensor"
@@ -70,9 +82,35 @@ class Candidate:
     _evaluated: object = field(default=None, repr=False, compare=False)
     _reference: object = field(default=None, repr=False, compare=False)
 
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Candidate):
+            return NotImplemented
+        return fields_equal(self, other)
+
+    __hash__ = None   # equal values need not share a hash: they hold floats compared NaN-safe
+
+    def replace(self, **changes) -> "Candidate":
+        return dataclasses.replace(self, **changes)
+
     def to_dict(self) -> dict:
         return {"effect": self.effect, "rms_after": self.rms_after, "p_value": self.p_value,
                 "evidence": self.evidence, "n": int(self.n)}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Candidate":
+        """A candidate from its JSON (a diagnosis' ``candidates`` entry); null numbers → NaN.
+        The JSON's ``significant`` is the F test alone; ``significant`` here is that test and
+        ``material`` both (:func:`is_significant`)."""
+        def num(key):
+            v = d.get(key)
+            return float("nan") if v is None else float(v)
+
+        return cls(effect=d["effect"], rms_after=num("rms_after"), p_value=num("p_value"),
+                   evidence=d.get("evidence", ""),
+                   significant=bool(d.get("significant", False) and d.get("material", True)),
+                   residual=d.get("residual", "sensor"),
+                   rms_before=None if d.get("rms_before") is None else float(d["rms_before"]),
+                   n=int(d.get("n", 0)), implausible=d.get("implausible", ""))
 
 
 def n_global_params(cal) -> int:

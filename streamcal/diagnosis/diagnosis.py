@@ -3,7 +3,6 @@ effect is missing (docs/cli.md ``streamcal diagnose``)."""
 from __future__ import annotations
 
 import inspect
-from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
 import numpy as np
@@ -20,6 +19,7 @@ from . import misfit as misfit_mod
 from . import verdict as verdict_mod
 from .noise import noise_floor
 from .residuals import families, rms, sensor_residual
+from .result import Diagnosis
 from ..fitting.outlier_rule import outlier_mask, outlier_spans
 
 #: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
@@ -38,124 +38,6 @@ LADDER_STEPS = 3
 RESIDUAL_OF_KIND = dict(zip((None, "gravity", "gyro"), RESIDUALS))
 #: How each residual family is called in text and pictures.
 RESIDUAL_LABELS = {"sensor": "sensor", "gravity_tied": "gravity-tied", "gyro_tied": "gyro-tied"}
-
-
-@dataclass
-class Diagnosis:
-    """Result of :func:`diagnose`; ``to_dict`` gives the JSON of docs/cli.md plus ``ladder``,
-    ``noise``, ``residual_families``, ``residual``, ``candidate_baselines``,
-    ``outliers_model`` and ``n_outliers_model``. rms, noise_floor and rms_after in the sensor
-    unit.
-
-    Which residual each rms is on (``residual``: ``"sensor"``, eq. 41 with free directions;
-    ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnosis.candidates`): ``rms`` is
-    on ``residual`` (the base model's); each candidate's ``rms_after`` is on the residual named
-    in ``candidate_baselines[effect]``, beside ``rms_before``, the model without the effect on
-    that same residual — compare a candidate with its ``rms_before``, never with another
-    residual's rms. Each ladder step carries its ``residual`` and (after the first) the
-    ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual.
-
-    Outliers: ``n_outliers`` belongs with ``model`` and ``rms`` (docs/cli.md): the base model's
-    outliers, the complement of the samples its rms is over. ``outlier_spans``, the (N,) bool
-    mask ``outliers`` and its count ``n_outliers_model`` come from one model,
-    ``outliers_model``: the last magnetometer-only (sensor residual) model of the ladder — the
-    base model when the ladder added nothing. A missing effect makes the base model's residual
-    large wherever the effect is (e.g. far from T0): those are not outliers, so the spans are
-    drawn from the model that has the effect.
-    """
-
-    model: tuple[str, ...]
-    n: int
-    n_outliers: int
-    rms: float
-    noise_floor: float
-    verdict: str
-    candidates: list
-    outlier_spans: list
-    ladder: list = field(default_factory=list)
-    residual_families: dict = field(default_factory=dict)
-    noise: dict = field(default_factory=dict)
-    calibration: object = field(default=None, repr=False)
-    residual: str = "sensor"
-    outliers_model: tuple[str, ...] = ()
-    outliers: np.ndarray | None = field(default=None, repr=False)
-    n_outliers_model: int | None = None
-    #: False when the recording cannot measure the floor (``noise_floor`` is then NaN, null in
-    #: the JSON); ``noise_floor_reason`` says why.
-    noise_floor_reliable: bool = True
-    noise_floor_reason: str = ""
-    noise_floor_rule: str = field(default_factory=verdict_mod.floor_rule)
-    significance_rule: str = field(default_factory=verdict_mod.significance_rule)
-    #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
-    misfit: dict | None = None
-    #: Which samples the figures used (:mod:`streamcal.diagnosis.subsample`); None: every one.
-    sampling: dict | None = None
-    #: Plain sentences (:func:`streamcal.diagnosis.advice.summary`), the command they advise
-    #: (argv, None: nothing to do) and the heading error the ladder's first and last rms imply
-    #: (None: the horizontal field is unknown, ``heading_error_reason`` says why).
-    summary: str = ""
-    next_step: list | None = None
-    heading_error_deg: dict | None = None
-    heading_error_reason: str = ""
-
-    def __str__(self) -> str:
-        from .text import summary
-
-        return summary(self)
-
-    def __repr__(self) -> str:
-        from .text import short_repr
-
-        return short_repr(self)
-
-    @property
-    def floor_known(self) -> bool:
-        """A noise floor this recording measured (ratios to it may be shown)."""
-        return bool(self.noise_floor_reliable and np.isfinite(self.noise_floor))
-
-    def baseline(self, candidate) -> tuple[str, float]:
-        """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
-        on and the rms of the model without it on that residual (sensor unit)."""
-        before = candidate.rms_before
-        return candidate.residual, float(self.rms if before is None else before)
-
-    def candidate_baselines(self) -> dict:
-        """``{effect: {"residual": …, "rms_before": …}}`` for every candidate."""
-        out = {}
-        for c in self.candidates:
-            residual, before = self.baseline(c)
-            out[c.effect] = {"residual": residual, "rms_before": before}
-        return out
-
-    def candidate_dict(self, c) -> dict:
-        """A candidate's JSON: its residual, ``rms_before`` on it, and the two tests apart."""
-        residual, before = self.baseline(c)
-        significant, material = cand.tests(before, c.rms_after, c.p_value,
-                                           self.noise_floor if self.floor_known else np.nan)
-        return {**c.to_dict(), "residual": residual, "rms_before": before,
-                "significant": significant, "material": material}
-
-    def to_dict(self) -> dict:
-        return {"model": list(self.model), "n": self.n, "n_outliers": self.n_outliers,
-                "rms": self.rms,
-                "noise_floor": float(self.noise_floor) if self.floor_known else None,
-                "noise_floor_reliable": self.floor_known,
-                "noise_floor_reason": self.noise_floor_reason,
-                "noise_floor_rule": self.noise_floor_rule, "verdict": self.verdict,
-                "significance_rule": self.significance_rule, "misfit": self.misfit,
-                "candidates": [self.candidate_dict(c) for c in self.candidates],
-                "outlier_spans": self.outlier_spans, "residual": self.residual,
-                "candidate_baselines": self.candidate_baselines(),
-                "outliers_model": list(self.outliers_model or self.model),
-                "n_outliers_model": (self.n_outliers if self.n_outliers_model is None
-                                     else self.n_outliers_model),
-                "summary": self.summary, "next_step": self.next_step,
-                "heading_error_deg": self.heading_error_deg,
-                "heading_error_reason": self.heading_error_reason,
-                "ladder": self.ladder, "noise": self.noise,
-                "residual_families": self.residual_families,
-                **(self.sampling or {"samples_used": self.n, "samples_total": self.n,
-                                     "subsample_rule": "every sample"})}
 
 
 def _default_fitter(kernel: str) -> Callable:
@@ -361,7 +243,8 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
         out[0] = top = _candidate(ctx, top.effect, story.compare(ref, ev), top.evidence, ref, ev)
         if top.effect not in REGISTRATION_EFFECTS:
             break
-        top.evidence = _registration_text(ctx, model, base, top.effect, top.rms_before, ev)
+        out[0] = top.replace(evidence=_registration_text(ctx, model, base, top.effect,
+                                                         top.rms_before, ev))
         out.sort(key=lambda c: not c.significant)
     return out
 
@@ -369,12 +252,11 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
 def _candidate(ctx: _Context, name: str, numbers, text: str, ref: _Evaluated,
                ev: _Evaluated) -> cand.Candidate:
     """A ranked candidate from its :class:`~streamcal.diagnosis.story.Comparison`."""
-    c = cand.Candidate(name, numbers.after, numbers.p_value, text, ev.p - ref.p,
-                       cand.is_significant(numbers.before, numbers.after, numbers.p_value,
-                                           ctx.material_floor), ev.cal)
-    c.rms_before, c.n, c.residual = numbers.before, numbers.n, RESIDUAL_OF_KIND[ev.kind]
-    c._evaluated, c._reference = ev, ref
-    return c
+    return cand.Candidate(
+        name, numbers.after, numbers.p_value, text, ev.p - ref.p,
+        cand.is_significant(numbers.before, numbers.after, numbers.p_value, ctx.material_floor),
+        ev.cal, residual=RESIDUAL_OF_KIND[ev.kind], rms_before=numbers.before, n=numbers.n,
+        _evaluated=ev, _reference=ref)
 
 
 def _registration_text(ctx: _Context, model, base: _Evaluated, name: str, rms_before: float,
@@ -469,9 +351,10 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         # Effects that explained nothing significant alone are not retried (saves refits).
         rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
         cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
-    steps = story.ladder(model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added)
-    for c in added:   # the numbers the ladder shows, judged by the same rule
-        c.significant = cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor)
+    steps, added = story.ladder(model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added)
+    # the numbers the ladder shows, judged by the same rule
+    added = [c.replace(significant=cand.is_significant(c.rms_before, c.rms_after, c.p_value,
+                                                       floor)) for c in added]
     by_effect = {c.effect: c for c in added}
     ranked = [by_effect.get(c.effect, c) for c in ranked]
     sensor = None
@@ -498,4 +381,4 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used, "measured": nf.measured,
                "second_difference_corr": nf.d2_corr},
-        calibration=base.cal)
+        calibration=base.cal, unit=track.mag_unit)

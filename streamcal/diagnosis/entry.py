@@ -46,11 +46,10 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         except InputError:
             location = None
     h, why = advice.horizontal_field(track, d.calibration, location)
-    d.heading_error_deg = advice.heading_error(d, h)
-    d.heading_error_reason = "" if d.heading_error_deg else why
-    d.next_step = advice.next_step(d, list(recording), cal_arg)
-    d.summary = advice.summary(d)
-    return d
+    heading = advice.heading_error(d, h)
+    d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why)
+    d = d.replace(next_step=advice.next_step(d, list(recording), cal_arg))
+    return d.replace(summary=advice.summary(d))
 
 
 def _engine(track, model, calibration, calibration_source, kwargs):

@@ -50,8 +50,9 @@ def compare(ref, ev, mask: np.ndarray | None = None) -> Comparison:
     return Comparison(rms_over(ref, mask), rms_over(ev, mask), int(mask.sum()), p_value)
 
 
-def ladder(model, base, residual_of, added) -> list[dict]:
-    """The ladder's steps (SPEC §4 "One story") and, on each added candidate, the same numbers.
+def ladder(model, base, residual_of, added) -> tuple[list[dict], list]:
+    """``(steps, added)``: the ladder's steps (SPEC §4 "One story") and the added candidates
+    carrying the same numbers (new values; the candidates given are not changed).
 
     ``base``: the diagnosed model's evaluation; ``residual_of(ev)`` names an evaluation's
     residual; ``added``: the candidates in the order added, each with ``_evaluated`` (the model
@@ -62,17 +63,18 @@ def ladder(model, base, residual_of, added) -> list[dict]:
     n = int(keep.sum())
     steps = [{"model": list(model), "residual": residual_of(base), "rms": rms_over(base, keep),
               "n": n, "n_outliers": int((~np.asarray(base.inliers, bool)).sum())}]
-    names = list(model)
+    names, carried = list(model), []
     for c in added:
         ev, ref = c._evaluated, c._reference
         names.append(c.effect)
         step = compare(ref, ev, keep)
-        c.rms_before, c.rms_after, c.n, c.p_value = step.before, step.after, step.n, step.p_value
+        carried.append(c.replace(rms_before=step.before, rms_after=step.after, n=step.n,
+                                 p_value=step.p_value))
         steps.append({"model": list(names), "added": c.effect, "residual": residual_of(ev),
                       "rms": step.after, "rms_before": step.before, "n": n,
                       "n_outliers": int((~np.asarray(ev.inliers, bool)).sum()),
                       "p_value": step.p_value})
-    return steps
+    return steps, carried
 
 
 def change_percent(before: float, after: float) -> float | None:

@@ -254,12 +254,11 @@ def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODE
     sampling = {"samples_used": int(len(sub.mag)), "samples_total": int(sampler.samples_total),
                 "subsample_rule": sampler.rule(), "outlier_spans_over": "subsample"}
     spans_cal = _spans_calibration(d)
+    spans = d.outlier_spans
     if whole_spans and spans_cal is not None:
-        d.outlier_spans, n_out = _whole_spans(spans_cal, float(d.noise_floor),
-                                              sampler.recording())
+        spans, n_out = _whole_spans(spans_cal, float(d.noise_floor), sampler.recording())
         sampling.update(outlier_spans_over="recording", n_outliers_recording=n_out)
-    d.sampling, d.subsample = sampling, sub
-    return d
+    return d.replace(outlier_spans=spans, sampling=sampling, subsample=sub)
 
 
 def _spans_calibration(d):

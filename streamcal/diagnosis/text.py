@@ -1,5 +1,5 @@
 """The short summary ``print(diagnosis)`` shows: verdict, rms beside the noise floor, the
-top candidates (the full result is :meth:`~streamcal.diagnosis.diagnosis.Diagnosis.to_dict`;
+top candidates (the full result is :meth:`~streamcal.diagnosis.result.Diagnosis.to_dict`;
 the command line's tables are in :mod:`streamcal.cli.diagnose`)."""
 from __future__ import annotations
 

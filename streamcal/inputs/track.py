@@ -185,6 +185,29 @@ class Track:
         return (f"Track({name!r}, {len(self)} rows, {int(self.mag_rows.sum())} mag samples "
                 f"in {self.mag_unit}, columns {','.join(self.columns)})")
 
+    def _repr_html_(self) -> str:
+        """Jupyter's view: file, rows and samples per sensor, duration, columns, units; every
+        text escaped."""
+        from ..units import display_unit, quantity
+        from ..values import html_table
+
+        t = self.t
+        span = float(t[-1] - t[0]) if len(t) else 0.0
+        sensors = ", ".join(f"{int(self._rows(k).sum())} {k}" for k in ("mag", "accel", "gyro")
+                            if self.has(k))
+        rows = [("file", self.path.name if self.path else "(arrays)"),
+                ("samples", f"{len(self)} rows" + (f": {sensors}" if sensors else "")),
+                ("duration", quantity(span, "s", 4)),
+                ("columns", ", ".join(self.columns)),
+                ("units", ", ".join(["t s"] + [
+                    f"{k} {u}" for k, u in (("mag", display_unit(self.mag_unit) or "unknown"),
+                                            ("accel", display_unit(self.accel_unit) or "unknown"),
+                                            ("gyro", "rad/s"), ("temp", "°C"))
+                    if self.has(k)]))]
+        if self.skipped_rows:
+            rows.append(("skipped rows", self.skipped_rows))
+        return html_table(rows, caption="Track")
+
     @property
     def t(self) -> np.ndarray:
         """(N,) time of every row, seconds."""
