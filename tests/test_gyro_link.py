@@ -7,8 +7,8 @@ import pytest
 import streamcal
 from streamcal.calibration import Calibration
 from streamcal.cli.diagnose import held_text
-from streamcal.diagnosis.gyro_guard import P_GUARD
-from streamcal.diagnosis.held import TOLERANCE, field_radius
+from streamcal.diagnosis.held.gyro_guard import P_GUARD
+from streamcal.diagnosis.held.fit import TOLERANCE, field_radius
 from streamcal.fitting.gyro_rates import gyro_rates
 from streamcal.fitting.gyro_link import LinkPairs, link_fit
 from streamcal.inputs.track import Track
@@ -171,7 +171,7 @@ def test_guard_shift_is_the_conditional_move_of_a_gaussian():
     """With the sandwich equal to H⁻¹ (independent pairs), holding h at h₀ moves p by
     Σ_ph Σ_hh⁻¹ (h₀ − ĥ) (the conditional mean of a Gaussian); the guard's shift is minus that
     and its χ² that move over its own variance Σ_ph² / Σ_hh."""
-    from streamcal.diagnosis.gyro_guard import MATERIAL, held_check
+    from streamcal.diagnosis.held.gyro_guard import MATERIAL, held_check
     from streamcal.fitting.gyro_link import LinkFit
 
     rng = np.random.default_rng(3)

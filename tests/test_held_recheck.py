@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import streamcal
-from streamcal.diagnosis.held import field_radius
-from streamcal.diagnosis.effect_plausibility import BOUND
-from streamcal.diagnosis.effect_plausibility import implausible_effect
-from streamcal.diagnosis.held_check import SUSPICIOUS_SIGMAS, plausible_range
+from streamcal.diagnosis.held.fit import field_radius
+from streamcal.diagnosis.held.plausibility import BOUND
+from streamcal.diagnosis.held.plausibility import implausible_effect
+from streamcal.diagnosis.held.recheck import SUSPICIOUS_SIGMAS, plausible_range
 from streamcal.fitting.damped_lm import STATUSES
 from streamcal.inputs import autopilot_calibration, read_recording
 from streamcal.model.aux import AuxInterference

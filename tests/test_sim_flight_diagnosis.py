@@ -11,8 +11,8 @@ import pytest
 
 import streamcal
 from streamcal.cli import main
-from streamcal.diagnosis.held import field_radius
-from streamcal.diagnosis.held_check import SUSPICIOUS_SIGMAS, plausible_range
+from streamcal.diagnosis.held.fit import field_radius
+from streamcal.diagnosis.held.recheck import SUSPICIOUS_SIGMAS, plausible_range
 from streamcal.fitting.damped_lm import STATUSES
 from streamcal.inputs import autopilot_calibration, read_recording
 from streamcal.inputs.track import Track

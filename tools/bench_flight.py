@@ -12,7 +12,7 @@ samples). Timed (median of ``--repeats``, after one warm-up):
   before); both reported as median and min..max;
 * ``diagnose --cal autopilot``: :func:`streamcal.inputs.autopilot_calibration` and
   :func:`streamcal.diagnose` against it, as shipped (candidate refits on the cell × time
-  subsample of :mod:`streamcal.diagnosis.rank_subset`);
+  subsample of :mod:`streamcal.diagnosis.held.rank_subset`);
 * ``CLI``: one ``streamcal diagnose LOG --cal autopilot`` process, imports included (once);
 * the same with every candidate refitted on every sample (``rank_max`` = N: the way before);
 * baseline: ``fit_core`` (hard_iron, soft_iron, coverage check off: a flight is a slice) on the

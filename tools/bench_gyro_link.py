@@ -13,7 +13,7 @@ and with it switched off (the track's gyro columns removed): held vs gyro.
 calibration: what the gyro link did (``gyro_link`` of the diagnosis) and the time it took,
 beside the same diagnosis without gyro columns, in the same run.
 
-``--guard``: the guard of :mod:`streamcal.diagnosis.gyro_guard` on and off on three slices
+``--guard``: the guard of :mod:`streamcal.diagnosis.held.gyro_guard` on and off on three slices
 (every offset 2 µT off over 120 s at σ 0.4 µT — the case it was built for —, the same over
 300 s at σ 0.15 µT, and K_zz 1 µT off): what is pinned and its error from the truth in σ.
 """
@@ -64,7 +64,7 @@ def simulated(seeds, noises):
 
 
 def guard(seeds):
-    """The guard (streamcal/diagnosis/gyro_guard.py) on and off (P_GUARD = 0: never refuses):
+    """The guard (streamcal/diagnosis/held/gyro_guard.py) on and off (P_GUARD = 0: never refuses):
     what is pinned, its error from the truth in σ, and the guard's shift and p."""
     from streamcal.diagnosis import gyro_guard
 

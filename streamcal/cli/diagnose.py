@@ -174,7 +174,7 @@ def held_text(d) -> str:
 
 
 def _gyro_lines(d, unit: str) -> list[str]:
-    """Held parameters the gyro link pinned (:mod:`streamcal.diagnosis.gyro_pin`), or why not."""
+    """Held parameters the gyro link pinned (:mod:`streamcal.diagnosis.held.gyro_pin`), or why not."""
     link = getattr(d, "gyro_link", None) or {}
     if not link:
         return []
@@ -201,7 +201,7 @@ def _held_value(d, name: str, entry) -> str:
 
 
 def _recheck_lines(d, unit: str) -> list[str]:
-    """The re-check at the fitted point (:mod:`streamcal.diagnosis.held_check`) and how the
+    """The re-check at the fitted point (:mod:`streamcal.diagnosis.held.recheck`) and how the
     held fit ended."""
     lines = []
     status = getattr(d, "fit_status", None) or {}

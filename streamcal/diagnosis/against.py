@@ -1,6 +1,6 @@
 """Diagnose a recording against a calibration the user already holds (or a stated default),
 and refine that calibration with an effect: the held starting point
-(:class:`streamcal.diagnosis.held_start.HeldStart`) under the one story of
+(:class:`streamcal.diagnosis.held.start.HeldStart`) under the one story of
 :mod:`streamcal.diagnosis.story` (candidates on the samples the model with them keeps, the
 ladder on the samples its last model keeps, each winner refitted on every sample)."""
 from __future__ import annotations
@@ -20,13 +20,13 @@ from . import candidates as cand
 from . import misfit as misfit_mod
 from . import story
 from . import verdict as verdict_mod
-from .aux_channels import channel_scores
+from .held.aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS
 from .result import Diagnosis
-from .effect_plausibility import implausible_effect, theta_sigmas
-from .held import TOLERANCE
-from .held_start import MIN_SAMPLES, HeldEval, HeldStart, default_calibration  # noqa: F401
-from .rank_subset import RANK_MAX, rank_subset
+from .held.plausibility import implausible_effect, theta_sigmas
+from .held.fit import TOLERANCE
+from .held.start import MIN_SAMPLES, HeldEval, HeldStart, default_calibration  # noqa: F401
+from .held.rank_subset import RANK_MAX, rank_subset
 from .residuals import families
 
 
@@ -49,16 +49,16 @@ class HeldDiagnosis(Diagnosis):
     #: Samples the candidate refits (and ladder steps after the first) used; ``n`` when all.
     n_ranked: int = 0
     #: ``{channel: r}``: how closely the base model's residual (every sample) follows each
-    #: auxiliary channel alone (:func:`streamcal.diagnosis.aux_channels.channel_scores`), largest first.
+    #: auxiliary channel alone (:func:`streamcal.diagnosis.held.aux_channels.channel_scores`), largest first.
     aux_channels: dict = field(default_factory=dict)
     #: How the base (held) fit's LM loop ended: ``{"status", "iterations", "message"}``.
     fit_status: dict = field(default_factory=dict)
     #: Parameters held by the re-check at the fitted point
-    #: (:func:`streamcal.diagnosis.held_check.settle`), in order, each with the value and σ it
+    #: (:func:`streamcal.diagnosis.held.recheck.settle`), in order, each with the value and σ it
     #: had and why; and ``suspicious``: kept parameters (b without a calibration) that failed it.
     held_after_fit: list = field(default_factory=list)
     suspicious: dict = field(default_factory=dict)
-    #: Held parameters the gyro link pinned instead (:mod:`streamcal.diagnosis.gyro_pin`):
+    #: Held parameters the gyro link pinned instead (:mod:`streamcal.diagnosis.held.gyro_pin`):
     #: ``{name: {"value", "sigma", "held_value"}}``; ``gyro_link`` how that was decided.
     gyro_pinned: dict = field(default_factory=dict)
     gyro_link: dict = field(default_factory=dict)
@@ -80,7 +80,7 @@ class HeldDiagnosis(Diagnosis):
 
     def candidate_dict(self, c) -> dict:
         """As for a fresh diagnosis; an implausible candidate
-        (:func:`streamcal.diagnosis.effect_plausibility.implausible_effect`) is neither
+        (:func:`streamcal.diagnosis.held.plausibility.implausible_effect`) is neither
         significant nor material, and ``implausible`` says why."""
         out = super().candidate_dict(c)
         why = getattr(c, "implausible", "")
@@ -150,12 +150,12 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                      ladder: bool = True, calibration_source: str | None = None,
                      tolerance: float = TOLERANCE, rank_max: int = RANK_MAX) -> HeldDiagnosis:
     """Diagnose ``track`` relative to ``calibration`` (None: the stated default of
-    :func:`streamcal.diagnosis.held_start.default_calibration`), holding what the recording
-    does not determine (:class:`~streamcal.diagnosis.held_start.HeldStart` says how and when
+    :func:`streamcal.diagnosis.held.start.default_calibration`), holding what the recording
+    does not determine (:class:`~streamcal.diagnosis.held.start.HeldStart` says how and when
     it refuses). Registration effects (gravity- and gyro-tied) are not ranked here.
 
     With more than ``rank_max`` samples the candidates are ranked on the subsample of
-    :func:`streamcal.diagnosis.rank_subset.rank_subset` (every direction cell and stretch of
+    :func:`streamcal.diagnosis.held.rank_subset.rank_subset` (every direction cell and stretch of
     time kept; each candidate's ``n`` says how many samples its numbers are over); each effect
     the ladder adds is refitted on every sample, and the ladder is on every sample."""
     start = HeldStart(track, calibration, model=model, calibration_source=calibration_source,
@@ -168,28 +168,28 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     idx = rank_subset(m, base.fit.b, t, rank_max)
     base_r = base if idx is None else start.evaluate([], base, idx)
     ranked = _rank(start, base_r, _candidate_names(start, candidates), floor, idx)
-    added, current, cur_ranked = [], base, ranked
-    while ladder and cur_ranked and cur_ranked[0].significant and len(added) < LADDER_STEPS:
-        top = cur_ranked[0] if idx is None else _on_every_sample(start, cur_ranked[0], current,
-                                                                 floor)
-        if not top.significant:   # on every sample it no longer holds
-            break
-        added.append(top)
-        current = top._evaluated
-        rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
-        ref_r = current if idx is None else start.evaluate(
-            list(zip(current.terms, current.fit.thetas)), current, idx)
-        cur_ranked = _rank(start, ref_r, rest, floor, idx) if rest else []
-    steps, added = story.ladder(start.model, base, lambda ev: "sensor", added)
-    added = [c.replace(significant=cand.is_significant(c.rms_before, c.rms_after, c.p_value,
-                                                       floor) and not c.implausible)
-             for c in added]
-    by_effect = {c.effect: c for c in added}
-    ranked = [by_effect.get(c.effect, c) for c in ranked]
+    def current(added):   # the model the ladder has reached, fitted on every sample
+        return added[-1]._evaluated if added else base
+
+    def on_every_sample(top, added):
+        return top if idx is None else _on_every_sample(start, top, current(added), floor)
+
+    def rank_after(added, rest):
+        ev = added[-1]._evaluated
+        ref_r = ev if idx is None else start.evaluate(list(zip(ev.terms, ev.fit.thetas)), ev,
+                                                      idx)
+        return _rank(start, ref_r, rest, floor, idx)
+
+    added = story.climb(ranked, rank_after, max_steps=LADDER_STEPS if ladder else 0,
+                        on_every_sample=on_every_sample)
+    steps, added, ranked = story.tell(
+        start.model, base, lambda ev: "sensor", added, ranked,
+        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor)
+        and not c.implausible)
     verdict = verdict_mod.decide(steps[0]["rms"], "sensor", nf.floor, reliable, ranked)
     misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float), cov,
                                  start.gyro)
-    outliers = ~np.asarray(current.inliers, bool)
+    outliers = ~np.asarray(current(added).inliers, bool)
     pin, names = start.pin, start.names
     held = [p for p in names if p not in start.free and p not in pin.pinned] + [
         p for p in ("K_xx", "K_xy", "K_xz", "K_yy", "K_yz", "K_zz", "b_x", "b_y", "b_z")

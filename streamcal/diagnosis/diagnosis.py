@@ -340,23 +340,17 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
-    added, current, cur_model, cur_ranked = [], base, tuple(model), ranked
-    spans_from, spans_model = base, tuple(model)
-    while ladder and cur_ranked and cur_ranked[0].significant and len(added) < LADDER_STEPS:
-        top = cur_ranked[0]
-        added.append(top)
-        cur_model, current = (*cur_model, top.effect), top._evaluated
-        if not current.tied:
-            spans_from, spans_model = current, cur_model
-        # Effects that explained nothing significant alone are not retried (saves refits).
-        rest = [c.effect for c in cur_ranked[1:] if c.p_value < cand.P_VALUE]
-        cur_ranked = _rank(ctx, current, cur_model, rest) if rest else []
-    steps, added = story.ladder(model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added)
-    # the numbers the ladder shows, judged by the same rule
-    added = [c.replace(significant=cand.is_significant(c.rms_before, c.rms_after, c.p_value,
-                                                       floor)) for c in added]
-    by_effect = {c.effect: c for c in added}
-    ranked = [by_effect.get(c.effect, c) for c in ranked]
+
+    def rank_after(added, rest):
+        return _rank(ctx, added[-1]._evaluated, (*model, *(c.effect for c in added)), rest)
+
+    added = story.climb(ranked, rank_after, max_steps=LADDER_STEPS if ladder else 0)
+    spans = [(c._evaluated, (*model, *(a.effect for a in added[:k + 1])))
+             for k, c in enumerate(added) if not c._evaluated.tied]
+    spans_from, spans_model = spans[-1] if spans else (base, tuple(model))
+    steps, added, ranked = story.tell(
+        model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added, ranked,
+        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor))
     sensor = None
     if base.tied:   # judged on the residual the floor is for: the same calibration, free directions
         from .scales import sensor_rms

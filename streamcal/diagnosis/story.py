@@ -14,6 +14,7 @@ their fitted models here as *evaluations*: objects with ``rss`` (N,) squared res
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -75,6 +76,39 @@ def ladder(model, base, residual_of, added) -> tuple[list[dict], list]:
                       "n_outliers": int((~np.asarray(ev.inliers, bool)).sum()),
                       "p_value": step.p_value})
     return steps, carried
+
+
+def climb(ranked: list, rank_after: Callable, *, max_steps: int,
+          on_every_sample: Callable | None = None) -> list:
+    """The candidates the ladder adds, in order — the one loop of every starting point: while
+    the best of a ranking is significant (and, when ``on_every_sample(candidate, added so far)``
+    refits it on every sample, still is), add it and rank the rest on top of the model reached
+    with ``rank_after(added so far, effect names)``, at most ``max_steps`` times. Effects that explained
+    nothing significant alone (p ≥ :data:`~streamcal.diagnosis.candidates.P_VALUE`) are not
+    retried."""
+    added, current = [], ranked
+    while current and current[0].significant and len(added) < max_steps:
+        top = current[0]
+        if on_every_sample is not None:
+            top = on_every_sample(top, added)
+            if not top.significant:
+                break
+        added.append(top)
+        rest = [c.effect for c in current[1:] if c.p_value < cand.P_VALUE]
+        current = rank_after(added, rest) if rest else []
+    return added
+
+
+def tell(model, base, residual_of: Callable, added: list, ranked: list,
+         judge: Callable) -> tuple[list[dict], list, list]:
+    """``(steps, added, ranked)``: the :func:`ladder` of the ``added`` candidates, those
+    candidates with the ladder's numbers judged by ``judge(candidate) -> significant`` (the
+    same rule on the numbers shown), and the ranking with them in place of their first-round
+    selves."""
+    steps, added = ladder(model, base, residual_of, added)
+    added = [c.replace(significant=judge(c)) for c in added]
+    by_effect = {c.effect: c for c in added}
+    return steps, added, [by_effect.get(c.effect, c) for c in ranked]
 
 
 def change_percent(before: float, after: float) -> float | None:

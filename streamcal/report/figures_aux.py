@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..diagnosis.held import project
+from ..diagnosis.held.fit import project
 from ..model import TERMS, terms_from_params
 from .figure_common import RenderedFigure, png_bytes
 from .figure_data import unit_label

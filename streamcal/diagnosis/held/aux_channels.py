@@ -19,7 +19,7 @@ from typing import Mapping
 
 import numpy as np
 
-from ..model._common import aux_names
+from ...model._common import aux_names
 
 
 #: s is clipped at this percentile of |s| before scoring.

@@ -26,8 +26,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..fitting.entries import B_INDEX, K_INDEX
-from .held import HeldFit, jacobian, predicted_errors, project
+from ...fitting.entries import B_INDEX, K_INDEX
+from .fit import HeldFit, jacobian, predicted_errors, project
 
 #: A value further than this many of its own σ outside its plausible range is implausible.
 SUSPICIOUS_SIGMAS = 3.0

@@ -36,16 +36,16 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..constants import OUTLIER_WIDTHS
-from ..errors import InsufficientDataError, MissingColumnsError
-from ..fitting.gyro_lag import EXPLAINED
-from ..fitting.gyro_rates import gyro_rates
-from ..fitting.entries import entry, with_entries
-from ..fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
+from ...constants import OUTLIER_WIDTHS
+from ...errors import InsufficientDataError, MissingColumnsError
+from ...fitting.gyro_lag import EXPLAINED
+from ...fitting.gyro_rates import gyro_rates
+from ...fitting.entries import entry, with_entries
+from ...fitting.gyro_link import N_GYRO, LinkPairs, SpherePrior, link_fit, subset_errors
 from .gyro_guard import RULE as GUARD_RULE
 from .gyro_guard import disagreement, held_check
-from .held import jacobian, project
-from .residuals import rms
+from .fit import jacobian, project
+from ..residuals import rms
 
 #: Rule 1: link rms at most EXPLAINED (gyro_lag's rule: the gyro explains the rotation) × the
 #: no-rotation rms.

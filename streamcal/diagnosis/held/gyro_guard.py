@@ -30,7 +30,7 @@ from typing import Sequence
 import numpy as np
 from scipy.stats import chi2
 
-from ..fitting.gyro_link import NULL_RATIO, LinkFit, pseudo_inverse
+from ...fitting.gyro_link import NULL_RATIO, LinkFit, pseudo_inverse
 
 #: Significance of the shift test (1).
 P_GUARD = 0.003

@@ -28,10 +28,10 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..errors import InsufficientDataError
-from ..fitting.damped_lm import CONVERGED, Damping, damped_lm
-from ..fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry, shifted
-from .residuals import GN_ITERATIONS, closest_point
+from ...errors import InsufficientDataError
+from ...fitting.damped_lm import CONVERGED, Damping, damped_lm
+from ...fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry, shifted
+from ..residuals import GN_ITERATIONS, closest_point
 
 #: A parameter is re-estimated when its predicted (Cramér–Rao) standard error is below this
 #: fraction of the field radius r (0.5 % of r: 0.24 µT at 48 µT).

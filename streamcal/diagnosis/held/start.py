@@ -15,16 +15,16 @@ from typing import Sequence
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL, Calibration
-from ..errors import InputError, InsufficientDataError
-from ..fitting.entries import B_PARAMS
-from ..fitting.outlier_rule import outlier_mask, residual_width
-from ..model import REGISTRATION_EFFECTS, build_effects, terms_from_params
-from ..model.build import check_known
+from ...calibration import DEFAULT_MODEL, Calibration
+from ...errors import InputError, InsufficientDataError
+from ...fitting.entries import B_PARAMS
+from ...fitting.outlier_rule import outlier_mask, residual_width
+from ...model import REGISTRATION_EFFECTS, build_effects, terms_from_params
+from ...model.build import check_known
 from .gyro_pin import confirm, gyro_pin, pinned_model
-from .held import TOLERANCE, HeldFit, choose_free, core_params, field_radius, held_fit
-from .held_check import settle
-from .noise import noise_floor
+from .fit import TOLERANCE, HeldFit, choose_free, core_params, field_radius, held_fit
+from .recheck import settle
+from ..noise import noise_floor
 
 #: Fewest samples for any diagnosis against a calibration.
 MIN_SAMPLES = 30
@@ -99,7 +99,7 @@ def linear_start(term, s: np.ndarray, normal: np.ndarray, u: np.ndarray, cov,
 
 
 def _refuse_b(n: int, errors: dict, tol: float, unit: str, sigma: float) -> None:
-    from ..units import display_unit
+    from ...units import display_unit
 
     unit = display_unit(unit)
     worst = max(errors.get(name, np.inf) for name, _ in B_PARAMS)
