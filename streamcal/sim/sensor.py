@@ -12,25 +12,13 @@ matrix ``S = K Q`` (soft iron, scale, non-orthogonality) has a rotation ``Q`` th
 fit can tell from a frame misalignment, so the simulator draws ``K`` upper triangular and puts
 every rotation into ``mag_accel_misalignment``.
 
-Effect terms (magnitude = what the user passes to ``simulate(effects={name: magnitude})``; for
-3-vector parameters the magnitude is the Euclidean norm of a random direction, or pass the (3,)
-vector itself). Each effect declares how it is simulated (``simulated`` of its
-:class:`~streamcal.model.declaration.EffectDeclaration`: the truth parameters and the field it
-adds); the built-in ones:
-
-========================== ============================================ ==========================
-name                       term / physical effect                       magnitude
-========================== ============================================ ==========================
-``temperature_offset``     ``c (T − T0)``: b drifts with temperature    |c|, µT/°C
-``temperature_scale``      ``diag(s) (T − T0) u``: gain ×(1 + s(T−T0))  |s|, 1/°C
-``time_drift``             ``d (t − t0)``: b drifts with time           |d|, µT/s
-``aux_interference``       ``g (I − a0)``: field from a motor current   |g|, µT/A (sensor frame)
-``axis_nonlinearity``      ``a_i u_i³ / R²`` with ``R = F`` the field   |a|, dimensionless
-                           radius and u the undistorted reading
-``mag_accel_misalignment`` mag frame rotated from the accel/gyro frame: rotation angle, rad
-                           ``x = Rᵀ x_body`` (R: mag → accel)
-``time_lag``               mag sampled at ``t − τ`` but stamped ``t``    τ, s
-========================== ============================================ ==========================
+Effects: what the user passes to ``simulate(effects={name: magnitude})`` — for 3-vector
+parameters the Euclidean norm of a random direction, or the (3,) vector itself — and the field it
+adds are declared with each effect (``simulated`` of its
+:class:`~streamcal.model.declaration.EffectDeclaration`, in ``streamcal/model/effects/``; its
+``magnitude`` says what the number means). ``mag_accel_misalignment`` rotates the true
+directions (``x = Rᵀ x_body``, R: mag → accel) and ``time_lag`` samples the magnetometer at
+``t − τ`` but stamps it ``t`` (:mod:`.scenario`).
 
 Quantization and ranges are the MPU-9250's (``/work/shared/HARDWARE.md`` §3–§5): AK8963 16-bit
 4912/32760 µT/LSB, 14-bit 4912/8190 µT/LSB, ±4912 µT, times the fuse-ROM sensitivity
