@@ -84,18 +84,23 @@ def _drive(t):
     return np.array([-1.0, 0.0, 1.0, 0.0])[(np.asarray(t) // 3.0).astype(int) % 4]
 
 
-@pytest.fixture(scope="module")
-def track():
-    """A simulated tumble plus the toy's field, driven by the made-up column on every row."""
+def _with_coil(g):
+    """A simulated tumble plus the toy's field ``g (drive² − 0.5)``, driven by the made-up
+    column on every row."""
     sim = simulate(60.0, 21).track
     c = sim.columns
     t = c["t"]
     drive = _drive(t)
     mag = np.column_stack([c["mx"], c["my"], c["mz"]])
-    mag = mag + (drive ** 2 - 0.5)[:, None] * G_TRUE   # NaN on the IMU rows stays NaN
+    mag = mag + (drive ** 2 - 0.5)[:, None] * g   # NaN on the IMU rows stays NaN
     return Track.from_arrays(t, mag=mag, accel=np.column_stack([c["ax"], c["ay"], c["az"]]),
                              gyro=np.column_stack([c["gx"], c["gy"], c["gz"]]), temp=c["temp"],
                              aux={COLUMN: drive}, metadata=sim.metadata)
+
+
+@pytest.fixture(scope="module")
+def track():
+    return _with_coil(G_TRUE)
 
 
 @pytest.fixture(scope="module")
@@ -112,6 +117,7 @@ def seen(track, tmp_path_factory):
         out["diagnosis"] = d
         out["json"] = json.loads(json.dumps(d.to_dict()))
         out["html"] = render_html(track, d)
+        out["without"] = streamcal.diagnose(_with_coil(0.0 * G_TRUE))
         path = tmp_path_factory.mktemp("toy") / "coil.csv"
         track.write(path)
         out["path"] = path
@@ -144,6 +150,13 @@ def test_diagnose_names_the_toy_with_its_evidence(seen):
     names = [c.effect for c in d.candidates]
     assert "aux_interference" in names   # the same column as an ordinary aux channel
     assert d.candidates[names.index("aux_interference")].rms_after > 1.5 * top.rms_after
+
+
+def test_a_track_without_the_toys_field_does_not_call_it_missing(seen):
+    d = seen["without"]
+    toy = [c for c in d.candidates if c.effect == "coil_square"]
+    assert toy and not toy[0].significant            # tried, and not called missing
+    assert d.verdict == "at_noise_floor"
 
 
 def test_the_diagnose_json_carries_the_toy(seen):
