@@ -21,6 +21,9 @@ from .declaration import EffectDeclaration
 from .effects import BUILTIN
 
 _DECLARED: dict[str, EffectDeclaration] = {d.name: d for d in BUILTIN}
+#: Bumped by every change, so the views rebuild their tables only then (a fit asks them a few
+#: dozen times).
+_version = 0
 
 
 def declarations() -> tuple[EffectDeclaration, ...]:
@@ -49,7 +52,9 @@ def register(effect: EffectDeclaration) -> EffectDeclaration:
                          f"{effect.kind} effects need their own solver")
     if effect.name in _DECLARED:
         raise ValueError(f"effect {effect.name!r} is already declared")
+    global _version
     _DECLARED[effect.name] = effect
+    _version += 1
     return effect
 
 
@@ -57,8 +62,10 @@ def unregister(name: str) -> None:
     """Remove the registered effect ``name``; ValueError for a built-in one."""
     if any(d.name == name for d in BUILTIN):
         raise ValueError(f"effect {name!r} is built in and cannot be unregistered")
+    global _version
     declaration(name)
     del _DECLARED[name]
+    _version += 1
 
 
 @contextmanager
@@ -76,9 +83,14 @@ class NameView(Sequence):
 
     def __init__(self, select: Callable[[EffectDeclaration], bool]):
         self._select = select
+        self._cache: tuple[int, tuple[str, ...]] = (-1, ())
 
     def _names(self) -> tuple[str, ...]:
-        return tuple(d.name for d in _DECLARED.values() if self._select(d))
+        version, names = self._cache
+        if version != _version:
+            names = tuple(d.name for d in _DECLARED.values() if self._select(d))
+            self._cache = (_version, names)
+        return names
 
     def __getitem__(self, index):
         return self._names()[index]
@@ -115,12 +127,20 @@ class TableView(Mapping):
     def __init__(self, select: Callable[[EffectDeclaration], bool],
                  value: Callable[[EffectDeclaration], object]):
         self._select, self._value = select, value
+        self._cache: tuple[int, dict] = (-1, {})
 
     def _table(self) -> dict:
-        return {d.name: self._value(d) for d in _DECLARED.values() if self._select(d)}
+        version, table = self._cache
+        if version != _version:
+            table = {d.name: self._value(d) for d in _DECLARED.values() if self._select(d)}
+            self._cache = (_version, table)
+        return table
 
     def __getitem__(self, name):
         return self._table()[name]
+
+    def __contains__(self, name) -> bool:
+        return name in self._table()
 
     def __len__(self) -> int:
         return len(self._table())
