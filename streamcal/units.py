@@ -23,21 +23,6 @@ _DISPLAY = {"uT": "µT", "μT": "µT", "ut": "µT", "m/s2": "m/s²", "m/s^2": "m
 #: Significant digits of a number written for a reader.
 DIGITS = 3
 
-#: Units of effect parameters (docs/effects.md; ``{u}`` stands for the sensor unit). Angles are
-#: stored in
-#: radians and shown in degrees; seconds are shown with an SI prefix (``ms``, ``µs``).
-PARAM_UNITS: dict[tuple[str, str], str] = {
-    ("temperature_offset", "T0"): "°C", ("temperature_offset", "c"): "{u}/°C",
-    ("temperature_scale", "T0"): "°C", ("temperature_scale", "s"): "1/°C",
-    ("time_drift", "t0"): "s", ("time_drift", "d"): "{u}/s",
-    ("axis_nonlinearity", "R"): "{u}", ("axis_nonlinearity", "a"): "",
-    ("aux_interference", "a0"): "channel unit", ("aux_interference", "g"): "{u} per channel unit",
-    ("time_lag", "tau"): "s",
-    ("mag_accel_misalignment", "rotation"): "rad",
-    ("mag_accel_misalignment", "dip"): "rad",
-}
-
-
 def display_unit(unit: str | None) -> str:
     """The unit as a reader writes it: ``uT`` → ``µT``, ``m/s^2`` → ``m/s²``; others unchanged;
     "" for None and :data:`UNKNOWN`."""
@@ -54,8 +39,16 @@ def with_unit(text: str, unit: str | None) -> str:
 
 
 def param_unit(effect: str, param: str, sensor_unit: str = "uT") -> str:
-    """Display unit of parameter ``param`` of ``effect`` ("" when dimensionless or unknown)."""
-    return PARAM_UNITS.get((effect, param), "").replace("{u}", display_unit(sensor_unit))
+    """Display unit of parameter ``param`` of ``effect`` ("" when dimensionless or unknown): the
+    effect's declared ``units`` (:mod:`streamcal.model.effects`; ``{u}`` stands for the sensor
+    unit). Angles are stored in radians and shown in degrees; seconds are shown with an SI
+    prefix (``ms``, ``µs``)."""
+    # Imported here: the catalog loads every effect's term, which plain formatting never needs.
+    from .model.catalog import BY_NAME
+
+    info = BY_NAME.get(effect)
+    unit = info.units.get(param, "") if info is not None else ""
+    return unit.replace("{u}", display_unit(sensor_unit))
 
 
 def number(value: float, digits: int = DIGITS) -> str:

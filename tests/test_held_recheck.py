@@ -14,8 +14,8 @@ from streamcal.diagnosis.held.plausibility import implausible_effect
 from streamcal.diagnosis.held.recheck import SUSPICIOUS_SIGMAS, plausible_range
 from streamcal.fitting.damped_lm import STATUSES
 from streamcal.inputs import autopilot_calibration, read_recording
-from streamcal.model.aux import AuxInterference
-from streamcal.model.nonlinear import AxisNonlinearity
+from streamcal.model.effects.aux_interference import AuxInterference
+from streamcal.model.effects.axis_nonlinearity import AxisNonlinearity
 
 from .conftest import real_flight
 

@@ -44,12 +44,14 @@ import numpy as np
 import scipy.stats
 
 from ..values import fields_equal
+from ..model.catalog import CORE_EFFECTS
+from ..model.registry import declaration
 
 P_VALUE = 1e-6
 MIN_DROP = 0.10
 ABOVE_FLOOR = 1.10
-#: Global parameters of the core models.
-CORE_PARAMS = {"hard_iron": 3, "scale": 3, "soft_iron": 6}
+#: Global parameters of the core models (their declarations' ``n_params``).
+CORE_PARAMS = {name: int(declaration(name).n_params) for name in CORE_EFFECTS}
 
 
 @dataclass(frozen=True, eq=False)
@@ -161,15 +163,12 @@ def is_significant(rms: float, rms_after: float, p_value: float, floor: float) -
     return all(tests(rms, rms_after, p_value, floor))
 
 
-_SUBJECT = {"temperature_offset": "temp", "temperature_scale": "temp × reading",
-            "time_drift": "time", "axis_nonlinearity": "the cube of each axis reading"}
-
-
 def evidence(effect: str, term, s: np.ndarray, normal: np.ndarray, u: np.ndarray, cov,
              inliers: np.ndarray) -> str:
     """Sentence with the multiple correlation between the signed residual ``s`` (N,) and the
     normal component of the effect's term direction ``nᵀ ∂f/∂θ`` (N,P) — the score test's view
-    of how much of the residual the effect could explain."""
+    of how much of the residual the effect could explain; what the residual follows is the
+    effect's declared ``subject``."""
     if term is None:
         return ""
     theta = term.initial()
@@ -179,25 +178,18 @@ def evidence(effect: str, term, s: np.ndarray, normal: np.ndarray, u: np.ndarray
     coef, *_ = np.linalg.lstsq(A, y, rcond=None)
     sst = np.sum((y - y.mean()) ** 2)
     r = float(np.sqrt(max(0.0, 1 - np.sum((y - A @ coef) ** 2) / sst))) if sst > 0 else 0.0
-    subject = _SUBJECT.get(effect) or ", ".join(getattr(term, "channels", ())) or effect
+    subject = declaration(effect).evidence_subject(term)
     return f"residual follows {subject} (r={r:.2f})"
 
 
 def registration_evidence(effect: str, rms_before: float, rms_after: float, cal, unit: str,
                           kind: str = "gravity") -> str:
     """Sentence for a registration candidate: the tied rms (``kind`` "gravity" or "gyro") it is
-    compared with (the fit without the effect) and what the refit found."""
+    compared with (the fit without the effect) and what the refit found (the effect's declared
+    ``tied_evidence``)."""
     from ..units import display_unit
 
     text = f"{kind}-tied rms {rms_before:.3g} → {rms_after:.3g} {display_unit(unit)}"
     params = cal.effects.get(effect, {}) if cal is not None else {}
-    if effect == "mag_accel_misalignment" and "rotation" in params:
-        angle = np.degrees(np.linalg.norm(params["rotation"]))
-        text += f"; mag frame rotated {angle:.2f}° from the accel frame"
-    elif effect == "time_lag" and "tau" in params and kind == "gyro":
-        tau_ms = 1e3 * params["tau"]
-        text += (f"; direction changes {'lag' if tau_ms >= 0 else 'lead'} the gyro by "
-                 f"{abs(tau_ms):.1f} ms")
-    elif effect == "time_lag" and "tau" in params:
-        text += f"; mag lags the IMU by {1e3 * params['tau']:.1f} ms"
-    return text
+    detail = declaration(effect).tied_evidence
+    return text + (detail(params, kind) if detail is not None else "")

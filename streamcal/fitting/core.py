@@ -17,7 +17,7 @@ from ..calibration import DEFAULT_MODEL, Calibration, canonical_form, field_radi
 from ..errors import InputError, InsufficientDataError, UnknownEffectError
 from ..inputs.track import Track
 from ..model.build import build_effects, check_needs
-from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
+from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES, REGISTRATION_EFFECTS
 from ..units import with_unit
 from .outlier_rule import widened_inliers
 from .lm import estimation_error, optimal_directions
@@ -35,7 +35,6 @@ REFERENCE_METHODS = {
     "sphere_stream": ("sphere_stream", "fit_sphere_stream"),
 }
 METHODS = ("autocal", "l1_ellipsoid", "l2_ellipsoid") + tuple(REFERENCE_METHODS)
-REGISTRATION_EFFECTS = ("mag_accel_misalignment", "time_lag")
 MIN_SAMPLES = 12
 #: Readings whose spread is below this fraction of their size carry no calibration information.
 MIN_RELATIVE_SPREAD = 1e-9

@@ -82,7 +82,7 @@ from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from ..errors import InputError, InsufficientDataError
 from ..inputs.track import Track
 from ..model.build import TERMS, build_effects, check_known, check_needs, terms_from_params
-from ..model.registration_params import NAMES
+from ..model.catalog import REGISTRATION_EFFECTS
 from .core import fit_core
 from .damped_lm import damped_lm, lag_grid, search_lag, trimmed_cost
 from .gravity import GravityReference, gravity_reference
@@ -140,7 +140,7 @@ def registration_fit(track, model: Sequence[str], *, kernel: str = "cauchy",
     check_needs(names, track)
     if not track.has("accel") and track.has("gyro") and "mag_accel_misalignment" not in names:
         return gyro_lag_fit(track, names, kernel=kernel, tau=tau, initial=initial, rows=rows)
-    base_names = tuple(n for n in names if n not in NAMES)
+    base_names = tuple(n for n in names if n not in REGISTRATION_EFFECTS)
     fit_rot, fit_lag = "mag_accel_misalignment" in names, "time_lag" in names
     gref = gref if gref is not None else gravity_reference(track)
     start = _start(track, base_names, kernel, initial)

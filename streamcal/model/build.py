@@ -3,7 +3,7 @@
 Core effects (``hard_iron``, ``scale``, ``soft_iron``) live in ``K`` and ``b``; registration
 effects (``mag_accel_misalignment``, ``time_lag``) have their own solver
 (:mod:`streamcal.fitting.registration`). Every other catalog effect is a term object fulfilling
-:class:`streamcal.model.effect.Effect`.
+:class:`streamcal.model.effect.Effect`. The tables are views of the registry (:mod:`.registry`).
 """
 from __future__ import annotations
 
@@ -12,17 +12,7 @@ from typing import Iterable, Mapping
 import numpy as np
 
 from ..errors import MissingColumnsError, UnknownEffectError
-from .aux import AuxInterference
-from .catalog import BY_NAME, CORE_EFFECTS, EFFECT_NAMES
-from .drift import TimeDrift
-from .nonlinear import AxisNonlinearity
-from .registration_params import validate_registration_params
-from .thermal import TemperatureOffset, TemperatureScale
-
-#: Effect name → term class (the LM contract).
-TERMS = {cls.name: cls for cls in (TemperatureOffset, TemperatureScale, TimeDrift,
-                                   AuxInterference, AxisNonlinearity)}
-REGISTRATION_EFFECTS = ("mag_accel_misalignment", "time_lag")
+from .catalog import BY_NAME, CORE_EFFECTS, EFFECT_NAMES, REGISTRATION_EFFECTS, TERMS
 
 _GROUPS = {"accel": ("ax", "ay", "az"), "gyro": ("gx", "gy", "gz"), "temp": ("temp",)}
 
@@ -79,7 +69,7 @@ def validate_effect_params(effects: Mapping[str, Mapping]) -> None:
         if name in TERMS:
             TERMS[name].from_params(params)
         elif name in REGISTRATION_EFFECTS:
-            validate_registration_params(name, params)
+            BY_NAME[name].validate(params)
         elif name in CORE_EFFECTS:
             raise ValueError(f"{name}: a core effect has no parameters beyond K and b")
         else:

@@ -1,37 +1,24 @@
-"""The effect catalog of docs/effects.md: names (part of the interface), parameter counts and needs.
+"""The effect catalog of docs/effects.md as views of the registry (:mod:`.registry`): names
+(part of the interface), kinds and declarations, always current.
 
-``needs`` lists track columns; ``"aux"`` means at least one auxiliary channel, and
-``("gyro", "accel")`` in ``needs_any`` means either group of columns will do.
+``needs`` of a declaration lists track columns; ``"aux"`` means at least one auxiliary channel,
+and ``("gyro", "accel")`` in ``needs_any`` means either group of columns will do.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from .registry import NameView, TableView
 
-
-@dataclass(frozen=True)
-class EffectInfo:
-    name: str
-    meaning: str
-    n_params: str
-    needs: tuple[str, ...] = ()
-    needs_any: tuple[str, ...] = ()
-
-
-CATALOG: tuple[EffectInfo, ...] = (
-    EffectInfo("hard_iron", "constant offset b", "3"),
-    EffectInfo("scale", "per-axis gain only (diagonal K)", "3"),
-    EffectInfo("soft_iron", "full upper-triangular K: gains, soft iron, non-orthogonality", "6"),
-    EffectInfo("temperature_offset", "offset changes linearly with temperature", "3", ("temp",)),
-    EffectInfo("temperature_scale", "per-axis gain changes linearly with temperature", "3", ("temp",)),
-    EffectInfo("time_drift", "offset changes linearly with time", "3"),
-    EffectInfo("aux_interference", "field proportional to an auxiliary channel", "3 per channel", ("aux",)),
-    EffectInfo("axis_nonlinearity", "cubic term per axis", "3"),
-    EffectInfo("mag_accel_misalignment", "rotation between magnetometer and accelerometer frames",
-               "3 (+ dip)", ("accel",)),
-    EffectInfo("time_lag", "magnetometer samples lag the IMU clock", "1", (), ("gyro", "accel")),
-)
-
-EFFECT_NAMES: tuple[str, ...] = tuple(e.name for e in CATALOG)
+#: Every effect name, in catalog order.
+EFFECT_NAMES = NameView(lambda d: True)
 #: Effects carried by K and b themselves.
-CORE_EFFECTS = ("hard_iron", "scale", "soft_iron")
-BY_NAME = {e.name: e for e in CATALOG}
+CORE_EFFECTS = NameView(lambda d: d.kind == "core")
+#: Effects the gravity-/gyro-tied solver fits (:mod:`streamcal.fitting.registration`).
+REGISTRATION_EFFECTS = NameView(lambda d: d.kind == "registration")
+#: Effect name → term class (the LM contract of :mod:`.effect`).
+TERMS = TableView(lambda d: d.kind == "term", lambda d: d.term)
+#: Effect name → its :class:`~.declaration.EffectDeclaration`.
+BY_NAME = TableView(lambda d: True, lambda d: d)
+#: Effect name → plausibility bound (fraction of the field radius) of every term effect.
+PLAUSIBILITY_BOUNDS = TableView(lambda d: d.kind == "term", lambda d: d.bound)
+#: Effects the simulator can inject, in catalog order (:mod:`streamcal.sim`).
+SIMULATED_EFFECTS = NameView(lambda d: d.simulated is not None)

@@ -52,24 +52,19 @@ _SCRIPT = """
 })();
 """
 
-#: What a parameter's number means, beside its unit (:func:`streamcal.units.param_unit`).
-_PARAM_NOTES = {
-    ("axis_nonlinearity", "a"): "dimensionless (of (m/R)³)",
-    ("mag_accel_misalignment", "rotation"): "rotation vector, mag frame to accel frame",
-    ("mag_accel_misalignment", "dip"): "angle between the field and down",
-}
-
-
 def _param_cells(effect: str, key: str, value, unit: str) -> tuple[str, str]:
     """(value, unit) cells of an effect parameter: the units and scaling of
-    :mod:`streamcal.units` (seconds as ms/µs, radians as degrees), 4 significant digits."""
+    :mod:`streamcal.units` (seconds as ms/µs, radians as degrees), 4 significant digits, and
+    what the number means when the effect declares it (its ``notes``)."""
+    from ..model.catalog import BY_NAME
     from ..units import param_unit, scaled
 
     try:
         values, shown = scaled(value, param_unit(effect, key, unit))
     except (TypeError, ValueError):
         return _e(value), ""
-    note = _PARAM_NOTES.get((effect, key))
+    info = BY_NAME.get(effect)
+    note = info.notes.get(key) if info is not None else None
     shown = f"{shown} ({note})" if note and shown else (note or shown)
     return (_vec(values) if np.ndim(values) else _num(values)), _e(shown)
 

@@ -20,7 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from ..errors import InputError, UnknownEffectError
 from ..inputs.track import Track
-from ..model.catalog import CORE_EFFECTS, EFFECT_NAMES
+from ..model.catalog import BY_NAME, CORE_EFFECTS, EFFECT_NAMES, SIMULATED_EFFECTS
+from ..model.declaration import SimEnvironment
 from . import sensor
 from .motion import COVERAGES, hand_motion
 
@@ -190,7 +191,8 @@ def simulate(duration_s: float = 300.0, seed: int = 0, effects: Mapping[str, Any
     x = R_mis.inv().apply(x_body)
     u = x @ K.T
     temp_mag, current_mag = temp_of(t_mag_sample), current_of(t_mag_sample)
-    clean = u + b + sensor.effect_terms(u, t_mag_sample, temp_mag, current_mag, params)
+    clean = u + b + sensor.effect_terms(
+        u, {"t": t_mag_sample, "temp": temp_mag, "motor_current": current_mag}, params)
     spans, disturbance_world = _bursts(duration_s, outlier_bursts, burst_uT, r_bursts)
     d_mag = R_mis.inv().apply(rot_mag.inv().apply(disturbance_world(t_mag_sample)))
     disturbance = d_mag @ K.T / field_uT
@@ -233,10 +235,17 @@ def _check_args(duration_s, effects, mag_bits, coverage, temp_profile, motor, ma
         if name not in EFFECT_NAMES:
             raise UnknownEffectError(f"simulate: unknown effect {name!r}; known: "
                                      f"{', '.join(sensor.SIM_EFFECTS)}")
-    if "aux_interference" in effects and not motor:
-        raise InputError("simulate: 'aux_interference' needs motor=True (the motor_current column)")
-    if "time_lag" in effects and not abs(float(effects["time_lag"])) <= 0.5:
-        raise InputError(f"simulate: time_lag must be within ±0.5 s, found {effects['time_lag']!r}")
+        if name not in SIMULATED_EFFECTS:
+            raise InputError(f"simulate: effect '{name}' declares no simulator truth; "
+                             f"simulated: {', '.join(SIMULATED_EFFECTS)}")
+    for name in effects:  # after the names: an unknown name is reported first
+        info = BY_NAME[name]
+        if "aux" in info.needs and not motor:
+            raise InputError(f"simulate: '{name}' needs motor=True (the motor_current column)")
+        limit = info.simulated.limit
+        if limit is not None and not abs(float(effects[name])) <= limit:
+            raise InputError(f"simulate: {name} must be within ±{limit:g} "
+                             f"{info.simulated.limit_unit}, found {effects[name]!r}")
     if mag_bits not in sensor.MAG_LSB_UT:
         raise InputError(f"simulate: mag_bits must be 14 or 16, found {mag_bits!r}")
     if coverage not in COVERAGES:
@@ -258,36 +267,22 @@ def _check_K(K) -> np.ndarray:
 
 
 def _effect_params(effects: Mapping, rng: np.random.Generator, field_uT, dip_deg, motor) -> dict:
-    """Truth parameters in the calibration-file layout of :mod:`streamcal.model`. One random
-    direction is drawn per catalog effect in catalog order, switched on or not, so each effect's
-    parameters do not depend on which other effects are on."""
-    draws = {name: rng.standard_normal(3) for name in sensor.VECTOR_EFFECTS}
+    """Truth parameters in the calibration-file layout of :mod:`streamcal.model`, from each
+    effect's declared ``simulated.params``. One random direction is drawn per simulated vector
+    effect in catalog order, switched on or not, so each effect's parameters do not depend on
+    which other effects are on."""
+    vector = [n for n in SIMULATED_EFFECTS if BY_NAME[n].simulated.draw == "vector"]
+    draws = {name: rng.standard_normal(3) for name in vector}
     vec = {name: (np.asarray(effects[name], dtype=float) if np.ndim(effects[name]) else
                   float(effects[name]) * draws[name] / np.linalg.norm(draws[name]))
-           for name in effects if name in sensor.VECTOR_EFFECTS}
+           for name in effects if name in vector}
     for name, v in vec.items():
         if v.shape != (3,):
             raise InputError(f"simulate: effect '{name}' takes a magnitude or 3 numbers, "
                              f"found {effects[name]!r}")
-    out: dict[str, dict] = {}
-    if "temperature_offset" in vec:
-        out["temperature_offset"] = {"T0": T0_C, "c": vec["temperature_offset"].tolist()}
-    if "temperature_scale" in vec:
-        out["temperature_scale"] = {"T0": T0_C, "s": vec["temperature_scale"].tolist()}
-    if "time_drift" in vec:
-        out["time_drift"] = {"t0": T0_S, "d": vec["time_drift"].tolist()}
-    if "aux_interference" in vec:
-        out["aux_interference"] = {"channels": {"motor_current": {
-            "a0": 0.0, "g": vec["aux_interference"].tolist()}}}
-    if "axis_nonlinearity" in vec:
-        out["axis_nonlinearity"] = {"R": float(field_uT), "a": vec["axis_nonlinearity"].tolist()}
-    if "mag_accel_misalignment" in vec:
-        # "dip" as streamcal.fitting.registration defines it: angle between field and down (rad).
-        out["mag_accel_misalignment"] = {"rotation": vec["mag_accel_misalignment"].tolist(),
-                                         "dip": float(np.pi / 2 - np.radians(dip_deg))}
-    if "time_lag" in effects:
-        out["time_lag"] = {"tau": float(effects["time_lag"])}
-    return out
+    env = SimEnvironment(field_uT=float(field_uT), dip_deg=float(dip_deg), T0_C=T0_C, t0_s=T0_S)
+    return {name: BY_NAME[name].simulated.params(vec[name] if name in vec else effects[name], env)
+            for name in SIMULATED_EFFECTS if name in effects}
 
 
 def _clock(duration_s: float, rate_hz: float, rng: np.random.Generator):

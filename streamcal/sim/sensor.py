@@ -12,23 +12,13 @@ matrix ``S = K Q`` (soft iron, scale, non-orthogonality) has a rotation ``Q`` th
 fit can tell from a frame misalignment, so the simulator draws ``K`` upper triangular and puts
 every rotation into ``mag_accel_misalignment``.
 
-Effect terms (magnitude = what the user passes to ``simulate(effects={name: magnitude})``; for
-3-vector parameters the magnitude is the Euclidean norm of a random direction, or pass the (3,)
-vector itself):
-
-========================== ============================================ ==========================
-name                       term / physical effect                       magnitude
-========================== ============================================ ==========================
-``temperature_offset``     ``c (T − T0)``: b drifts with temperature    |c|, µT/°C
-``temperature_scale``      ``diag(s) (T − T0) u``: gain ×(1 + s(T−T0))  |s|, 1/°C
-``time_drift``             ``d (t − t0)``: b drifts with time           |d|, µT/s
-``aux_interference``       ``g (I − a0)``: field from a motor current   |g|, µT/A (sensor frame)
-``axis_nonlinearity``      ``a_i u_i³ / R²`` with ``R = F`` the field   |a|, dimensionless
-                           radius and u the undistorted reading
-``mag_accel_misalignment`` mag frame rotated from the accel/gyro frame: rotation angle, rad
-                           ``x = Rᵀ x_body`` (R: mag → accel)
-``time_lag``               mag sampled at ``t − τ`` but stamped ``t``    τ, s
-========================== ============================================ ==========================
+Effects: what the user passes to ``simulate(effects={name: magnitude})`` — for 3-vector
+parameters the Euclidean norm of a random direction, or the (3,) vector itself — and the field it
+adds are declared with each effect (``simulated`` of its
+:class:`~streamcal.model.declaration.EffectDeclaration`, in ``streamcal/model/effects/``; its
+``magnitude`` says what the number means). ``mag_accel_misalignment`` rotates the true
+directions (``x = Rᵀ x_body``, R: mag → accel) and ``time_lag`` samples the magnetometer at
+``t − τ`` but stamps it ``t`` (:mod:`.scenario`).
 
 Quantization and ranges are the MPU-9250's (``/work/shared/HARDWARE.md`` §3–§5): AK8963 16-bit
 4912/32760 µT/LSB, 14-bit 4912/8190 µT/LSB, ±4912 µT, times the fuse-ROM sensitivity
@@ -37,9 +27,12 @@ adjustment ``(ASA − 128)/256 + 1`` that the driver applies; accel ±2 g at 163
 """
 from __future__ import annotations
 
+from typing import Mapping
+
 import numpy as np
 
 from ..constants import GRAVITY
+from ..model.catalog import BY_NAME, SIMULATED_EFFECTS
 
 G = GRAVITY  # standard gravity, m/s²
 MAG_RANGE_UT = 4912.0
@@ -50,10 +43,8 @@ GYRO_LSB = np.radians(1.0 / 131.0)  # rad/s per LSB at ±250 °/s
 GYRO_RANGE = np.radians(250.0)
 TEMP_LSB = 1.0 / 333.87           # °C per LSB
 
-VECTOR_EFFECTS = ("temperature_offset", "temperature_scale", "time_drift", "aux_interference",
-                  "axis_nonlinearity", "mag_accel_misalignment")
-SCALAR_EFFECTS = ("time_lag",)
-SIM_EFFECTS = VECTOR_EFFECTS + SCALAR_EFFECTS
+#: Effects the simulator injects, in catalog order (a view of the declarations).
+SIM_EFFECTS = SIMULATED_EFFECTS
 
 
 def earth_field(strength_uT: float, dip_deg: float) -> np.ndarray:
@@ -79,28 +70,24 @@ def random_soft_iron(field_uT: float, rng: np.random.Generator, scale_sd: float 
     return field_uT * K
 
 
-def effect_terms(u: np.ndarray, t: np.ndarray, temp: np.ndarray, aux: np.ndarray,
-                 params: dict) -> np.ndarray:
-    """(N,3) sum of the additive effect terms (µT) at the magnetometer instants.
+def effect_terms(u: np.ndarray, cov: Mapping[str, np.ndarray], params: dict) -> np.ndarray:
+    """(N,3) sum of the added effect fields (µT) at the magnetometer instants, in catalog order.
 
-    ``u`` (N,3) undistorted readings ``K x``; ``t`` (N,) s; ``temp`` (N,) true °C; ``aux`` (N,)
-    motor current, A; ``params`` the truth parameters (``SimTruth.effects`` layout)."""
+    ``u`` (N,3) undistorted readings ``K x``; ``cov`` the true (N,) columns at those instants
+    (``t`` s, ``temp`` °C, ``motor_current`` A); ``params`` the truth parameters
+    (``SimTruth.effects`` layout). Each effect adds its declared simulator field; a term effect
+    that declares none adds its model term; registration effects add none (the scenario
+    applies them to the motion and the clock)."""
     out = np.zeros_like(u)
-    if "temperature_offset" in params:
-        p = params["temperature_offset"]
-        out += (temp - p["T0"])[:, None] * np.asarray(p["c"])
-    if "temperature_scale" in params:
-        p = params["temperature_scale"]
-        out += (temp - p["T0"])[:, None] * np.asarray(p["s"]) * u
-    if "time_drift" in params:
-        p = params["time_drift"]
-        out += (t - p["t0"])[:, None] * np.asarray(p["d"])
-    if "aux_interference" in params:
-        for ch in params["aux_interference"]["channels"].values():
-            out += (aux - ch["a0"])[:, None] * np.asarray(ch["g"])
-    if "axis_nonlinearity" in params:
-        p = params["axis_nonlinearity"]
-        out += np.asarray(p["a"]) * u ** 3 / p["R"] ** 2
+    for name in SIMULATED_EFFECTS:
+        if name not in params:
+            continue
+        info = BY_NAME[name]
+        if info.simulated.field is not None:
+            out += info.simulated.field(u, cov, params[name])
+        elif info.kind == "term":
+            term = info.term.from_params(params[name])
+            out += term.term(term.from_physical(params[name], 1.0), u, cov)
     return out
 
 

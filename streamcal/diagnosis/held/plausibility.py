@@ -7,29 +7,10 @@ slice does not see. :func:`implausible_effect` marks a candidate as implausible 
 
 1. **Size.** The rms over the recording's points of the effect's field ``f(θ, u)``, ``u`` the
    *base* model's field points (sensor unit), is above ``BOUND[kind] · r``, ``r`` the field
-   radius of the given calibration. The bound per kind (fractions of r; the bounds are ours,
-   each with a wide margin over what the effect does in a working sensor):
-
-   ===================  =======  =====================================================
-   effect               bound    why
-   ===================  =======  =====================================================
-   aux_interference     1.0 r    an added field as large as the Earth's: the compass
-                                 would not point at all (ArduPilot's compassmot
-                                 already calls interference above 60 % of the field
-                                 unacceptable)
-   temperature_offset   1.0 r    an added field; as above
-   time_drift           1.0 r    an added field; as above
-   temperature_scale    0.25 r   a gain change of a quarter of the field within one
-                                 recording's temperatures; a sensor drifting that much
-                                 would need a calibration per temperature, the term is
-                                 taking up something else
-   axis_nonlinearity    0.05 r   a cubic bend of 5 % of the field at field-level
-                                 readings; magnetometer linearity is specified as a
-                                 fraction of full scale (order 0.1–1 % FS) and a cubic
-                                 error shrinks as (|u|/FS)² below it, and the Earth's
-                                 field is ~1 % of an AK8963's 4912 µT full scale
-   other kinds          1.0 r    the field radius itself
-   ===================  =======  =====================================================
+   radius of the given calibration. The bound per kind is declared with the effect (``bound`` of
+   its :class:`~streamcal.model.declaration.EffectDeclaration`, the why beside it;
+   docs/diagnose_against_calibration.md tabulates them); kinds that state none use the field
+   radius itself.
 
    Why at the base model's points: a candidate that drifts to a degenerate θ fits its *own*
    points with a modest field; moved back to where the model without it puts the field, its
@@ -43,11 +24,13 @@ from __future__ import annotations
 
 import numpy as np
 
-#: Largest plausible rms of an effect's field at the recording's points, as a fraction of the
-#: field radius r (module doc table). Kinds not listed use :data:`DEFAULT_BOUND`.
-BOUND = {"aux_interference": 1.0, "temperature_offset": 1.0, "time_drift": 1.0,
-         "temperature_scale": 0.25, "axis_nonlinearity": 0.05}
-DEFAULT_BOUND = 1.0
+from ...model.catalog import PLAUSIBILITY_BOUNDS
+from ...model.declaration import DEFAULT_BOUND
+
+#: ``BOUND[kind]``: largest plausible rms of an effect's field at the recording's points, as a
+#: fraction of the field radius r, for every term effect (a view of the declarations). Kinds
+#: not listed use :data:`DEFAULT_BOUND`.
+BOUND = PLAUSIBILITY_BOUNDS
 
 
 def theta_sigmas(estimated: dict, name: str, n: int) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Interference from auxiliary channels (docs/effects.md ``aux_interference``).
+"""``aux_interference`` (docs/effects.md): interference from auxiliary channels.
 
 For channels ``a_k`` (motor current, PWM duty…, any numeric track column that is not time,
 temperature or an IMU axis) the term is
@@ -20,8 +20,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ..errors import MissingColumnsError
-from ._common import aux_names, column, number, only_keys, same_constant, vector3
+from ...errors import MissingColumnsError
+from ..declaration import EffectDeclaration, SimulatorTruth
+from .._common import aux_names, column, number, only_keys, same_constant, vector3
 
 
 class AuxInterference:
@@ -98,3 +99,23 @@ class AuxInterference:
             same_constant(a0, number(chans[c], "a0", where), "a0", where)
             out.append(vector3(chans[c], "g", where) * sigma / scale)
         return np.concatenate(out)
+
+
+def _sim_field(u, cov, p):
+    out = np.zeros_like(u)
+    for channel, ch in p["channels"].items():
+        out += (cov[channel] - ch["a0"])[:, None] * np.asarray(ch["g"])
+    return out
+
+
+EFFECT = EffectDeclaration(
+    name="aux_interference", meaning="field proportional to an auxiliary channel",
+    n_params="3 per channel", term=AuxInterference, needs=("aux",),
+    units={"a0": "channel unit", "g": "{u} per channel unit"},
+    # An added field as large as the Earth's: the compass would not point at all (ArduPilot's
+    # compassmot already calls interference above 60 % of the field unacceptable).
+    bound=1.0,
+    subject=lambda term: ", ".join(term.channels),
+    simulated=SimulatorTruth(
+        "vector", lambda v, env: {"channels": {"motor_current": {"a0": 0.0, "g": v.tolist()}}},
+        _sim_field, magnitude="|g|, µT/A (sensor frame); needs motor=True"))
