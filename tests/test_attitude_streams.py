@@ -106,7 +106,7 @@ def test_real_logs_attitude_matches_the_logged_angles(flight_dir):
 
     path = flight_dir / "ardupilot_erle_Erle-Brain3.BIN"
     track = read_recording(path)
-    msgs = _parse(path, False)
+    msgs = _parse(path)
     rows = ~np.isnan(track.columns["att_qw"])
     q = np.column_stack([track.columns[c][rows] for c in ATTITUDE_COLUMNS])
     ypr = _yaw_pitch_roll(q)
