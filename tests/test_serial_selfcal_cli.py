@@ -42,7 +42,7 @@ def test_board_fit_accepted_is_in_force_with_its_reason_and_distance_to_host():
     assert info["board_fit_vs_host"] == pytest.approx(Calibration(K=K, b=b).model_error(host))
     assert 0.005 < info["board_fit_vs_host"] < 0.02
     text = format_board_self_cal(info)
-    assert "in force on the board: board 0xB001" in text and "(eq. 40)" in text and "R 48.00 uT" in text
+    assert "in force on the board: board 0xB001" in text and "(relative model error, eq. 40 of the paper)" in text and "R 48.00 uT" in text
     json.dumps(info)                                  # JSON-ready (it goes into the summary line)
 
 
