@@ -152,3 +152,45 @@ def test_the_loop_closes_on_a_tied_residual(effect, size):
     after = streamcal.diagnose(track, model=("hard_iron", "soft_iron", effect))
     assert after.residual == "gravity_tied"
     assert after.verdict == "at_noise_floor", after.summary
+
+
+def _ev(norms, inliers, p):
+    """A fitted model as the story sees it: residuals (N,3) along x, inliers, parameters."""
+    norms = np.asarray(norms, float)
+    r = np.column_stack([norms, np.zeros_like(norms), np.zeros_like(norms)])
+    from types import SimpleNamespace
+
+    return SimpleNamespace(r=r, rss=norms ** 2, inliers=np.asarray(inliers, bool), p=p)
+
+
+def test_a_ladder_on_two_residuals_keeps_the_inliers_of_its_last_model_on_each():
+    """The tied step's outliers are judged on another residual: a burst the tied model keeps is
+    still left out of every step, because the last sensor-residual model rejects it."""
+    from streamcal.diagnosis import story
+    from streamcal.diagnosis.candidates import Candidate
+
+    rng = np.random.default_rng(0)
+    n = 400
+    burst = np.zeros(n, bool)
+    burst[100:120] = True
+    base = _ev(np.where(burst, 30.0, 1.0 + 0.1 * rng.standard_normal(n)), ~burst, 9)
+    sensor = _ev(np.where(burst, 30.0, 0.5 + 0.05 * rng.standard_normal(n)), ~burst, 12)
+    tied_ref = _ev(np.full(n, 3.0), np.ones(n, bool), 12)
+    tied = _ev(np.full(n, 2.0), np.ones(n, bool), 15)
+    kinds = {id(base): "sensor", id(sensor): "sensor", id(tied_ref): "gravity_tied",
+             id(tied): "gravity_tied"}
+    first = Candidate("temperature_offset", 0.0, 0.0, "", 3, True, None,
+                      _evaluated=sensor, _reference=base)
+    second = Candidate("time_lag", 0.0, 0.0, "", 3, True, None, _evaluated=tied,
+                       _reference=tied_ref)
+    steps, shown, _ = story.tell(("hard_iron",), base, lambda ev: kinds[id(ev)],
+                                 [first, second], [first, second], lambda c: True)
+    assert [s["n"] for s in steps] == [n - 20] * 3
+    assert steps[0]["rms"] == pytest.approx(np.sqrt(np.mean(base.rss[~burst])))
+    assert steps[1]["rms_before"] == steps[0]["rms"]
+    # a step its own numbers do not support ends the ladder there
+    steps, shown, _ = story.tell(("hard_iron",), base, lambda ev: kinds[id(ev)],
+                                 [first, second], [first, second],
+                                 lambda c: c.effect != "time_lag")
+    assert [s.get("added") for s in steps] == [None, "temperature_offset"]
+    assert [c.effect for c in shown] == ["temperature_offset"]

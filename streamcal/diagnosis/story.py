@@ -7,9 +7,10 @@ their fitted models here as *evaluations*: objects with ``rss`` (N,) squared res
 
 - A candidate is compared with the model it extends on the samples that are not outliers of the
   model *with* the candidate: what the effect explains is counted, true outliers are not.
-- The ladder is computed on the samples that are not outliers of its last model: every step has
-  the same ``n`` and its ``rms_before`` is the rms of the step above on the same residual; the
-  candidates the ladder adds carry its numbers.
+- The ladder is computed on the samples that are not outliers of its last model (of its last
+  model on each residual, when it moves to a tied one): every step has the same ``n`` and its
+  ``rms_before`` is the rms of the step above on the same residual; the candidates the ladder
+  adds carry its numbers.
 """
 from __future__ import annotations
 
@@ -51,6 +52,20 @@ def compare(ref, ev, mask: np.ndarray | None = None) -> Comparison:
     return Comparison(rms_over(ref, mask), rms_over(ev, mask), int(mask.sum()), p_value)
 
 
+def ladder_samples(base, residual_of, added) -> np.ndarray:
+    """(N,) bool: the samples every step of the ladder is over — those that are not outliers of
+    its last model. A ladder that moves to a gravity- or gyro-tied residual has a last model on
+    each residual, whose outliers are judged on different residuals: a sample kept is then an
+    inlier of the last model on every residual of the ladder."""
+    last = {residual_of(base): base}
+    for c in added:
+        last[residual_of(c._evaluated)] = c._evaluated
+    keep = np.ones(len(base.rss), bool)
+    for ev in last.values():
+        keep &= np.asarray(ev.inliers, bool)
+    return keep
+
+
 def ladder(model, base, residual_of, added) -> tuple[list[dict], list]:
     """``(steps, added)``: the ladder's steps (SPEC §4 "One story") and the added candidates
     carrying the same numbers (new values; the candidates given are not changed).
@@ -59,8 +74,7 @@ def ladder(model, base, residual_of, added) -> tuple[list[dict], list]:
     residual; ``added``: the candidates in the order added, each with ``_evaluated`` (the model
     with it) and ``_reference`` (the model without it on the same residual: the step above, or
     its tied refit when the step is the first on a tied residual)."""
-    last = added[-1]._evaluated if added else base
-    keep = np.asarray(last.inliers, bool)
+    keep = ladder_samples(base, residual_of, added)
     n = int(keep.sum())
     steps = [{"model": list(model), "residual": residual_of(base), "rms": rms_over(base, keep),
               "n": n, "n_outliers": int((~np.asarray(base.inliers, bool)).sum())}]
@@ -103,12 +117,19 @@ def tell(model, base, residual_of: Callable, added: list, ranked: list,
          judge: Callable) -> tuple[list[dict], list, list]:
     """``(steps, added, ranked)``: the :func:`ladder` of the ``added`` candidates, those
     candidates with the ladder's numbers judged by ``judge(candidate) -> significant`` (the
-    same rule on the numbers shown), and the ranking with them in place of their first-round
-    selves."""
-    steps, added = ladder(model, base, residual_of, added)
-    added = [c.replace(significant=judge(c)) for c in added]
-    by_effect = {c.effect: c for c in added}
-    return steps, added, [by_effect.get(c.effect, c) for c in ranked]
+    same rule on the numbers shown; the ladder stops before the first step its own numbers do
+    not support), and the ranking with them in place of their first-round selves."""
+    while True:
+        steps, shown = ladder(model, base, residual_of, added)
+        shown = [c.replace(significant=judge(c)) for c in shown]
+        failed = [k for k, c in enumerate(shown) if not c.significant]
+        if not failed:
+            break
+        # a step that its own numbers do not support ends the ladder there (its samples
+        # change with its last model, so the rest is computed again)
+        added = added[:failed[0]]
+    by_effect = {c.effect: c for c in shown}
+    return steps, shown, [by_effect.get(c.effect, c) for c in ranked]
 
 
 def change_percent(before: float, after: float) -> float | None:
