@@ -145,3 +145,168 @@ def check_report_heading_names_the_file(path, out) -> int:
     heading = re.search(r"<h1>(.*?)</h1>", out.read_text()).group(1)
     assert path.name in heading and str(path.parent) not in heading
     return code
+
+
+# --- ArduPilot DataFlash: the bulk decoder (streamcal.inputs.dataflash_bulk) -----------------
+
+def assert_same_track(a, b, *, metadata=True) -> None:
+    """Every column equal to the bit (time included); the metadata too unless told not."""
+    assert list(a.columns) == list(b.columns)
+    for name in a.columns:
+        np.testing.assert_array_equal(a.columns[name], b.columns[name], err_msg=name)
+    if metadata:
+        assert a.metadata == b.metadata
+    assert len(a) == len(b) and a.skipped_rows == b.skipped_rows
+
+
+def dataflash_messages(data: bytes):
+    """The walk over a log's bytes and its messages as sorted (offset, type) pairs."""
+    from streamcal.inputs.dataflash_bulk import walk
+
+    chain = walk(data)
+    return chain, sorted((int(o), t) for t, offs in chain.offsets.items() for o in offs)
+
+
+def mag_format_at(data: bytes) -> int:
+    """Where the MAG FMT message's Format string starts in ``data``."""
+    from streamcal.inputs.dataflash_bulk import FMT_TYPE
+
+    chain, offsets = dataflash_messages(data)
+    mag = next(o for o, t in offsets
+               if t == FMT_TYPE and chain.formats[data[o + 3]].name == "MAG")
+    return mag + 3 + 1 + 1 + 4   # header, Type, Length, Name → Format
+
+
+def check_bulk_track_equals_pymavlink_track(path) -> None:
+    """The bulk decoder and pymavlink's DFReader give the same Track, metadata included."""
+    from streamcal.inputs import dataflash
+
+    bulk = dataflash.read_dataflash(path)
+    assert_same_track(bulk, dataflash.read_dataflash_pymavlink(path))
+    assert len(bulk.t_mag) > 1000 and "read_warnings" not in bulk.metadata
+
+
+def check_walk_follows_every_message(path) -> None:
+    """On a clean log the walk starts at an FMT, skips nothing and finds the messages back to
+    back up to the last byte."""
+    from streamcal.inputs.dataflash_bulk import FMT_TYPE
+
+    data = path.read_bytes()
+    chain, offsets = dataflash_messages(data)
+    assert offsets[0] == (0, FMT_TYPE) and not chain.skipped and chain.cut == 0
+    ends = [o + chain.formats[t].length for o, t in offsets]
+    assert ends[:-1] == [o for o, _ in offsets[1:]] and ends[-1] == len(data)  # back to back
+
+
+def check_garbage_run_skipped_and_named(path, tmp_path) -> None:
+    """A run of foreign bytes between two messages (one looks like a header of an unknown type):
+    every message is still read and read_warnings names the run."""
+    from streamcal.inputs import dataflash
+
+    data = path.read_bytes()
+    _, offsets = dataflash_messages(data)
+    at = offsets[len(offsets) // 2][0]
+    junk = b"\x00\x11\xa3\x95\xfe\x22" * 3
+    bad = tmp_path / "junk.bin"
+    bad.write_bytes(data[:at] + junk + data[at:])
+    track = dataflash.read_dataflash(bad)
+    assert f"Skipped {len(junk)} bad bytes ({len(junk)} at offset {at})" in \
+        track.metadata["read_warnings"]
+    assert_same_track(track, dataflash.read_dataflash(path), metadata=False)
+
+
+def check_damaged_message_resynchronised(path, tmp_path) -> None:
+    """5 bytes lost inside message j: j is read over the start of j + 1 (there is no checksum),
+    the rest of j + 1 is skipped up to the next header, every other message is read."""
+    from streamcal.inputs import dataflash
+
+    data = path.read_bytes()
+    chain, offsets = dataflash_messages(data)
+    j = len(offsets) // 3
+    (start, _), (nxt, ntype) = offsets[j], offsets[j + 1]
+    bad = tmp_path / "cut_inside.bin"
+    bad.write_bytes(data[:start + 10] + data[start + 15:])
+    got_chain, got = dataflash_messages(bad.read_bytes())
+    shift = [(o - 5 if o > start else o, t) for o, t in offsets]
+    assert got == shift[:j + 1] + shift[j + 2:]
+    lost = chain.formats[ntype].length - 5
+    assert got_chain.skipped == [(nxt, lost)]
+    track = dataflash.read_dataflash(bad)
+    assert f"Skipped {lost} bad bytes ({lost} at offset {nxt})" in track.metadata["read_warnings"]
+
+
+def cut_inside_header_and_body(path, tmp_path) -> list:
+    """The log cut 2 bytes into a message's header and 7 into it (past the header): each read
+    to its last complete message with what was lost in read_warnings. Returns (cut path,
+    track) for each."""
+    from streamcal.inputs import dataflash
+
+    data = path.read_bytes()
+    _, offsets = dataflash_messages(data)
+    last = offsets[len(offsets) // 2][0]
+    cuts = []
+    for keep, left in ((last + 2, 2), (last + 7, 7)):
+        cut = tmp_path / f"cut{keep}.bin"
+        cut.write_bytes(data[:keep])
+        track = dataflash.read_dataflash(cut)
+        assert f"truncated: {left} trailing bytes ignored" in track.metadata["read_warnings"]
+        cuts.append((cut, track))
+    return cuts
+
+
+def check_unknown_format_character_named(path, tmp_path) -> None:
+    """An FMT whose format has a character pymavlink does not know: unknown layout, named."""
+    from streamcal.errors import InputError
+    from streamcal.inputs import dataflash
+
+    data = bytearray(path.read_bytes())
+    data[mag_format_at(bytes(data)) + 1] = ord("X")
+    bad = tmp_path / "odd_fmt.bin"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"odd_fmt\.bin.*'X'.*MAG.*unknown layout"):
+        dataflash.read_dataflash(bad)
+
+
+def check_string_where_a_number_is_needed_named(path, tmp_path, layout: bytes) -> None:
+    """MAG's ``layout`` (its first two int16 MagX, MagY) rewritten, same size, with one 4-byte
+    string in their place: the reader names the field that is not a number."""
+    from streamcal.errors import InputError
+    from streamcal.inputs import dataflash
+
+    data = bytearray(path.read_bytes())
+    at = mag_format_at(bytes(data))
+    assert data[at:at + len(layout)] == layout    # the test is about this layout
+    data[at:at + len(layout)] = layout.replace(b"hh", b"n", 1) + b"\0"
+    bad = tmp_path / "string_mag.bin"
+    bad.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"string_mag\.bin: MAG\.MagX is not a number.*'n'"):
+        dataflash.read_dataflash(bad)
+
+
+def check_random_damage(head: bytes, tmp_path, seed: int, fmt_block: int) -> None:
+    """Flipped, inserted and deleted bytes (70 % of them in the first ``fmt_block`` bytes, where
+    the FMT messages are) in ``head``: the reader returns a Track or raises InputError naming
+    the file, never another exception."""
+    from streamcal.errors import InputError
+    from streamcal.inputs import dataflash
+
+    rng = np.random.default_rng(seed)
+    blob = bytearray(head)
+    for _ in range(int(rng.integers(1, 25))):
+        at = int(rng.integers(0, fmt_block if rng.random() < 0.7 else len(blob)))
+        op = rng.random()
+        if op < 0.4:
+            blob[at] ^= int(rng.integers(1, 256))
+        elif op < 0.7:
+            blob[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
+        else:
+            del blob[at:at + int(rng.integers(1, 9))]
+    path = tmp_path / "damaged.bin"
+    path.write_bytes(bytes(blob))
+    for skip in (False, True):
+        try:
+            track = dataflash.read_dataflash(path, skip_bad_rows=skip)
+        except InputError as exc:
+            assert str(path) in str(exc)
+        else:
+            assert len(track.t_mag) > 0
