@@ -310,3 +310,71 @@ def check_random_damage(head: bytes, tmp_path, seed: int, fmt_block: int) -> Non
             assert str(path) in str(exc)
         else:
             assert len(track.t_mag) > 0
+
+
+# --- autopilot logs (DataFlash and ULog) read as tracks ---------------------------------------
+
+def check_convert_writes_the_track_read_recording_gives(log, flight, tmp_path,
+                                                        keys: tuple[str, ...]):
+    """``convert`` of a log writes the track ``read_recording`` gives (every magnetometer
+    sample of ``flight``, time from 0, µT, accel and gyro) with the metadata ``keys``.
+    Returns the written track."""
+    from streamcal.cli import main
+    from streamcal.inputs import read_recording
+    from streamcal.inputs.track import Track
+
+    out = tmp_path / "track.csv"
+    assert main(["convert", str(log), "-o", str(out)]) == 0
+    track, direct = Track.read(out), read_recording(log)
+    assert len(track) == len(direct) and len(track.t_mag) == len(flight.t_mag)
+    assert np.all(np.diff(track.t) >= 0) and track.t[0] == 0.0
+    np.testing.assert_allclose(track.mag, direct.mag, atol=1e-6)   # the CSV's decimals
+    assert track.mag_unit == "uT" and track.has("accel") and track.has("gyro")
+    for key in ("input_format", "source", "mag_axes", "units", "time_origin", *keys):
+        assert key in track.metadata, key
+    return track
+
+
+def check_detected_from_content_not_name(log, renamed, kind: str, input_format: str) -> None:
+    """The log copied to ``renamed`` (another suffix) is still read as ``kind``."""
+    import shutil
+
+    from streamcal.inputs import detect, read_recording
+
+    shutil.copy(log, renamed)
+    assert detect(renamed) == kind
+    assert read_recording(renamed).metadata["input_format"] == input_format
+
+
+def check_truncated_log_read_to_last_message(whole, cut, fraction: float, tmp_path,
+                                             capsys) -> None:
+    """``whole`` cut at ``fraction`` of its bytes (a crash, a power cut): ``convert`` exits 0
+    without --skip-bad-rows with one stderr line naming the file and what was lost, and keeps
+    the complete messages."""
+    from streamcal.cli import main
+    from streamcal.inputs import read_recording
+    from streamcal.inputs.track import Track
+
+    data = whole.read_bytes()
+    cut.write_bytes(data[: int(len(data) * fraction)])
+    out = tmp_path / "out.csv"
+    assert main(["convert", str(cut), "-o", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert str(cut) in err and "truncated" in err and len(err.strip().splitlines()) == 1
+    track = Track.read(out)
+    assert "truncated" in track.metadata["read_warnings"]
+    n_whole = len(read_recording(whole).t_mag)
+    assert 0.3 * n_whole < len(track.t_mag) < n_whole
+
+
+def check_log_without_magnetometer_named(path, match: str, capsys) -> None:
+    """A log with no magnetometer: reading it raises InputError matching ``match``; ``fit``
+    exits 2 naming the file."""
+    from streamcal.cli import main
+    from streamcal.errors import InputError
+    from streamcal.inputs import read_recording
+
+    with pytest.raises(InputError, match=match):
+        read_recording(path)
+    assert main(["fit", str(path)]) == 2
+    assert str(path) in capsys.readouterr().err

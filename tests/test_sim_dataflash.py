@@ -4,20 +4,19 @@ content detection, offsets / soft iron / motor offsets undone, aux channels and 
 COMPASS_* calibration, the bulk decoder against pymavlink, damaged and truncated logs."""
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 
 from streamcal.calibration import canonical_form
-from streamcal.cli import main
-from streamcal.errors import InputError
-from streamcal.inputs import autopilot_calibration, detect, read_recording
-from streamcal.inputs.track import Track
+from streamcal.inputs import autopilot_calibration, read_recording
 
 from ._selfmade_logs import (A_TRUE, B_TRUE, FIRMWARE, LAYOUT, ardupilot_params, flight_slice,
                              write_dataflash)
 from ._shared_checks import (check_bulk_track_equals_pymavlink_track,
+                             check_convert_writes_the_track_read_recording_gives,
+                             check_detected_from_content_not_name,
+                             check_log_without_magnetometer_named,
+                             check_truncated_log_read_to_last_message,
                              check_damaged_message_resynchronised,
                              check_garbage_run_skipped_and_named, check_random_damage,
                              check_string_where_a_number_is_needed_named,
@@ -60,23 +59,14 @@ def _S(params):
 
 
 def test_convert_writes_the_track_read_recording_gives(log, flight, tmp_path):
-    out = tmp_path / "track.csv"
-    assert main(["convert", str(log), "-o", str(out)]) == 0
-    track, direct = Track.read(out), read_recording(log)
-    assert len(track) == len(direct) and len(track.t_mag) == len(flight.t_mag)
-    assert np.all(np.diff(track.t) >= 0) and track.t[0] == 0.0
-    np.testing.assert_allclose(track.mag, direct.mag, atol=1e-6)   # the CSV's decimals
-    assert track.mag_unit == "uT" and track.has("accel") and track.has("gyro")
-    for key in ("input_format", "source", "mag_axes", "units", "time_origin", "firmware"):
-        assert key in track.metadata, key
+    track = check_convert_writes_the_track_read_recording_gives(log, flight, tmp_path,
+                                                                ("firmware",))
     assert track.metadata["firmware"] == FIRMWARE
 
 
 def test_detected_from_content_not_name(log, tmp_path):
-    renamed = tmp_path / "renamed.csv"
-    shutil.copy(log, renamed)
-    assert detect(renamed) == "dataflash"
-    assert read_recording(renamed).metadata["input_format"] == "ardupilot-dataflash"
+    check_detected_from_content_not_name(log, tmp_path / "renamed.csv", "dataflash",
+                                         "ardupilot-dataflash")
 
 
 def test_offsets_and_soft_iron_undone_back_to_the_sensor_reading(log, flight):
@@ -158,25 +148,13 @@ def test_autopilot_calibration_reproduces_the_logged_field_and_the_truth(log):
 def test_truncated_log_read_to_last_message_naming_file(log, tmp_path, capsys, fraction):
     """A crash or a power cut: exit 0 without --skip-bad-rows, one stderr line naming the file
     and what was lost, the complete messages kept."""
-    data = log.read_bytes()
-    cut = tmp_path / "cut.BIN"
-    cut.write_bytes(data[: int(len(data) * fraction)])
-    out = tmp_path / "out.csv"
-    assert main(["convert", str(cut), "-o", str(out)]) == 0
-    err = capsys.readouterr().err
-    assert str(cut) in err and "truncated" in err and len(err.strip().splitlines()) == 1
-    track = Track.read(out)
-    assert "truncated" in track.metadata["read_warnings"]
-    whole = read_recording(log)
-    assert 0.3 * len(whole.t_mag) < len(track.t_mag) < len(whole.t_mag)
+    check_truncated_log_read_to_last_message(log, tmp_path / "cut.BIN", fraction, tmp_path,
+                                             capsys)
 
 
 def test_log_without_magnetometer_names_the_message(flight, tmp_path, capsys):
     path = write_dataflash(tmp_path / "nomag.bin", flight, with_mag=False)
-    with pytest.raises(InputError, match="no MAG messages.*IMU"):
-        read_recording(path)
-    assert main(["fit", str(path)]) == 2
-    assert str(path) in capsys.readouterr().err
+    check_log_without_magnetometer_named(path, "no MAG messages.*IMU", capsys)
 
 
 def test_bulk_track_equals_pymavlink_track(log):
