@@ -378,3 +378,22 @@ def check_log_without_magnetometer_named(path, match: str, capsys) -> None:
         read_recording(path)
     assert main(["fit", str(path)]) == 2
     assert str(path) in capsys.readouterr().err
+
+
+# --- the fit's path ---------------------------------------------------------------------------
+
+def refine_iterations(monkeypatch) -> list[int]:
+    """Counts the LM iterations of each ``autocal.refine`` call from now on: the list it returns
+    gets one entry per call (clear it between fits)."""
+    from streamcal.fitting import autocal
+
+    iterations: list[int] = []
+    original = autocal.refine
+
+    def counted(*args, **kwargs):
+        result = original(*args, **kwargs)
+        iterations.append(result.iterations)
+        return result
+
+    monkeypatch.setattr(autocal, "refine", counted)
+    return iterations
