@@ -397,3 +397,32 @@ def refine_iterations(monkeypatch) -> list[int]:
 
     monkeypatch.setattr(autocal, "refine", counted)
     return iterations
+
+
+def check_px4_calibration_in_force(path, tmp_path, capsys):
+    """``--cal log`` on a PX4 ULog: the Calibration built from the CAL_MAG0_* in force maps the
+    track's (undone) readings onto the norms of PX4's own correction (export.px4.apply_px4), at
+    the strength of the field PX4 logged; diagnose runs against it and names its source; a
+    converted track carries the same calibration in its param.* metadata.
+    Returns the calibration and the CAL_MAG0_* parameters."""
+    from streamcal.cli import main
+    from streamcal.export.px4 import apply_px4
+    from streamcal.inputs import autopilot_calibration, read_recording
+
+    track = read_recording(path)
+    cal = autopilot_calibration(track)
+    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
+              if k.startswith("param.CAL_MAG0_")}
+    px4 = apply_px4({"CAL_MAG0_XODIAG": 0.0, "CAL_MAG0_YODIAG": 0.0, "CAL_MAG0_ZODIAG": 0.0,
+                     **params}, track.mag / 100.0) * 100.0
+    np.testing.assert_allclose(np.linalg.norm(cal.apply_field(track.mag), axis=1),
+                               np.linalg.norm(px4, axis=1), rtol=1e-9)
+    assert cal.field == pytest.approx(np.median(np.linalg.norm(px4, axis=1)), rel=1e-3)
+    assert main(["diagnose", str(path), "--cal", "log"]) == 0
+    assert "CAL_MAG0_* parameters" in capsys.readouterr().out
+    converted = tmp_path / "flight.csv"
+    assert main(["convert", str(path), "-o", str(converted)]) == 0
+    again = autopilot_calibration(read_recording(converted))     # from the param.* metadata
+    np.testing.assert_array_equal(again.K, cal.K)
+    np.testing.assert_array_equal(again.b, cal.b)
+    return cal, params

@@ -9,15 +9,14 @@ import numpy as np
 import pytest
 
 from streamcal.calibration import canonical_form
-from streamcal.cli import main
 from streamcal.errors import InputError
-from streamcal.export.px4 import apply_px4
 from streamcal.inputs import autopilot_calibration, read_recording
 
 from ._selfmade_logs import A_TRUE, B_TRUE, flight_slice, px4_params, write_ulog
 from ._shared_checks import (check_convert_writes_the_track_read_recording_gives,
                              check_detected_from_content_not_name,
                              check_log_without_magnetometer_named,
+                             check_px4_calibration_in_force,
                              check_truncated_log_read_to_last_message)
 
 #: PX4 logs its parameters as float32: what the reader finds is the value rounded to that.
@@ -82,25 +81,10 @@ def test_calibration_in_force_maps_the_readings_as_px4_does(log, tmp_path, capsy
     """--cal log: the CAL_MAG0_* in force as a Calibration gives PX4's own correction
     (export.px4.apply_px4) at the strength PX4's field has, and the true sensor model; diagnose
     runs against it and names its source; a converted track carries the same parameters."""
-    track = read_recording(log)
-    cal = autopilot_calibration(track)
-    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
-              if k.startswith("param.CAL_MAG0_")}
-    px4 = apply_px4({"CAL_MAG0_XODIAG": 0.0, "CAL_MAG0_YODIAG": 0.0, "CAL_MAG0_ZODIAG": 0.0,
-                     **params}, track.mag / 100.0) * 100.0
-    np.testing.assert_allclose(np.linalg.norm(cal.apply_field(track.mag), axis=1),
-                               np.linalg.norm(px4, axis=1), rtol=1e-9)
-    assert cal.field == pytest.approx(np.median(np.linalg.norm(px4, axis=1)), rel=1e-3)
+    cal, _ = check_px4_calibration_in_force(log, tmp_path, capsys)
     np.testing.assert_allclose(cal.b, B_TRUE, atol=1e-4)
     K, _ = canonical_form(A_TRUE)
     np.testing.assert_allclose(cal.K * 48.0 / cal.field, K, rtol=FLOAT32)
-    assert main(["diagnose", str(log), "--cal", "log"]) == 0
-    assert "CAL_MAG0_* parameters" in capsys.readouterr().out
-    converted = tmp_path / "flight.csv"
-    assert main(["convert", str(log), "-o", str(converted)]) == 0
-    again = autopilot_calibration(read_recording(converted))
-    np.testing.assert_array_equal(again.K, cal.K)
-    np.testing.assert_array_equal(again.b, cal.b)
 
 
 def test_a_rotated_calibration_is_kept_and_cal_log_refused(flight, tmp_path):
