@@ -14,19 +14,14 @@ from __future__ import annotations
 import html
 import re
 
-import numpy as np
 import pytest
 
-import streamcal
 from streamcal.cli import main
 from streamcal.diagnosis import diagnose
-from streamcal.errors import InsufficientDataError
 from streamcal.fitting import fit
 from streamcal.inputs.track import Track
 from streamcal.sim import simulate
 
-from .test_diagnose_against import REAL_RMS_FACTOR
-from .test_human_output import LONG_FLOAT
 from ._shared_checks import (check_fit_json_names_the_residual,
                              check_held_verdict_follows_the_same_rules,
                              check_report_heading_names_the_file,
@@ -34,6 +29,8 @@ from ._shared_checks import (check_fit_json_names_the_residual,
                              check_tied_fit_names_both_residuals,
                              check_unexplained_above_a_measured_floor,
                              check_unmeasurable_floor_is_null_with_its_reason)
+from .test_diagnose_against import check_cap_against_its_full_calibration
+from .test_human_output import LONG_FLOAT
 from .test_report import _assert_not_blank, _assert_self_contained, _images
 
 #: An effect the restricted catalog below cannot express, so the residual stays unexplained.
@@ -144,21 +141,4 @@ def test_a_refused_track_is_reported_and_the_page_says_why(planar, tmp_path, cap
 
 def test_a_cap_against_its_full_calibration():
     """25 s at 1.5 µT noise (the real track's 3 %): a cap too short to determine K."""
-    track = simulate(25.0, 44, motor=False, noise_uT=1.5).track
-    cal = streamcal.fit(track)
-    x = cal.apply(track.mag)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    centre = x.mean(axis=0)
-    centre /= np.linalg.norm(centre)
-    in_cap = x @ centre >= 0.7             # a cap of 15 % of the sphere
-    keep = ~np.asarray(track.mag_rows, bool)
-    keep[np.flatnonzero(track.mag_rows)[in_cap]] = True
-    cap = track.select(keep)
-    assert 100 < len(cap.mag) < len(track.mag)
-    with pytest.raises(InsufficientDataError):
-        streamcal.fit(cap)
-    d = streamcal.diagnose(cap, calibration=cal)
-    assert d.held and d.rms <= REAL_RMS_FACTOR * cal.rms, (d.rms, cal.rms)
-    d0 = streamcal.diagnose(cap)
-    assert {"K_xx", "K_yy", "K_zz"} <= set(d0.held) and {"b_x", "b_y", "b_z"} <= set(d0.estimated)
-    assert d0.rms <= REAL_RMS_FACTOR * cal.rms, (d0.rms, cal.rms)
+    check_cap_against_its_full_calibration(simulate(25.0, 44, motor=False, noise_uT=1.5).track)
