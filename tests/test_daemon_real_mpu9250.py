@@ -107,7 +107,8 @@ def check_daemon_with_faults_is_unaffected(counts_log, tmp_path) -> tuple[float,
     assert 0 < service.stats.samples < len(track.t_mag)        # the vanish window is lost
     sigma = sampling_error(track.mag, stored.n, reference)
     err = stored.model_error(reference)
-    assert err < 2 * sigma, f"{path.name} with faults: model error {err:.4f} vs 2σ_n {2 * sigma:.4f}"
+    assert err < 2 * sigma, \
+        f"{path.name} with faults: model error {err:.4f} vs 2σ_n {2 * sigma:.4f}"
     return err, sigma, counters
 
 

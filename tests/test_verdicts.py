@@ -12,13 +12,7 @@ from streamcal.inputs.track import Track
 from streamcal.report import render_html
 from streamcal.report.html import _SCALES_NOTE
 
-from ._shared_checks import (check_fit_json_names_the_residual,
-                             check_held_verdict_follows_the_same_rules,
-                             check_report_heading_names_the_file,
-                             check_significance_and_materiality_apart,
-                             check_tied_fit_names_both_residuals,
-                             check_unexplained_above_a_measured_floor,
-                             check_unmeasurable_floor_is_null_with_its_reason)
+from . import _shared_checks as shared
 
 _CACHE = {}
 
@@ -34,7 +28,7 @@ def _diagnosed(real_tracks_dir, name):
 def test_rms_well_above_a_measured_floor_is_unexplained(real_tracks_dir, name):
     """rms / floor: 2.2× (tiva 01) and 3.9× (tiva 06)."""
     track, d = _diagnosed(real_tracks_dir, name)
-    _, text = check_unexplained_above_a_measured_floor(track, d)
+    _, text = shared.check_unexplained_above_a_measured_floor(track, d)
     assert "where the misfit sits" in text and "field along" in text
     page = render_html(track, d, figures=[])
     assert "not explained" in page and "Where the misfit sits" in page
@@ -44,7 +38,7 @@ def test_a_floor_the_recording_cannot_measure_is_null_with_its_reason(real_track
     """jr_mpu9250_accmag: 3.3 Hz, turned by hand; the second differences measure the motion
     (4.1 counts, above the fit's rms 1.8), not the noise."""
     track, d = _diagnosed(real_tracks_dir, "jr_mpu9250_accmag.csv")
-    outputs, ratio = check_unmeasurable_floor_is_null_with_its_reason(track, d)
+    outputs, ratio = shared.check_unmeasurable_floor_is_null_with_its_reason(track, d)
     for shown in outputs:
         assert f"{ratio:.2f}" not in shown    # not even as the first digits of another number
 
@@ -53,7 +47,7 @@ def test_significance_and_materiality_are_reported_apart_with_their_rule(real_tr
     """tiva_01: time_drift has p ≈ 1e-42 (significant) but lowers the rms by 7 % (not
     material); the text shows both tests and the rule with its numbers."""
     _, d = _diagnosed(real_tracks_dir, "tiva_mpu9250_mag_01.csv.gz")
-    check_significance_and_materiality_apart(d)
+    shared.check_significance_and_materiality_apart(d)
 
 
 @pytest.mark.slow
@@ -65,11 +59,11 @@ def test_fit_of_a_tied_effect_names_both_residuals(real_tracks_dir, capsys):
 
     path = str(real_tracks_dir / "broad_30_stationary_magnet_C.csv.gz")
     assert main(["fit", path, "--add", "time_lag"]) == 0
-    check_tied_fit_names_both_residuals(capsys.readouterr().out)    # 0.81 vs 1.22 µT
+    shared.check_tied_fit_names_both_residuals(capsys.readouterr().out)    # 0.81 vs 1.22 µT
 
 
 def test_fit_json_names_the_residual(real_tracks_dir, capsys):
-    check_fit_json_names_the_residual(real_tracks_dir / "jr_mpu9250_accmag.csv", capsys)
+    shared.check_fit_json_names_the_residual(real_tracks_dir / "jr_mpu9250_accmag.csv", capsys)
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
@@ -109,8 +103,8 @@ def test_report_units_heading_and_note_once(real_tracks_dir, tmp_path):
     rows = re.findall(r"<tr><td>(mag_accel_misalignment: [^<]*)</td><td[^>]*>.*?</td>"
                       r"<td[^>]*>([^<]*)</td></tr>", page)
     assert rows and all(unit.strip() for _, unit in rows), rows
-    check_report_heading_names_the_file(real_tracks_dir / "jr_mpu9250_accmag.csv",
-                                        tmp_path / "r.html")
+    shared.check_report_heading_names_the_file(real_tracks_dir / "jr_mpu9250_accmag.csv",
+                                               tmp_path / "r.html")
 
 
 def test_against_a_calibration_the_verdict_follows_the_same_rules(real_tracks_dir):
@@ -118,4 +112,4 @@ def test_against_a_calibration_the_verdict_follows_the_same_rules(real_tracks_di
     significant and material) is ``unexplained``, never ``at_noise_floor``; the misfit is
     located; materiality uses the floor the verdict uses."""
     track, fresh = _diagnosed(real_tracks_dir, "tiva_mpu9250_mag_01.csv.gz")
-    check_held_verdict_follows_the_same_rules(diagnose(track, calibration=fresh.calibration))
+    shared.check_held_verdict_follows_the_same_rules(diagnose(track, calibration=fresh.calibration))
