@@ -57,29 +57,39 @@ def _whole_apply(cal, track_path, cal_path, out):
     write_applied(out, applied, meta)
 
 
+def check_convert_chunked_equals_whole(path, tmp_path, monkeypatch, suffix: str,
+                                       rows: int) -> None:
+    """``convert`` reading ``rows`` rows at a time writes the bytes the whole track writes."""
+    monkeypatch.setattr(convert_cli, "CHUNK_ROWS", rows)
+    out, ref = tmp_path / f"out{suffix}", tmp_path / f"ref{suffix}"
+    assert main(["convert", str(path), "-o", str(out)]) == 0
+    Track.read(path).write(ref)
+    assert out.read_bytes() == ref.read_bytes()
+
+
+def check_apply_chunked_equals_whole(path, tmp_path, monkeypatch, rows: int) -> None:
+    """``apply`` of a plain K, b calibration reading ``rows`` rows at a time writes the bytes the
+    whole-file apply writes."""
+    monkeypatch.setattr(apply_cli, "CHUNK_ROWS", rows)
+    cal_path, out, ref = tmp_path / "cal.json", tmp_path / "out.csv", tmp_path / "ref.csv"
+    Calibration(K=np.diag([30.0, 31.0, 29.0]), b=np.array([5.0, -3.0, 1.0]), field=48.0,
+                n=1).save(cal_path)
+    assert main(["apply", str(cal_path), str(path), "-o", str(out)]) == 0
+    _whole_apply(Calibration.load(cal_path), path, cal_path, ref)
+    assert out.read_bytes() == ref.read_bytes()
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("suffix", [".csv", ".csv.gz"])
 @pytest.mark.parametrize("rows", [997, 100_000])
 def test_convert_chunked_equals_whole(tmp_path, monkeypatch, suffix, rows):
-    real_path(REAL_TRACK)
-    monkeypatch.setattr(convert_cli, "CHUNK_ROWS", rows)
-    out, ref = tmp_path / f"out{suffix}", tmp_path / f"ref{suffix}"
-    assert main(["convert", str(REAL_TRACK), "-o", str(out)]) == 0
-    Track.read(REAL_TRACK).write(ref)
-    assert out.read_bytes() == ref.read_bytes()
+    check_convert_chunked_equals_whole(real_path(REAL_TRACK), tmp_path, monkeypatch, suffix,
+                                       rows)
 
 
 @pytest.mark.parametrize("rows", [500, 4096])
 def test_apply_chunked_equals_whole_real(tmp_path, monkeypatch, rows):
-    real_path(REAL_TRACK)
-    monkeypatch.setattr(apply_cli, "CHUNK_ROWS", rows)
-    cal_path, out, ref = tmp_path / "cal.json", tmp_path / "out.csv", tmp_path / "ref.csv"
-    cal = Calibration(K=np.diag([30.0, 31.0, 29.0]), b=np.array([5.0, -3.0, 1.0]), field=48.0,
-                      n=1)
-    cal.save(cal_path)
-    assert main(["apply", str(cal_path), str(REAL_TRACK), "-o", str(out)]) == 0
-    _whole_apply(Calibration.load(cal_path), REAL_TRACK, cal_path, ref)
-    assert out.read_bytes() == ref.read_bytes()
+    check_apply_chunked_equals_whole(real_path(REAL_TRACK), tmp_path, monkeypatch, rows)
 
 
 @pytest.mark.slow

@@ -71,17 +71,12 @@ def run_daemon(path: Path, state_dir: Path, faults: Faults | None = None):
     return service, Calibration.load(state_dir / "calibration.json"), log
 
 
-@pytest.fixture(scope="module", params=LOGS)
-def real_log(request, real_tracks_dir):
-    path = real_tracks_dir / request.param
-    track = Track.read(path)
-    assert track.mag_unit == "counts" and not track.has("ax")
-    batch = streamcal.fit(track)                   # counts, chip axes
-    return path, track, batch, to_body(batch)
-
-
-def test_daemon_on_real_counts_log_matches_batch_fit(real_log, tmp_path):
-    path, track, batch, reference = real_log
+def check_daemon_matches_batch_fit(counts_log, tmp_path) -> tuple[float, float, int]:
+    """The daemon over the fake bus replaying a counts log ``(path, track, batch, reference)``:
+    every fresh row served once, the raw counts named in the log, and its stored calibration
+    within 2 σ_n of the batch fit mapped to µT/body axes (σ_n below :data:`SIGMA_CAP`). Returns
+    (model error, σ_n, n)."""
+    path, track, batch, reference = counts_log
     service, stored, log = run_daemon(path, tmp_path)
     assert stored.unit == "uT" and batch.unit != "uT"
     assert service.summary()["samples"] == len(track.t_mag)     # every fresh row served once
@@ -89,15 +84,17 @@ def test_daemon_on_real_counts_log_matches_batch_fit(real_log, tmp_path):
     sigma = sampling_error(track.mag, stored.n, reference)
     assert sigma < SIGMA_CAP, f"{path.name}: sampling error σ_n (n = {stored.n}) {sigma:.4f}"
     err = stored.model_error(reference)
-    print(f"{path.name}: daemon vs streamcal fit (µT, body axes) eq. 40 = {err:.4f}; "
-          f"sampling error of a fit on n = {stored.n} samples {sigma:.4f}")
     assert err < 2 * sigma, f"{path.name}: model error {err:.4f} vs 2σ_n = {2 * sigma:.4f}"
     # the mapping matters: the batch fit read as µT/body without S·P is far off
     assert stored.model_error(batch.replace(unit="uT")) > 0.5
+    return err, sigma, stored.n
 
 
-def test_daemon_on_real_counts_log_with_faults_is_unaffected(real_log, tmp_path):
-    path, track, batch, reference = real_log
+def check_daemon_with_faults_is_unaffected(counts_log, tmp_path) -> tuple[float, float, dict]:
+    """The same replay with 3 % NACKs, a 2 s vanish at 40 % of the log and a reset of both chips
+    at 60 %: the outage and the resets are ridden out, the vanish window is lost, and the stored
+    calibration is still within 2 σ_n. Returns (model error, σ_n, the source's counters)."""
+    path, track, _, reference = counts_log
     t0, t1 = float(track.t[0]), float(track.t[-1])
     start = t0 + 0.4 * (t1 - t0)
     faults = Faults(nack_rate=0.03, vanish=[(start, start + 2.0)],
@@ -109,34 +106,63 @@ def test_daemon_on_real_counts_log_with_faults_is_unaffected(real_log, tmp_path)
     assert service.stats.ingest_errors == 0
     assert 0 < service.stats.samples < len(track.t_mag)        # the vanish window is lost
     sigma = sampling_error(track.mag, stored.n, reference)
-    assert sigma < SIGMA_CAP
     err = stored.model_error(reference)
-    print(f"{path.name} with faults: eq. 40 = {err:.4f}; 2σ_n = {2 * sigma:.4f}; {counters}")
-    assert err < 2 * sigma, f"{path.name} with faults: model error {err:.4f} vs 2σ_n {2 * sigma:.4f}"
+    assert err < 2 * sigma, \
+        f"{path.name} with faults: model error {err:.4f} vs 2σ_n {2 * sigma:.4f}"
+    return err, sigma, counters
 
 
-# -- the CLI: the issue's command, and clean errors for tracks the fake cannot replay ---------
-
-def test_cli_daemon_on_real_counts_log_exits_0(real_tracks_dir, tmp_path, capsys):
-    path = real_tracks_dir / LOGS[0]
-    code = main(["daemon", "--bus", f"fake:{path}", "--state-dir", str(tmp_path), "--no-socket",
+def check_cli_daemon_on_counts_log(path, state_dir, capsys) -> None:
+    """``streamcal daemon --bus fake:LOG``: exit 0, every row served, a calibration in µT."""
+    code = main(["daemon", "--bus", f"fake:{path}", "--state-dir", str(state_dir), "--no-socket",
                  "--sync-fits"])
     out, err = capsys.readouterr()
     assert code == 0, err
     summary = json.loads(out.strip().splitlines()[-1])
     assert summary["samples"] == len(Track.read(path).t_mag) and summary["cal_version"] >= 1
-    assert Calibration.load(tmp_path / "calibration.json").unit == "uT"
+    assert Calibration.load(state_dir / "calibration.json").unit == "uT"
     assert "Traceback" not in err
 
 
-def test_cli_record_of_counts_log_writes_uT_body_axes(real_tracks_dir, tmp_path, capsys):
-    path = real_tracks_dir / LOGS[1]
-    out = tmp_path / "rec.csv"
+def check_cli_record_of_counts_log(path, out) -> None:
+    """``streamcal record --bus fake:LOG``: the counts written as µT in body axes, same times."""
     assert main(["record", "--bus", f"fake:{path}", "-o", str(out)]) == 0
     got, src = Track.read(out), Track.read(path)
     assert got.mag_unit == "uT" and "at rest" in got.metadata["source"]
     np.testing.assert_allclose(got.mag, S * src.mag @ P.T, rtol=0, atol=1e-9)
     np.testing.assert_array_equal(got.t_mag, src.t_mag)
+
+
+@pytest.fixture(scope="module", params=LOGS)
+def real_log(request, real_tracks_dir):
+    path = real_tracks_dir / request.param
+    track = Track.read(path)
+    assert track.mag_unit == "counts" and not track.has("ax")
+    batch = streamcal.fit(track)                   # counts, chip axes
+    return path, track, batch, to_body(batch)
+
+
+def test_daemon_on_real_counts_log_matches_batch_fit(real_log, tmp_path):
+    err, sigma, n = check_daemon_matches_batch_fit(real_log, tmp_path)
+    print(f"{real_log[0].name}: daemon vs streamcal fit (µT, body axes) eq. 40 = {err:.4f}; "
+          f"sampling error of a fit on n = {n} samples {sigma:.4f}")
+
+
+def test_daemon_on_real_counts_log_with_faults_is_unaffected(real_log, tmp_path):
+    err, sigma, counters = check_daemon_with_faults_is_unaffected(real_log, tmp_path)
+    assert sigma < SIGMA_CAP
+    print(f"{real_log[0].name} with faults: eq. 40 = {err:.4f}; 2σ_n = {2 * sigma:.4f}; "
+          f"{counters}")
+
+
+# -- the CLI: the issue's command, and clean errors for tracks the fake cannot replay ---------
+
+def test_cli_daemon_on_real_counts_log_exits_0(real_tracks_dir, tmp_path, capsys):
+    check_cli_daemon_on_counts_log(real_tracks_dir / LOGS[0], tmp_path, capsys)
+
+
+def test_cli_record_of_counts_log_writes_uT_body_axes(real_tracks_dir, tmp_path, capsys):
+    check_cli_record_of_counts_log(real_tracks_dir / LOGS[1], tmp_path / "rec.csv")
 
 
 def _write(path: Path, metadata: list[str]) -> Path:

@@ -43,6 +43,31 @@ def bounds(d):
             0.5 / R.TEMP_SENSITIVITY_LSB_PER_C + 1e-9)
 
 
+def check_replay_through_the_driver(path) -> None:
+    """A mixed-rate track file through fake bus + driver + source: every magnetometer sample
+    comes back, each channel within half an LSB of the track value the chip would hold at that
+    instant, with no bus-protocol violation and no retry."""
+    track = Track.read(path)
+    src = open_i2c_source(f"fake:{path}", block_size=500, read_track=Track.read)
+    blocks = list(src)
+    d = src.driver
+    t = np.concatenate([b.t for b in blocks])
+    np.testing.assert_array_equal(t, track.t_mag)
+    bm, ba, bg, bt = bounds(d)
+    mag = np.concatenate([b.mag for b in blocks])
+    assert np.all(np.abs(mag - track.mag) <= bm)
+    for name, rows, values, bound in (("accel", track.accel_rows, track.accel, ba),
+                                      ("gyro", track.gyro_rows, track.gyro, bg)):
+        k = np.searchsorted(track.t[rows], t, side="right") - 1
+        got = np.concatenate([getattr(b, name) for b in blocks])
+        assert np.all(np.abs(got[k >= 0] - values[k[k >= 0]]) <= bound)
+    temp_rows = np.isfinite(track.columns["temp"])
+    k = np.searchsorted(track.t[temp_rows], t, side="right") - 1
+    got = np.concatenate([b.temp for b in blocks])
+    assert np.all(np.abs(got[k >= 0] - track.columns["temp"][temp_rows][k[k >= 0]]) <= bt)
+    assert d.bus.violations == [] and d.stats["retries"] == 0
+
+
 def assert_round_trip(block, tr, d):
     """Each returned sample equals the track at its time stamp within half an LSB."""
     k = np.searchsorted(tr["t"], block.t)
@@ -377,26 +402,7 @@ def test_real_track_replayed_through_the_driver(real_tracks_dir):
     """A recorded mixed-rate track (75 Hz mag, 100 Hz IMU) through fake bus + driver + source:
     every magnetometer sample comes back, each channel within half an LSB of the track value
     the chip would hold at that instant."""
-    path = real_tracks_dir / "sunsided_set2_fullsphere.csv.gz"
-    track = Track.read(path)
-    src = open_i2c_source(f"fake:{path}", block_size=500, read_track=Track.read)
-    blocks = list(src)
-    d = src.driver
-    t = np.concatenate([b.t for b in blocks])
-    np.testing.assert_array_equal(t, track.t_mag)
-    bm, ba, bg, bt = bounds(d)
-    mag = np.concatenate([b.mag for b in blocks])
-    assert np.all(np.abs(mag - track.mag) <= bm)
-    for name, rows, values, bound in (("accel", track.accel_rows, track.accel, ba),
-                                      ("gyro", track.gyro_rows, track.gyro, bg)):
-        k = np.searchsorted(track.t[rows], t, side="right") - 1
-        got = np.concatenate([getattr(b, name) for b in blocks])
-        assert np.all(np.abs(got[k >= 0] - values[k[k >= 0]]) <= bound)
-    temp_rows = np.isfinite(track.columns["temp"])
-    k = np.searchsorted(track.t[temp_rows], t, side="right") - 1
-    got = np.concatenate([b.temp for b in blocks])
-    assert np.all(np.abs(got[k >= 0] - track.columns["temp"][temp_rows][k[k >= 0]]) <= bt)
-    assert src.driver.bus.violations == [] and d.stats["retries"] == 0
+    check_replay_through_the_driver(real_tracks_dir / "sunsided_set2_fullsphere.csv.gz")
 
 
 # -- the same checks on a real bus (opt-in: STREAMCAL_I2C_BUS=N; never in CI) ------------------

@@ -11,6 +11,8 @@ from streamcal.errors import InputError
 from streamcal.inputs import autopilot_calibration, detect, read_recording
 from streamcal.inputs.track import Track
 
+from ._shared_checks import check_px4_calibration_in_force
+
 BINS = ["ardupilot_erle_Erle-Brain3.BIN", "ardupilot_erle_PXFv2.0b_Rpi.BIN",
         "ardupilot_erle_15-12-2014_16.BIN"]
 ULGS = ["px4_pyulog_sample.ulg", "px4_pyulog_sample_logging_tagged_and_default_params.ulg",
@@ -119,26 +121,8 @@ def test_px4_calibration_in_force_reproduces_its_corrected_field(flight_dir, tmp
     """--cal log on a PX4 ULog: the Calibration built from the CAL_MAG0_* in force maps the
     track's (undone) readings onto the norms of PX4's own correction (export.px4.apply_px4),
     at the strength of the field PX4 logged; diagnose runs against it and names its source."""
-    from streamcal.export.px4 import apply_px4
-
-    path = flight_dir / ULGS[0]
-    track = read_recording(path)
-    cal = autopilot_calibration(track)
-    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
-              if k.startswith("param.CAL_MAG0_")}
-    px4 = apply_px4({"CAL_MAG0_XODIAG": 0.0, "CAL_MAG0_YODIAG": 0.0, "CAL_MAG0_ZODIAG": 0.0,
-                     **params}, track.mag / 100.0) * 100.0
-    np.testing.assert_allclose(np.linalg.norm(cal.apply_field(track.mag), axis=1),
-                               np.linalg.norm(px4, axis=1), rtol=1e-9)
+    cal, params = check_px4_calibration_in_force(flight_dir / ULGS[0], tmp_path, capsys)
     np.testing.assert_allclose(cal.b, [100.0 * params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
-    assert cal.field == pytest.approx(np.median(np.linalg.norm(px4, axis=1)), rel=1e-3)
-    assert main(["diagnose", str(path), "--cal", "log"]) == 0
-    assert "CAL_MAG0_* parameters" in capsys.readouterr().out
-    converted = tmp_path / "flight.csv"
-    assert main(["convert", str(path), "-o", str(converted)]) == 0
-    again = autopilot_calibration(read_recording(converted))     # from the param.* metadata
-    np.testing.assert_array_equal(again.K, cal.K)
-    np.testing.assert_array_equal(again.b, cal.b)
 
 
 def test_px4_cal_log_refused_when_the_readings_are_already_calibrated(flight_dir):

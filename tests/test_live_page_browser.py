@@ -33,8 +33,9 @@ def _coverage(page) -> tuple[float, str, int]:
     return value, text, int(events)
 
 
-@pytest.mark.slow
-def test_live_stream_updates_the_dom_in_chromium(tmp_path):
+def _playwright():
+    """Debian's chromium and playwright's ``sync_playwright``; a skip (a failure in CI) when
+    playwright is not installed."""
     chromium = _chromium()
     try:
         from playwright.sync_api import sync_playwright
@@ -43,6 +44,12 @@ def test_live_stream_updates_the_dom_in_chromium(tmp_path):
             pytest.fail("playwright is missing: CI installs it with the test extra")
         pytest.skip("python playwright not installed (pip install playwright; no browser "
                     "download needed: Debian's chromium is used)")
+    return chromium, sync_playwright
+
+
+@pytest.mark.slow
+def test_live_stream_updates_the_dom_in_chromium(tmp_path):
+    chromium, sync_playwright = _playwright()
     proc, url = start_daemon(tmp_path, speed="2", seconds="90")
     shot = tmp_path / "live_page.png"
     try:
@@ -76,18 +83,6 @@ def test_live_stream_updates_the_dom_in_chromium(tmp_path):
     # the sphere discs are drawn: some of the "seen" green (34, 170, 119) is on the page
     green = (abs(pixels[..., 0] - 34 / 255) < 0.02) & (abs(pixels[..., 1] - 170 / 255) < 0.02)
     assert green.sum() > 500, green.sum()
-
-
-def _playwright():
-    chromium = _chromium()
-    try:
-        from playwright.sync_api import sync_playwright
-    except ImportError:
-        if os.environ.get("CI"):
-            pytest.fail("playwright is missing: CI installs it with the test extra")
-        pytest.skip("python playwright not installed (pip install playwright; no browser "
-                    "download needed: Debian's chromium is used)")
-    return chromium, sync_playwright
 
 
 class _Feed:

@@ -7,6 +7,8 @@ import pytest
 from streamcal.fitting import autocal, fit
 from streamcal.sim import paper_protocol
 
+from ._shared_checks import refine_iterations
+
 
 def _distance(cal, ref) -> float:
     """Paper eq. 40: ‖[K b] − [K_ref b_ref]‖_F / ‖[K_ref b_ref]‖_F."""
@@ -63,15 +65,7 @@ def test_a_few_gross_outliers_keep_the_full_pass(monkeypatch):
 
 def test_freeimucal_takes_three_lm_iterations(real_data_dir, monkeypatch):
     m = np.loadtxt(real_data_dir / "freeimucal_mag_data.txt", max_rows=1000, usecols=(0, 1, 2))
-    iterations = []
-    original = autocal.refine
-
-    def counted(*args, **kwargs):
-        result = original(*args, **kwargs)
-        iterations.append(result.iterations)
-        return result
-
-    monkeypatch.setattr(autocal, "refine", counted)
+    iterations = refine_iterations(monkeypatch)
     fit(m)
     assert sum(iterations) == 3            # 1 Cauchy step + 2 polish iterations (was 4)
 

@@ -7,7 +7,6 @@ A simulated hand tumble (µT, body axes) is written as the AK8963 data registers
 the fake serves it unchanged and the driver turns it back into µT in body axes."""
 from __future__ import annotations
 
-import json
 import subprocess
 import sys
 
@@ -16,17 +15,16 @@ import pytest
 
 import streamcal
 from firmware_bridge import registers as R
-from firmware_bridge.fake_mpu9250 import Faults
-from firmware_bridge.i2c_source import open_i2c_source
 from firmware_bridge.simavr_board import replay_bytes
-from streamcal.calibration import Calibration
-from streamcal.cli import main
 from streamcal.inputs.track import Track
 from streamcal.sim import simulate
 
 from .conftest import REPO
-from .test_daemon_real_mpu9250 import P, S, SIGMA_CAP, run_daemon, sampling_error, to_body
-from .test_driver import bounds
+from .test_daemon_real_mpu9250 import (P, S, check_cli_daemon_on_counts_log,
+                                       check_cli_record_of_counts_log,
+                                       check_daemon_matches_batch_fit,
+                                       check_daemon_with_faults_is_unaffected, to_body)
+from .test_driver import check_replay_through_the_driver
 from .test_simavr import ASA, _excerpt, _mag_section, _rows
 
 COUNTS_META = {"sensor": "mpu9250 (AK8963 16-bit, 100 Hz)",
@@ -56,50 +54,17 @@ def sim_log(request, tmp_path_factory):
 
 
 def test_daemon_on_a_counts_log_matches_the_batch_fit(sim_log, tmp_path):
-    path, track, batch, reference = sim_log
-    service, stored, log = run_daemon(path, tmp_path)
-    assert stored.unit == "uT" and batch.unit != "uT"
-    assert service.summary()["samples"] == len(track.t_mag)
-    assert any("at rest" in line and "raw AK8963 counts" in line for line in log)
-    sigma = sampling_error(track.mag, stored.n, reference)
-    assert sigma < SIGMA_CAP
-    assert stored.model_error(reference) < 2 * sigma
-    assert stored.model_error(batch.replace(unit="uT")) > 0.5   # the mapping matters
+    check_daemon_matches_batch_fit(sim_log, tmp_path)
 
 
 def test_daemon_on_a_counts_log_with_faults_is_unaffected(sim_log, tmp_path):
-    path, track, _, reference = sim_log
-    t0, t1 = float(track.t[0]), float(track.t[-1])
-    start = t0 + 0.4 * (t1 - t0)
-    faults = Faults(nack_rate=0.03, vanish=[(start, start + 2.0)],
-                    self_resets=[(t0 + 0.6 * (t1 - t0), "both")])
-    service, stored, log = run_daemon(path, tmp_path, faults)
-    counters = service.source.counters()
-    assert counters["nacks"] > 0 and counters["reinits"] >= 2
-    assert service.stats.outages >= 1 and any("device answers again" in line for line in log)
-    assert service.stats.ingest_errors == 0
-    assert 0 < service.stats.samples < len(track.t_mag)
-    sigma = sampling_error(track.mag, stored.n, reference)
-    assert stored.model_error(reference) < 2 * sigma
+    check_daemon_with_faults_is_unaffected(sim_log, tmp_path)
 
 
 def test_cli_daemon_and_record_on_a_counts_log(tmp_path, capsys):
     path = counts_log(tmp_path / "counts.csv", 2)
-    state = tmp_path / "state"
-    code = main(["daemon", "--bus", f"fake:{path}", "--state-dir", str(state), "--no-socket",
-                 "--sync-fits"])
-    out, err = capsys.readouterr()
-    assert code == 0, err
-    summary = json.loads(out.strip().splitlines()[-1])
-    assert summary["samples"] == len(Track.read(path).t_mag) and summary["cal_version"] >= 1
-    assert Calibration.load(state / "calibration.json").unit == "uT"
-    assert "Traceback" not in err
-    rec = tmp_path / "rec.csv"
-    assert main(["record", "--bus", f"fake:{path}", "-o", str(rec)]) == 0
-    got, src = Track.read(rec), Track.read(path)
-    assert got.mag_unit == "uT" and "at rest" in got.metadata["source"]
-    np.testing.assert_allclose(got.mag, S * src.mag @ P.T, rtol=0, atol=1e-9)
-    np.testing.assert_array_equal(got.t_mag, src.t_mag)
+    check_cli_daemon_on_counts_log(path, tmp_path / "state", capsys)
+    check_cli_record_of_counts_log(path, tmp_path / "rec.csv")
 
 
 def test_record_from_the_fake_board_on_a_counts_log_writes_the_field_in_uT(tmp_path):
@@ -141,21 +106,4 @@ def test_a_mixed_rate_track_replayed_through_the_driver(tmp_path):
     simulate(20.0, 7).track.write(path)
     track = Track.read(path)
     assert not np.any(track.mag_rows & track.accel_rows)
-    src = open_i2c_source(f"fake:{path}", block_size=500, read_track=Track.read)
-    blocks = list(src)
-    d = src.driver
-    t = np.concatenate([b.t for b in blocks])
-    np.testing.assert_array_equal(t, track.t_mag)
-    bm, ba, bg, bt = bounds(d)
-    mag = np.concatenate([b.mag for b in blocks])
-    assert np.all(np.abs(mag - track.mag) <= bm)
-    for name, rows, values, bound in (("accel", track.accel_rows, track.accel, ba),
-                                      ("gyro", track.gyro_rows, track.gyro, bg)):
-        k = np.searchsorted(track.t[rows], t, side="right") - 1
-        got = np.concatenate([getattr(b, name) for b in blocks])
-        assert np.all(np.abs(got[k >= 0] - values[k[k >= 0]]) <= bound)
-    temp_rows = np.isfinite(track.columns["temp"])
-    k = np.searchsorted(track.t[temp_rows], t, side="right") - 1
-    got = np.concatenate([b.temp for b in blocks])
-    assert np.all(np.abs(got[k >= 0] - track.columns["temp"][temp_rows][k[k >= 0]]) <= bt)
-    assert d.bus.violations == [] and d.stats["retries"] == 0
+    check_replay_through_the_driver(path)

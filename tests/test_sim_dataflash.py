@@ -4,20 +4,24 @@ content detection, offsets / soft iron / motor offsets undone, aux channels and 
 COMPASS_* calibration, the bulk decoder against pymavlink, damaged and truncated logs."""
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 
 from streamcal.calibration import canonical_form
-from streamcal.cli import main
-from streamcal.errors import InputError
-from streamcal.inputs import autopilot_calibration, dataflash, detect, read_recording
-from streamcal.inputs.dataflash_bulk import FMT_TYPE, walk
-from streamcal.inputs.track import Track
+from streamcal.inputs import autopilot_calibration, read_recording
 
 from ._selfmade_logs import (A_TRUE, B_TRUE, FIRMWARE, LAYOUT, ardupilot_params, flight_slice,
                              write_dataflash)
+from ._shared_checks import (check_bulk_track_equals_pymavlink_track,
+                             check_convert_writes_the_track_read_recording_gives,
+                             check_detected_from_content_not_name,
+                             check_log_without_magnetometer_named,
+                             check_truncated_log_read_to_last_message,
+                             check_damaged_message_resynchronised,
+                             check_garbage_run_skipped_and_named, check_random_damage,
+                             check_string_where_a_number_is_needed_named,
+                             check_unknown_format_character_named,
+                             check_walk_follows_every_message, cut_inside_header_and_body)
 
 #: The calibration is rebuilt from the param.* metadata, which keeps 6 significant digits (the
 #: real logs' DIA = 1, ODI = 0 are exact there; this log's soft iron is not).
@@ -54,38 +58,15 @@ def _S(params):
                      [params["COMPASS_ODI_Y"], params["COMPASS_ODI_Z"], params["COMPASS_DIA_Z"]]])
 
 
-def _messages(data):
-    chain = walk(data)
-    return chain, sorted((int(o), t) for t, offs in chain.offsets.items() for o in offs)
-
-
-def _assert_same_track(a, b, *, metadata=True):
-    assert list(a.columns) == list(b.columns)
-    for name in a.columns:
-        np.testing.assert_array_equal(a.columns[name], b.columns[name], err_msg=name)
-    if metadata:
-        assert a.metadata == b.metadata
-    assert len(a) == len(b) and a.skipped_rows == b.skipped_rows
-
-
 def test_convert_writes_the_track_read_recording_gives(log, flight, tmp_path):
-    out = tmp_path / "track.csv"
-    assert main(["convert", str(log), "-o", str(out)]) == 0
-    track, direct = Track.read(out), read_recording(log)
-    assert len(track) == len(direct) and len(track.t_mag) == len(flight.t_mag)
-    assert np.all(np.diff(track.t) >= 0) and track.t[0] == 0.0
-    np.testing.assert_allclose(track.mag, direct.mag, atol=1e-6)   # the CSV's decimals
-    assert track.mag_unit == "uT" and track.has("accel") and track.has("gyro")
-    for key in ("input_format", "source", "mag_axes", "units", "time_origin", "firmware"):
-        assert key in track.metadata, key
+    track = check_convert_writes_the_track_read_recording_gives(log, flight, tmp_path,
+                                                                ("firmware",))
     assert track.metadata["firmware"] == FIRMWARE
 
 
 def test_detected_from_content_not_name(log, tmp_path):
-    renamed = tmp_path / "renamed.csv"
-    shutil.copy(log, renamed)
-    assert detect(renamed) == "dataflash"
-    assert read_recording(renamed).metadata["input_format"] == "ardupilot-dataflash"
+    check_detected_from_content_not_name(log, tmp_path / "renamed.csv", "dataflash",
+                                         "ardupilot-dataflash")
 
 
 def test_offsets_and_soft_iron_undone_back_to_the_sensor_reading(log, flight):
@@ -167,129 +148,43 @@ def test_autopilot_calibration_reproduces_the_logged_field_and_the_truth(log):
 def test_truncated_log_read_to_last_message_naming_file(log, tmp_path, capsys, fraction):
     """A crash or a power cut: exit 0 without --skip-bad-rows, one stderr line naming the file
     and what was lost, the complete messages kept."""
-    data = log.read_bytes()
-    cut = tmp_path / "cut.BIN"
-    cut.write_bytes(data[: int(len(data) * fraction)])
-    out = tmp_path / "out.csv"
-    assert main(["convert", str(cut), "-o", str(out)]) == 0
-    err = capsys.readouterr().err
-    assert str(cut) in err and "truncated" in err and len(err.strip().splitlines()) == 1
-    track = Track.read(out)
-    assert "truncated" in track.metadata["read_warnings"]
-    whole = read_recording(log)
-    assert 0.3 * len(whole.t_mag) < len(track.t_mag) < len(whole.t_mag)
+    check_truncated_log_read_to_last_message(log, tmp_path / "cut.BIN", fraction, tmp_path,
+                                             capsys)
 
 
 def test_log_without_magnetometer_names_the_message(flight, tmp_path, capsys):
     path = write_dataflash(tmp_path / "nomag.bin", flight, with_mag=False)
-    with pytest.raises(InputError, match="no MAG messages.*IMU"):
-        read_recording(path)
-    assert main(["fit", str(path)]) == 2
-    assert str(path) in capsys.readouterr().err
+    check_log_without_magnetometer_named(path, "no MAG messages.*IMU", capsys)
 
 
 def test_bulk_track_equals_pymavlink_track(log):
-    bulk = dataflash.read_dataflash(log)
-    _assert_same_track(bulk, dataflash.read_dataflash_pymavlink(log))
-    assert len(bulk.t_mag) > 1000 and "read_warnings" not in bulk.metadata
+    check_bulk_track_equals_pymavlink_track(log)
 
 
 def test_walk_follows_every_message_of_a_clean_log(log):
-    data = log.read_bytes()
-    chain, offsets = _messages(data)
-    assert offsets[0] == (0, FMT_TYPE) and not chain.skipped and chain.cut == 0
-    ends = [o + chain.formats[t].length for o, t in offsets]
-    assert ends[:-1] == [o for o, _ in offsets[1:]] and ends[-1] == len(data)
+    check_walk_follows_every_message(log)
 
 
 def test_garbage_run_skipped_and_named(log, tmp_path):
-    data = log.read_bytes()
-    _, offsets = _messages(data)
-    at = offsets[len(offsets) // 2][0]
-    junk = b"\x00\x11\xa3\x95\xfe\x22" * 3
-    bad = tmp_path / "junk.bin"
-    bad.write_bytes(data[:at] + junk + data[at:])
-    track = dataflash.read_dataflash(bad)
-    assert f"Skipped {len(junk)} bad bytes ({len(junk)} at offset {at})" in \
-        track.metadata["read_warnings"]
-    _assert_same_track(track, dataflash.read_dataflash(log), metadata=False)
+    check_garbage_run_skipped_and_named(log, tmp_path)
 
 
 def test_damaged_message_resynchronised(log, tmp_path):
-    data = log.read_bytes()
-    chain, offsets = _messages(data)
-    j = len(offsets) // 3
-    (start, _), (nxt, ntype) = offsets[j], offsets[j + 1]
-    bad = tmp_path / "cut_inside.bin"
-    bad.write_bytes(data[:start + 10] + data[start + 15:])
-    got_chain, got = _messages(bad.read_bytes())
-    shift = [(o - 5 if o > start else o, t) for o, t in offsets]
-    assert got == shift[:j + 1] + shift[j + 2:]
-    lost = chain.formats[ntype].length - 5
-    assert got_chain.skipped == [(nxt, lost)]
-    track = dataflash.read_dataflash(bad)
-    assert f"Skipped {lost} bad bytes ({lost} at offset {nxt})" in track.metadata["read_warnings"]
+    check_damaged_message_resynchronised(log, tmp_path)
 
 
 def test_truncated_inside_header_and_body(log, tmp_path):
-    data = log.read_bytes()
-    _, offsets = _messages(data)
-    last = offsets[len(offsets) // 2][0]
-    for keep, left in ((last + 2, 2), (last + 7, 7)):
-        cut = tmp_path / f"cut{keep}.bin"
-        cut.write_bytes(data[:keep])
-        track = dataflash.read_dataflash(cut)   # read to the last complete message
-        assert f"truncated: {left} trailing bytes ignored" in track.metadata["read_warnings"]
-
-
-def _mag_format_at(data: bytes) -> int:
-    chain, offsets = _messages(data)
-    mag = next(o for o, t in offsets
-               if t == FMT_TYPE and chain.formats[data[o + 3]].name == "MAG")
-    return mag + 3 + 1 + 1 + 4   # header, Type, Length, Name → Format
+    assert len(cut_inside_header_and_body(log, tmp_path)) == 2
 
 
 def test_unknown_format_character_named(log, tmp_path):
-    data = bytearray(log.read_bytes())
-    data[_mag_format_at(bytes(data)) + 1] = ord("X")
-    bad = tmp_path / "odd_fmt.bin"
-    bad.write_bytes(bytes(data))
-    with pytest.raises(InputError, match=r"odd_fmt\.bin.*'X'.*MAG.*unknown layout"):
-        dataflash.read_dataflash(bad)
+    check_unknown_format_character_named(log, tmp_path)
 
 
 def test_string_where_a_number_is_needed_named(log, tmp_path):
-    data = bytearray(log.read_bytes())
-    at = _mag_format_at(bytes(data))
-    layout = LAYOUT["MAG"][1].encode()
-    assert data[at:at + len(layout)] == layout
-    # same size: MagX and MagY (two int16) become one 4-byte string
-    data[at:at + len(layout)] = b"QBn" + layout[4:] + b"\0"
-    bad = tmp_path / "string_mag.bin"
-    bad.write_bytes(bytes(data))
-    with pytest.raises(InputError, match=r"string_mag\.bin: MAG\.MagX is not a number.*'n'"):
-        dataflash.read_dataflash(bad)
+    check_string_where_a_number_is_needed_named(log, tmp_path, LAYOUT["MAG"][1].encode())
 
 
 @pytest.mark.parametrize("seed", range(12))
 def test_random_damage_gives_a_track_or_a_named_error(log, tmp_path, seed):
-    rng = np.random.default_rng(seed)
-    blob = bytearray(log.read_bytes()[:120_000])
-    for _ in range(int(rng.integers(1, 25))):
-        at = int(rng.integers(0, 3000 if rng.random() < 0.7 else len(blob)))
-        op = rng.random()
-        if op < 0.4:
-            blob[at] ^= int(rng.integers(1, 256))
-        elif op < 0.7:
-            blob[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
-        else:
-            del blob[at:at + int(rng.integers(1, 9))]
-    path = tmp_path / "damaged.bin"
-    path.write_bytes(bytes(blob))
-    for skip in (False, True):
-        try:
-            track = dataflash.read_dataflash(path, skip_bad_rows=skip)
-        except InputError as exc:
-            assert str(path) in str(exc)
-        else:
-            assert len(track.t_mag) > 0
+    check_random_damage(log.read_bytes()[:120_000], tmp_path, seed, fmt_block=3000)

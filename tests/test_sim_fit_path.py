@@ -3,22 +3,16 @@ tests/test_polish_start.py check on FreeIMU-cal's real 1000 samples (one Cauchy 
 outlier-free start, then a Geman–McClure polish that converges in two iterations)."""
 from __future__ import annotations
 
-from streamcal.fitting import autocal, fit
+from streamcal.fitting import fit
 from streamcal.sim import simulate
+
+from ._shared_checks import refine_iterations
 
 
 def test_a_hand_tumble_takes_one_cauchy_step_and_a_two_iteration_polish(monkeypatch):
     """1000 samples of a simulated hand tumble take the real log's path: three LM iterations in
     all, the polish converged in at most two."""
-    iterations = []
-    original = autocal.refine
-
-    def counted(*args, **kwargs):
-        result = original(*args, **kwargs)
-        iterations.append(result.iterations)
-        return result
-
-    monkeypatch.setattr(autocal, "refine", counted)
+    iterations = refine_iterations(monkeypatch)
     for seed in (0, 1, 2):
         del iterations[:]
         m = simulate(60.0, seed, motor=False).track.mag[:1000]

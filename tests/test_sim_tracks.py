@@ -7,18 +7,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from streamcal.calibration import Calibration
-from streamcal.cli import apply as apply_cli
-from streamcal.cli import convert as convert_cli
-from streamcal.cli import main
-from streamcal.inputs.chunks import iter_track_blocks, iter_track_chunks
 from streamcal.inputs.track import Track
 from streamcal.sim import simulate
 
-from .test_convert_apply_chunks import _whole_apply
+from .test_convert_apply_chunks import (check_apply_chunked_equals_whole,
+                                        check_convert_chunked_equals_whole)
 from .test_sim_counts_log import counts_log
 from .test_track import assert_tracks_equal
-from .test_track_chunks import _assert_same, _chunked, _whole
+from .test_track_chunks import (_assert_same, _chunked, _whole,
+                                check_blocks_across_chunks_are_the_whole_tracks_blocks,
+                                check_replay_output_does_not_depend_on_the_chunk_size)
 
 
 @pytest.fixture(scope="module")
@@ -63,43 +61,20 @@ def test_gzip_track_in_chunks_equals_the_whole(gz_track):
 
 
 def test_blocks_across_chunks_are_the_whole_tracks_blocks(counts):
-    whole = list(Track.read(counts).blocks(50))
-    cut = list(iter_track_blocks(iter_track_chunks(counts, rows=37), 50))
-    assert [len(b.t) for b in cut] == [len(b.t) for b in whole]
-    for a, b in zip(cut, whole):
-        np.testing.assert_array_equal(a.t, b.t)
-        np.testing.assert_array_equal(a.mag, b.mag)
-        assert a.source == b.source
+    check_blocks_across_chunks_are_the_whole_tracks_blocks(counts)
 
 
 def test_replay_output_does_not_depend_on_the_chunk_size(counts, monkeypatch, capsys):
-    from streamcal.cli import replay
-
-    outputs = []
-    for rows in (50_000, 23):
-        monkeypatch.setattr(replay, "_CHUNK_ROWS", rows)
-        assert main(["replay", str(counts), "--sync-fits", "--json"]) == 0
-        outputs.append(capsys.readouterr().out)
-    assert outputs[0] == outputs[1] and '"event": "summary"' in outputs[0]
-    assert '"event": "accepted"' in outputs[0]      # the replay did calibrate
+    out = check_replay_output_does_not_depend_on_the_chunk_size(counts, monkeypatch, capsys)
+    assert '"event": "accepted"' in out      # the replay did calibrate
 
 
 @pytest.mark.parametrize("suffix", [".csv", ".csv.gz"])
 @pytest.mark.parametrize("rows", [997, 100_000])
 def test_convert_chunked_equals_whole(gz_track, tmp_path, monkeypatch, suffix, rows):
-    monkeypatch.setattr(convert_cli, "CHUNK_ROWS", rows)
-    out, ref = tmp_path / f"out{suffix}", tmp_path / f"ref{suffix}"
-    assert main(["convert", str(gz_track), "-o", str(out)]) == 0
-    Track.read(gz_track).write(ref)
-    assert out.read_bytes() == ref.read_bytes()
+    check_convert_chunked_equals_whole(gz_track, tmp_path, monkeypatch, suffix, rows)
 
 
 @pytest.mark.parametrize("rows", [500, 4096])
 def test_apply_chunked_equals_whole(gz_track, tmp_path, monkeypatch, rows):
-    monkeypatch.setattr(apply_cli, "CHUNK_ROWS", rows)
-    cal_path, out, ref = tmp_path / "cal.json", tmp_path / "out.csv", tmp_path / "ref.csv"
-    Calibration(K=np.diag([30.0, 31.0, 29.0]), b=np.array([5.0, -3.0, 1.0]), field=48.0,
-                n=1).save(cal_path)
-    assert main(["apply", str(cal_path), str(gz_track), "-o", str(out)]) == 0
-    _whole_apply(Calibration.load(cal_path), gz_track, cal_path, ref)
-    assert out.read_bytes() == ref.read_bytes()
+    check_apply_chunked_equals_whole(gz_track, tmp_path, monkeypatch, rows)

@@ -5,19 +5,19 @@ and units, the calibration in force (``--cal log``), a rotated calibration refus
 logs."""
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 
 from streamcal.calibration import canonical_form
-from streamcal.cli import main
 from streamcal.errors import InputError
-from streamcal.export.px4 import apply_px4
-from streamcal.inputs import autopilot_calibration, detect, read_recording
-from streamcal.inputs.track import Track
+from streamcal.inputs import autopilot_calibration, read_recording
 
 from ._selfmade_logs import A_TRUE, B_TRUE, flight_slice, px4_params, write_ulog
+from ._shared_checks import (check_convert_writes_the_track_read_recording_gives,
+                             check_detected_from_content_not_name,
+                             check_log_without_magnetometer_named,
+                             check_px4_calibration_in_force,
+                             check_truncated_log_read_to_last_message)
 
 #: PX4 logs its parameters as float32: what the reader finds is the value rounded to that.
 FLOAT32 = 1e-6
@@ -43,22 +43,11 @@ def log(request, flight, tmp_path_factory):
 
 
 def test_convert_writes_the_track_read_recording_gives(log, flight, tmp_path):
-    out = tmp_path / "track.csv"
-    assert main(["convert", str(log), "-o", str(out)]) == 0
-    track, direct = Track.read(out), read_recording(log)
-    assert len(track) == len(direct) and len(track.t_mag) == len(flight.t_mag)
-    assert np.all(np.diff(track.t) >= 0) and track.t[0] == 0.0
-    np.testing.assert_allclose(track.mag, direct.mag, atol=1e-6)
-    assert track.mag_unit == "uT" and track.has("accel") and track.has("gyro")
-    for key in ("input_format", "source", "mag_axes", "units", "time_origin", "mag_topic"):
-        assert key in track.metadata, key
+    check_convert_writes_the_track_read_recording_gives(log, flight, tmp_path, ("mag_topic",))
 
 
 def test_detected_from_content_not_name(log, tmp_path):
-    renamed = tmp_path / "renamed.txt"
-    shutil.copy(log, renamed)
-    assert detect(renamed) == "ulog"
-    assert read_recording(renamed).metadata["input_format"] == "px4-ulog"
+    check_detected_from_content_not_name(log, tmp_path / "renamed.txt", "ulog", "px4-ulog")
 
 
 def test_the_reading_is_the_sensors_whichever_topic_was_logged(log, flight):
@@ -92,25 +81,10 @@ def test_calibration_in_force_maps_the_readings_as_px4_does(log, tmp_path, capsy
     """--cal log: the CAL_MAG0_* in force as a Calibration gives PX4's own correction
     (export.px4.apply_px4) at the strength PX4's field has, and the true sensor model; diagnose
     runs against it and names its source; a converted track carries the same parameters."""
-    track = read_recording(log)
-    cal = autopilot_calibration(track)
-    params = {k[len("param."):]: float(v) for k, v in track.metadata.items()
-              if k.startswith("param.CAL_MAG0_")}
-    px4 = apply_px4({"CAL_MAG0_XODIAG": 0.0, "CAL_MAG0_YODIAG": 0.0, "CAL_MAG0_ZODIAG": 0.0,
-                     **params}, track.mag / 100.0) * 100.0
-    np.testing.assert_allclose(np.linalg.norm(cal.apply_field(track.mag), axis=1),
-                               np.linalg.norm(px4, axis=1), rtol=1e-9)
-    assert cal.field == pytest.approx(np.median(np.linalg.norm(px4, axis=1)), rel=1e-3)
+    cal, _ = check_px4_calibration_in_force(log, tmp_path, capsys)
     np.testing.assert_allclose(cal.b, B_TRUE, atol=1e-4)
     K, _ = canonical_form(A_TRUE)
     np.testing.assert_allclose(cal.K * 48.0 / cal.field, K, rtol=FLOAT32)
-    assert main(["diagnose", str(log), "--cal", "log"]) == 0
-    assert "CAL_MAG0_* parameters" in capsys.readouterr().out
-    converted = tmp_path / "flight.csv"
-    assert main(["convert", str(log), "-o", str(converted)]) == 0
-    again = autopilot_calibration(read_recording(converted))
-    np.testing.assert_array_equal(again.K, cal.K)
-    np.testing.assert_array_equal(again.b, cal.b)
 
 
 def test_a_rotated_calibration_is_kept_and_cal_log_refused(flight, tmp_path):
@@ -129,22 +103,10 @@ def test_truncated_log_read_to_last_message_naming_file(flight, tmp_path, capsys
     """A crash or a power cut: exit 0 without --skip-bad-rows, one stderr line naming the file
     and what was lost, the complete messages kept."""
     whole = write_ulog(tmp_path / "whole.ulg", flight)
-    data = whole.read_bytes()
-    cut = tmp_path / "cut.ulg"
-    cut.write_bytes(data[: int(len(data) * fraction)])
-    out = tmp_path / "out.csv"
-    assert main(["convert", str(cut), "-o", str(out)]) == 0
-    err = capsys.readouterr().err
-    assert str(cut) in err and "truncated" in err and len(err.strip().splitlines()) == 1
-    track = Track.read(out)
-    assert "truncated" in track.metadata["read_warnings"]
-    assert 0.3 * len(read_recording(whole).t_mag) < len(track.t_mag) < len(
-        read_recording(whole).t_mag)
+    check_truncated_log_read_to_last_message(whole, tmp_path / "cut.ulg", fraction, tmp_path,
+                                             capsys)
 
 
 def test_log_without_magnetometer_names_the_topics_it_has(flight, tmp_path, capsys):
     path = write_ulog(tmp_path / "nomag.ulg", flight, with_mag=False)
-    with pytest.raises(InputError, match="no magnetometer topic.*sensor_combined"):
-        read_recording(path)
-    assert main(["fit", str(path)]) == 2
-    assert str(path) in capsys.readouterr().err
+    check_log_without_magnetometer_named(path, "no magnetometer topic.*sensor_combined", capsys)

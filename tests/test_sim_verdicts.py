@@ -12,35 +12,30 @@ hemisphere; a refused track (broad_32) — a planar turn; a cap of a short noisy
 from __future__ import annotations
 
 import html
-import json
 import re
 
-import numpy as np
 import pytest
 
-import streamcal
 from streamcal.cli import main
-from streamcal.cli.diagnose import _text
 from streamcal.diagnosis import diagnose
-from streamcal.diagnosis.verdict import FLOOR_FACTOR
-from streamcal.errors import InsufficientDataError
 from streamcal.fitting import fit
 from streamcal.inputs.track import Track
-from streamcal.report import render_html
-from streamcal.report.html import _SCALES_NOTE
 from streamcal.sim import simulate
 
-from .test_diagnose_against import REAL_RMS_FACTOR
+from ._shared_checks import (check_fit_json_names_the_residual,
+                             check_held_verdict_follows_the_same_rules,
+                             check_report_heading_names_the_file,
+                             check_significance_and_materiality_apart,
+                             check_tied_fit_names_both_residuals,
+                             check_unexplained_above_a_measured_floor,
+                             check_unmeasurable_floor_is_null_with_its_reason)
+from .test_diagnose_against import check_cap_against_its_full_calibration
 from .test_human_output import LONG_FLOAT
 from .test_report import _assert_not_blank, _assert_self_contained, _images
 
 #: An effect the restricted catalog below cannot express, so the residual stays unexplained.
 UNLISTED = {"axis_nonlinearity": 1.0}
 CATALOG_WITHOUT_IT = ["time_lag", "temperature_offset"]
-
-
-def _json(d) -> dict:
-    return json.loads(json.dumps(d.to_dict(), allow_nan=False, default=lambda v: None))
 
 
 @pytest.fixture(scope="module")
@@ -50,84 +45,26 @@ def unexplained():
 
 
 def test_rms_well_above_a_measured_floor_is_unexplained(unexplained):
-    track, d = unexplained
-    js = _json(d)
-    assert js["noise_floor_reliable"] is True and js["noise_floor"] > 0
-    assert js["rms"] / js["noise_floor"] > FLOOR_FACTOR
-    assert not any(c["significant"] and c["material"] for c in js["candidates"])
-    assert js["verdict"] == "unexplained"
-    assert f"{FLOOR_FACTOR:g}×" in js["noise_floor_rule"]
-    text = _text(d)
-    assert "unexplained" in text and js["noise_floor_rule"] in text
-    misfit = js["misfit"]
-    groups = [misfit["time"], misfit["directions"], misfit["rotation_rate"]["bins"],
-              *misfit["covariates"].values()]
-    for bins in groups:
-        assert sum(b["share"] for b in bins) == pytest.approx(1.0, abs=1e-9)
-        assert sum(b["samples"] for b in bins) == pytest.approx(1.0, abs=1e-9)
-        assert all(0 <= b["share"] <= 1 for b in bins)
-    assert np.sqrt(misfit["energy"] / misfit["n"]) == pytest.approx(js["rms"], rel=1e-9)
-    assert misfit["n"] == js["n"] - js["n_outliers"]
-    starts = [b["t"][0] for b in misfit["time"]]
-    assert starts == sorted(starts) and starts[0] == pytest.approx(float(track.t_mag[0]), abs=0.1)
+    check_unexplained_above_a_measured_floor(*unexplained)
 
 
 def test_against_a_calibration_the_verdict_follows_the_same_rules(unexplained):
     track, fresh = unexplained
-    d = diagnose(track, calibration=fresh.calibration, candidates=CATALOG_WITHOUT_IT)
-    js = _json(d)
-    assert js["held"] is not None and js["noise_floor_reliable"] is True
-    assert js["rms"] > FLOOR_FACTOR * js["noise_floor"]
-    assert not any(c["significant"] and c["material"] for c in js["candidates"])
-    assert js["verdict"] == "unexplained"
-    assert js["misfit"]["n"] == js["n"] - js["n_outliers"]
-    for c, obj in zip(js["candidates"], d.candidates):
-        assert obj.significant == (c["significant"] and c["material"])
+    check_held_verdict_follows_the_same_rules(
+        diagnose(track, calibration=fresh.calibration, candidates=CATALOG_WITHOUT_IT))
 
 
 def test_a_floor_the_recording_cannot_measure_is_null_with_its_reason():
     """3.33 Hz turned by hand: the second differences measure the motion, not the noise."""
     track = simulate(120.0, 32, mag_rate_hz=3.33, imu_rate_hz=3.33, motor=False).track
-    d = diagnose(track)
-    js = d.to_dict()
-    assert js["noise_floor"] is None and js["noise_floor_reliable"] is False
-    reason = js["noise_floor_reason"]
-    assert "3.33 Hz" in reason and "correlate" in reason
-    assert js["noise"]["measured"] > js["rms"]
-    assert js["verdict"] == "unexplained"
-    out = json.dumps(js, allow_nan=False, default=lambda v: None)
-    text = _text(d)
-    page = render_html(track, d, figures=[])
-    ratio = js["rms"] / js["noise"]["measured"]
-    for shown in (out, text, page):
-        for rule in (js["noise_floor_rule"], js["significance_rule"], _SCALES_NOTE):
-            shown = shown.replace(rule, "").replace(html.escape(rule), "")
-        assert "× floor" not in shown and "× the floor" not in shown
-        assert "× the noise floor" not in shown
-        assert not re.search(r"\d\.\d\d×", shown)
-        # the ratio as a number of its own (not the first digits of another one)
-        assert not re.search(rf"(?<![\d.]){ratio:.2f}(?!\d)", shown)
-    assert "not measurable" in text and reason in text
-    assert "cannot be measured" in page
+    check_unmeasurable_floor_is_null_with_its_reason(track, diagnose(track))
 
 
 def test_significance_and_materiality_are_reported_apart_with_their_rule():
     """A small drift: p far below 1e-6 (significant) but the rms falls by a few % (not
     material); the text shows both tests and the rule with its numbers."""
-    d = diagnose(simulate(60.0, 33, effects={"time_drift": 0.01}, motor=False).track)
-    js = d.to_dict()
-    drift = next(c for c in js["candidates"] if c["effect"] == "time_drift")
-    assert drift["p_value"] < 1e-6 and drift["significant"] is True
-    assert drift["rms_after"] > 0.9 * drift["rms_before"] and drift["material"] is False
-    for c in js["candidates"]:
-        assert c["residual"] in ("sensor", "gravity_tied", "gyro_tied")
-        assert c["significant"] == (c["p_value"] < 1e-6)
-    rule = js["significance_rule"]
-    assert "1e-06" in rule and "10%" in rule and "effective" in rule
-    text = _text(d)
-    assert rule in text and "not significant" not in text
-    line = next(l for l in text.splitlines() if l.startswith("time_drift"))
-    assert re.search(r"\byes\s+no\b", line), line
+    check_significance_and_materiality_apart(
+        diagnose(simulate(60.0, 33, effects={"time_drift": 0.01}, motor=False).track))
 
 
 @pytest.fixture(scope="module")
@@ -140,11 +77,7 @@ def lagged(tmp_path_factory):
 def test_fit_of_a_tied_effect_names_both_residuals_and_the_lag_in_ms(lagged, capsys):
     assert main(["fit", str(lagged), "--add", "time_lag"]) == 0
     text = capsys.readouterr().out
-    tied = re.search(r"rms\s+([\d.]+) µT on the gravity-tied residual", text)
-    sensor = re.search(r"rms\s+([\d.]+) µT on the sensor residual", text)
-    assert tied and sensor, text
-    assert float(sensor.group(1)) < float(tied.group(1))
-    assert not re.search(r"rms\s+[\d.]+ µT over", text)
+    check_tied_fit_names_both_residuals(text)
     lag = re.search(r"time_lag: tau (-?[\d.]+) ms", text)
     assert lag, text
     assert 1.0 < abs(float(lag.group(1))) < 100.0        # milliseconds, not seconds
@@ -154,20 +87,11 @@ def test_fit_of_a_tied_effect_names_both_residuals_and_the_lag_in_ms(lagged, cap
 def test_fit_json_names_the_residual(tmp_path, capsys):
     path = tmp_path / "tilted.csv"
     simulate(40.0, 43, effects={"mag_accel_misalignment": 0.06}, motor=False).track.write(path)
-    assert main(["fit", str(path), "--json"]) == 0
-    plain = json.loads(capsys.readouterr().out)
-    assert plain["residual"] == "sensor" and "rms_sensor" not in plain
-    assert main(["fit", str(path), "--add", "mag_accel_misalignment", "--json"]) == 0
-    tied = json.loads(capsys.readouterr().out)
-    assert tied["residual"] == "gravity_tied"
-    assert tied["rms_sensor"] > 0 and tied["rms_sensor"] != tied["rms"]
+    check_fit_json_names_the_residual(path, capsys)
 
 
 def test_report_heading_names_the_file_not_its_folder(lagged, tmp_path):
-    out = tmp_path / "r.html"
-    assert main(["report", str(lagged), "-o", str(out)]) == 0
-    heading = re.search(r"<h1>(.*?)</h1>", out.read_text()).group(1)
-    assert lagged.name in heading and str(lagged.parent) not in heading
+    assert check_report_heading_names_the_file(lagged, tmp_path / "r.html") == 0
 
 
 @pytest.fixture(scope="module")
@@ -217,21 +141,4 @@ def test_a_refused_track_is_reported_and_the_page_says_why(planar, tmp_path, cap
 
 def test_a_cap_against_its_full_calibration():
     """25 s at 1.5 µT noise (the real track's 3 %): a cap too short to determine K."""
-    track = simulate(25.0, 44, motor=False, noise_uT=1.5).track
-    cal = streamcal.fit(track)
-    x = cal.apply(track.mag)
-    x /= np.linalg.norm(x, axis=1, keepdims=True)
-    centre = x.mean(axis=0)
-    centre /= np.linalg.norm(centre)
-    in_cap = x @ centre >= 0.7             # a cap of 15 % of the sphere
-    keep = ~np.asarray(track.mag_rows, bool)
-    keep[np.flatnonzero(track.mag_rows)[in_cap]] = True
-    cap = track.select(keep)
-    assert 100 < len(cap.mag) < len(track.mag)
-    with pytest.raises(InsufficientDataError):
-        streamcal.fit(cap)
-    d = streamcal.diagnose(cap, calibration=cal)
-    assert d.held and d.rms <= REAL_RMS_FACTOR * cal.rms, (d.rms, cal.rms)
-    d0 = streamcal.diagnose(cap)
-    assert {"K_xx", "K_yy", "K_zz"} <= set(d0.held) and {"b_x", "b_y", "b_z"} <= set(d0.estimated)
-    assert d0.rms <= REAL_RMS_FACTOR * cal.rms, (d0.rms, cal.rms)
+    check_cap_against_its_full_calibration(simulate(25.0, 44, motor=False, noise_uT=1.5).track)

@@ -91,10 +91,10 @@ def test_real_gzip_track_in_chunks_equals_the_whole(real_tracks_dir):
     _assert_same(_chunked(path, False, 1000), _whole(path, False))
 
 
-def test_blocks_across_chunks_are_the_whole_tracks_blocks(real_tracks_dir):
+def check_blocks_across_chunks_are_the_whole_tracks_blocks(path) -> None:
+    """Blocks of 50 cut from chunks of 37 rows are the whole track's blocks of 50."""
     from streamcal.inputs.chunks import iter_track_blocks
 
-    path = real_tracks_dir / "tiva_mpu9250_mag_03.csv"
     whole = list(Track.read(path).blocks(50))
     cut = list(iter_track_blocks(iter_track_chunks(path, rows=37), 50))
     assert [len(b.t) for b in cut] == [len(b.t) for b in whole]
@@ -104,13 +104,24 @@ def test_blocks_across_chunks_are_the_whole_tracks_blocks(real_tracks_dir):
         assert a.source == b.source
 
 
-def test_replay_output_does_not_depend_on_the_chunk_size(real_tracks_dir, monkeypatch, capsys):
+def check_replay_output_does_not_depend_on_the_chunk_size(path, monkeypatch, capsys) -> str:
+    """``replay --json`` reading 50 000 or 23 rows at a time prints the same; returns it."""
     from streamcal.cli import main, replay
 
-    path = str(real_tracks_dir / "tiva_mpu9250_mag_03.csv")
     outputs = []
     for rows in (50_000, 23):
         monkeypatch.setattr(replay, "_CHUNK_ROWS", rows)
-        assert main(["replay", path, "--sync-fits", "--json"]) == 0
+        assert main(["replay", str(path), "--sync-fits", "--json"]) == 0
         outputs.append(capsys.readouterr().out)
     assert outputs[0] == outputs[1] and '"event": "summary"' in outputs[0]
+    return outputs[0]
+
+
+def test_blocks_across_chunks_are_the_whole_tracks_blocks(real_tracks_dir):
+    check_blocks_across_chunks_are_the_whole_tracks_blocks(
+        real_tracks_dir / "tiva_mpu9250_mag_03.csv")
+
+
+def test_replay_output_does_not_depend_on_the_chunk_size(real_tracks_dir, monkeypatch, capsys):
+    check_replay_output_does_not_depend_on_the_chunk_size(
+        real_tracks_dir / "tiva_mpu9250_mag_03.csv", monkeypatch, capsys)
