@@ -212,7 +212,8 @@ def _verdict(d) -> str:
     return ("\n" + "\n".join(textwrap.wrap(text, 96)) + f"\n\nverdict: {d.verdict} — rms "
             f"{d.rms:.3f} {u} on the {residual_name(d.residual)} residual with "
             f"{', '.join(d.model)} over {d.ladder[0]['n']} samples, {floor}; "
-            f"{d.n_outliers} of {d.n} samples are outliers of that model")
+            f"{d.n_outliers} of {d.n} samples are outliers of that model\n  (rule: "
+            f"{d.significance_rule if d.verdict == 'effect_missing' else d.noise_floor_rule})")
 
 
 def _candidates(d) -> str:

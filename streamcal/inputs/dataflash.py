@@ -10,7 +10,8 @@ MAG    MagX/Y/Z mG, OfsX/Y/Z, MOfsX/Y/Z  ``mx,my,mz`` µT (1 mG = 0.1 µT), offs
 IMU    AccX/Y/Z m/s², GyrX/Y/Z rad/s     ``ax..az``, ``gx..gz``; ``Temp`` → ``temp`` if not 0
 RCOU   C1…C14 or Ch1…Ch12, µs            ``rcou_c1``… (PWM outputs; unused ones left out)
 CURR   Volt, Curr, Throttle or ThrOut    ``battery_voltage_v``, ``battery_current_a``, ``throttle``
-BAT    Volt, Curr (newer firmware)       as CURR
+BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.I = k, or BAT2) as
+                                         ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``
 CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later)
 BARO   Temp °C                           ``temp`` when IMU has no temperature (said so)
 PARM   Name, Value                       the compass's COMPASS_* in the metadata (``param.NAME``)
@@ -60,7 +61,8 @@ from .dataflash_bulk import MAGIC, decode, walk
 from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
 from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
 
-MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BARO", "CTUN", "PARM", "MSG")
+MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "PARM",
+            "MSG")
 MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
 MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
@@ -344,33 +346,53 @@ def _rcou(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
 
 
 def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
+    """CURR and BAT of battery 0 as ``battery_voltage_v``, ``battery_current_a`` (and CURR's
+    throttle), and every further battery (BAT rows with instance I ≥ 1, or BAT2) as
+    ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``: a current per battery, since each can
+    feed motors near a different compass."""
     out = []
     for name in ("CURR", "BAT"):
-        if not msgs.count(name):
-            continue
-        msgs_i = _instance(msgs, name)
-        types = msgs_i.types.get(name, {})
-        cols = {}
-        for field_name, label in (("Volt", "battery_voltage_v"), ("Curr", "battery_current_a")):
-            if msgs_i.has(name, field_name):
-                scale = CENTI if types.get(field_name) in _INT_TYPES else 1.0
-                cols[label] = msgs_i.array(name, field_name) * scale
+        if msgs.count(name):
+            stream = _battery_stream(msgs, _instance(msgs, name), name, "battery", path, meta)
+            out += [stream] if stream is not None else []
+    if msgs.count("BAT") and msgs.has("BAT", "I"):
+        for k in sorted(int(i) for i in np.unique(msgs.array("BAT", "I")) if i >= 1):
+            stream = _battery_stream(msgs, _instance(msgs, "BAT", k), "BAT", f"battery{k + 1}",
+                                     path, meta)
+            out += [stream] if stream is not None else []
+    if msgs.count("BAT2"):
+        stream = _battery_stream(msgs, msgs, "BAT2", "battery2", path, meta)
+        out += [stream] if stream is not None else []
+    return out
+
+
+def _battery_stream(msgs: _Messages, msgs_i: _Messages, name: str, prefix: str, path: Path,
+                    meta: dict) -> Stream | None:
+    types = msgs_i.types.get(name, {})
+    cols = {}
+    for field_name, quantity in (("Volt", "voltage_v"), ("Curr", "current_a")):
+        if msgs_i.has(name, field_name):
+            scale = CENTI if types.get(field_name) in _INT_TYPES else 1.0
+            cols[f"{prefix}_{quantity}"] = msgs_i.array(name, field_name) * scale
+    if prefix == "battery":
         for field_name in ("Throttle", "ThrOut"):
             if msgs_i.has(name, field_name):
                 cols["throttle"] = msgs_i.array(name, field_name) / THROTTLE_FULL
                 meta["throttle_source"] = f"{name}.{field_name} / {THROTTLE_FULL:g} (0..1)"
                 break
-        constant = [k for k, v in cols.items() if np.all(v == v[0])]
-        for k in constant:
-            del cols[k]
-        if constant:
-            meta[f"{name.lower()}_constant_dropped"] = ",".join(constant) + \
-                " (constant over the log: no sensor fitted or not logged)"
-        if "throttle" in constant:     # a constant throttle is no signal: let CTUN/RCOU try
-            meta.pop("throttle_source", None)
-        if cols:
-            out.append(Stream(name, _time(msgs_i, name, path), cols))
-    return out
+    if not cols or not len(next(iter(cols.values()))):
+        return None
+    constant = [k for k, v in cols.items() if np.all(v == v[0])]
+    for k in constant:
+        del cols[k]
+    if constant:
+        key = f"{name.lower()}_constant_dropped" if prefix == "battery" else \
+            f"{prefix}_constant_dropped"
+        meta[key] = ",".join(constant) + " (constant over the log: no sensor fitted or not logged)"
+    if "throttle" in constant:     # a constant throttle is no signal: let CTUN/RCOU try
+        meta.pop("throttle_source", None)
+    return Stream(name if prefix == "battery" else f"{name} {prefix}", _time(msgs_i, name, path),
+                  cols) if cols else None
 
 
 def read_dataflash(path, *, skip_bad_rows: bool = False, compass: int | None = None) -> Track:

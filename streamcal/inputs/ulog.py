@@ -21,7 +21,7 @@ Also: ``sensor_combined`` accelerometer_m_s2 / gyro_rad → ``ax..az``, ``gx..gz
 ``actuator_outputs.output[i]`` → ``act_out{i}`` (outputs that never change are left out);
 ``actuator_controls_0.control[3]`` → ``throttle`` (0..1, the signal of PX4's throttle-based
 compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
-``battery_voltage_v``.
+``battery_voltage_v`` (a second battery, instance 1: ``battery2_current_a``, …).
 Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
 
 A log cut inside a message (a crash, a power cut) is read to its last complete message; pyulog
@@ -292,19 +292,27 @@ def _throttle(ulog, meta: dict) -> Stream | None:
     return Stream("actuator_controls_0", d.data["timestamp"] * 1e-6, {"throttle": values})
 
 
-def _battery(ulog, meta: dict) -> Stream | None:
-    d = _topic(ulog, "battery_status")
-    if d is None:
-        return None
-    cols = {}
-    for key, label in (("current_a", "battery_current_a"), ("voltage_v", "battery_voltage_v")):
-        if key in d.data:
-            values = d.data[key].astype(np.float64)
-            # PX4 logs -1 for "no current measurement"
-            if np.all(np.isfinite(values)) and not np.all(values == values[0]):
-                cols[label] = values
-    meta["battery_channels"] = ",".join(cols) or "none (constant or not measured)"
-    return Stream("battery_status", d.data["timestamp"] * 1e-6, cols) if cols else None
+def _battery(ulog, meta: dict) -> list[Stream]:
+    """``battery_status`` of every battery: instance 0 as ``battery_current_a``,
+    ``battery_voltage_v``, instance k ≥ 1 as ``battery{k+1}_current_a``, ``…_voltage_v``."""
+    out, said = [], []
+    for d in sorted((d for d in ulog.data_list if d.name == "battery_status"),
+                    key=lambda d: d.multi_id):
+        prefix = "battery" if d.multi_id == 0 else f"battery{d.multi_id + 1}"
+        cols = {}
+        for key, quantity in (("current_a", "current_a"), ("voltage_v", "voltage_v")):
+            if key in d.data:
+                values = d.data[key].astype(np.float64)
+                # PX4 logs -1 for "no current measurement"
+                if np.all(np.isfinite(values)) and not np.all(values == values[0]):
+                    cols[f"{prefix}_{quantity}"] = values
+        said += list(cols)
+        if cols:
+            name = "battery_status" if d.multi_id == 0 else f"battery_status {d.multi_id}"
+            out.append(Stream(name, d.data["timestamp"] * 1e-6, cols))
+    if any(d.name == "battery_status" for d in ulog.data_list):
+        meta["battery_channels"] = ",".join(said) or "none (constant or not measured)"
+    return out
 
 
 def read_ulog(path, *, skip_bad_rows: bool = False, compass: int | None = None) -> Track:
@@ -359,7 +367,8 @@ def _track(ulog, path: Path, cut: int, instance: int, skipped=(0, 0)) -> Track:
     streams = [_mag(ulog, path, meta, instance)]
     meta["mag_axes"] = ("body frame (PX4 rotated it)" if meta["mag_calibrated_by_px4"] == "yes"
                         else "board frame of the driver (sensor_mag); body if SENS_BOARD_ROT = 0")
-    for stream in (_imu(ulog), _actuators(ulog, meta), _throttle(ulog, meta), _battery(ulog, meta)):
+    for stream in (_imu(ulog), _actuators(ulog, meta), _throttle(ulog, meta),
+                   *_battery(ulog, meta)):
         if stream is not None:
             streams.append(stream)
     streams += ulog_attitude(ulog, meta)
