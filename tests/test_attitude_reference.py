@@ -385,3 +385,23 @@ def test_px4_sensor_mag_before_is_turned_by_cal_mag_rot():
     assert out["orientation"]["set"] == {"param": "CAL_MAG0_ROT", "value": 8}
     internal = dict(meta, **{"param.CAL_MAG0_ROT": "-1", "param.SENS_BOARD_ROT": "2"})
     assert px4_rotation(internal) == pytest.approx(by_name("YAW_90").matrix)
+
+
+def test_a_refused_diagnosis_still_says_what_the_attitude_reference_shows(tmp_path, capsys):
+    """A vehicle that sat still (no diagnosis possible: b cannot come from it): exit 1 with the
+    refusal, and the attitude reference's before/after all the same — the calibration in force
+    against the World Magnetic Model rotated by the logged attitude (issue #24: a log that
+    cannot be diagnosed still shows its heading error)."""
+    from streamcal.cli import main
+
+    track, _ = simulated_log("still", duration_s=30)
+    path = tmp_path / "still.csv"
+    track.write(path)
+    assert main(["diagnose", str(path), "--json"]) == 1
+    out = json.loads(capsys.readouterr().out)
+    assert out["verdict"] is None and "hard-iron offset" in out["refused"]
+    ref = out["attitude_reference"]
+    assert ref["n"] > 0 and ref["rms_uT_after"] < ref["rms_uT_before"]
+    assert main(["diagnose", str(path)]) == 1
+    text = capsys.readouterr().out
+    assert text.startswith("no diagnosis: ") and "heading error rms" in text

@@ -8,7 +8,7 @@ import json
 import sys
 
 from ..calibration import jsonable
-from ..errors import InputError
+from ..errors import InputError, InsufficientDataError
 from ._common import RECORDING_HELP, add_input_options, recording_argv, recording_chunks
 from ._location import add_location_options, location_reference
 
@@ -66,10 +66,14 @@ def run(args: argparse.Namespace) -> int:
         from ._calarg import calibration_for
 
         calibration_of = functools.partial(calibration_for, args.cal)
-    result, track = diagnose_recording(
-        recording_chunks(args, rows=100_000), model,
-        long_samples=float("inf") if args.full else LONG_SAMPLES, calibration_of=calibration_of,
-        recording=recording_argv(args), cal_arg=getattr(args, "cal", None), location=ref)
+    try:
+        result, track = diagnose_recording(
+            recording_chunks(args, rows=100_000), model,
+            long_samples=float("inf") if args.full else LONG_SAMPLES,
+            calibration_of=calibration_of, recording=recording_argv(args),
+            cal_arg=getattr(args, "cal", None), location=ref)
+    except InsufficientDataError as exc:
+        return _refused(args, exc, ref)
     plots = ""
     if report is not None:
         written = report.write_diagnosis_plots(result, track, args.plots)
@@ -92,6 +96,24 @@ def run(args: argparse.Namespace) -> int:
     if plots:
         print(plots)
     return 0
+
+
+def _refused(args, exc, ref) -> int:
+    """No diagnosis (the data cannot support one): what the logged attitude and the World
+    Magnetic Model still say about the calibration in force (a PX4 log that carries only the
+    calibrated field, a vehicle that did not turn), then the refusal; exit 1."""
+    from ..fitting.attitude_reference import log_attitude_reference
+
+    track = getattr(exc, "track", None)
+    attitude = log_attitude_reference(track, ref, None) if track is not None else {}
+    if not (attitude.get("attitude_reference") or {}).get("n"):
+        raise exc
+    if args.json:
+        print(json.dumps(jsonable({"verdict": None, "refused": str(exc), **attitude}),
+                         allow_nan=False))
+    else:
+        print("\n".join([f"no diagnosis: {exc}"] + attitude_lines(attitude)))
+    return 1
 
 
 def attitude_lines(out: dict) -> list[str]:

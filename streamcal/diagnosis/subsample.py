@@ -30,6 +30,7 @@ import numpy as np
 
 from ..calibration import DEFAULT_MODEL
 from ..fitting.ellipsoid import design_matrix
+from ..errors import InsufficientDataError
 from ..inputs.track import Track
 from ..sphere_cells import SphereCells
 from .entry import diagnose as _diagnose
@@ -293,7 +294,8 @@ def diagnose_recording(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_M
 
     ``calibration_of(first chunk) -> (calibration, source)``: the calibration to diagnose
     against (e.g. the autopilot's, from the log's parameters); ``kwargs`` go to ``diagnose``
-    (:func:`streamcal.diagnosis.diagnose`)."""
+    (:func:`streamcal.diagnosis.diagnose`). When the data cannot support a diagnosis, the
+    :class:`~streamcal.errors.InsufficientDataError` carries the recording read as ``track``."""
     import itertools
 
     held, n = [], 0
@@ -313,7 +315,11 @@ def diagnose_recording(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_M
 
         raise InputError("the recording holds no samples")
     track = _concatenate(held)
-    return diagnose(track, model, **kwargs), track
+    try:
+        return diagnose(track, model, **kwargs), track
+    except InsufficientDataError as exc:
+        exc.track = track   # what was read, for what can still be said without a diagnosis
+        raise
 
 
 def diagnose_file(path: str | os.PathLike, model: Sequence[str] = DEFAULT_MODEL, *, diagnose=_diagnose,
