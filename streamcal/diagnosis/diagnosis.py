@@ -219,15 +219,16 @@ def _rank(ctx: _Context, base: _Evaluated, model, names) -> list:
     # rms_after of registration candidates is on the gravity-tied scale: rank by the ratio to
     # the rms each was compared with (the same order as rms_after among the others).
     out.sort(key=lambda c: (not c.significant, c.rms_after / c.rms_before))
-    # The winner is refitted on every sample, so its promise is exact; a registration winner
-    # that is no longer significant then drops behind the significant ones (a stable sort), and
-    # the new winner is refitted in turn.
+    # The winner is refitted on every sample from the fit's own start — what `streamcal fit
+    # --add` does, so its promise is exact (a warm start can settle elsewhere when many samples
+    # are outliers); a registration winner that is no longer significant then drops behind the
+    # significant ones (a stable sort), and the new winner is refitted in turn.
     refitted, tied_full = set(), None
-    while out and ctx.subset is not None and out[0].effect not in refitted:
+    while out and out[0].effect not in refitted:
         top = out[0]
         refitted.add(top.effect)
         try:
-            ev = ctx.evaluate((*model, top.effect), top.calibration)
+            ev = ctx.evaluate((*model, top.effect))
         except StreamcalError:
             return out
         ref = top._reference
