@@ -52,3 +52,31 @@ def test_a_motor_field_on_battery_2_is_found_on_its_current(tmp_path):
     assert gains["battery2_current_a"] == pytest.approx(0.3, rel=0.1)   # 3 µT per 10 A
     assert gains["battery_current_a"] < 0.05
     assert d.ladder[-1]["rms"] < 0.6 * d.ladder[0]["rms"]
+
+
+def test_px4_second_battery_status_instance_is_its_own_channel(tmp_path):
+    """A self-made ULog with battery_status instances 0 and 1 (a second subscription appended
+    to the log, as PX4 adds one when a second battery monitor appears): instance 1's current is
+    ``battery2_current_a``, with the values written."""
+    import struct
+
+    from ._selfmade_logs import TOPICS, _topic_struct, _umsg, ulog_bytes
+
+    flight = flight_slice(30.0, 4)
+    log = ulog_bytes(flight, topics=("sensor_combined", "battery_status"))
+    fields = TOPICS["battery_status"]
+    msg_id = 7                                   # not used by the log's own subscriptions
+    extra = [_umsg(b"A", struct.pack("<BH", 1, msg_id) + b"battery_status")]
+    amps2 = 3.0 + 2.0 * np.cos(2 * np.pi * flight.t_ch / 7.0)
+    for t, a in zip(flight.t_ch, amps2):
+        us = int(round(t * 1e6)) + 1_000_000
+        extra.append(_umsg(b"D", struct.pack("<H", msg_id)
+                           + _topic_struct(fields).pack(us, 16.0, a)))
+    path = tmp_path / "two_batteries.ulg"
+    path.write_bytes(log + b"".join(extra))
+    track = read_recording(path)
+    assert {"battery_current_a", "battery2_current_a"} <= set(track.aux_names)
+    got = np.asarray(track.columns["battery2_current_a"])
+    got = got[np.isfinite(got)]
+    np.testing.assert_allclose(np.unique(got), np.unique(amps2.astype(np.float32)), rtol=1e-6)
+    assert "battery2_current_a" in track.metadata["battery_channels"]
