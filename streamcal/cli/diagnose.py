@@ -251,10 +251,12 @@ def _recheck_lines(d, unit: str) -> list[str]:
 def _change(before: float, after: float, digits: int = 4) -> str:
     """``after / before − 1`` in percent ("-39%", "±0%"), of the two numbers as shown
     (``digits`` significant digits)."""
-    before, after = float(f"{before:.{digits}g}"), float(f"{after:.{digits}g}")
-    if not (before > 0 and after == after):
+    from ..diagnosis.story import change_percent
+
+    pct = change_percent(before, after, digits)
+    if pct is None:
         return ""
-    pct = round(100.0 * (after / before - 1.0))
+    pct = round(pct)
     return f"{pct:+d}%" if pct else "±0%"
 
 

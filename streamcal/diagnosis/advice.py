@@ -14,6 +14,7 @@ from typing import Sequence
 import numpy as np
 
 from ..units import display_unit
+from .story import change_percent
 
 #: A phrase that says what a tied residual is, the first time the summary names it.
 RESIDUAL_GLOSS = {"gravity_tied": "gravity-tied residual (each reading's direction tied to the "
@@ -100,13 +101,13 @@ def summary(d) -> str:
             start = next(s["rms_before"] for s in d.ladder[1:]
                          if s["residual"] == last["residual"])
             where = f" on the {RESIDUAL_GLOSS.get(last['residual'], last['residual'])}"
-        shown = [float(f"{v:.3g}") for v in (start, last["rms"])]
-        pct = 100.0 * (shown[1] / shown[0] - 1.0)   # of the two numbers as shown
-        after = f"{shown[1]:.3g} {u}"
+        pct = change_percent(start, last["rms"], 3)
+        after = f"{last['rms']:.3g} {u}"
         if heading.get("after") is not None and not where:
             after += f", {heading['after']:.1f}°"
-        text.append(f"With {what} added the rms{where} falls from {shown[0]:.3g} to {after} "
-                    f"({pct:+.0f}%, over the same {first['n']} samples).")
+        change = "" if pct is None else f"{pct:+.0f}%, "
+        text.append(f"With {what} added the rms{where} falls from {start:.3g} to {after} "
+                    f"({change}over the same {first['n']} samples).")
         cmd = " ".join(d.next_step) if d.next_step else ""
         if cmd:
             text.append(f"To do: {cmd}")

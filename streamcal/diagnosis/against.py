@@ -121,7 +121,7 @@ def _rank(start: HeldStart, ref: HeldEval, pool, floor: float, rows) -> list:
 
 def _candidate(start: HeldStart, name: str, ref: HeldEval, ev: HeldEval, floor: float, u_fit,
                rows) -> cand.Candidate:
-    cov = start.cov if rows is None else {k: v[rows] for k, v in start.cov.items()}
+    cov = start.cov_at(rows)
     numbers = story.compare(ref, ev)
     term = ev.terms[-1]
     text = cand.evidence(name, term, ref.s, ref.normal, ref.x @ ref.cal.K.T, cov, ref.inliers)

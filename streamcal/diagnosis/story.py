@@ -132,8 +132,10 @@ def tell(model, base, residual_of: Callable, added: list, ranked: list,
     return steps, shown, [by_effect.get(c.effect, c) for c in ranked]
 
 
-def change_percent(before: float, after: float) -> float | None:
-    """``100 (after / before − 1)``: the percentage shown beside the two numbers it is from."""
-    if not (np.isfinite(before) and np.isfinite(after) and before > 0):
+def change_percent(before: float, after: float, digits: int = 4) -> float | None:
+    """``100 (after / before − 1)`` of the two numbers as shown with ``digits`` significant
+    digits — the percentage printed beside them; None when it cannot be said."""
+    if not (np.isfinite(before) and np.isfinite(after)):
         return None
-    return 100.0 * (after / before - 1.0)
+    before, after = float(f"{before:.{digits}g}"), float(f"{after:.{digits}g}")
+    return 100.0 * (after / before - 1.0) if before > 0 else None

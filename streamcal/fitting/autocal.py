@@ -141,6 +141,13 @@ def truncated_sigma(r_norm: np.ndarray, sigma: float, iters: int = 60) -> float:
     return sigma
 
 
+def fit_sigma(r_norm: np.ndarray) -> float:
+    """σ̂ of residual norms ``r_norm`` (N,): :func:`truncated_sigma` started from the nearest
+    quarter of them (unbiased for Gaussian noise, far less inflated than the median when many
+    samples are outliers)."""
+    return truncated_sigma(r_norm, max(quantile(r_norm, KEEP) / HALF_NORMAL_QUANTILE_KEEP, 1e-9))
+
+
 def _looks_contaminated(r: np.ndarray, relative: np.ndarray) -> bool:
     """Stage-1 residuals r (N,) skewed by outliers, or even their nearest quarter more than
     RELATIVE_LIMIT of the field away (``relative``: radial errors as a fraction of the field)."""
@@ -266,7 +273,7 @@ def autocal(m: np.ndarray, *, kernel: str = AUTO, tau: float | str | None = None
         r0 = np.linalg.norm(x0 @ K0.T + b0 - m_n, axis=1)
     # σ from the nearest quarter of residuals: unbiased for Gaussian noise and far less
     # inflated than the median when many samples are outliers
-    sigma_n = truncated_sigma(r0, max(quantile(r0, KEEP) / HALF_NORMAL_QUANTILE_KEEP, 1e-9))
+    sigma_n = fit_sigma(r0)
 
     def width(sig):
         if kernel not in WIDTH_KERNELS:

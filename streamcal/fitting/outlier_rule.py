@@ -89,18 +89,16 @@ def outlier_mask(norm: np.ndarray, width: float, t: np.ndarray | None = None) ->
 
 def residual_width(norm: np.ndarray, kernel: str = "cauchy") -> float:
     """The kernel width (sensor unit) a fit takes from residual norms ``norm`` (N,): the
-    kernel's 95 %-efficiency multiple of σ̂, the truncated robust scale of the norms
-    (:func:`streamcal.fitting.autocal.truncated_sigma`)."""
-    from .autocal import HALF_NORMAL_QUANTILE_KEEP, KEEP, truncated_sigma
+    kernel's 95 %-efficiency multiple of σ̂, the robust scale a fit takes of them
+    (:func:`streamcal.fitting.autocal.fit_sigma`)."""
+    from .autocal import fit_sigma
     from .kernels import EFFICIENCY_TAU
-    from .order_stats import quantile
 
     norm = np.asarray(norm, dtype=float)
     norm = norm[np.isfinite(norm)]
     if not norm.size:
         return float("nan")
-    start = max(quantile(norm, KEEP) / HALF_NORMAL_QUANTILE_KEEP, 1e-9)
-    return float(EFFICIENCY_TAU[kernel] * truncated_sigma(norm, start))
+    return float(EFFICIENCY_TAU[kernel] * fit_sigma(norm))
 
 
 def widened_inliers(inliers: np.ndarray, norm: np.ndarray, t: np.ndarray | None) -> np.ndarray:

@@ -6,6 +6,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ..diagnosis.diagnosis import RESIDUAL_LABELS
+from ..diagnosis.story import change_percent
 from .figure_common import AFTER, INLIER, OUTLIER, note
 from .figure_data import FigureData, unit_label
 
@@ -66,10 +67,10 @@ def candidate_groups(d) -> list[tuple[str, float, list]]:
 def relative_change(before: float, after: float, digits: int = 4) -> str:
     """Relative change ``after / before − 1`` as text ("−39 %", "±0 %") of the two numbers as
     shown with ``digits`` significant digits."""
-    if not (before > 0 and np.isfinite(after)):
+    pct = change_percent(before, after, digits)
+    if pct is None:
         return ""
-    before, after = float(f"{before:.{digits}g}"), float(f"{after:.{digits}g}")
-    pct = round(100.0 * (after / before - 1.0))
+    pct = round(pct)
     return "±0 %" if pct == 0 else f"{'+' if pct > 0 else '−'}{abs(pct)} %"
 
 

@@ -201,12 +201,21 @@ class HeldStart:
         self.base = HeldEval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model),
                              len(free), [], t)
 
+    def cov_at(self, rows=None) -> dict:
+        """The covariates (N,) at every sample, or at the sample indices ``rows`` (the ranking
+        subsample: taken once, every candidate refit reuses them)."""
+        if rows is None:
+            return self.cov
+        if getattr(self, "_rows", None) is not rows:
+            self._rows, self._cov_rows = rows, {k: v[rows] for k, v in self.cov.items()}
+        return self._cov_rows
+
     def evaluate(self, new_terms, start: HeldEval | None = None, rows=None) -> HeldEval:
         """Fit the base model plus ``new_terms`` (``[(term, θ start), …]``) from ``start``'s
         K, b (default the held values) on every sample, or on the sample indices ``rows``."""
-        m, cov, t = self.m, self.cov, self.t
+        m, cov, t = self.m, self.cov_at(rows), self.t
         if rows is not None:
-            m, cov, t = m[rows], {k: v[rows] for k, v in cov.items()}, t[rows]
+            m, t = m[rows], t[rows]
         K_s, b_s = (self.K0, self.b0) if start is None else (start.fit.K, start.fit.b)
         fit = held_fit(m, cov, K_s, b_s, self.free, self.held_terms, new_terms, self.sigma)
         terms = [term for term, _ in new_terms]
@@ -217,7 +226,7 @@ class HeldStart:
     def add(self, name: str, ref: HeldEval, rows=None) -> HeldEval:
         """``ref``'s model plus the effect ``name``, started where a linear fit of ``ref``'s
         residual puts it (:func:`linear_start`), on every sample or on ``rows``."""
-        cov = self.cov if rows is None else {k: v[rows] for k, v in self.cov.items()}
+        cov = self.cov_at(rows)
         term = build_effects([name], cov)[0]
         prior = list(zip(ref.terms, ref.fit.thetas))
         start = linear_start(term, ref.s, ref.normal, ref.x @ ref.fit.K.T, cov, ref.fit.tau)
