@@ -8,7 +8,6 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, RESIDUALS
-from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 from . import story
 from ..errors import StreamcalError
 from ..model import REGISTRATION_EFFECTS, TERMS, build_effects, check_needs, missing_columns
@@ -22,8 +21,6 @@ from .residuals import families, rms, sensor_residual
 from .result import Diagnosis
 from ..fitting.outlier_rule import outlier_mask, outlier_spans
 
-#: Without robust weights from the fit, a sample is an outlier beyond this many noise σ.
-OUTLIER_SIGMAS = 5.0
 #: Candidate refits for the ranking use at most this many well-spread samples.
 SUBSET_MAX = 6000
 #: The gravity-tied ranking refits (on the spread subset) stop once an LM step lowers the robust
@@ -88,10 +85,7 @@ class _Evaluated:
             width = (getattr(cal, "extra", None) or {}).get("tau")
             if inl is None or np.shape(inl) != (len(m),):
                 # a fit on a subset, or without a kernel: the one outlier rule on every sample
-                if not width:
-                    width = (floor if np.isfinite(floor) else
-                             np.median(norm) / HALF_NORMAL_MEDIAN) * OUTLIER_SIGMAS / OUTLIER_WIDTHS
-                inl = ~outlier_mask(norm, width, t)
+                inl = ~outlier_mask(norm, width, t, floor)
                 if hasattr(cal, "replace"):
                     cal = cal.replace(inliers=inl, n_outliers=int((~inl).sum()),
                                       rms=rms(self.r, inl), n=len(m))

@@ -35,7 +35,7 @@ from ..inputs.track import Track
 from ..sphere_cells import SphereCells
 from .entry import diagnose as _diagnose
 from .residuals import sensor_residual
-from ..fitting.outlier_rule import outlier_spans, widen_outliers
+from ..fitting.outlier_rule import outlier_mask, outlier_spans
 
 #: Length of one kept block of consecutive rows, s.
 BLOCK_S = 0.2
@@ -52,8 +52,6 @@ LONG_SAMPLES = 60_000
 CHUNK_ROWS = 100_000
 #: Samples per piece when the whole-recording residual is evaluated.
 PIECE = 50_000
-#: A sample is an outlier beyond this many kernel widths / noise σ (as diagnosis.diagnosis).
-OUTLIER_WIDTHS, OUTLIER_SIGMAS = 2.0, 5.0
 
 
 def _round_robin(cell: np.ndarray, u: np.ndarray, q: int) -> np.ndarray:
@@ -215,8 +213,8 @@ class StratifiedSampler:
 
 
 def _whole_spans(cal, floor: float, pieces):
-    """Outlier spans of calibration ``cal`` over every magnetometer sample (the fit's own
-    inlier rule: 2 kernel widths, else 5 noise σ), evaluated piece by piece (``pieces`` from
+    """Outlier spans of calibration ``cal`` over every magnetometer sample (the one rule,
+    :func:`streamcal.fitting.outlier_rule.outlier_mask`), evaluated piece by piece (``pieces`` from
     :meth:`StratifiedSampler.recording`; at most :data:`PIECE` samples at a time)."""
     ts, norms = [], []
     for t_all, m_all, cov_all in pieces:
@@ -227,12 +225,7 @@ def _whole_spans(cal, floor: float, pieces):
             norms.append(np.linalg.norm(r, axis=1).astype(np.float32))
         ts.append(t_all)
     t, norm = np.concatenate(ts), np.concatenate(norms)
-    width = (getattr(cal, "extra", None) or {}).get("tau")
-    if width:
-        limit = OUTLIER_WIDTHS * float(width)
-    else:
-        limit = OUTLIER_SIGMAS * (floor if np.isfinite(floor) else np.median(norm) / 0.6745)
-    out = widen_outliers(t, norm, norm > limit)
+    out = outlier_mask(norm, (getattr(cal, "extra", None) or {}).get("tau"), t, floor)
     return outlier_spans(t, out), int(out.sum())
 
 

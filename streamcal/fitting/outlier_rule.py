@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..constants import OUTLIER_WIDTHS
+from ..constants import HALF_NORMAL_MEDIAN, OUTLIER_WIDTHS
 
 #: Outliers closer than this (s) belong to the same span.
 MAX_GAP_S = 1.0
@@ -78,12 +78,24 @@ def widen_outliers(t: np.ndarray, norm: np.ndarray, outlier: np.ndarray,
     return out
 
 
-def outlier_mask(norm: np.ndarray, width: float, t: np.ndarray | None = None) -> np.ndarray:
+#: Without a kernel width from the fit, a sample is an outlier beyond this many noise σ.
+OUTLIER_SIGMAS = 5.0
+
+
+def outlier_mask(norm: np.ndarray, width: float | None, t: np.ndarray | None = None,
+                 floor: float = float("nan")) -> np.ndarray:
     """(N,) bool: outliers of a model whose residual norms are ``norm`` (N,) under a kernel of
-    ``width`` (sensor unit): beyond :data:`OUTLIER_WIDTHS` widths, widened over disturbance
-    ramps when the sample times ``t`` (N,) s are known."""
+    ``width`` (sensor unit): beyond :data:`OUTLIER_WIDTHS` widths — without a width (a
+    reference method's fit), beyond :data:`OUTLIER_SIGMAS` × the noise ``floor`` (else the
+    norms' robust σ) —, widened over disturbance ramps when the sample times ``t`` (N,) s are
+    known."""
     norm = np.asarray(norm, dtype=float)
-    out = ~(norm <= OUTLIER_WIDTHS * float(width))
+    if width:
+        limit = OUTLIER_WIDTHS * float(width)
+    else:
+        sigma = floor if np.isfinite(floor) else float(np.median(norm)) / HALF_NORMAL_MEDIAN
+        limit = OUTLIER_SIGMAS * sigma
+    out = ~(norm <= limit)
     return widen_outliers(t, norm, out) if t is not None else out
 
 

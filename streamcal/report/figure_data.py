@@ -8,7 +8,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..constants import HALF_NORMAL_MEDIAN
 
 
 def unit_label(unit: str) -> str:
@@ -75,7 +74,7 @@ class FigureData:
         return data
 
     def _calibrated(self, cal) -> None:
-        from ..diagnosis.diagnosis import OUTLIER_SIGMAS
+        from ..fitting.outlier_rule import outlier_mask
         from ..diagnosis.residuals import sensor_residual
 
         r, x, s, _ = sensor_residual(cal, self.m, self.cov)
@@ -84,10 +83,8 @@ class FigureData:
         inl = ~np.asarray(out, bool) if out is not None and np.shape(out) == (len(self.m),) \
             else getattr(cal, "inliers", None)
         if inl is None or np.shape(inl) != (len(self.m),):
-            floor = self.diagnosis.noise_floor
-            norm = np.linalg.norm(r, axis=1)
-            scale = floor if np.isfinite(floor) else np.median(norm) / HALF_NORMAL_MEDIAN
-            inl = norm <= OUTLIER_SIGMAS * scale
+            inl = ~outlier_mask(np.linalg.norm(r, axis=1), None,
+                                floor=self.diagnosis.noise_floor)
         self.inliers = np.asarray(inl, bool)
         self.directions, self.residual = x, s
         self.scale = float(cal.field or cal.radius)
