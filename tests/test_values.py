@@ -259,7 +259,8 @@ def test_diagnosis_html_has_verdict_summary_and_the_ladder_with_n(fresh, held):
         assert d.verdict in text and "ladder" in text
         for step in d.ladder:
             assert f"<td>{step['n']}</td>" in text
-    assert "bench.json" in held._repr_html_() and ", ".join(held.held.parameters) in held._repr_html_()
+    text = held._repr_html_()
+    assert "bench.json" in text and ", ".join(held.held.parameters) in text
     odd = fresh.replace(summary="a <b> & c")
     text = odd._repr_html_()
     assert "a &lt;b&gt; &amp; c" in text and "<b>" not in text

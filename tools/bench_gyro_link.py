@@ -60,7 +60,8 @@ def simulated(seeds, noises):
             print(f"| {noise:g} | {seed} | {h.calibration.K[2, 2] - K[2, 2]:+.3f} "
                   f"| {g.calibration.K[2, 2] - K[2, 2]:+.3f} ± {sd:.3f} "
                   f"| {h.calibration.b[2] - B[2]:+.3f} | {g.calibration.b[2] - B[2]:+.3f} "
-                  f"| {', '.join(g.held.gyro_pinned) or '—'} | {g.held.gyro_link.get('reason', '')[:60]} |")
+                  f"| {', '.join(g.held.gyro_pinned) or '—'} "
+                  f"| {g.held.gyro_link.get('reason', '')[:60]} |")
 
 
 def guard(seeds):

@@ -87,7 +87,8 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     :func:`streamcal.diagnosis.held.start.default_calibration`), holding what the recording
     does not determine (:class:`~streamcal.diagnosis.held.start.HeldStart` says how and when
     it refuses); the result's ``held`` (a :class:`~streamcal.diagnosis.held.part.HeldPart`)
-    says what was held and what re-estimated. Registration effects (gravity- and gyro-tied) are not ranked here.
+    says what was held and what re-estimated. Registration effects (gravity- and gyro-tied)
+    are not ranked here.
 
     With more than ``rank_max`` samples the candidates are ranked on the subsample of
     :func:`streamcal.diagnosis.held.rank_subset.rank_subset` (every direction cell and stretch of

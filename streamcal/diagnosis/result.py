@@ -16,8 +16,8 @@ from ..calibration import jsonable
 from ..units import quantity
 from ..values import FrozenDict, freeze, html_table, same, thaw
 from . import candidates as cand
-from .held.part import HeldPart
 from . import verdict as verdict_mod
+from .held.part import HeldPart
 from .text import TOP, diagnosis_unit, short_repr, summary as summary_lines
 
 
@@ -38,14 +38,14 @@ class Diagnosis:
     ``outliers_model`` and ``n_outliers_model``. rms, noise_floor and rms_after in the sensor
     unit (``unit``).
 
-    A value: frozen (:meth:`replace` derives a changed one) with read-only containers (tuples,
-    :class:`~streamcal.values.FrozenDict`; ladder steps read like dicts), equal to another when their JSON
-    contents are (:meth:`to_dict` after :func:`streamcal.calibration.jsonable`: arrays as
-    lists, a NaN "no value" as null, so NaN equals NaN), and ``Diagnosis.from_dict(d.to_dict())
-    == d``. What the JSON does not carry takes no part in equality and is absent (None) after
-    :meth:`from_dict`: the per-sample ``outliers`` mask (its count and spans are carried), the
-    fitted ``calibration`` and the candidates' refits, and ``subsample`` (the Track a long
-    recording was diagnosed from).
+    A value: frozen (:meth:`replace` derives a changed one), its containers read-only (tuples,
+    :class:`~streamcal.values.FrozenDict`: ladder steps read like dicts), equal to another when
+    their JSON contents are (:meth:`to_dict` after :func:`streamcal.calibration.jsonable`:
+    arrays as lists, a NaN "no value" as null, so NaN equals NaN), and
+    ``Diagnosis.from_dict(d.to_dict()) == d``. What the JSON does not carry takes no part in
+    equality and is absent (None) after :meth:`from_dict`: the per-sample ``outliers`` mask
+    (its count and spans are carried), the fitted ``calibration`` and the candidates' refits,
+    and ``subsample`` (the Track a long recording was diagnosed from).
 
     ``held``: None for a fresh fit; for a diagnosis against a given (or the stated default)
     calibration, the :class:`~streamcal.diagnosis.held.part.HeldPart` saying what was held and

@@ -39,7 +39,8 @@ the nuisances, ∂R/∂(c, g) once per pair set at c = g = 0, :meth:`LinkPairs.r
 at most :data:`MAX_PAIRS` pairs, evenly spaced. With a :class:`SpherePrior` the sphere
 (normal) residual, linearised, is added in χ² units (joint fit: the link alone cannot fix the
 scale);
-Cauchy weights on ‖r_ab‖ of width :data:`~streamcal.constants.CAUCHY_C` σ̂ (σ̂ per axis from the median ‖r_ab‖).
+Cauchy weights on ‖r_ab‖ of width :data:`~streamcal.constants.CAUCHY_C` σ̂ (σ̂ per axis from the
+median ‖r_ab‖).
 Consecutive pairs share samples, so the residuals are correlated over a horizon: the
 covariance is the sandwich H⁻¹ (Σ_B s_B s_Bᵀ) H⁻¹ with the weighted scores s summed over time
 blocks of :data:`BLOCK_HORIZONS` horizons (at least 1 s; pairs more than a horizon
