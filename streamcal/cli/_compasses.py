@@ -2,22 +2,26 @@
 then the compasses compared (SPEC §6; :mod:`streamcal.diagnosis.compass_consistency`)."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 
 from ..calibration import jsonable
 from ..errors import InsufficientDataError
-from ._common import _command, say_read_warnings
+from ._common import _command, recording_argv, say_read_warnings
 
 
 def _diagnose_each(args, model) -> list[dict]:
     """Per compass: ``{"instance", "device_id", "track", "diagnosis" (object or None),
-    "error", "autopilot_cal" (or None)}``; a compass the data cannot calibrate keeps its error."""
+    "error", "autopilot_cal" (or None)}``; a compass the data cannot calibrate keeps its error.
+    ``--lat/--lon`` (else the log's GPS) is the place of every compass's heading error."""
     from ..diagnosis import diagnose
     from ..errors import InputError
     from ..inputs import autopilot_calibration, read_compasses
+    from ._location import location_reference
 
+    ref = location_reference(args)
     tracks = read_compasses(args.track)
     say_read_warnings(args.track, tracks[0], _command(args))
     out = []
@@ -30,18 +34,32 @@ def _diagnose_each(args, model) -> list[dict]:
             entry["autopilot_cal"] = autopilot_calibration(track)
         except InputError:
             entry["autopilot_cal"] = None
-        kwargs = {}
+        kwargs = {"location": ref, "cal_arg": getattr(args, "cal", None),
+                  "recording": recording_argv(argparse.Namespace(
+                      **{**vars(args), "compass": str(entry["instance"])}))}
         if getattr(args, "cal", None):
             from ._calarg import calibration_for
 
             cal, source = calibration_for(args.cal, track)
-            kwargs = {"calibration": cal, "calibration_source": source}
+            kwargs.update(calibration=cal, calibration_source=source)
         try:
             entry["diagnosis"] = diagnose(track, model=model, **kwargs)
         except InsufficientDataError as exc:
             entry["error"] = str(exc)
+        else:
+            entry.update(_place(track, entry["diagnosis"]))
         out.append(entry)
     return out
+
+
+def _place(track, d) -> dict:
+    """What single-compass ``diagnose`` says beside the diagnosis, at the place the diagnosis
+    used (``d.location``): ``{"reference_field", "attitude_reference"?, "orientation"?}``."""
+    from ..diagnosis.reference_field import reference_field
+    from ..fitting.attitude_reference import log_attitude_reference
+
+    return {"reference_field": reference_field(track, d.calibration, d.location),
+            **log_attitude_reference(track, d.location, d.calibration)}
 
 
 def _consistency(entries: list[dict]) -> list:
@@ -62,9 +80,23 @@ def _consistency(entries: list[dict]) -> list:
 def _entry_json(e: dict) -> dict:
     out = {"instance": e["instance"], "device_id": e["device_id"],
            "diagnosis": e["diagnosis"].to_dict() if e["diagnosis"] is not None else None}
+    out.update({k: e[k] for k in PLACE_KEYS if k in e})
     if e["error"]:
         out["error"] = e["error"]
     return out
+
+
+#: The keys :func:`_place` adds to a compass's entry, as in single-compass ``diagnose --json``.
+PLACE_KEYS = ("reference_field", "attitude_reference", "orientation")
+
+
+def _place_lines(e: dict) -> list[str]:
+    from ..geomag import text_lines
+    from .diagnose import attitude_lines
+
+    if "reference_field" not in e:
+        return []
+    return [""] + text_lines(e["reference_field"]) + attitude_lines(e)
 
 
 def _pair_line(p: dict) -> str:
@@ -93,8 +125,8 @@ def _text(entries: list[dict], pairs: list[dict], describe) -> str:
     for e in entries:
         head = f"compass {e['instance']}" + (f" (device id {e['device_id']})"
                                               if e["device_id"] else "")
-        body = (describe(e["diagnosis"]) if e["diagnosis"] is not None
-                else f"no calibration: {e['error']}")
+        body = ("\n".join([describe(e["diagnosis"])] + _place_lines(e))
+                if e["diagnosis"] is not None else f"no calibration: {e['error']}")
         parts.append(f"{head}\n{body}")
     return "\n\n".join(parts + [_table(pairs)])
 
