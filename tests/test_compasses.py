@@ -272,3 +272,27 @@ def test_compass_all_at_the_given_place(two, capsys):
         assert he_b["before"] == pytest.approx(math.degrees(math.atan2(rms, h)), rel=1e-6)
         step = b["diagnosis"]["next_step"]
         assert step is None or step[step.index("--compass") + 1] == str(k)
+
+
+def test_report_with_every_compass_diagnosis(two, tmp_path, capsys):
+    """report --compass all: a section per compass with its own verdict, next step, heading
+    error and ladder (the figures the JSON gives), before the default compass's full page."""
+    import re
+
+    path, _ = two
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) == 0
+    compasses = json.loads(capsys.readouterr().out)["compasses"]
+    html = tmp_path / "all.html"
+    assert main(["report", str(path), "--compass", "all", "-o", str(html)]) == 0
+    page = html.read_text()
+    starts = [page.index(f'<section id="compass-{c["instance"]}">') for c in compasses]
+    assert starts == sorted(starts) and starts[-1] < page.index('id="default-compass"')
+    for c, start in zip(compasses, starts):
+        section = page[start:page.index("</section>", start)]
+        d = c["diagnosis"]
+        assert f"device id {c['device_id']}" in section
+        assert f"Verdict {d['verdict']};" in section
+        assert f"--compass {c['instance']}" in section
+        shown = re.search(r"Heading error: up to ([0-9.]+)°", section).group(1)
+        assert float(shown) == pytest.approx(d["heading_error_deg"]["before"], abs=0.005)
+        assert f"{d['ladder'][0]['rms']:.4g}" in section

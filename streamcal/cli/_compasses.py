@@ -119,12 +119,17 @@ def _table(pairs: list[dict]) -> str:
     return "\n".join(table)
 
 
+def _compass_title(e: dict) -> str:
+    """``compass 1 (device id 97795)``."""
+    return f"compass {e['instance']}" + (f" (device id {e['device_id']})"
+                                         if e["device_id"] else "")
+
+
 def _text(entries: list[dict], pairs: list[dict], describe) -> str:
     """One paragraph per compass (``describe(diagnosis)``), then the consistency table."""
     parts = []
     for e in entries:
-        head = f"compass {e['instance']}" + (f" (device id {e['device_id']})"
-                                              if e["device_id"] else "")
+        head = _compass_title(e)
         body = ("\n".join([describe(e["diagnosis"])] + _place_lines(e))
                 if e["diagnosis"] is not None else f"no calibration: {e['error']}")
         parts.append(f"{head}\n{body}")
@@ -174,10 +179,13 @@ def diagnose_all(args, model, describe=str) -> int:
 
 
 def report_all(args, model, output) -> int:
-    """Write the report of the compass the autopilot uses first, with a section comparing every
-    compass (``output``: a path or ``-``)."""
+    """Write one page (``output``: a path or ``-``): the compasses compared, a section per
+    compass (verdict, plain sentences, heading error, ladder), then the full report of the
+    compass the autopilot uses first."""
     from ..report import write_report
+    from ..report.figure_data import unit_label
     from ..report.figures_compasses import compasses_section, consistency_figure
+    from ..report.html import diagnosis_section
     from ._output import check_output, messages_to
 
     check_output(output)
@@ -186,9 +194,14 @@ def report_all(args, model, output) -> int:
     default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
     first = next((e for e in entries if str(e["instance"]) == default), entries[0])
     figure = consistency_figure(pairs) if pairs else None
-    section = compasses_section([_entry_json(e) for e in entries], pairs, figure)
+    sections = [compasses_section([_entry_json(e) for e in entries], pairs, figure)]
+    sections += [diagnosis_section(e["diagnosis"], unit_label(e["track"].mag_unit),
+                                   title=_compass_title(e), anchor=f"compass-{e['instance']}",
+                                   reason=e["error"]) for e in entries]
+    sections.append(f'<h2 id="default-compass">{_compass_title(first)}, the one the autopilot '
+                    "uses first: every figure and table</h2>")
     out = write_report(output, first["track"], first["diagnosis"], reason=first["error"],
-                       intro=section, name=Path(args.track).name)
+                       intro="\n".join(sections), name=Path(args.track).name)
     say = messages_to(out)
     print(_table([p.to_dict() for p in pairs]), file=say)
     print(f"report written to {out}", file=say)
