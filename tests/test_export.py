@@ -185,3 +185,33 @@ def test_cli_export_says_what_is_not_expressed(sim, tmp_path, capsys):
     assert main(["export", str(path), "--format", "json"]) == 0
     assert json.loads(capsys.readouterr().out)["effects"]["temperature_offset"]["T0"] == 25.0
     assert main(["export", str(tmp_path / "missing.json"), "--format", "px4"]) == 2
+
+
+@pytest.mark.parametrize("fmt", ["ardupilot", "px4"])
+def test_parameter_files_are_ascii(sim, tmp_path, monkeypatch, fmt):
+    """Comments in parameter files are plain ASCII ("uT/degC", not "µT/°C"): MAVProxy's
+    ``param load`` reads the file in the platform's encoding, which may be ASCII (a POSIX
+    locale) or a code page; the values read back are those written."""
+    import builtins
+
+    from pymavlink import mavparm
+
+    cal = _cal(sim.truth, model=("hard_iron", "soft_iron", "temperature_offset"),
+               effects={"temperature_offset": {"T0": 25.0, "c": [0.1, -0.2, 0.05]}})
+    path = tmp_path / "cal.json"
+    cal.save(path)
+    out = tmp_path / f"out.{fmt}"
+    assert main(["export", str(path), "--format", fmt, "-o", str(out)]) == 0
+    raw = out.read_bytes()
+    assert raw.isascii()
+    text = raw.decode("ascii")
+    assert "T0 25 degC, c [0.1, -0.2, 0.05] uT/degC" in text
+    want = (_ardupilot_params if fmt == "ardupilot" else _px4_params)(text)
+    assert want == (_ardupilot_params if fmt == "ardupilot" else _px4_params)(
+        export(cal, fmt)[0])
+    if fmt == "ardupilot":
+        monkeypatch.setattr(mavparm, "open", lambda f, mode="r": builtins.open(
+            f, mode, encoding="ascii"), raising=False)
+        loaded = mavparm.MAVParmDict()
+        assert loaded.load(str(out))
+        assert {k: loaded[k] for k in want} == pytest.approx(want)

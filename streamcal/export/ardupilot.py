@@ -19,7 +19,7 @@ import re
 import numpy as np
 
 from ..calibration import Calibration
-from .common import correction, fmt, motor_channel, mounting, orientation_words
+from .common import ascii_text, correction, fmt, motor_channel, mounting, orientation_words
 
 MG_PER_UT = 10.0
 #: COMPASS_MOTCT of each motor-compensation channel kind.
@@ -106,4 +106,4 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                      "vehicle frame after that rotation (ArduPilot 4.x order)")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
     lines += [f"{name},{fmt(value)}" for name, value in params.items()]
-    return "\n".join(lines) + "\n", notes
+    return ascii_text("\n".join(lines) + "\n"), notes

@@ -147,3 +147,26 @@ def orientation_words(cal: Calibration) -> str:
     if conf and conf.get("value"):
         words += f" found after the configured {conf['param']} {conf['value']}"
     return words
+
+
+#: Spellings in plain ASCII of the symbols streamcal's texts use (units, signs, arrows).
+_ASCII = {"µ": "u", "μ": "u", "°": "deg", "²": "^2", "³": "^3", "⁻": "^-", "¹": "1",
+          "−": "-", "–": "-", "—": "-", "→": "->", "≤": "<=", "≥": ">=", "×": "x", "·": "*",
+          "±": "+/-", "σ": "sigma", "…": "...", "’": "'", "‘": "'", "“": '"', "”": '"',
+          "√": "sqrt", "θ": "theta", "Δ": "d", "≈": "~"}
+
+
+def ascii_text(text: str) -> str:
+    """``text`` in plain ASCII ("µT/°C" → "uT/degC"; accents dropped, anything else "?").
+
+    Parameter files stay ASCII: Mission Planner and QGroundControl skip ``#`` lines whatever
+    their bytes, but MAVProxy's ``param load`` (pymavlink ``mavparm``) reads the file in the
+    platform's encoding, where UTF-8 bytes of a comment can stop the whole load (Windows code
+    page 1252 has no character for 0x81, the middle byte of "⁻¹")."""
+    import unicodedata
+
+    plain = "".join(_ASCII.get(c, c) for c in text)
+    plain = unicodedata.normalize("NFKD", plain)
+    plain = "".join(c for c in plain if not unicodedata.combining(c))
+    return plain.encode("ascii", "replace").decode("ascii")
+

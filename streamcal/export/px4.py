@@ -31,7 +31,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
-from .common import correction, fmt, motor_channel, mounting, orientation_words
+from .common import ascii_text, correction, fmt, motor_channel, mounting, orientation_words
 
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
@@ -111,4 +111,4 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                         f"({orientation_words(cal)}); PX4 applies it after the "
                         "offsets and scale")
         lines.append(f"1\t1\tCAL_MAG{index}_ROT\t{orient}\t{INT_TYPE}")
-    return "\n".join(lines) + "\n", notes
+    return ascii_text("\n".join(lines) + "\n"), notes
