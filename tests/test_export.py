@@ -142,6 +142,33 @@ def test_px4_power_compensation_from_aux_interference(channel, comp_type, to_pow
     assert np.std(flipped) > np.std(without)  # the wrong sign makes it worse
 
 
+@pytest.mark.parametrize("firmware", ["ardupilot", "px4"])
+def test_channel_not_exported_is_held_at_its_level(firmware):
+    """A fitted channel the autopilot cannot compensate (battery voltage beside the throttle)
+    is held at its level a0: the firmware's formula gives streamcal's own corrected field
+    vector with that channel at a0 (in the symmetric frame), not with it at 0 V."""
+    rng = np.random.default_rng(11)
+    throttle, volts = rng.uniform(0.3, 0.9, 2000), rng.uniform(11.0, 12.6, 2000)
+    g_thr, g_volt, a0_volt = np.array([4.7, -2.7, 6.0]), np.array([-0.4, 0.1, -0.2]), 11.8
+    m, cal = _aux_case("throttle", throttle, g_thr, a0=0.6)
+    cal.effects["aux_interference"]["channels"]["battery_voltage_v"] = {
+        "a0": a0_volt, "g": g_volt.tolist()}
+    m = m + np.outer(volts - a0_volt, g_volt)
+    text, notes = export(cal, firmware)
+    assert any("battery_voltage_v" in n and "a0" in n for n in notes)
+    held = {"throttle": throttle, "battery_voltage_v": np.full(len(m), a0_volt)}
+    U, _ = polar(FIELD * np.linalg.inv(cal.K))
+    ours = cal.apply_field(m, held) @ U         # Uᵀ f: the symmetric matrix's frame, µT
+    if firmware == "ardupilot":
+        theirs = apply_ardupilot(_ardupilot_params(text), m * 10.0, throttle) / 10.0
+    else:
+        theirs = apply_px4(_px4_params(text), m / 100.0, throttle) * 100.0
+    np.testing.assert_allclose(theirs, ours, atol=2e-4)
+    # the voltage's swing is all that is left: |f| within |g_volt| × its half-range of FIELD
+    swing = np.linalg.norm(g_volt) * np.max(np.abs(volts - a0_volt))
+    assert np.max(np.abs(np.linalg.norm(theirs, axis=1) - FIELD)) < 1.05 * swing
+
+
 def test_px4_second_or_unknown_channel_not_expressed():
     a = np.linspace(0.0, 1.0, 200)
     _, cal = _aux_case("motor_rpm", a, np.array([1.0, 0.0, 0.0]), a0=0.5)

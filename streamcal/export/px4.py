@@ -31,7 +31,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
-from .common import correction, fmt, motor_channel, mounting, orientation_words
+from .common import correction, fmt, hold_others, motor_channel, mounting, orientation_words
 
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
@@ -55,8 +55,10 @@ def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
 def _compensation(corr, notes: list) -> tuple[int, str | None, np.ndarray | None]:
     """(CAL_MAG_COMP_TYP, chosen channel, CAL_MAG0_*COMP (3,)) from the aux channels."""
     chosen, kind, others = motor_channel(corr.channels)
+    hold_others(corr, chosen)
     notes.extend(f"aux_interference on {name!r}: PX4 compensates one channel, "
-                 "throttle (0..1) or battery current (A, as kA)" for name in others)
+                 "throttle (0..1) or battery current (A, as kA); held at its level a0"
+                 for name in others)
     if chosen is None:
         return 0, None, None
     comp_type = COMP_CURRENT0 if kind == "current" else COMP_THROTTLE
