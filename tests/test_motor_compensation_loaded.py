@@ -116,3 +116,25 @@ def test_motor_term_from_one_flight_corrects_another_with_the_firmware_formula(k
     assert spread(after) < 0.6 * spread(before)
     assert spread(after) < 1.3 * spread(reference)          # down to what the sensor gives
     assert heading_rms(after) < 0.4 * heading_rms(before)
+
+
+def test_cal_refit_on_the_channel_named(tmp_path, capsys):
+    """``--add aux_interference=CHANNEL`` with ``--cal``: the motor term on that channel alone
+    (a log with throttle, four motor outputs, battery current and voltage, which move together);
+    a channel the log lacks, or beside a bare ``--add aux_interference``, is refused (exit 2)."""
+    log = write_dataflash(tmp_path / "flight.bin", flight_slice(60.0, 1, motor_uT=MOTOR_UT))
+    cal = tmp_path / "new.json"
+    assert main(["fit", str(log), "--cal", "autopilot", "--add", "aux_interference=throttle",
+                 "-o", str(cal)]) == 0
+    fitted = Calibration.load(cal)
+    g = np.array(fitted.effects["aux_interference"]["channels"]["throttle"]["g"])
+    assert list(fitted.effects["aux_interference"]["channels"]) == ["throttle"]
+    # the self-made field: MOTOR_UT over the flight's throttle span along one direction
+    span = np.ptp(flight_slice(60.0, 1).throttle_at_mag)
+    assert np.linalg.norm(g) == pytest.approx(MOTOR_UT / span, rel=0.1)
+    capsys.readouterr()
+    for add in (["aux_interference=rpm"], ["aux_interference", "aux_interference=throttle"]):
+        args = [a for item in add for a in ("--add", item)]
+        assert main(["fit", str(log), "--cal", "autopilot", *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "aux_interference" in err
