@@ -48,6 +48,7 @@ def _cell(v) -> str:
 
 def _rows(label: str, out: dict) -> list[str]:
     size = float(np.linalg.norm(out["g_uT"]))
+    own = out["streamcal"].get("heading_rms_deg")
     lines = []
     for name, title in (("before", "in force"), ("refit", "refit"), ("after", "+motor")):
         ap, px4 = out[name]["ardupilot"], out[name]["px4"]
@@ -57,7 +58,7 @@ def _rows(label: str, out: dict) -> list[str]:
                      f"{_cell(ap.get('heading_rms_deg'))} | {_cell(ap.get('heading_p95_deg'))} | "
                      f"{'=px4' if agree else 'px4 differs'} | "
                      f"{f'{size:.2f}' if name == 'after' else ''} | "
-                     f"{_cell(out['streamcal'].get('heading_rms_deg')) if name == 'after' else ''} |")
+                     f"{_cell(own) if name == 'after' else ''} |")
     return lines
 
 

@@ -104,10 +104,10 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     Three calibrations are set side by side on the held-out part: ``before`` (``cal_in_force``),
     ``refit`` (refined on the fitted part without a motor term: what the refit alone changes)
     and ``after`` (refined with it); each ``{firmware: figures}``, plus ``streamcal`` (the
-    ``after`` calibration's own correction). Figures: ``spread_pct`` over every held-out
-    sample, ``spread_robust_pct``; ``heading_rms_deg``, ``heading_p95_deg`` against the attitude reference over the
-    held-out samples inside the attitude's span, when the track has attitude and a position
-    (``ref`` or its GPS), else ``heading`` says why not. Also ``channel``, ``fitted_s``,
+    ``after`` calibration's own correction). Figures: ``spread_pct`` and
+    ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
+    against the attitude reference over the held-out samples inside the attitude's span, when
+    the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not. Also ``channel``, ``fitted_s``,
     ``checked_s``, ``n_checked``, ``g_uT`` (the fitted term, µT per channel unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
     lacks it.
