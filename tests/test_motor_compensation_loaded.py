@@ -138,3 +138,23 @@ def test_cal_refit_on_the_channel_named(tmp_path, capsys):
         assert main(["fit", str(log), "--cal", "autopilot", *args]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "aux_interference" in err
+
+
+def test_motor_term_in_force_is_fitted_afresh(tmp_path):
+    """A log whose autopilot already compensates the throttle (COMPASS_MOTCT 1, a wrong
+    COMPASS_MOT): ``--add aux_interference`` fits the term again instead of keeping the one in
+    force; the result is the term fitted from the same flight without compensation in force."""
+    flight = flight_slice(60.0, 1, motor_uT=MOTOR_UT)
+    fitted = {}
+    for name, comp in (("none", None), ("wrong", np.array([-5.0, 3.0, -8.0]))):
+        log = write_dataflash(tmp_path / f"{name}.bin", flight, messages=("IMU", "CURR"),
+                              motor_comp=comp)
+        cal = tmp_path / f"{name}.json"
+        assert main(["fit", str(log), "--cal", "autopilot", "--add", "aux_interference=throttle",
+                     "-o", str(cal)]) == 0
+        fitted[name] = Calibration.load(cal)
+    g = {k: np.array(c.effects["aux_interference"]["channels"]["throttle"]["g"])
+         for k, c in fitted.items()}
+    # the wrong term in force is 0.5–0.8 µT per throttle unit; the field is ~8 µT per unit
+    assert np.linalg.norm(g["wrong"] - g["none"]) < 0.02 * np.linalg.norm(g["none"])
+    assert fitted["wrong"].rms == pytest.approx(fitted["none"].rms, rel=0.02)

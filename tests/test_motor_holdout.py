@@ -115,3 +115,20 @@ def test_real_2014_copter_heading_held_out(flight_dir):
         figures = out[name]["ardupilot"]
         assert 0.0 < figures["heading_p95_deg"] < 20.0 and 0.0 < figures["spread_pct"] < 10.0
     assert np.linalg.norm(out["g_uT"]) < 5.0     # µT at full throttle: a small motor field
+
+
+def test_wrong_motor_term_in_force_is_replaced(tmp_path):
+    """COMPASS_MOTCT 1 with a wrong COMPASS_MOT in force: ``before`` applies it (the firmware's
+    correction as flown), ``refit`` keeps it, ``after`` fits the term afresh and corrects."""
+    path = write_dataflash(tmp_path / "flight.bin", flight_slice(120.0, 1, motor_uT=4.0),
+                           messages=("IMU", "CURR", "BAT"),
+                           motor_comp=np.array([-5.0, 3.0, -8.0]))
+    track = read_recording(path)
+    cal = autopilot_calibration(track)
+    out = held_out_check(track, cal, "throttle")
+    _firmwares_agree(out)
+    before, after = out["before"]["ardupilot"], out["after"]["ardupilot"]
+    assert after["spread_pct"] < 0.6 * before["spread_pct"]
+    assert after["spread_pct"] < 0.6 * out["refit"]["ardupilot"]["spread_pct"]
+    with pytest.raises(InputError, match="compensates throttle"):
+        held_out_check(track, cal, "battery_current_a")

@@ -110,7 +110,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not. Also ``channel``, ``fitted_s``,
     ``checked_s``, ``n_checked``, ``g_uT`` (the fitted term, µT per channel unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
-    lacks it.
+    lacks it, or the calibration in force compensates another channel. A motor term in force
+    on ``channel`` is held by ``refit`` and fitted afresh by ``after``.
     """
     if channel not in CURRENT_CHANNELS + THROTTLE_CHANNELS:
         raise InputError(f"motor compensation check: {channel!r} is neither a throttle "
@@ -119,6 +120,11 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     if channel not in track.aux_names:
         raise InputError(f"motor compensation check: the track has no channel {channel!r} "
                          f"(channels: {', '.join(track.aux_names) or 'none'})")
+    in_force = list(((cal_in_force.effects or {}).get("aux_interference") or {})
+                    .get("channels", {}))
+    if any(c != channel for c in in_force):
+        raise InputError(f"motor compensation check: the calibration in force compensates "
+                         f"{', '.join(in_force)}; check that channel, not {channel!r}")
     if ref is None:
         ref, why = log_location(track)
     if fit_on not in ("first", "last"):
