@@ -26,6 +26,7 @@ from ..constants import MAD_TO_SIGMA
 from ..diagnosis.against import refine
 from ..errors import InputError
 from ..fitting.attitude_reference import attitude_data, heading_error_deg, log_location
+from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS
 from .ardupilot import MG_PER_UT, apply_ardupilot
 from .ardupilot import export as export_ardupilot
 from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS
@@ -33,8 +34,6 @@ from .px4 import apply_px4
 from .px4 import export as export_px4
 
 FIRMWARES = ("ardupilot", "px4")
-UT_PER_GAUSS = 100.0
-KA_PER_A = 0.001
 
 
 def split_in_time(track, fraction: float = 0.5) -> tuple:
