@@ -13,6 +13,7 @@ from streamcal.calibration import Calibration
 from streamcal.cli import main
 from streamcal.export.ardupilot import apply_ardupilot
 from streamcal.export.common import polar
+from streamcal.export.motor_check import read_parameters
 from streamcal.export.px4 import apply_px4
 from streamcal.inputs import read_recording
 
@@ -26,20 +27,6 @@ def _write(kind: str, path, flight):
     if kind == "ardupilot":
         return write_dataflash(path, flight, messages=("IMU", "CURR"))
     return write_ulog(path, flight, topics=("sensor_combined", "actuator_controls_0"))
-
-
-def _params(text: str, kind: str) -> dict:
-    """An exported parameter file as {name: value}."""
-    out = {}
-    for line in text.splitlines():
-        if line.startswith("#") or not line.strip():
-            continue
-        if kind == "ardupilot":
-            name, value = line.split(",")
-        else:
-            name, value = line.split("\t")[2:4]
-        out[name] = float(value)
-    return out
 
 
 def _corrected(kind: str, params: dict, track, compensated: bool) -> np.ndarray:
@@ -83,7 +70,7 @@ def test_motor_term_from_one_flight_corrects_another_with_the_firmware_formula(k
     assert main(["fit", str(first), "--cal", "autopilot", "--add", "aux_interference",
                  "-o", str(cal)]) == 0
     assert main(["export", str(cal), "--format", kind, "-o", str(parm)]) == 0
-    new = _params(parm.read_text(), kind)
+    new = read_parameters(parm.read_text(), kind)
     motor = ("COMPASS_MOT_X", "COMPASS_MOTCT") if kind == "ardupilot" else \
         ("CAL_MAG0_XCOMP", "CAL_MAG_COMP_TYP")
     assert all(name in new for name in motor) and new[motor[1]] == 1   # throttle-based
