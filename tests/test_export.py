@@ -169,6 +169,23 @@ def test_channel_not_exported_is_held_at_its_level(firmware):
     assert np.max(np.abs(np.linalg.norm(theirs, axis=1) - FIELD)) < 1.05 * swing
 
 
+def test_second_battery_is_px4_type_3_and_not_ardupilot():
+    """A term on the second battery's current: PX4's CAL_MAG_COMP_TYP 3 (battery_status
+    instance 1, kA) corrects it exactly; ArduPilot's COMPASS_MOTCT 2 takes the first battery
+    only, so it is not expressed there."""
+    rng = np.random.default_rng(9)
+    a = rng.uniform(5.0, 30.0, 2000)
+    m, cal = _aux_case("battery2_current_a", a, np.array([0.3, -0.2, 0.4]), a0=15.0)
+    text, notes = export(cal, "px4")
+    params = _px4_params(text)
+    assert not notes and params["CAL_MAG_COMP_TYP"] == 3
+    theirs = np.linalg.norm(apply_px4(params, m / 100.0, a / 1000.0), axis=1) * 100.0
+    np.testing.assert_allclose(theirs, FIELD, rtol=2e-6)
+    text, notes = export(cal, "ardupilot")
+    assert any("battery2_current_a" in n for n in notes)
+    assert "COMPASS_MOTCT" not in _ardupilot_params(text)
+
+
 def test_px4_second_or_unknown_channel_not_expressed():
     a = np.linspace(0.0, 1.0, 200)
     _, cal = _aux_case("motor_rpm", a, np.array([1.0, 0.0, 0.0]), a0=0.5)

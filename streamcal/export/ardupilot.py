@@ -80,8 +80,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"], params["COMPASS_ODI_Z"] = \
         S[0, 1], S[0, 2], S[1, 2]
     motct = MOTCT.get(kind, 0)
-    notes += [f"aux_interference on {name!r}: ArduPilot compensates one channel, "
-              "battery current (A) or throttle (0..1); held at its level a0" for name in others]
+    notes += [f"aux_interference on {name!r}: ArduPilot compensates one channel, the first "
+              "battery's current (A) or throttle (0..1); held at its level a0" for name in others]
     if chosen is not None:
         mot = -MG_PER_UT * (S @ corr.channels[chosen])
         for k, a in enumerate("XYZ"):

@@ -25,6 +25,9 @@ CORE = ("hard_iron", "soft_iron", "scale")
 #: throttle (0..1).
 CURRENT_CHANNELS = ("battery_current_a", "motor_current", "current", "curr")
 THROTTLE_CHANNELS = ("throttle",)
+#: The second battery's current (A), which PX4 compensates (CAL_MAG_COMP_TYP 3) and ArduPilot,
+#: whose COMPASS_MOTCT 2 takes the first battery's, does not.
+SECOND_BATTERY_CHANNELS = ("battery2_current_a",)
 
 
 @dataclass
@@ -92,17 +95,21 @@ def correction(cal: Calibration) -> Correction:
                       channels=channels, levels=levels, not_expressed=notes)
 
 
-def motor_channel(channels) -> tuple[str | None, str | None, list[str]]:
+def motor_channel(channels, second_battery: bool = False
+                  ) -> tuple[str | None, str | None, list[str]]:
     """The aux channel an autopilot's one motor compensation takes: the first of ``channels``
-    (names, in order) that is a battery current (:data:`CURRENT_CHANNELS`) or throttle
-    (:data:`THROTTLE_CHANNELS`). Returns (its name, ``"current"`` or ``"throttle"``, the other
-    channels in order); (None, None, all of them) when none is."""
+    (names, in order) that is a battery current (:data:`CURRENT_CHANNELS`), the throttle
+    (:data:`THROTTLE_CHANNELS`) or, where the firmware can take it (``second_battery``), the
+    second battery's current (:data:`SECOND_BATTERY_CHANNELS`). Returns (its name,
+    ``"current"``, ``"throttle"`` or ``"current2"``, the other channels in order); (None, None,
+    all of them) when none is."""
+    kinds = {**dict.fromkeys(CURRENT_CHANNELS, "current"),
+             **dict.fromkeys(THROTTLE_CHANNELS, "throttle"),
+             **(dict.fromkeys(SECOND_BATTERY_CHANNELS, "current2") if second_battery else {})}
     chosen, kind, others = None, None, []
     for name in channels:
-        k = "current" if name in CURRENT_CHANNELS else "throttle" if name in THROTTLE_CHANNELS \
-            else None
-        if k and chosen is None:
-            chosen, kind = name, k
+        if name in kinds and chosen is None:
+            chosen, kind = name, kinds[name]
         else:
             others.append(name)
     return chosen, kind, others
