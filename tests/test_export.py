@@ -156,6 +156,8 @@ def test_channel_not_exported_is_held_at_its_level(firmware):
     m = m + np.outer(volts - a0_volt, g_volt)
     text, notes = export(cal, firmware)
     assert any("battery_voltage_v" in n and "a0" in n for n in notes)
+    # and the exported term alone is said not to be the joint fit's correction
+    assert any("fitted together" in n and "--add aux_interference=throttle" in n for n in notes)
     held = {"throttle": throttle, "battery_voltage_v": np.full(len(m), a0_volt)}
     U, _ = polar(FIELD * np.linalg.inv(cal.K))
     ours = cal.apply_field(m, held) @ U         # Uᵀ f: the symmetric matrix's frame, µT

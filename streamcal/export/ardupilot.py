@@ -19,7 +19,8 @@ import re
 import numpy as np
 
 from ..calibration import Calibration
-from .common import correction, fmt, hold_others, motor_channel, mounting, orientation_words
+from .common import (correction, fmt, hold_others, joint_fit_note, motor_channel, mounting,
+                     orientation_words)
 
 MG_PER_UT = 10.0
 #: COMPASS_MOTCT of each motor-compensation channel kind.
@@ -82,6 +83,7 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     motct = MOTCT.get(kind, 0)
     notes += [f"aux_interference on {name!r}: ArduPilot compensates one channel, the first "
               "battery's current (A) or throttle (0..1); held at its level a0" for name in others]
+    notes += joint_fit_note(chosen, others)
     if chosen is not None:
         mot = -MG_PER_UT * (S @ corr.channels[chosen])
         for k, a in enumerate("XYZ"):

@@ -115,6 +115,16 @@ def motor_channel(channels, second_battery: bool = False
     return chosen, kind, others
 
 
+def joint_fit_note(chosen: str | None, others: list[str]) -> list[str]:
+    """The warning that the motor term exported alone was fitted beside other channels (which
+    move with it on a vehicle): then it is not the fit's correction by itself."""
+    if chosen is None or not others:
+        return []
+    return [f"aux_interference on {chosen!r} was fitted together with {', '.join(others)}: "
+            f"alone it is not the fitted correction; for parameters to load, fit with "
+            f"--add aux_interference={chosen}"]
+
+
 def hold_others(corr: Correction, keep: str | None) -> None:
     """Drop every aux channel of ``corr`` but ``keep``, each held at its level ``a0``.
 

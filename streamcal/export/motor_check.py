@@ -106,8 +106,9 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     ``after`` calibration's own correction). Figures: ``spread_pct`` and
     ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
     against the attitude reference over the held-out samples inside the attitude's span, when
-    the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not. Also ``channel``, ``fitted_s``,
-    ``checked_s``, ``n_checked``, ``g_uT`` (the fitted term, µT per channel unit). InputError
+    the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
+    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``g_uT`` (the
+    fitted term, µT per channel unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
     lacks it, or the calibration in force compensates another channel. A motor term in force
     on ``channel`` is held by ``refit`` and fitted afresh by ``after``.

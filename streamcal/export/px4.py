@@ -32,7 +32,8 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
-from .common import correction, fmt, hold_others, motor_channel, mounting, orientation_words
+from .common import (correction, fmt, hold_others, joint_fit_note, motor_channel, mounting,
+                     orientation_words)
 
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
@@ -61,6 +62,7 @@ def _compensation(corr, notes: list) -> tuple[int, str | None, np.ndarray | None
     notes.extend(f"aux_interference on {name!r}: PX4 compensates one channel, throttle "
                  "(0..1) or the current of battery 1 or 2 (A, as kA); held at its level a0"
                  for name in others)
+    notes.extend(joint_fit_note(chosen, others))
     if chosen is None:
         return 0, None, None
     comp_type = COMP_TYP[kind]
