@@ -243,3 +243,56 @@ def test_a_calibration_of_compass_1_exports_as_compass_1(tmp_path, capsys):
     assert main(["fit", str(path), "--compass", "1", "--cal", "autopilot", "-o",
                  str(refined)]) == 0
     assert Calibration.load(refined).extra["compass_params_index"] == 1
+
+
+def test_compass_all_at_the_given_place(two, capsys):
+    """--lat/--lon are the place of every compass's heading error and local field (the log has
+    no GPS: without them the horizontal field is the fitted one, the reference absent); each
+    compass's next step names that compass."""
+    import datetime
+    import math
+
+    from streamcal.geomag import wmm_field
+
+    path, _ = two
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) == 0
+    without = json.loads(capsys.readouterr().out)["compasses"]
+    assert main(["diagnose", str(path), "--compass", "all", "--json", "--lat", "78",
+                 "--lon", "15", "--date", "2025-06-01"]) == 0
+    given = json.loads(capsys.readouterr().out)["compasses"]
+    ref = wmm_field(78.0, 15.0, 0.0, datetime.date(2025, 6, 1))
+    h = ref["intensity_uT"] * math.cos(math.radians(ref["inclination_deg"]))
+    for k, (a, b) in enumerate(zip(without, given)):
+        assert a["reference_field"]["source"] is None
+        assert b["reference_field"]["source"] == ref["source"]
+        he_a, he_b = a["diagnosis"]["heading_error_deg"], b["diagnosis"]["heading_error_deg"]
+        assert abs(he_a["H_uT"] - 25.0) < 0.5           # the log's 50 µT at 60° dip, fitted
+        assert he_b["H_uT"] == pytest.approx(h, rel=1e-9)
+        rms = a["diagnosis"]["ladder"][0]["rms"]
+        assert he_b["before"] == pytest.approx(math.degrees(math.atan2(rms, h)), rel=1e-6)
+        step = b["diagnosis"]["next_step"]
+        assert step is None or step[step.index("--compass") + 1] == str(k)
+
+
+def test_report_with_every_compass_diagnosis(two, tmp_path, capsys):
+    """report --compass all: a section per compass with its own verdict, next step, heading
+    error and ladder (the figures the JSON gives), before the default compass's full page."""
+    import re
+
+    path, _ = two
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) == 0
+    compasses = json.loads(capsys.readouterr().out)["compasses"]
+    html = tmp_path / "all.html"
+    assert main(["report", str(path), "--compass", "all", "-o", str(html)]) == 0
+    page = html.read_text()
+    starts = [page.index(f'<section id="compass-{c["instance"]}">') for c in compasses]
+    assert starts == sorted(starts) and starts[-1] < page.index('id="default-compass"')
+    for c, start in zip(compasses, starts):
+        section = page[start:page.index("</section>", start)]
+        d = c["diagnosis"]
+        assert f"device id {c['device_id']}" in section
+        assert f"Verdict {d['verdict']};" in section
+        assert f"--compass {c['instance']}" in section
+        shown = re.search(r"Heading error: up to ([0-9.]+)°", section).group(1)
+        assert float(shown) == pytest.approx(d["heading_error_deg"]["before"], abs=0.005)
+        assert f"{d['ladder'][0]['rms']:.4g}" in section

@@ -145,3 +145,36 @@ def test_ulog_damaged_middle_skipped_and_counted(tmp_path):
     assert 0.9 * len(whole.t_mag) < len(track.t_mag) < len(whole.t_mag)
     code, lines = _convert(bad, tmp_path / "o.csv")
     assert code == 0 and len(lines) == 1 and "Skipped damaged data" in lines[0]
+
+
+def test_ulog_without_sync_read_past_the_damage(tmp_path):
+    """A ULog without sync messages (tests/_selfmade_logs.py writes none) with random bytes in
+    the middle: reading resumes at the next valid message, every sample after the damage is
+    read, and the one line counts the bytes cut out (those of the damaged messages)."""
+    from ._selfmade_logs import flight_slice, ulog_bytes
+
+    data = ulog_bytes(flight_slice(40.0))
+    assert b"\x2f\x73\x13\x20\x25\x0c\xbb\x12" not in data
+    path = tmp_path / "ok.ulg"
+    path.write_bytes(data)
+    whole = read_recording(path)
+    damaged = bytearray(data)
+    mid = len(data) // 2
+    damaged[mid:mid + 300] = np.random.default_rng(7).integers(0, 256, 300,
+                                                               dtype=np.uint8).tobytes()
+    bad = tmp_path / "damaged.ulg"
+    bad.write_bytes(bytes(damaged))
+    track = read_recording(bad)
+    # every magnetometer sample after the damage is there, with its values
+    t_end = whole.t_mag[-1]
+    assert track.t_mag[-1] == t_end
+    after = whole.t_mag > whole.t_mag[len(whole.t_mag) // 2] + 1.0
+    kept = np.isin(whole.t_mag, track.t_mag)
+    assert kept[after].all() and len(whole.t_mag) - 10 < len(track.t_mag) < len(whole.t_mag)
+    np.testing.assert_array_equal(track.mag, whole.mag[kept])
+    warning = track.metadata["read_warnings"]
+    lost = int(warning.split("Skipped damaged data: ")[1].split(" bytes")[0])
+    assert 300 <= lost < 300 + 2 * 120, warning      # the damage and the messages it cut into
+    assert "truncated" not in warning
+    code, lines = _convert(bad, tmp_path / "o.csv")
+    assert code == 0 and len(lines) == 1 and "Skipped damaged data" in lines[0]

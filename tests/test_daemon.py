@@ -473,3 +473,27 @@ def test_cli_draws_the_coverage_map_on_stderr_at_milestones(tmp_path, capsys, js
     assert "█ seen" not in out                                  # stdout: samples or the summary
     summary = json.loads((err if json_lines else out).strip().splitlines()[-1])
     assert summary["events"]["coverage"] == milestones
+
+
+def test_daemon_buffer_columns_follow_the_effect_declarations():
+    """The columns the daemon keeps beside the field come from each effect's declared needs
+    (the first of ``needs_any`` the sensor has): the built-ins as before, an effect registered
+    later without touching the daemon, and a refusal for needs the MPU-9250 lacks."""
+    from streamcal.cli.daemon import _covariates
+    from streamcal.errors import UnknownEffectError
+    from streamcal.model import registered
+
+    from .test_effect_registration import TOY, WARM
+
+    assert _covariates(("hard_iron", "soft_iron")) == ()
+    assert _covariates(("hard_iron", "temperature_scale")) == ("temp",)
+    assert _covariates(("hard_iron", "time_lag", "mag_accel_misalignment",
+                        "temperature_offset")) == ("temp", "ax", "ay", "az", "gx", "gy", "gz")
+    with pytest.raises(UnknownEffectError, match="aux_interference needs an auxiliary channel"):
+        _covariates(("hard_iron", "aux_interference"))
+    with registered(WARM):
+        assert _covariates(("hard_iron", "warm_offset")) == ("temp",)
+    with registered(TOY), pytest.raises(UnknownEffectError, match="coil_square needs coil_drive"):
+        _covariates(("hard_iron", "coil_square"))
+    with pytest.raises(UnknownEffectError, match="unknown effect"):
+        _covariates(("hard_iron", "warm_offset"))

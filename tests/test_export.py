@@ -142,6 +142,52 @@ def test_px4_power_compensation_from_aux_interference(channel, comp_type, to_pow
     assert np.std(flipped) > np.std(without)  # the wrong sign makes it worse
 
 
+@pytest.mark.parametrize("firmware", ["ardupilot", "px4"])
+def test_channel_not_exported_is_held_at_its_level(firmware):
+    """A fitted channel the autopilot cannot compensate (battery voltage beside the throttle)
+    is held at its level a0: the firmware's formula gives streamcal's own corrected field
+    vector with that channel at a0 (in the symmetric frame), not with it at 0 V."""
+    rng = np.random.default_rng(11)
+    throttle, volts = rng.uniform(0.3, 0.9, 2000), rng.uniform(11.0, 12.6, 2000)
+    g_thr, g_volt, a0_volt = np.array([4.7, -2.7, 6.0]), np.array([-0.4, 0.1, -0.2]), 11.8
+    m, cal = _aux_case("throttle", throttle, g_thr, a0=0.6)
+    cal.effects["aux_interference"]["channels"]["battery_voltage_v"] = {
+        "a0": a0_volt, "g": g_volt.tolist()}
+    m = m + np.outer(volts - a0_volt, g_volt)
+    text, notes = export(cal, firmware)
+    assert any("battery_voltage_v" in n and "a0" in n for n in notes)
+    # and the exported term alone is said not to be the joint fit's correction
+    assert any("fitted together" in n and "--add aux_interference=throttle" in n for n in notes)
+    held = {"throttle": throttle, "battery_voltage_v": np.full(len(m), a0_volt)}
+    U, _ = polar(FIELD * np.linalg.inv(cal.K))
+    ours = cal.apply_field(m, held) @ U         # Uᵀ f: the symmetric matrix's frame, µT
+    if firmware == "ardupilot":
+        theirs = apply_ardupilot(_ardupilot_params(text), m * 10.0, throttle) / 10.0
+    else:
+        theirs = apply_px4(_px4_params(text), m / 100.0, throttle) * 100.0
+    np.testing.assert_allclose(theirs, ours, atol=2e-4)
+    # the voltage's swing is all that is left: |f| within |g_volt| × its half-range of FIELD
+    swing = np.linalg.norm(g_volt) * np.max(np.abs(volts - a0_volt))
+    assert np.max(np.abs(np.linalg.norm(theirs, axis=1) - FIELD)) < 1.05 * swing
+
+
+def test_second_battery_is_px4_type_3_and_not_ardupilot():
+    """A term on the second battery's current: PX4's CAL_MAG_COMP_TYP 3 (battery_status
+    instance 1, kA) corrects it exactly; ArduPilot's COMPASS_MOTCT 2 takes the first battery
+    only, so it is not expressed there."""
+    rng = np.random.default_rng(9)
+    a = rng.uniform(5.0, 30.0, 2000)
+    m, cal = _aux_case("battery2_current_a", a, np.array([0.3, -0.2, 0.4]), a0=15.0)
+    text, notes = export(cal, "px4")
+    params = _px4_params(text)
+    assert not notes and params["CAL_MAG_COMP_TYP"] == 3
+    theirs = np.linalg.norm(apply_px4(params, m / 100.0, a / 1000.0), axis=1) * 100.0
+    np.testing.assert_allclose(theirs, FIELD, rtol=2e-6)
+    text, notes = export(cal, "ardupilot")
+    assert any("battery2_current_a" in n for n in notes)
+    assert "COMPASS_MOTCT" not in _ardupilot_params(text)
+
+
 def test_px4_second_or_unknown_channel_not_expressed():
     a = np.linspace(0.0, 1.0, 200)
     _, cal = _aux_case("motor_rpm", a, np.array([1.0, 0.0, 0.0]), a0=0.5)
@@ -185,3 +231,33 @@ def test_cli_export_says_what_is_not_expressed(sim, tmp_path, capsys):
     assert main(["export", str(path), "--format", "json"]) == 0
     assert json.loads(capsys.readouterr().out)["effects"]["temperature_offset"]["T0"] == 25.0
     assert main(["export", str(tmp_path / "missing.json"), "--format", "px4"]) == 2
+
+
+@pytest.mark.parametrize("fmt", ["ardupilot", "px4"])
+def test_parameter_files_are_ascii(sim, tmp_path, monkeypatch, fmt):
+    """Comments in parameter files are plain ASCII ("uT/degC", not "µT/°C"): MAVProxy's
+    ``param load`` reads the file in the platform's encoding, which may be ASCII (a POSIX
+    locale) or a code page; the values read back are those written."""
+    import builtins
+
+    from pymavlink import mavparm
+
+    cal = _cal(sim.truth, model=("hard_iron", "soft_iron", "temperature_offset"),
+               effects={"temperature_offset": {"T0": 25.0, "c": [0.1, -0.2, 0.05]}})
+    path = tmp_path / "cal.json"
+    cal.save(path)
+    out = tmp_path / f"out.{fmt}"
+    assert main(["export", str(path), "--format", fmt, "-o", str(out)]) == 0
+    raw = out.read_bytes()
+    assert raw.isascii()
+    text = raw.decode("ascii")
+    assert "T0 25 degC, c [0.1, -0.2, 0.05] uT/degC" in text
+    want = (_ardupilot_params if fmt == "ardupilot" else _px4_params)(text)
+    assert want == (_ardupilot_params if fmt == "ardupilot" else _px4_params)(
+        export(cal, fmt)[0])
+    if fmt == "ardupilot":
+        monkeypatch.setattr(mavparm, "open", lambda f, mode="r": builtins.open(
+            f, mode, encoding="ascii"), raising=False)
+        loaded = mavparm.MAVParmDict()
+        assert loaded.load(str(out))
+        assert {k: loaded[k] for k in want} == pytest.approx(want)

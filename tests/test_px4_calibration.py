@@ -63,6 +63,20 @@ def test_battery_current_compensation_becomes_an_aux_interference_term():
     assert "already in the readings" in without.extra["note"]
 
 
+def test_second_battery_compensation_is_a_term_on_its_current():
+    """CAL_MAG_COMP_TYP = 3: p is battery_status instance 1's current in kA, streamcal's
+    battery2_current_a (A)."""
+    comp = np.array([0.04, -0.02, 0.03])                  # G per kA
+    params, S, o = _px4_params(comp_type=3, comp=comp)
+    current_a = np.linspace(0.0, 40.0, 500)
+    m, _ = _raw_readings(S, o, comp, power=current_a * 1e-3)
+    cal = calibration_from_px4(params, FIELD_UT, prefix="CAL_MAG1_",
+                               channels=("battery_current_a", "battery2_current_a"))
+    assert set(cal.effects["aux_interference"]["channels"]) == {"battery2_current_a"}
+    x = cal.apply(m, {"battery2_current_a": current_a})
+    np.testing.assert_allclose(np.linalg.norm(x, axis=1), 1.0, rtol=1e-9)
+
+
 def test_throttle_compensation_is_a_term_on_the_throttle_channel():
     """CAL_MAG_COMP_TYP = 1: p is the throttle 0..1 (actuator_controls_0.control[3])."""
     comp = np.array([0.05, 0.01, -0.04])                  # G at full throttle
@@ -77,7 +91,7 @@ def test_throttle_compensation_is_a_term_on_the_throttle_channel():
 
 @pytest.mark.parametrize("comp_type, channels, signal", [
     (1, ("battery_current_a",), "throttle"), (2, ("throttle",), "battery_current_a"),
-    (3, ("throttle", "battery_current_a"), "battery 1's current")])
+    (3, ("throttle", "battery_current_a"), "battery2_current_a")])
 def test_a_compensation_without_its_channel_is_left_out_and_said(comp_type, channels, signal):
     params, _, _ = _px4_params(comp_type=comp_type, comp=(0.01, 0.0, 0.0))
     cal = calibration_from_px4(params, FIELD_UT, prefix="CAL_MAG1_", channels=channels)

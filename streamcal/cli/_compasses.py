@@ -2,22 +2,26 @@
 then the compasses compared (SPEC §6; :mod:`streamcal.diagnosis.compass_consistency`)."""
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from pathlib import Path
 
 from ..calibration import jsonable
 from ..errors import InsufficientDataError
-from ._common import _command, say_read_warnings
+from ._common import _command, recording_argv, say_read_warnings
 
 
 def _diagnose_each(args, model) -> list[dict]:
     """Per compass: ``{"instance", "device_id", "track", "diagnosis" (object or None),
-    "error", "autopilot_cal" (or None)}``; a compass the data cannot calibrate keeps its error."""
+    "error", "autopilot_cal" (or None)}``; a compass the data cannot calibrate keeps its error.
+    ``--lat/--lon`` (else the log's GPS) is the place of every compass's heading error."""
     from ..diagnosis import diagnose
     from ..errors import InputError
     from ..inputs import autopilot_calibration, read_compasses
+    from ._location import location_reference
 
+    ref = location_reference(args)
     tracks = read_compasses(args.track)
     say_read_warnings(args.track, tracks[0], _command(args))
     out = []
@@ -30,18 +34,32 @@ def _diagnose_each(args, model) -> list[dict]:
             entry["autopilot_cal"] = autopilot_calibration(track)
         except InputError:
             entry["autopilot_cal"] = None
-        kwargs = {}
+        kwargs = {"location": ref, "cal_arg": getattr(args, "cal", None),
+                  "recording": recording_argv(argparse.Namespace(
+                      **{**vars(args), "compass": str(entry["instance"])}))}
         if getattr(args, "cal", None):
             from ._calarg import calibration_for
 
             cal, source = calibration_for(args.cal, track)
-            kwargs = {"calibration": cal, "calibration_source": source}
+            kwargs.update(calibration=cal, calibration_source=source)
         try:
             entry["diagnosis"] = diagnose(track, model=model, **kwargs)
         except InsufficientDataError as exc:
             entry["error"] = str(exc)
+        else:
+            entry.update(_place(track, entry["diagnosis"]))
         out.append(entry)
     return out
+
+
+def _place(track, d) -> dict:
+    """What single-compass ``diagnose`` says beside the diagnosis, at the place the diagnosis
+    used (``d.location``): ``{"reference_field", "attitude_reference"?, "orientation"?}``."""
+    from ..diagnosis.reference_field import reference_field
+    from ..fitting.attitude_reference import log_attitude_reference
+
+    return {"reference_field": reference_field(track, d.calibration, d.location),
+            **log_attitude_reference(track, d.location, d.calibration)}
 
 
 def _consistency(entries: list[dict]) -> list:
@@ -62,9 +80,23 @@ def _consistency(entries: list[dict]) -> list:
 def _entry_json(e: dict) -> dict:
     out = {"instance": e["instance"], "device_id": e["device_id"],
            "diagnosis": e["diagnosis"].to_dict() if e["diagnosis"] is not None else None}
+    out.update({k: e[k] for k in PLACE_KEYS if k in e})
     if e["error"]:
         out["error"] = e["error"]
     return out
+
+
+#: The keys :func:`_place` adds to a compass's entry, as in single-compass ``diagnose --json``.
+PLACE_KEYS = ("reference_field", "attitude_reference", "orientation")
+
+
+def _place_lines(e: dict) -> list[str]:
+    from ..geomag import text_lines
+    from .diagnose import attitude_lines
+
+    if "reference_field" not in e:
+        return []
+    return [""] + text_lines(e["reference_field"]) + attitude_lines(e)
 
 
 def _pair_line(p: dict) -> str:
@@ -87,14 +119,19 @@ def _table(pairs: list[dict]) -> str:
     return "\n".join(table)
 
 
+def _compass_title(e: dict) -> str:
+    """``compass 1 (device id 97795)``."""
+    return f"compass {e['instance']}" + (f" (device id {e['device_id']})"
+                                         if e["device_id"] else "")
+
+
 def _text(entries: list[dict], pairs: list[dict], describe) -> str:
     """One paragraph per compass (``describe(diagnosis)``), then the consistency table."""
     parts = []
     for e in entries:
-        head = f"compass {e['instance']}" + (f" (device id {e['device_id']})"
-                                              if e["device_id"] else "")
-        body = (describe(e["diagnosis"]) if e["diagnosis"] is not None
-                else f"no calibration: {e['error']}")
+        head = _compass_title(e)
+        body = ("\n".join([describe(e["diagnosis"])] + _place_lines(e))
+                if e["diagnosis"] is not None else f"no calibration: {e['error']}")
         parts.append(f"{head}\n{body}")
     return "\n\n".join(parts + [_table(pairs)])
 
@@ -142,10 +179,13 @@ def diagnose_all(args, model, describe=str) -> int:
 
 
 def report_all(args, model, output) -> int:
-    """Write the report of the compass the autopilot uses first, with a section comparing every
-    compass (``output``: a path or ``-``)."""
+    """Write one page (``output``: a path or ``-``): the compasses compared, a section per
+    compass (verdict, plain sentences, heading error, ladder), then the full report of the
+    compass the autopilot uses first."""
     from ..report import write_report
+    from ..report.figure_data import unit_label
     from ..report.figures_compasses import compasses_section, consistency_figure
+    from ..report.html import diagnosis_section
     from ._output import check_output, messages_to
 
     check_output(output)
@@ -154,9 +194,14 @@ def report_all(args, model, output) -> int:
     default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
     first = next((e for e in entries if str(e["instance"]) == default), entries[0])
     figure = consistency_figure(pairs) if pairs else None
-    section = compasses_section([_entry_json(e) for e in entries], pairs, figure)
+    sections = [compasses_section([_entry_json(e) for e in entries], pairs, figure)]
+    sections += [diagnosis_section(e["diagnosis"], unit_label(e["track"].mag_unit),
+                                   title=_compass_title(e), anchor=f"compass-{e['instance']}",
+                                   reason=e["error"]) for e in entries]
+    sections.append(f'<h2 id="default-compass">{_compass_title(first)}, the one the autopilot '
+                    "uses first: every figure and table</h2>")
     out = write_report(output, first["track"], first["diagnosis"], reason=first["error"],
-                       intro=section, name=Path(args.track).name)
+                       intro="\n".join(sections), name=Path(args.track).name)
     say = messages_to(out)
     print(_table([p.to_dict() for p in pairs]), file=say)
     print(f"report written to {out}", file=say)

@@ -114,26 +114,24 @@ def _address(text: str) -> int:
     return value
 
 
+#: The column groups of the MPU-9250 stream beside the field (:func:`streamcal.model.stream_columns`).
+SENSOR_GROUPS = ("temp", "accel", "gyro")
+
+
 def _covariates(model) -> tuple:
-    """Columns the coverage buffer keeps beside the field for ``model``'s effects."""
-    from ..errors import UnknownEffectError
-    from ..model import EFFECT_NAMES
+    """Columns the coverage buffer keeps beside the field for ``model``'s effects (their
+    declared needs)."""
+    from ..errors import MissingColumnsError, UnknownEffectError
+    from ..model import EFFECT_NAMES, stream_columns
 
     unknown = [m for m in model if m not in EFFECT_NAMES]
     if unknown or not model:
         raise UnknownEffectError(f"--model: unknown effect(s) {unknown or model}; known: "
                                  f"{', '.join(EFFECT_NAMES)}")
-    if "aux_interference" in model:
-        raise UnknownEffectError("--model: aux_interference needs an auxiliary channel, which "
-                                 "the sensor does not provide")
-    cols = []
-    if any(m.startswith("temperature_") for m in model):
-        cols.append("temp")
-    if "mag_accel_misalignment" in model:
-        cols += ["ax", "ay", "az"]
-    if "time_lag" in model:
-        cols += ["gx", "gy", "gz"]
-    return tuple(cols)
+    try:
+        return stream_columns(model, SENSOR_GROUPS)
+    except MissingColumnsError as exc:
+        raise UnknownEffectError(f"--model: {exc}") from None
 
 
 def state_dir(args) -> str:

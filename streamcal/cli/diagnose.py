@@ -78,11 +78,11 @@ def run(args: argparse.Namespace) -> int:
     if report is not None:
         written = report.write_diagnosis_plots(result, track, args.plots)
         plots = plots_written(args.plots, written)
-    from ..fitting.attitude_reference import log_attitude_reference, log_location
+    from ..fitting.attitude_reference import log_attitude_reference
 
-    place = ref or log_location(track)[0]
+    place = result.location   # the given place, else the log's GPS: what the library used
     local = reference_field(track, result.calibration, place)
-    attitude = log_attitude_reference(track, ref, result.calibration)
+    attitude = log_attitude_reference(track, place, result.calibration)
     if args.json:
         out = result.to_dict()
         out["reference_field"] = local

@@ -25,7 +25,10 @@ def register(sub) -> None:
                    help="comma-separated effects (default: %(default)s); known: "
                         + ", ".join(EFFECT_NAMES) + " (docs/effects.md)")
     p.add_argument("--add", action="append", default=[], metavar="EFFECT",
-                   help="add an effect to the model (repeatable; same names as --model)")
+                   help="add an effect to the model (repeatable; same names as --model); "
+                        "aux_interference takes every auxiliary channel, "
+                        "aux_interference=CHANNEL only the channels named (repeatable), e.g. "
+                        "the one an autopilot's motor compensation takes")
     p.add_argument("--kernel", choices=("auto", "cauchy", "huber", "l1", "gm", "l2"), default="auto",
                    help="robust kernel (default: auto = Cauchy, then a Geman–McClure polish)")
     p.add_argument("--method", default="autocal",
@@ -110,6 +113,30 @@ def _motor_channels(args, track) -> list[str]:
     return out
 
 
+def _named_channels(args, track):
+    """(track, --add effects): ``--add aux_interference=CHANNEL`` (repeatable) keeps only the
+    channels named for the aux_interference term (InputError for a channel the track lacks, or
+    beside a bare ``--add aux_interference``, which takes them all)."""
+    from ..errors import InputError
+
+    named, add = [], []
+    for item in args.add:
+        name, eq, channel = item.partition("=")
+        if not eq or name != "aux_interference":
+            add.append(item)
+            continue
+        if channel not in track.aux_names:
+            raise InputError(f"--add aux_interference={channel}: no such channel in the track "
+                             f"(channels: {', '.join(track.aux_names) or 'none'})")
+        named.append(channel)
+    if not named:
+        return track, add
+    if "aux_interference" in add:
+        raise InputError("--add aux_interference takes every auxiliary channel, "
+                         "aux_interference=CHANNEL only those named: give one or the other")
+    return track.keep_aux(named), add + ["aux_interference"]
+
+
 def _no_tumble(args, track, initial):
     """The calibration of ``--heading`` / ``--planar`` against the model field at
     ``--lat/--lon/--date`` or the log's GPS position."""
@@ -143,6 +170,8 @@ def run(args) -> int:
     from ..fitting import fit
     check_output(args.output)
     track = read_track(args)
+    if not (args.planar or args.attitude or args.heading is not None):
+        track, args.add = _named_channels(args, track)
     if getattr(args, "cal", None):
         if args.planar or args.attitude or args.heading is not None:
             from ..errors import InputError

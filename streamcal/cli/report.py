@@ -75,7 +75,8 @@ def run(args) -> int:
         kwargs = {"calibration": cal, "calibration_source": source, "cal_arg": args.cal}
     diagnosis, reason = diagnose_or_reason(track, model, recording=recording_argv(args),
                                            location=ref, **kwargs)
-    local = reference_field(track, getattr(diagnosis, "calibration", None), ref)
+    place = diagnosis.location if diagnosis is not None else ref   # the one the library used
+    local = reference_field(track, getattr(diagnosis, "calibration", None), place)
     out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name,
                        intro=_reference_html(text_lines(local)))
     say = messages_to(out)

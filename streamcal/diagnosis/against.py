@@ -153,13 +153,26 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
             gyro_pinned=pin.pinned, gyro_link=pin.report))
 
 
+def _without_effects(cal: Calibration, names: Sequence[str]) -> Calibration:
+    """``cal`` without the effects ``names`` (model and parameters)."""
+    drop = [n for n in names if n in cal.model or n in cal.effects]
+    if not drop:
+        return cal
+    return cal.replace(model=tuple(n for n in cal.model if n not in drop),
+                       effects={k: v for k, v in cal.effects.items() if k not in drop})
+
+
 def refine(track, calibration: Calibration | None, add: Sequence[str], *,
            calibration_source: str | None = None, tolerance: float = TOLERANCE) -> Calibration:
     """``calibration`` (None: the stated default) refined on ``track`` with the effects ``add``
     (in order): what the
     recording determines re-estimated, the rest held — the fit a held diagnosis promises
-    (``streamcal fit TRACK --cal CAL --add EFFECT``). The result's ``extra["held"]`` lists the
-    held parameters; its rms and inliers follow the one outlier rule."""
+    (``streamcal fit TRACK --cal CAL --add EFFECT``). An effect of ``add`` that ``calibration``
+    already carries (an autopilot's motor compensation in force) is fitted afresh, not kept
+    at the calibration's values. The result's ``extra["held"]`` lists the held parameters; its
+    rms and inliers follow the one outlier rule."""
+    if calibration is not None:
+        calibration = _without_effects(calibration, [n for n in check_known(add) if n in TERMS])
     start = HeldStart(track, calibration, calibration_source=calibration_source,
                       tolerance=tolerance)
     names = [n for n in check_known(add) if n not in start.model]

@@ -26,7 +26,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     Then the plain words of :mod:`streamcal.diagnosis.advice`: ``next_step`` names the
     recording as ``recording`` (argv words; default its path) and a held calibration as
     ``cal_arg``; ``location`` (:func:`streamcal.geomag.wmm_field`; default the log's GPS
-    position and date when it has them) gives the horizontal field for ``heading_error_deg``.
+    position and date when it has them) gives the horizontal field for ``heading_error_deg``;
+    the result carries the place it used as ``location``.
 
     - otherwise :func:`streamcal.diagnosis.diagnosis.diagnose` (every keyword passed on,
       unchanged); when that refuses because the recording cannot determine a fresh fit, and
@@ -47,7 +48,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
             location = None
     h, why = advice.horizontal_field(track, d.calibration, location)
     heading = advice.heading_error(d, h)
-    d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why)
+    d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why,
+                  location=location)
     d = d.replace(next_step=advice.next_step(d, list(recording), cal_arg))
     return d.replace(summary=advice.summary(d))
 

@@ -28,7 +28,7 @@ SAMPLING_KEYS = ("samples_used", "samples_total", "subsample_rule", "outlier_spa
 EVERY_SAMPLE = "every sample"
 #: The fields holding containers: stored deep-frozen (:func:`streamcal.values.freeze`).
 _CONTAINERS = ("candidates", "outlier_spans", "ladder", "residual_families", "noise", "misfit",
-               "sampling", "next_step", "heading_error_deg")
+               "sampling", "next_step", "heading_error_deg", "location")
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,7 +45,8 @@ class Diagnosis:
     ``Diagnosis.from_dict(d.to_dict()) == d``. What the JSON does not carry takes no part in
     equality and is absent (None) after :meth:`from_dict`: the per-sample ``outliers`` mask
     (its count and spans are carried), the fitted ``calibration`` and the candidates' refits,
-    and ``subsample`` (the Track a long recording was diagnosed from).
+    ``subsample`` (the Track a long recording was diagnosed from) and ``location`` (the place
+    of the heading error).
 
     ``held``: None for a fresh fit; for a diagnosis against a given (or the stated default)
     calibration, the :class:`~streamcal.diagnosis.held.part.HeldPart` saying what was held and
@@ -107,6 +108,9 @@ class Diagnosis:
     held: HeldPart | None = None
     #: The subsample Track a long recording was diagnosed from (None: the recording itself).
     subsample: object = field(default=None, repr=False, compare=False)
+    #: The World Magnetic Model field (:func:`streamcal.geomag.wmm_field`) at the place and date
+    #: the heading error used: the one given, else the log's GPS position (None: neither).
+    location: Mapping | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         object.__setattr__(self, "model", tuple(self.model))

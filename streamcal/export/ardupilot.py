@@ -19,7 +19,8 @@ import re
 import numpy as np
 
 from ..calibration import Calibration
-from .common import correction, fmt, motor_channel, mounting, orientation_words
+from .common import (ascii_text, correction, fmt, hold_others, joint_fit_note, motor_channel,
+                     mounting, orientation_words)
 
 MG_PER_UT = 10.0
 #: COMPASS_MOTCT of each motor-compensation channel kind.
@@ -70,6 +71,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         S = rot @ S @ rot.T
         corr.offset = rot @ corr.offset
         corr.channels = {k: rot @ g for k, g in corr.channels.items()}
+    chosen, kind, others = motor_channel(corr.channels)
+    hold_others(corr, chosen)
     params = {}
     for k, a in enumerate("XYZ"):
         params[f"COMPASS_OFS_{a}"] = -MG_PER_UT * corr.offset[k]
@@ -77,10 +80,10 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         params[f"COMPASS_DIA_{a}"] = S[k, k]
     params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"], params["COMPASS_ODI_Z"] = \
         S[0, 1], S[0, 2], S[1, 2]
-    chosen, kind, others = motor_channel(corr.channels)
     motct = MOTCT.get(kind, 0)
-    notes += [f"aux_interference on {name!r}: ArduPilot compensates one channel, "
-              "battery current (A) or throttle (0..1)" for name in others]
+    notes += [f"aux_interference on {name!r}: ArduPilot compensates one channel, the first "
+              "battery's current (A) or throttle (0..1); held at its level a0" for name in others]
+    notes += joint_fit_note(chosen, others)
     if chosen is not None:
         mot = -MG_PER_UT * (S @ corr.channels[chosen])
         for k, a in enumerate("XYZ"):
@@ -106,4 +109,4 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                      "vehicle frame after that rotation (ArduPilot 4.x order)")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
     lines += [f"{name},{fmt(value)}" for name, value in params.items()]
-    return "\n".join(lines) + "\n", notes
+    return ascii_text("\n".join(lines) + "\n"), notes

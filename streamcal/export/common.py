@@ -25,6 +25,9 @@ CORE = ("hard_iron", "soft_iron", "scale")
 #: throttle (0..1).
 CURRENT_CHANNELS = ("battery_current_a", "motor_current", "current", "curr")
 THROTTLE_CHANNELS = ("throttle",)
+#: The second battery's current (A), which PX4 compensates (CAL_MAG_COMP_TYP 3) and ArduPilot,
+#: whose COMPASS_MOTCT 2 takes the first battery's, does not.
+SECOND_BATTERY_CHANNELS = ("battery2_current_a",)
 
 
 @dataclass
@@ -38,6 +41,8 @@ class Correction:
         field_uT: the calibrated field strength the matrix yields, µT, and whether it is the
             calibration's ``field_uT`` (``field_known``) or K's mean radius.
         channels: ``{aux name: (3,) µT per channel unit}`` sensor-frame interference terms.
+        levels: ``{aux name: a0}``, the level of each channel its term is referred to (folded
+            into ``offset`` as ``g a0``); :func:`hold_others` puts back those not exported.
         not_expressed: human-readable notes about what the destination cannot carry.
     """
 
@@ -47,6 +52,7 @@ class Correction:
     field_uT: float
     field_known: bool
     channels: dict = field(default_factory=dict)
+    levels: dict = field(default_factory=dict)
     not_expressed: list = field(default_factory=list)
 
 
@@ -69,13 +75,14 @@ def correction(cal: Calibration) -> Correction:
     U, S = polar(field_uT * np.linalg.inv(cal.K))
     S = (S + S.T) / 2
     offset = cal.b.copy()
-    channels, notes = {}, []
+    channels, levels, notes = {}, {}, []
     for name, params in cal.effects.items():
         if name == "aux_interference":
             for chan, p in params.get("channels", {}).items():
                 g = np.asarray(p["g"], dtype=float)
                 offset = offset - g * float(p.get("a0", 0.0))  # term g (a − a0) = g a − g a0
                 channels[chan] = g
+                levels[chan] = float(p.get("a0", 0.0))
         elif name not in CORE:
             notes.append(f"{name}: {effect_params(name, params, cal.unit, digits=4)}")
     for name in cal.model:
@@ -85,23 +92,48 @@ def correction(cal: Calibration) -> Correction:
         notes.append(f"field strength unknown: the matrix scales the field to K's mean radius "
                      f"{field_uT:.4g} µT")
     return Correction(S=S, offset=offset, rotation=U, field_uT=field_uT, field_known=known,
-                      channels=channels, not_expressed=notes)
+                      channels=channels, levels=levels, not_expressed=notes)
 
 
-def motor_channel(channels) -> tuple[str | None, str | None, list[str]]:
+def motor_channel(channels, second_battery: bool = False
+                  ) -> tuple[str | None, str | None, list[str]]:
     """The aux channel an autopilot's one motor compensation takes: the first of ``channels``
-    (names, in order) that is a battery current (:data:`CURRENT_CHANNELS`) or throttle
-    (:data:`THROTTLE_CHANNELS`). Returns (its name, ``"current"`` or ``"throttle"``, the other
-    channels in order); (None, None, all of them) when none is."""
+    (names, in order) that is a battery current (:data:`CURRENT_CHANNELS`), the throttle
+    (:data:`THROTTLE_CHANNELS`) or, where the firmware can take it (``second_battery``), the
+    second battery's current (:data:`SECOND_BATTERY_CHANNELS`). Returns (its name,
+    ``"current"``, ``"throttle"`` or ``"current2"``, the other channels in order); (None, None,
+    all of them) when none is."""
+    kinds = {**dict.fromkeys(CURRENT_CHANNELS, "current"),
+             **dict.fromkeys(THROTTLE_CHANNELS, "throttle"),
+             **(dict.fromkeys(SECOND_BATTERY_CHANNELS, "current2") if second_battery else {})}
     chosen, kind, others = None, None, []
     for name in channels:
-        k = "current" if name in CURRENT_CHANNELS else "throttle" if name in THROTTLE_CHANNELS \
-            else None
-        if k and chosen is None:
-            chosen, kind = name, k
+        if name in kinds and chosen is None:
+            chosen, kind = name, kinds[name]
         else:
             others.append(name)
     return chosen, kind, others
+
+
+def joint_fit_note(chosen: str | None, others: list[str]) -> list[str]:
+    """The warning that the motor term exported alone was fitted beside other channels (which
+    move with it on a vehicle): then it is not the fit's correction by itself."""
+    if chosen is None or not others:
+        return []
+    return [f"aux_interference on {chosen!r} was fitted together with {', '.join(others)}: "
+            f"alone it is not the fitted correction; for parameters to load, fit with "
+            f"--add aux_interference={chosen}"]
+
+
+def hold_others(corr: Correction, keep: str | None) -> None:
+    """Drop every aux channel of ``corr`` but ``keep``, each held at its level ``a0``.
+
+    The offset carries ``g a0`` of every channel so that ``S (m − o − g a)`` removes the whole
+    term ``g (a − a0)``. A channel the destination cannot compensate leaves ``g a`` in the field
+    unless ``g a0`` goes back into the offset: then only its swing ``g (a − a0)`` is left, which
+    is what the fit assumed when it referred the term to ``a0``."""
+    for name in [n for n in corr.channels if n != keep]:
+        corr.offset = corr.offset + corr.channels.pop(name) * corr.levels.pop(name, 0.0)
 
 
 def fmt(value: float) -> str:
@@ -147,3 +179,26 @@ def orientation_words(cal: Calibration) -> str:
     if conf and conf.get("value"):
         words += f" found after the configured {conf['param']} {conf['value']}"
     return words
+
+
+#: Spellings in plain ASCII of the symbols streamcal's texts use (units, signs, arrows).
+_ASCII = {"µ": "u", "μ": "u", "°": "deg", "²": "^2", "³": "^3", "⁻": "^-", "¹": "1",
+          "−": "-", "–": "-", "—": "-", "→": "->", "≤": "<=", "≥": ">=", "×": "x", "·": "*",
+          "±": "+/-", "σ": "sigma", "…": "...", "’": "'", "‘": "'", "“": '"', "”": '"',
+          "√": "sqrt", "θ": "theta", "Δ": "d", "≈": "~"}
+
+
+def ascii_text(text: str) -> str:
+    """``text`` in plain ASCII ("µT/°C" → "uT/degC"; accents dropped, anything else "?").
+
+    Parameter files stay ASCII: Mission Planner and QGroundControl skip ``#`` lines whatever
+    their bytes, but MAVProxy's ``param load`` (pymavlink ``mavparm``) reads the file in the
+    platform's encoding, where UTF-8 bytes of a comment can stop the whole load (Windows code
+    page 1252 has no character for 0x81, the middle byte of "⁻¹")."""
+    import unicodedata
+
+    plain = "".join(_ASCII.get(c, c) for c in text)
+    plain = unicodedata.normalize("NFKD", plain)
+    plain = "".join(c for c in plain if not unicodedata.combining(c))
+    return plain.encode("ascii", "replace").decode("ascii")
+

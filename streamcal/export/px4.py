@@ -11,7 +11,8 @@ reading ``r`` in gauss as ``f = R · S · (r + p · c − o)``:
 * power compensation ``c`` = CAL_MAG0_XCOMP/YCOMP/ZCOMP, *added* to the raw reading in the
   sensor frame, before the offset, scale and rotation, times the power signal ``p`` chosen by
   CAL_MAG_COMP_TYP: 1 throttle (0..1, ``c`` in G), 2 battery current of battery_status
-  instance 0 in kA (the battery's A × 0.001, ``c`` in G/kA). PX4 sets ``p = 0`` while disarmed.
+  instance 0 in kA (the battery's A × 0.001, ``c`` in G/kA), 3 that of instance 1 (streamcal's
+  ``battery2_current_a``). PX4 sets ``p = 0`` while disarmed.
 
 Sources checked (facts only): PX4-Autopilot ``src/lib/sensor_calibration/Magnetometer.hpp``
 (the order and sign of the correction), ``src/modules/sensors/vehicle_magnetometer/
@@ -31,11 +32,13 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS, px4_matrix, px4_offsets
-from .common import correction, fmt, motor_channel, mounting, orientation_words
+from .common import (ascii_text, correction, fmt, hold_others, joint_fit_note, motor_channel,
+                     mounting, orientation_words)
 
 FLOAT_TYPE = 9  # MAV_PARAM_TYPE_REAL32
 INT_TYPE = 6  # MAV_PARAM_TYPE_INT32
-COMP_THROTTLE, COMP_CURRENT0 = 1, 2  # CAL_MAG_COMP_TYP values
+#: CAL_MAG_COMP_TYP of each motor-compensation channel kind (export.common.motor_channel).
+COMP_TYP = {"throttle": 1, "current": 2, "current2": 3}
 
 
 def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
@@ -54,15 +57,18 @@ def apply_px4(params: dict, r_gauss: np.ndarray, power=None) -> np.ndarray:
 
 def _compensation(corr, notes: list) -> tuple[int, str | None, np.ndarray | None]:
     """(CAL_MAG_COMP_TYP, chosen channel, CAL_MAG0_*COMP (3,)) from the aux channels."""
-    chosen, kind, others = motor_channel(corr.channels)
-    notes.extend(f"aux_interference on {name!r}: PX4 compensates one channel, "
-                 "throttle (0..1) or battery current (A, as kA)" for name in others)
+    chosen, kind, others = motor_channel(corr.channels, second_battery=True)
+    hold_others(corr, chosen)
+    notes.extend(f"aux_interference on {name!r}: PX4 compensates one channel, throttle "
+                 "(0..1) or the current of battery 1 or 2 (A, as kA); held at its level a0"
+                 for name in others)
+    notes.extend(joint_fit_note(chosen, others))
     if chosen is None:
         return 0, None, None
-    comp_type = COMP_CURRENT0 if kind == "current" else COMP_THROTTLE
+    comp_type = COMP_TYP[kind]
     g = np.asarray(corr.channels[chosen], dtype=float)
     # r + p c must cancel g a: p c = −g a / 100 (G), p = a (throttle) or a·0.001 (kA)
-    comp = -g / UT_PER_GAUSS / (KA_PER_A if comp_type == COMP_CURRENT0 else 1.0)
+    comp = -g / UT_PER_GAUSS / (KA_PER_A if kind != "throttle" else 1.0)
     return comp_type, chosen, comp
 
 
@@ -94,8 +100,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     if chosen is not None:
         lines.append(f"# CAL_MAG0_*COMP from aux_interference on {chosen!r} (CAL_MAG_COMP_TYP "
                      f"{comp_type}: "
-                     + ("battery_status instance 0 current in kA, G/kA" if comp_type == 2
-                        else "throttle 0..1, G at full throttle")
+                     + (f"battery_status instance {comp_type - 2} current in kA, G/kA"
+                        if comp_type >= 2 else "throttle 0..1, G at full throttle")
                      + "; PX4 applies it only while armed)")
     index = int((cal.extra or {}).get("compass_params_index", 0))
     if index:   # the compass the calibration was fitted for keeps it in CAL_MAG<index>_*
@@ -111,4 +117,4 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                         f"({orientation_words(cal)}); PX4 applies it after the "
                         "offsets and scale")
         lines.append(f"1\t1\tCAL_MAG{index}_ROT\t{orient}\t{INT_TYPE}")
-    return "\n".join(lines) + "\n", notes
+    return ascii_text("\n".join(lines) + "\n"), notes

@@ -23,7 +23,7 @@ PX4 corrects a reading ``r`` (gauss) as ``c = R S (r + p·comp − o)`` (``senso
 Magnetometer``): ``o`` = CAL_MAGn_XOFF.. (G, *subtracted*), ``S`` symmetric from XSCALE.. and
 XODIAG/YODIAG/ZODIAG (S12, S13, S23), ``R`` the board/CAL_MAGn_ROT rotation, ``comp`` =
 CAL_MAGn_XCOMP.. with ``p`` the power signal of CAL_MAG_COMP_TYP (1 throttle 0..1, 2 battery
-0's current in kA). With ``c = |F| u`` and ``m = 100 r`` µT::
+0's current in kA, 3 battery 1's). With ``c = |F| u`` and ``m = 100 r`` µT::
 
     m = |F| S⁻¹ Rᵀ u + 100 o − 100 comp p
 
@@ -44,8 +44,9 @@ from ..errors import InputError
 
 MG_PER_UT = 10.0
 UT_PER_GAUSS = 100.0
-#: CAL_MAG_COMP_TYP values (PX4): 0 off, 1 throttle, 2 battery 0 current, 3 battery 1 current.
-PX4_COMP_CHANNELS = {1: "throttle", 2: "battery_current_a"}
+#: CAL_MAG_COMP_TYP values (PX4): 0 off, 1 throttle, 2 battery_status instance 0's current,
+#: 3 instance 1's (streamcal's ``battery2_current_a``).
+PX4_COMP_CHANNELS = {1: "throttle", 2: "battery_current_a", 3: "battery2_current_a"}
 #: PX4's current signal is in kA: g (µT/A) = −UT_PER_GAUSS · 0.001 · comp.
 PX4_KA_PER_A = 0.001
 #: COMPASS_MOTCT values (ArduPilot): 0 disabled, 1 throttle, 2 current.
@@ -187,8 +188,8 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
             among them cannot be a term.
         source: said in the calibration's ``extra["source"]``.
     Raises :class:`InputError` if the offsets are missing or ``S`` is not invertible. Power
-    compensation that cannot be a term (its signal not among ``channels``; battery 1's current,
-    which a track does not carry) is left out and said in ``extra["note"]``.
+    compensation that cannot be a term (its signal not among ``channels``) is left out and said
+    in ``extra["note"]``.
     """
     S = px4_matrix(params, prefix)
     _check(params, [f"{prefix}{a}OFF" for a in "XYZ"], S, f"{prefix}SCALE/ODIAG", field_uT, source)
@@ -205,12 +206,12 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
                          "readings (PX4 applied it before the calibration that was undone)")
         elif PX4_COMP_CHANNELS.get(comp_type) in channels:
             channel = PX4_COMP_CHANNELS[comp_type]
-            g = -UT_PER_GAUSS * comp * (PX4_KA_PER_A if channel == "battery_current_a" else 1.0)
+            g = -UT_PER_GAUSS * comp * (PX4_KA_PER_A if comp_type >= 2 else 1.0)
             model.append("aux_interference")
             effects["aux_interference"] = {"channels": {channel: {
                 "a0": 0.0, "g": [float(v) for v in g]}}}
         else:
-            signal = PX4_COMP_CHANNELS.get(comp_type, "battery 1's current")
+            signal = PX4_COMP_CHANNELS.get(comp_type, "a signal streamcal does not know")
             notes.append(f"power compensation CAL_MAG_COMP_TYP={comp_type} left out: its signal "
                          f"({signal}) is not a channel of the readings")
     extra = {"source": source, "frame_rotation_Q": Q.tolist(), "note": "; ".join(notes)}

@@ -175,6 +175,13 @@ class Track:
         return Track({name: col[rows] for name, col in self.columns.items()}, self.metadata,
                      self.path, self.lines[rows])
 
+    def keep_aux(self, names: Iterable[str]) -> "Track":
+        """The same track with only the auxiliary channels ``names`` (every other column kept)."""
+        keep = set(names)
+        drop = [n for n in self.aux_names if n not in keep]
+        return Track({n: c for n, c in self.columns.items() if n not in drop}, self.metadata,
+                     self.path, self.lines, self.skipped_rows, self.skip_reasons)
+
     # ------------------------------------------------------------------ access
 
     def __len__(self) -> int:

@@ -24,15 +24,14 @@ compass compensation); ``battery_status`` current_a / voltage_v → ``battery_cu
 ``battery_voltage_v`` (a second battery, instance 1: ``battery2_current_a``, …).
 Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
 
-A log cut inside a message (a crash, a power cut) is read to its last complete message; pyulog
-skips a damaged stretch to the next sync marker or valid message. Both are said in
-``read_warnings``.
+A log cut inside a message (a crash, a power cut) is read to its last complete message; a damaged
+stretch is cut out up to the next valid message (:mod:`.ulog_framing`), with or without sync
+messages. Both are said in ``read_warnings``, with the bytes lost.
 """
 from __future__ import annotations
 
 import contextlib
 import io
-import struct
 from pathlib import Path
 
 import numpy as np
@@ -42,9 +41,9 @@ from .autopilot_cal import UT_PER_GAUSS, px4_matrix, px4_offsets
 from .track import Track
 from .streams import Stream, drop_nonfinite, merge
 from .attitude_streams import ulog_attitude
+from .ulog_framing import framing, kept_bytes
 
 MAGIC = b"ULog\x01\x12\x35"
-HEADER_BYTES = 16
 MAG_TOPICS = (("sensor_mag", ("x", "y", "z"), False),
               ("vehicle_magnetometer", tuple(f"magnetometer_ga[{i}]" for i in range(3)), True),
               ("sensor_combined", tuple(f"magnetometer_ga[{i}]" for i in range(3)), True))
@@ -52,31 +51,6 @@ MAG_TOPICS = (("sensor_mag", ("x", "y", "z"), False),
 
 def looks_like_ulog(head: bytes) -> bool:
     return head[:7] == MAGIC
-
-
-#: ULog message types (flag bits, format, info, info multiple, parameter, parameter default,
-#: subscription, unsubscription, data, logging, tagged logging, sync, dropout).
-MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
-
-
-def _framing(data: bytes) -> tuple[int, int, int]:
-    """``(end, skipped, runs)``: the end of the last complete message, and the bytes (in how
-    many runs) that do not start a message of a known type, stepped over one at a time as pyulog
-    resynchronises; pyulog itself says only that it did."""
-    offset, skipped, runs, in_run = HEADER_BYTES, 0, 0, False
-    end = offset
-    while offset + 3 <= len(data):
-        size, kind = struct.unpack_from("<HB", data, offset)
-        if kind in MESSAGE_TYPES:
-            if offset + 3 + size > len(data):
-                break
-            offset += 3 + size
-            end, in_run = offset, False
-        else:
-            skipped += 1
-            runs += not in_run
-            offset, in_run = offset + 1, True
-    return end, skipped, runs
 
 
 class _PaddedReads(io.BytesIO):
@@ -109,14 +83,14 @@ def _load(path: Path):
         data = path.read_bytes()
     except OSError as exc:
         raise InputError(f"{path}: cannot read the file ({exc.strerror or exc})") from None
-    end, skipped, runs = _framing(data)
+    found = framing(data)
     chatter = io.StringIO()
     try:
         with contextlib.redirect_stdout(chatter):   # pyulog prints its warnings
-            ulog = ULog(_PaddedReads(data))
+            ulog = ULog(_PaddedReads(kept_bytes(data, found)))
     except Exception as exc:  # pyulog raises assorted exception types on damaged bytes
         raise InputError(f"{path}: cannot read the ULog ({type(exc).__name__}: {exc})") from None
-    return ulog, len(data) - end, (skipped, runs)
+    return ulog, len(data) - found.end, found.skipped
 
 
 def _topic(ulog, name: str, instance: int | None = None):
@@ -352,7 +326,18 @@ def _damaged(path: Path):
                          f"({type(exc).__name__}: {exc})") from None
 
 
-def _track(ulog, path: Path, cut: int, instance: int, skipped=(0, 0)) -> Track:
+def _skipped_text(skipped: list) -> str:
+    """What the damaged stretches cost (:func:`.ulog_framing.framing`'s ``skipped``)."""
+    if not skipped:   # the framing was intact, pyulog found damaged contents
+        return "Skipped damaged data (pyulog found messages it could not parse)"
+    runs = ", ".join(f"{n} at offset {at}" for at, n in skipped[:5])
+    more = f" and {len(skipped) - 5} more runs" if len(skipped) > 5 else ""
+    return (f"Skipped damaged data: {sum(n for _, n in skipped)} bytes in {len(skipped)} "
+            f"run{'s' if len(skipped) > 1 else ''} ({runs}{more}) held no valid message; read on "
+            "from the next valid one")
+
+
+def _track(ulog, path: Path, cut: int, instance: int, skipped=()) -> Track:
     info = ulog.msg_info_dict
     meta = {"sensor": f"px4 magnetometer (instance {instance})",
             "source": f"PX4 ULog {path.name}", "compass_instance": str(instance),
@@ -379,11 +364,9 @@ def _track(ulog, path: Path, cut: int, instance: int, skipped=(0, 0)) -> Track:
     if cut:
         meta["read_warnings"] = (f"truncated: {cut} trailing bytes ignored (the log ends inside "
                                  "a message; read to the last complete one)")
-    if ulog.file_corruption or skipped[0]:
-        count = (f": {skipped[0]} bytes in {skipped[1]} runs do not start a message"
-                 if skipped[0] else "")
+    if ulog.file_corruption or skipped:
         meta["read_warnings"] = (meta.get("read_warnings", "") + "; " if "read_warnings" in meta
-                                 else "") + f"Skipped damaged data (pyulog resynchronised{count})"
+                                 else "") + _skipped_text(skipped)
     streams = drop_nonfinite(streams, meta)
     if not len(streams[0].t):
         raise InputError(f"{path}: no intact magnetometer sample ({meta['read_warnings']})")

@@ -8,8 +8,8 @@ from them. ``build_effects(names, covariates)`` makes the term objects the LM fi
 ``validate_effect_params`` guard inputs.
 """
 from ..errors import UnknownEffectError
-from .build import (build_effects, check_needs, missing_columns, terms_from_params,
-                    validate_effect_params)
+from .build import (build_effects, check_needs, missing_columns, stream_columns,
+                    terms_from_params, validate_effect_params)
 from .catalog import (BY_NAME, CORE_EFFECTS, EFFECT_NAMES, PLAUSIBILITY_BOUNDS,
                       REGISTRATION_EFFECTS, SIMULATED_EFFECTS, TERMS)
 from .declaration import EffectDeclaration, SimEnvironment, SimulatorTruth
@@ -20,4 +20,4 @@ __all__ = ["BY_NAME", "CORE_EFFECTS", "EFFECT_NAMES", "EffectDeclaration", "PLAU
            "REGISTRATION_EFFECTS", "SIMULATED_EFFECTS", "SimEnvironment", "SimulatorTruth",
            "TERMS", "UnknownEffectError", "build_effects", "check_needs", "declaration",
            "declarations", "invert_model", "missing_columns", "register", "registered",
-           "terms_from_params", "unregister", "validate_effect_params"]
+           "stream_columns", "terms_from_params", "unregister", "validate_effect_params"]

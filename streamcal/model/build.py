@@ -54,6 +54,26 @@ def missing_columns(names: Iterable[str], track) -> dict[str, list[str]]:
     return out
 
 
+def stream_columns(names: Iterable[str], groups: Iterable[str]) -> tuple[str, ...]:
+    """The columns a stream that provides the column ``groups`` (``"temp"``, ``"accel"``,
+    ``"gyro"``) must keep beside the field for the effects ``names``: each effect's ``needs``
+    and the first of its ``needs_any`` the stream provides, in the order of ``groups``. Raises
+    :class:`MissingColumnsError` naming an effect whose needs the stream cannot meet."""
+    groups = tuple(groups)
+    wanted = set()
+    for name in check_known(names):
+        info = BY_NAME[name]
+        lacking = [g for g in info.needs if g not in groups]
+        offered = [g for g in info.needs_any if g in groups]
+        if info.needs_any and not offered:
+            lacking.append(" or ".join(info.needs_any))
+        if lacking:
+            what = ", ".join("an auxiliary channel" if g == "aux" else g for g in lacking)
+            raise MissingColumnsError(f"{name} needs {what}, which the sensor does not provide")
+        wanted.update(info.needs, offered[:1])
+    return tuple(c for g in groups if g in wanted for c in _GROUPS[g])
+
+
 def check_needs(names: Iterable[str], track) -> None:
     """Raise :class:`MissingColumnsError` naming every effect whose columns ``track`` lacks."""
     missing = missing_columns(names, track)

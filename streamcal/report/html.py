@@ -151,6 +151,33 @@ def _summary(d, unit: str) -> str:
             f"{_e(rule)}.</span>{_misfit(d) if d.verdict == 'unexplained' else ''}</div>")
 
 
+def _heading_error(d) -> str:
+    """The heading error the ladder's first and last rms imply (``heading_error_deg``), or why
+    it is unknown."""
+    h = d.heading_error_deg or {}
+    if h.get("before") is None:
+        return (f'<p class="heading-error">Heading error: unknown '
+                f"({_e(d.heading_error_reason or 'no horizontal field')}).</p>")
+    after = "" if h.get("after") is None or h["after"] == h["before"] else \
+        f" → {_num(h['after'], '.2f')}° with the ladder's last model"
+    return (f'<p class="heading-error">Heading error: up to {_num(h["before"], ".2f")}° with '
+            f"the model as given{after} (horizontal field {_num(h['H_uT'], '.3g')} µT; "
+            f"{_e(h.get('rule', ''))}).</p>")
+
+
+def diagnosis_section(d, unit: str, *, title: str, anchor: str, reason: str | None = None) -> str:
+    """One diagnosis as a section of a page of several (``report --compass all``): its verdict
+    and plain sentences, the heading error and the model ladder (``d`` None: ``reason``, why
+    there is none). ``unit``: the track's unit label (:func:`.figure_data.unit_label`)."""
+    head = f'<section id="{_e(anchor)}"><h2>{_e(title)}</h2>'
+    if d is None:
+        return (head + f'<div class="box refused"><b>No calibration.</b> '
+                f"{_e(reason or 'unknown reason')}</div></section>")
+    shown = "" if unit == "unit unknown" else unit
+    return (head + _summary(d, shown) + _heading_error(d) + "<h3>Model ladder</h3>"
+            + _ladder(d, unit) + "</section>")
+
+
 def _floor_ratio(rms: float, residual: str, floor: float) -> str:
     """× the noise floor, only where the rms is on the residual the floor is for and the
     floor was measured."""
@@ -290,7 +317,7 @@ def render_html(track, diagnosis=None, *, reason: str | None = None, title: str 
                      f"no calibration: the raw readings, their magnitude and the directions "
                      f"seen from the centre of a one-pass sphere fit.</div>")
     else:
-        parts.append(_summary(diagnosis, shown))
+        parts += [_summary(diagnosis, shown), _heading_error(diagnosis)]
         if diagnosis.outlier_spans:
             spans = ", ".join(f"{a:.2f}–{b:.2f} s" for a, b in diagnosis.outlier_spans)
             last = diagnosis.ladder[-1] if diagnosis.ladder else {}

@@ -1,0 +1,159 @@
+"""A motor compensation checked the way a user would load it, on samples it was not fitted on.
+
+A flight is split in time: the first part refines the calibration in force with a motor term on
+one channel (``fit FLIGHT --cal autopilot --add aux_interference=CHANNEL``), the term is
+exported as each firmware's parameters (ArduPilot ``COMPASS_MOT_*``/``COMPASS_MOTCT``, PX4
+``CAL_MAG0_*COMP``/``CAL_MAG_COMP_TYP``), and each firmware's own correction formula
+(:func:`.ardupilot.apply_ardupilot`, :func:`.px4.apply_px4`) is applied to the raw readings of
+the other part. "Before" is the calibration in force exported and applied the same way.
+
+Figures on the held-out part:
+
+* field-magnitude spread: standard deviation of ``|f|`` over its mean (%), every sample, and
+  its robust form (1.4826 × median absolute deviation over the median) that the log's bursts
+  do not dominate;
+* heading error against the attitude reference (the World Magnetic Model rotated by the logged
+  attitude, :mod:`streamcal.fitting.attitude_reference`) where the log has attitude and a
+  position: rms and 95th percentile (degrees) over the samples inside the attitude's span, with
+  that module's caveat (the logged yaw is itself steered by the compass).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..calibration import Calibration
+from ..constants import MAD_TO_SIGMA
+from ..diagnosis.against import refine
+from ..errors import InputError
+from ..fitting.attitude_reference import attitude_data, heading_error_deg, log_location
+from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS
+from .ardupilot import MG_PER_UT, apply_ardupilot
+from .ardupilot import export as export_ardupilot
+from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS
+from .px4 import apply_px4
+from .px4 import export as export_px4
+
+FIRMWARES = ("ardupilot", "px4")
+
+
+def split_in_time(track, fraction: float = 0.5) -> tuple:
+    """(first, rest): the rows before and from the magnetometer time that splits its samples
+    ``fraction`` : ``1 − fraction``."""
+    if not 0.0 < fraction < 1.0:
+        raise InputError(f"the fitted part must be a fraction in (0, 1), got {fraction}")
+    t_split = float(np.quantile(track.t_mag, fraction))
+    first = track.t < t_split
+    return track.select(first), track.select(~first)
+
+
+def read_parameters(text: str, firmware: str) -> dict:
+    """``{name: value}`` of an exported parameter file (:func:`streamcal.export.export` text)."""
+    out = {}
+    for line in text.splitlines():
+        if not line.strip() or line.startswith("#"):
+            continue
+        name, value = line.split(",") if firmware == "ardupilot" else line.split("\t")[2:4]
+        out[name] = float(value)
+    return out
+
+
+def firmware_field(cal: Calibration, firmware: str, m_uT: np.ndarray,
+                   signal: np.ndarray | None) -> np.ndarray:
+    """``cal`` exported for ``firmware`` and applied with its formula to readings ``m_uT``
+    (M,3) µT with the motor channel's values ``signal`` (M,) (throttle 0..1 or current A):
+    the corrected field (M,3) in µT, in the exported matrix's frame."""
+    if firmware == "ardupilot":
+        params = read_parameters(export_ardupilot(cal)[0], firmware)
+        return apply_ardupilot(params, MG_PER_UT * m_uT, signal) / MG_PER_UT
+    params = read_parameters(export_px4(cal)[0], firmware)
+    power = None
+    if signal is not None and params.get("CAL_MAG_COMP_TYP"):
+        power = signal * (KA_PER_A if params["CAL_MAG_COMP_TYP"] >= 2 else 1.0)
+    return apply_px4(params, m_uT / UT_PER_GAUSS, power) * UT_PER_GAUSS
+
+
+def _spread(field: np.ndarray) -> dict:
+    norm = np.linalg.norm(field, axis=1)
+    med = np.median(norm)
+    return {"spread_pct": round(float(100.0 * np.std(norm) / np.mean(norm)), 3),
+            "spread_robust_pct": round(float(100.0 * MAD_TO_SIGMA
+                                             * np.median(np.abs(norm - med)) / med), 3)}
+
+
+def _heading(field: np.ndarray, data) -> dict:
+    head = np.abs(heading_error_deg(data.q, field, data.b_ned))
+    return {"heading_rms_deg": round(float(np.sqrt(np.mean(head ** 2))), 3),
+            "heading_p95_deg": round(float(np.percentile(head, 95)), 3)}
+
+
+def _own_field(cal: Calibration, m: np.ndarray, cov: dict) -> np.ndarray:
+    """Streamcal's own correction of ``cal`` in the frame its matrix is exported in."""
+    x = cal.apply(m, cov)
+    Q = (cal.extra or {}).get("frame_rotation_Q")
+    return (cal.field or cal.radius) * (x if Q is None else x @ np.asarray(Q, float))
+
+
+def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: float = 0.5,
+                   fit_on: str = "first", ref: dict | None = None,
+                   source: str = "autopilot calibration in force") -> dict:
+    """Fit a motor term on ``channel`` over the first ``fraction`` of ``track`` (µT), check it on
+    the rest with each firmware's formula; ``fit_on="last"`` fits on the rest and checks on
+    the first part.
+
+    Three calibrations are set side by side on the held-out part: ``before`` (``cal_in_force``),
+    ``refit`` (refined on the fitted part without a motor term: what the refit alone changes)
+    and ``after`` (refined with it); each ``{firmware: figures}``, plus ``streamcal`` (the
+    ``after`` calibration's own correction). Figures: ``spread_pct`` and
+    ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
+    against the attitude reference over the held-out samples inside the attitude's span, when
+    the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
+    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``g_uT`` (the
+    fitted term, µT per channel unit). InputError
+    when the channel is not a throttle or battery current the firmwares take, or the track
+    lacks it, or the calibration in force compensates another channel. A motor term in force
+    on ``channel`` is held by ``refit`` and fitted afresh by ``after``.
+    """
+    if channel not in CURRENT_CHANNELS + THROTTLE_CHANNELS:
+        raise InputError(f"motor compensation check: {channel!r} is neither a throttle "
+                         f"({', '.join(THROTTLE_CHANNELS)}) nor a battery current "
+                         f"({', '.join(CURRENT_CHANNELS)})")
+    if channel not in track.aux_names:
+        raise InputError(f"motor compensation check: the track has no channel {channel!r} "
+                         f"(channels: {', '.join(track.aux_names) or 'none'})")
+    in_force = list(((cal_in_force.effects or {}).get("aux_interference") or {})
+                    .get("channels", {}))
+    if any(c != channel for c in in_force):
+        raise InputError(f"motor compensation check: the calibration in force compensates "
+                         f"{', '.join(in_force)}; check that channel, not {channel!r}")
+    if ref is None:
+        ref, why = log_location(track)
+    if fit_on not in ("first", "last"):
+        raise InputError(f"motor compensation check: fit_on is 'first' or 'last', not {fit_on!r}")
+    fit_part, check_part = split_in_time(track.keep_aux([channel]), fraction)
+    if fit_on == "last":
+        fit_part, check_part = check_part, fit_part
+    cals = {"before": cal_in_force,
+            "refit": refine(fit_part, cal_in_force, [], calibration_source=source),
+            "after": refine(fit_part, cal_in_force, ["aux_interference"],
+                            calibration_source=source)}
+    m = np.asarray(check_part.mag, dtype=float)
+    signal = np.asarray(check_part.covariates_at_mag()[channel], dtype=float)
+    data, why = attitude_data(check_part, ref) if ref is not None else (None, why)
+    out = {"channel": channel, "fit_on": fit_on,
+           "fitted_s": [round(float(fit_part.t_mag[0]), 3), round(float(fit_part.t_mag[-1]), 3)],
+           "checked_s": [round(float(check_part.t_mag[0]), 3),
+                         round(float(check_part.t_mag[-1]), 3)],
+           "n_checked": int(len(m)),
+           "g_uT": [float(v) for v in
+                    cals["after"].effects["aux_interference"]["channels"][channel]["g"]]}
+    if data is None:
+        out["heading"] = f"no heading error: {why}"
+
+    def figures(field: np.ndarray) -> dict:
+        return {**_spread(field),
+                **(_heading(field[data.rows], data) if data is not None else {})}
+
+    for name, cal in cals.items():
+        out[name] = {fw: figures(firmware_field(cal, fw, m, signal)) for fw in FIRMWARES}
+    out["streamcal"] = figures(_own_field(cals["after"], m, {channel: signal}))
+    return out
