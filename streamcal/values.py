@@ -1,4 +1,9 @@
-"""What makes a result a value: array-safe equality and a small escaped HTML table for Jupyter.
+"""What makes a result a value: deep-frozen contents, array-safe equality and a small escaped
+HTML table for Jupyter.
+
+:func:`freeze` turns the plain containers a result holds (lists, dicts, arrays, nested) into
+ones that refuse in-place change — tuples, :class:`FrozenDict`, read-only arrays — and
+:func:`thaw` gives plain lists and dicts back (for JSON).
 
 :func:`same` compares the contents of results (numbers, arrays, mappings, sequences, nested)
 element by element, a NaN equal to a NaN (a "no value" — an unmeasured floor, an unknown rms —
@@ -10,9 +15,78 @@ from __future__ import annotations
 import dataclasses
 import html
 import math
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
+
+
+class FrozenDict(Mapping):
+    """A read-only mapping whose values are frozen (:func:`freeze`) on construction; equal to
+    any mapping with the same items (:func:`same`: arrays element-wise, NaN equal to NaN), and
+    copied and pickled like a dict (unlike :class:`types.MappingProxyType`)."""
+
+    __slots__ = ("_items",)
+
+    def __init__(self, items: Mapping | Iterable = (), **more):
+        object.__setattr__(self, "_items",
+                           {k: freeze(v) for k, v in dict(items, **more).items()})
+
+    def __getitem__(self, key):
+        return self._items[key]
+
+    def __iter__(self) -> Iterator:
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def __setattr__(self, name, value):
+        raise AttributeError(f"{type(self).__name__} is read-only")
+
+    __delattr__ = __setattr__
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, Mapping):
+            return NotImplemented
+        return same(self, other)
+
+    def __reduce__(self):
+        return type(self), (self._items,)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self._items!r})"
+
+    __hash__ = None   # its values may be unhashable (floats compared NaN-safe, arrays)
+
+
+def freeze(value: Any) -> Any:
+    """``value`` with every container replaced, recursively, by one that refuses in-place
+    change: a mapping → :class:`FrozenDict`, a list or tuple → tuple, an array → a read-only
+    copy (a read-only array is kept); anything else (numbers, strings, objects) as it is."""
+    if isinstance(value, FrozenDict):
+        return value
+    if isinstance(value, Mapping):
+        return FrozenDict(value)
+    if isinstance(value, (list, tuple)):
+        return tuple(freeze(v) for v in value)
+    if isinstance(value, np.ndarray):
+        if not value.flags.writeable and value.base is None:
+            return value
+        value = np.array(value)
+        value.flags.writeable = False
+    return value
+
+
+def thaw(value: Any) -> Any:
+    """Plain containers of ``value``'s own, recursively: a mapping → dict, a list or tuple →
+    list, an array → a writable copy; anything else as it is."""
+    if isinstance(value, Mapping):
+        return {k: thaw(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [thaw(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return np.array(value)
+    return value
 
 
 def same(a: Any, b: Any) -> bool:

@@ -46,7 +46,7 @@ def test_a_motor_field_on_battery_2_is_found_on_its_current(tmp_path):
     d = streamcal.diagnose(track, calibration=autopilot_calibration(track))
     top = d.candidates[0]
     assert d.verdict == "effect_missing" and top.effect == "aux_interference"
-    assert next(iter(d.aux_channels)) == "battery2_current_a"     # the residual follows it most
+    assert next(iter(d.held.aux_channels)) == "battery2_current_a"   # the residual follows it most
     gains = {k: np.linalg.norm(v["g"])
              for k, v in top.calibration.effects["aux_interference"]["channels"].items()}
     assert gains["battery2_current_a"] == pytest.approx(0.3, rel=0.1)   # 3 µT per 10 A

@@ -62,7 +62,7 @@ def test_injected_motor_field_is_aux_interference_on_that_channel(log16, channel
     assert top["rms_after"] < top["rms_before"]
     assert top["significant"] and top["material"]
     # the channel the residual follows most, scored one channel at a time
-    assert next(iter(d.aux_channels)) == channel
+    assert next(iter(d.held.aux_channels)) == channel
     assert d.to_dict()["calibration_source"].endswith("COMPASS_* parameters")
 
 
@@ -96,9 +96,9 @@ def test_pxf_flight_honestly_shows_a_motor_channel_field():
     assert aux["significant"] and aux["material"]
     assert aux["rms_after"] < 0.5 * aux["rms_before"]
     assert "aux_interference" in [s_.get("added") for s_ in out["ladder"]]
-    assert set(list(d.aux_channels)[:3]) >= {"throttle"}
-    assert d.n_ranked < d.n      # candidates refitted on a cell×time subsample, said so
-    assert out["n_ranked"] == d.n_ranked
+    assert set(list(d.held.aux_channels)[:3]) >= {"throttle"}
+    assert d.held.n_ranked < d.n      # candidates refitted on a cell×time subsample, said so
+    assert out["n_ranked"] == d.held.n_ranked
 
 
 def test_log_without_motor_channel_does_not_invent_one(log16):
@@ -109,7 +109,7 @@ def test_log_without_motor_channel_does_not_invent_one(log16):
     assert not bare.aux_names
     d = streamcal.diagnose(bare, calibration=cal)
     assert all(c.effect != "aux_interference" for c in d.candidates)
-    assert d.aux_channels == {}
+    assert d.held.aux_channels == {}
     assert "aux_interference" not in d.to_dict()["ladder"][-1]["model"]
 
 

@@ -87,22 +87,23 @@ def test_not_pinned_when_the_rotation_does_not_determine_it():
     res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=0, yaw_deg=20)
     d = _diagnose(res, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron",)))
     link = d.to_dict()["gyro_link"]
-    assert "b_y" in d.held and not d.gyro_pinned and not link["used"]
+    assert "b_y" in d.held.parameters and not d.held.gyro_pinned and not link["used"]
     assert "does not determine" in link["reason"]
-    assert link["estimates"]["b_y"]["sigma_predicted"] > d.tolerance
+    assert link["estimates"]["b_y"]["sigma_predicted"] > d.held.tolerance
     # the same track without gyro columns: held alike, the link not tried
     bare = Track({c: v for c, v in res.track.columns.items() if c not in ("gx", "gy", "gz")},
                  res.track.metadata)
     d0 = _diagnose(bare, Calibration(K=K.copy(), b=B + 2.0, model=("hard_iron",)))
-    assert d0.held == d.held and d0.gyro_link["reason"].startswith("no gyro columns")
+    assert d0.held.parameters == d.held.parameters
+    assert d0.held.gyro_link["reason"].startswith("no gyro columns")
 
 
 @pytest.mark.slow
 def test_noisy_gyro_is_not_used():
     res = yaw_slice(120, seed=2, K=K, b=B, tilt_deg=25, noise_uT=0.15, gyro_noise=0.5)
     d = _diagnose(res, _soft_iron_cal((2, 2), 1.0))
-    assert not d.gyro_pinned and not d.gyro_link["used"]
-    assert "K_zz" in d.held
+    assert not d.held.gyro_pinned and not d.held.gyro_link["used"]
+    assert "K_zz" in d.held.parameters
 
 
 @pytest.mark.slow
@@ -111,15 +112,15 @@ def test_gyro_pins_a_wrong_held_offset_within_its_sigma():
     the sphere re-estimates b_z but holds b_x and b_y; the link determines b_x."""
     res = yaw_slice(300, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.15)
     d = _diagnose(res, _soft_iron_cal(b_delta=2.0))
-    assert d.gyro_link["used"], d.gyro_link["reason"]
-    pinned = d.gyro_pinned["b_x"]
+    assert d.held.gyro_link["used"], d.held.gyro_link["reason"]
+    pinned = d.held.gyro_pinned["b_x"]
     assert pinned["held_value"] == pytest.approx(B[0] + 2.0)
-    assert pinned["sigma"] <= d.tolerance
+    assert pinned["sigma"] <= d.held.tolerance
     assert abs(pinned["value"] - B[0]) <= 3 * pinned["sigma"]
     assert abs(d.calibration.b[0] - B[0]) <= 3 * pinned["sigma"]
-    assert "b_x" not in d.held
+    assert "b_x" not in d.held.parameters
     # the guard passed (b_x does not lean on b_y), and it says b_y is held at a wrong value
-    guard = d.gyro_link["guard"]
+    guard = d.held.gyro_link["guard"]
     assert guard["passed"] and abs(guard["shift"]["b_x"]) < pinned["sigma"]
     check = guard["held_check"]["b_y"]
     assert check["held_value"] == pytest.approx(B[1] + 2.0)
@@ -134,9 +135,9 @@ def test_not_pinned_when_the_gyro_value_leans_on_a_wrong_held_offset():
     pinned the value that fits the wrong offsets (1.78 ± 0.18 against 0.6) before the guard."""
     res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
     d = _diagnose(res, _soft_iron_cal(b_delta=2.0))
-    link = d.gyro_link
-    assert link["candidates"] == ["K_yz"]
-    assert not link["used"] and not d.gyro_pinned and "K_yz" in d.held
+    link = d.held.gyro_link
+    assert link["candidates"] == ("K_yz",)
+    assert not link["used"] and not d.held.gyro_pinned and "K_yz" in d.held.parameters
     assert d.calibration.K[1, 2] == pytest.approx(K[1, 2])     # held at the given value
     guard = link["guard"]
     assert not guard["passed"] and guard["p_value"] < P_GUARD
@@ -159,12 +160,12 @@ def test_the_guard_lets_the_same_pin_through_when_the_held_offsets_are_right():
     """The same slice, offsets right and K_yz held 1.2 µT off: K_yz is pinned near the truth."""
     res = yaw_slice(120, seed=1, K=K, b=B, tilt_deg=15, yaw_deg=30, noise_uT=0.4)
     d = _diagnose(res, _soft_iron_cal((1, 2), 1.2))
-    assert d.gyro_link["used"], d.gyro_link["reason"]
-    assert d.gyro_link["guard"]["passed"] and d.gyro_link["guard"]["p_value"] > P_GUARD
-    pinned = d.gyro_pinned["K_yz"]
+    assert d.held.gyro_link["used"], d.held.gyro_link["reason"]
+    assert d.held.gyro_link["guard"]["passed"] and d.held.gyro_link["guard"]["p_value"] > P_GUARD
+    pinned = d.held.gyro_pinned["K_yz"]
     assert pinned["held_value"] == pytest.approx(K[1, 2] + 1.2)
     assert abs(pinned["value"] - K[1, 2]) <= 3 * pinned["sigma"]
-    assert {"b_x", "b_y"} <= set(d.held)
+    assert {"b_x", "b_y"} <= set(d.held.parameters)
 
 
 def test_guard_shift_is_the_conditional_move_of_a_gaussian():

@@ -56,7 +56,7 @@ def test_fresh_tumble_promise_is_what_the_pasted_command_gives(warm_up, capsys):
     assert d.verdict == "effect_missing" and d.candidates[0].effect == "temperature_offset"
     _check_ladder(d)
     assert d.ladder[-1]["rms"] < 0.8 * d.ladder[0]["rms"]
-    assert d.next_step[:3] == ["streamcal", "fit", str(warm_up)]
+    assert d.next_step[:3] == ("streamcal", "fit", str(warm_up))
     assert "temperature_offset" in d.summary and f"{d.ladder[0]['n']} samples" in d.summary
     got = _run_json(d.next_step[1:], capsys)
     assert got["rms"] == pytest.approx(d.ladder[-1]["rms"], rel=0.01)
@@ -109,7 +109,7 @@ def test_motor_field_on_a_slice_is_the_missing_effect_not_outliers(flight, tmp_p
     assert all(b["rms"] < a["rms"] for a, b in zip(steps, steps[1:]))   # the ladder falls
     # the motor field is explained, not rejected: the last model keeps nearly every sample
     assert steps[-1]["n_outliers"] < 0.02 * d.n
-    assert d.next_step[:5] == ["streamcal", "fit", str(path), "--cal", str(cal_path)]
+    assert d.next_step[:5] == ("streamcal", "fit", str(path), "--cal", str(cal_path))
     out = tmp_path / "refined.json"
     argv = [*d.next_step[1:-1], str(out)]
     got = _run_json(argv, capsys)

@@ -47,7 +47,7 @@ def test_hidden_motor_field_is_aux_interference_on_its_channel(motor):
     assert top["effect"] == "aux_interference"
     assert top["significant"] and top["material"]
     assert top["rms_after"] < 0.75 * top["rms_before"]
-    assert next(iter(d.aux_channels)) == channel   # the channel the residual follows most
+    assert next(iter(d.held.aux_channels)) == channel   # the channel the residual follows most
     added = [s.get("added") for s in d.to_dict()["ladder"]]
     assert "aux_interference" in added
     # what the plausibility rule marks (a slice does not determine them) is never added
@@ -64,10 +64,10 @@ def test_a_long_flight_ranks_on_a_subsample_and_says_so(tmp_path_factory):
                          motor_channel="rcou_c3")
     d = streamcal.diagnose(track, calibration=cal)
     out = d.to_dict()
-    assert d.n_ranked < d.n and out["n_ranked"] == d.n_ranked
+    assert d.held.n_ranked < d.n and out["n_ranked"] == d.held.n_ranked
     top = out["candidates"][0]
     assert top["effect"] == "aux_interference" and top["significant"] and top["material"]
-    assert next(iter(d.aux_channels)) == "rcou_c3"
+    assert next(iter(d.held.aux_channels)) == "rcou_c3"
 
 
 def test_clean_log_top_candidate_is_not_a_motor_field(clean):
@@ -83,22 +83,22 @@ def test_log_without_its_motor_channel_does_not_invent_one(motor):
     assert not bare.aux_names
     d = streamcal.diagnose(bare, calibration=cal)
     assert all(c.effect != "aux_interference" for c in d.candidates)
-    assert d.aux_channels == {}
+    assert d.held.aux_channels == {}
 
 
 def test_every_reestimated_parameter_is_determined_and_plausible(clean):
     _, track, cal = clean
     d = streamcal.diagnose(track, calibration=cal)
     r = field_radius(cal.K)
-    assert d.tolerance == pytest.approx(0.005 * r)
+    assert d.held.tolerance == pytest.approx(0.005 * r)
     # a yaw slice with 12° tilts determines the hard iron and the horizontal soft iron only
-    assert {"b_x", "b_y", "b_z"} <= set(d.estimated) and "K_zz" in d.held
-    for name, est in d.estimated.items():
-        assert est["sigma"] <= d.tolerance, (name, est)
+    assert {"b_x", "b_y", "b_z"} <= set(d.held.estimated) and "K_zz" in d.held.parameters
+    for name, est in d.held.estimated.items():
+        assert est["sigma"] <= d.held.tolerance, (name, est)
         lo, hi = plausible_range(name, r, cal.b)
         assert lo <= est["value"] <= hi, (name, est, (lo, hi))
-        assert name not in d.held
-    assert not d.suspicious
+        assert name not in d.held.parameters
+    assert not d.held.suspicious
     out = json.loads(json.dumps(d.to_dict(), allow_nan=False, default=lambda v: None))
     st = out["fit_status"]
     assert st["status"] in STATUSES and st["iterations"] >= 1 and st["message"]

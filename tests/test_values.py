@@ -5,6 +5,7 @@ as escaped HTML tables; ``dir``/``help`` list the public API."""
 import copy
 import dataclasses
 import json
+import pickle
 import pydoc
 
 import numpy as np
@@ -12,10 +13,10 @@ import pytest
 
 import streamcal
 from streamcal.calibration import jsonable
-from streamcal.diagnosis.against import HeldDiagnosis
+from streamcal.diagnosis.held.part import HeldPart
 from streamcal.sim import simulate
 from streamcal.sim.yaw_slice import yaw_slice
-from streamcal.values import same
+from streamcal.values import FrozenDict, freeze, same, thaw
 
 
 @pytest.fixture(scope="module")
@@ -39,9 +40,10 @@ def _json(d) -> dict:
     return json.loads(json.dumps(jsonable(d.to_dict()), allow_nan=False))
 
 
-def test_the_held_fixture_is_a_held_diagnosis(held, fresh):
-    assert isinstance(held, HeldDiagnosis) and held.held
-    assert not isinstance(fresh, HeldDiagnosis)
+def test_one_type_the_held_part_optional(held, fresh):
+    assert type(held) is type(fresh) is streamcal.Diagnosis
+    assert isinstance(held.held, HeldPart) and held.held.parameters
+    assert fresh.held is None and "held" not in fresh.to_dict()
     assert fresh.candidates and held.candidates
 
 
@@ -56,12 +58,95 @@ def test_diagnosis_and_candidates_are_frozen(fresh, held):
         with pytest.raises(ValueError):
             d.outliers[0] = not d.outliers[0]
     with pytest.raises(dataclasses.FrozenInstanceError):
-        held.held = []
+        held.held = None
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        held.held.parameters = ()
+
+
+def _refuses_change(container) -> None:
+    """``container`` (a tuple, mapping or array held by a value) cannot be changed in place."""
+    if isinstance(container, np.ndarray):
+        with pytest.raises(ValueError):
+            container[...] = 0
+    elif isinstance(container, tuple):
+        with pytest.raises((TypeError, AttributeError)):
+            container[0] = None   # noqa: tuple item assignment
+        with pytest.raises(AttributeError):
+            container.append(None)
+    else:
+        key = next(iter(container), "key")
+        with pytest.raises(TypeError):
+            container[key] = None
+        with pytest.raises(TypeError):
+            del container[key]
+        for method in ("update", "pop", "clear", "setdefault"):
+            assert not hasattr(container, method), method
+    items = container.values() if hasattr(container, "values") else (
+        container if isinstance(container, tuple) else ())
+    for item in items:
+        if isinstance(item, (tuple, FrozenDict, np.ndarray)) and len(item):
+            _refuses_change(item)
+
+
+CONTAINERS = ("candidates", "outlier_spans", "ladder", "residual_families", "noise", "misfit",
+              "sampling", "next_step", "heading_error_deg", "model", "outliers_model")
+HELD_CONTAINERS = ("parameters", "estimated", "predicted_sigma", "aux_channels", "fit_status",
+                   "held_after_fit", "suspicious", "gyro_pinned", "gyro_link")
+
+
+def test_every_container_refuses_in_place_change(fresh, held):
+    long = fresh.replace(sampling={"samples_used": 10, "samples_total": 20,
+                                   "subsample_rule": "rule", "outlier_spans_over": "subsample"},
+                         outlier_spans=[[1.0, 2.0]])
+    checked = set()
+    for d in (long, held):
+        for name in CONTAINERS:
+            value = getattr(d, name)
+            assert not isinstance(value, (list, dict)), name
+            if value:
+                _refuses_change(value)
+                checked.add(name)
+    assert checked == set(CONTAINERS)   # none was empty, so each was tried
+    for name in HELD_CONTAINERS:
+        value = getattr(held.held, name)
+        assert not isinstance(value, (list, dict)), name
+        if value:
+            _refuses_change(value)
+    assert held.held.parameters and held.held.estimated and held.held.fit_status
+    step = held.ladder[0]
+    assert step["rms"] == held.rms and step.get("added") is None   # read like a dict
+    for c in (*fresh.candidates, *held.candidates):
+        with pytest.raises(dataclasses.FrozenInstanceError):
+            c.evidence = ""
+        assert not any(isinstance(getattr(c, f.name), (list, dict))
+                       for f in dataclasses.fields(c))
+
+
+def test_containers_given_as_lists_are_frozen_and_not_shared(fresh):
+    ladder = [dict(s) for s in thaw(fresh.ladder)]
+    d = fresh.replace(ladder=ladder)
+    ladder[0]["rms"] = -1.0
+    ladder.append({})
+    assert d == fresh and isinstance(d.ladder, tuple) and isinstance(d.ladder[0], FrozenDict)
+    assert d.to_dict()["ladder"] == thaw(fresh.ladder)
+    assert type(d.to_dict()["ladder"]) is list and type(d.to_dict()["ladder"][0]) is dict
+
+
+def test_deepcopy_and_pickle_give_equal_frozen_values(fresh, held):
+    for d in (fresh, held):
+        for twin in (copy.deepcopy(d), pickle.loads(pickle.dumps(d))):
+            assert twin == d and twin.held == d.held
+            assert isinstance(twin.ladder[0], FrozenDict)
+            _refuses_change(twin.ladder)
+            _refuses_change(twin.noise)
+    frozen = freeze({"a": [1.0, {"b": np.arange(3.0)}]})
+    assert pickle.loads(pickle.dumps(frozen)) == frozen == copy.deepcopy(frozen)
+    assert not pickle.loads(pickle.dumps(frozen))["a"][1]["b"].flags.writeable
 
 
 def test_every_field_is_declared(fresh, held):
     # slots-like check: nothing beyond the declared fields lives on the values
-    for value in (fresh, held, fresh.candidates[0], held.candidates[0]):
+    for value in (fresh, held, held.held, fresh.candidates[0], held.candidates[0]):
         declared = {f.name for f in dataclasses.fields(value)}
         assert set(vars(value)) <= declared, set(vars(value)) - declared
 
@@ -87,10 +172,12 @@ def test_nan_is_equal_to_nan_where_it_means_no_value(fresh):
     assert c == copy.deepcopy(c) and c != fresh.candidates[0]
 
 
-def test_replace_leaves_the_original_and_keeps_the_kind(held):
+def test_replace_leaves_the_original_and_keeps_the_held_part(held):
     changed = held.replace(summary="other words")
-    assert isinstance(changed, HeldDiagnosis) and changed.held == held.held
+    assert changed.held == held.held and changed.held.parameters == held.held.parameters
     assert held.summary != "other words"
+    assert held != held.replace(held=dataclasses.replace(held.held,
+                                                         tolerance=held.held.tolerance * 2))
 
 
 @pytest.mark.parametrize("which", ["fresh", "held"])
@@ -98,6 +185,8 @@ def test_to_dict_from_dict_round_trip(which, request):
     d = request.getfixturevalue(which)
     again = streamcal.Diagnosis.from_dict(d.to_dict())
     assert again == d and type(again) is type(d)
+    assert (again.held is None) == (d.held is None) == (which == "fresh")
+    assert again.held == d.held
     through_json = streamcal.Diagnosis.from_dict(_json(d))
     assert through_json == d and type(through_json) is type(d)
     assert _json(through_json) == _json(d)
@@ -170,7 +259,8 @@ def test_diagnosis_html_has_verdict_summary_and_the_ladder_with_n(fresh, held):
         assert d.verdict in text and "ladder" in text
         for step in d.ladder:
             assert f"<td>{step['n']}</td>" in text
-    assert "bench.json" in held._repr_html_() and ", ".join(held.held) in held._repr_html_()
+    text = held._repr_html_()
+    assert "bench.json" in text and ", ".join(held.held.parameters) in text
     odd = fresh.replace(summary="a <b> & c")
     text = odd._repr_html_()
     assert "a &lt;b&gt; &amp; c" in text and "<b>" not in text

@@ -100,7 +100,7 @@ def main() -> int:
     print(f"{'step':<52}{'s':>8}{'× plain fit':>13}")
     rows = [("read (DataFlash → Track, bulk decoder)", float(np.median(t_read))),
             ("read via pymavlink (same-run baseline)", float(np.median(t_pymav))),
-            (f"diagnose --cal autopilot (refits on {d.n_ranked} of {n})", t_diag),
+            (f"diagnose --cal autopilot (refits on {d.held.n_ranked} of {n})", t_diag),
             ("read + diagnose", total),
             ("read via pymavlink + diagnose", total_pymav),
             ("CLI: streamcal diagnose LOG --cal autopilot (1 run)", t_cli),

@@ -56,11 +56,12 @@ def simulated(seeds, noises):
                 d = streamcal.diagnose(track, calibration=cal, candidates=[], ladder=False)
                 out[label] = d
             h, g = out["held"], out["gyro"]
-            sd = g.gyro_pinned.get("K_zz", {}).get("sigma", float("nan"))
+            sd = g.held.gyro_pinned.get("K_zz", {}).get("sigma", float("nan"))
             print(f"| {noise:g} | {seed} | {h.calibration.K[2, 2] - K[2, 2]:+.3f} "
                   f"| {g.calibration.K[2, 2] - K[2, 2]:+.3f} ± {sd:.3f} "
                   f"| {h.calibration.b[2] - B[2]:+.3f} | {g.calibration.b[2] - B[2]:+.3f} "
-                  f"| {', '.join(g.gyro_pinned) or '—'} | {g.gyro_link.get('reason', '')[:60]} |")
+                  f"| {', '.join(g.held.gyro_pinned) or '—'} "
+                  f"| {g.held.gyro_link.get('reason', '')[:60]} |")
 
 
 def guard(seeds):
@@ -90,10 +91,10 @@ def guard(seeds):
             for on in (False, True):
                 gyro_guard.P_GUARD = p_guard if on else 0.0
                 d = streamcal.diagnose(res.track, calibration=cal, candidates=[], ladder=False)
-                link, g = d.gyro_link, d.gyro_link.get("guard", {})
+                link, g = d.held.gyro_link, d.held.gyro_link.get("guard", {})
                 pinned = ", ".join(f"{k} {v['value'] - truth[k]:+.2f} ± {v['sigma']:.2f} "
                                    f"({(v['value'] - truth[k]) / v['sigma']:+.1f} σ)"
-                                   for k, v in d.gyro_pinned.items()) or "—"
+                                   for k, v in d.held.gyro_pinned.items()) or "—"
                 shift = ", ".join(f"{k} {v:+.2f}" for k, v in g.get("shift", {}).items()) or "—"
                 print(f"| {label} | {seed} | {'on' if on else 'off'} | {pinned} | {shift} "
                       f"| {g.get('p_value', float('nan')):.2g} | {link['reason'][:50]} |")
@@ -115,10 +116,10 @@ def flights():
                 times[label].append(time.perf_counter() - t0)
                 if label == "gyro":
                     result = d
-        link = result.gyro_link
+        link = result.held.gyro_link
         est = {k: (round(v.get("value", np.nan), 3), round(v.get("sigma", v.get(
             "sigma_predicted", np.nan)), 3)) for k, v in link.get("estimates", {}).items()}
-        print(f"{path.name}: held {result.held}; pinned {result.gyro_pinned}; used "
+        print(f"{path.name}: held {result.held.parameters}; pinned {result.held.gyro_pinned}; used "
               f"{link['used']}: {link['reason']}")
         print(f"  link rms {link.get('rms_held', float('nan')):.4g} vs no-rotation "
               f"{link.get('rms_still', float('nan')):.4g} ({result.unit}); estimates {est}")

@@ -169,27 +169,28 @@ def plots_written(directory, paths) -> str:
 
 def held_text(d) -> str:
     """The lines of a diagnosis against held parameters (empty for a fresh fit)."""
-    if not hasattr(d, "held"):
+    h = d.held
+    if h is None:
         return ""
     from ..units import display_unit
 
     unit = display_unit(d.unit) or "sensor unit"
-    lines = ["", f"against    {d.calibration_source}",
-             f"held       {', '.join(d.held) or 'none'} (predicted error above "
-             f"{d.tolerance:.3g} {unit} at the given or the fitted point, or not in the "
+    lines = ["", f"against    {h.calibration_source}",
+             f"held       {', '.join(h.parameters) or 'none'} (predicted error above "
+             f"{h.tolerance:.3g} {unit} at the given or the fitted point, or not in the "
              "model)"]
-    n_r = getattr(d, "n_ranked", 0) or d.n
+    n_r = h.n_ranked or d.n
     if n_r < d.n:
         lines.append(f"ranked     candidates refitted on {n_r} of {d.n} samples (every cell of "
                      "direction × stretch of time kept); the effects the ladder adds were refitted "
                      "on every sample, the others' numbers are on those")
-    scores = list(getattr(d, "aux_channels", {}).items())[:4]
+    scores = list(h.aux_channels.items())[:4]
     if scores:
         lines.append("channels   residual follows, each alone: "
                      + ", ".join(f"{k} r={v:.2f}" for k, v in scores))
-    if d.estimated:
+    if h.estimated:
         lines.append("re-estimated (value ± σ from this recording, " + unit + ")")
-        lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in d.estimated.items()]
+        lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in h.estimated.items()]
     lines += _recheck_lines(d, unit)
     lines += _gyro_lines(d, unit)
     return "\n".join(lines)
@@ -197,10 +198,10 @@ def held_text(d) -> str:
 
 def _gyro_lines(d, unit: str) -> list[str]:
     """Held parameters the gyro link pinned (:mod:`streamcal.diagnosis.held.gyro_pin`), or why not."""
-    link = getattr(d, "gyro_link", None) or {}
+    link = d.held.gyro_link
     if not link:
         return []
-    pinned = getattr(d, "gyro_pinned", {})
+    pinned = d.held.gyro_pinned
     if not pinned:
         return [f"gyro link  not used: {link.get('reason', '')}"]
     lines = ["pinned by the gyro link (value ± σ, " + unit + "; " + link.get("rule", "") + ")"]
@@ -226,11 +227,11 @@ def _recheck_lines(d, unit: str) -> list[str]:
     """The re-check at the fitted point (:mod:`streamcal.diagnosis.held.recheck`) and how the
     held fit ended."""
     lines = []
-    status = getattr(d, "fit_status", None) or {}
+    status = d.held.fit_status
     if status:
         lines.append(f"held fit   {status['status']} after {status['iterations']} iterations"
                      + (f" ({status['message']})" if status.get("message") else ""))
-    after = getattr(d, "held_after_fit", [])
+    after = d.held.held_after_fit
     if after:
         lines.append("held after the fit (rule: at the fitted point σ ≤ the tolerance and the "
                      "value within its plausible range ± 3 σ, else the worst is held and the "
@@ -240,7 +241,7 @@ def _recheck_lines(d, unit: str) -> list[str]:
         lines += [f"  {h['parameter']:<8} held at {_held_value(d, h['parameter'], entry)} {unit} "
                   f"(the fit had moved it to {h['value']:.5g} ± {h['sigma']:.3g}): "
                   f"{h['reason']}" for h in after]
-    for k, v in getattr(d, "suspicious", {}).items():
+    for k, v in d.held.suspicious.items():
         lines.append(f"SUSPICIOUS {k} {v['value']:.5g} ± {v['sigma']:.3g} {unit}: {v['reason']} "
                      "(kept: it is what the recording is asked for)")
     return lines

@@ -35,14 +35,14 @@ def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
     if not added:
         return None
     argv = ["streamcal", "fit", *recording]
-    if hasattr(d, "held"):
-        default = str(getattr(d, "calibration_source", "")).startswith("default")
+    if d.held is not None:
+        default = str(d.held.calibration_source).startswith("default")
         argv += ["--cal", "default" if default else (cal_arg or "CAL.json")]
     elif tuple(d.model) != ("hard_iron", "soft_iron"):
         argv += ["--model", ",".join(d.model)]
     for name in added:
         argv += ["--add", name]
-    if hasattr(d, "held"):
+    if d.held is not None:
         argv += ["-o", output]
     return argv
 

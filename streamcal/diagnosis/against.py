@@ -5,12 +5,11 @@ and refine that calibration with an effect: the held starting point
 ladder on the samples its last model keeps, each winner refitted on every sample)."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-from typing import ClassVar, Sequence
+from typing import Sequence
 
 import numpy as np
 
-from ..calibration import DEFAULT_MODEL, Calibration, jsonable
+from ..calibration import DEFAULT_MODEL, Calibration
 from ..errors import InputError, StreamcalError
 from ..model import TERMS, missing_columns
 from ..units import display_unit
@@ -23,77 +22,12 @@ from . import verdict as verdict_mod
 from .held.aux_channels import channel_scores
 from .diagnosis import LADDER_STEPS
 from .result import Diagnosis
+from .held.part import HeldPart
 from .held.plausibility import implausible_effect, theta_sigmas
 from .held.fit import TOLERANCE
 from .held.start import MIN_SAMPLES, HeldEval, HeldStart, default_calibration  # noqa: F401
 from .held.rank_subset import RANK_MAX, rank_subset
 from .residuals import families
-
-
-@dataclass(frozen=True, eq=False, repr=False)   # the short repr of Diagnosis, not every field
-class HeldDiagnosis(Diagnosis):
-    """A :class:`~streamcal.diagnosis.result.Diagnosis` against a given (or default)
-    calibration: ``held`` names the parameters kept at their given values, ``estimated`` maps
-    each re-estimated one to ``{"value", "sigma"}`` (sensor unit; σ from σ̂²(AᵀWA)⁻¹),
-    ``predicted_sigma`` the Cramér–Rao error each had when chosen, ``tolerance`` the bound they
-    were held to, ``calibration_source`` where the held values came from."""
-
-    #: The JSON key that marks a held diagnosis (for :meth:`Diagnosis.from_dict`).
-    KEY: ClassVar[str] = "held"
-
-    held: list = field(default_factory=list)
-    estimated: dict = field(default_factory=dict)
-    predicted_sigma: dict = field(default_factory=dict)
-    tolerance: float = float("nan")
-    calibration_source: str = ""
-    #: Samples the candidate refits (and ladder steps after the first) used; ``n`` when all.
-    n_ranked: int = 0
-    #: ``{channel: r}``: how closely the base model's residual (every sample) follows each
-    #: auxiliary channel alone (:func:`streamcal.diagnosis.held.aux_channels.channel_scores`), largest first.
-    aux_channels: dict = field(default_factory=dict)
-    #: How the base (held) fit's LM loop ended: ``{"status", "iterations", "message"}``.
-    fit_status: dict = field(default_factory=dict)
-    #: Parameters held by the re-check at the fitted point
-    #: (:func:`streamcal.diagnosis.held.recheck.settle`), in order, each with the value and σ it
-    #: had and why; and ``suspicious``: kept parameters (b without a calibration) that failed it.
-    held_after_fit: list = field(default_factory=list)
-    suspicious: dict = field(default_factory=dict)
-    #: Held parameters the gyro link pinned instead (:mod:`streamcal.diagnosis.held.gyro_pin`):
-    #: ``{name: {"value", "sigma", "held_value"}}``; ``gyro_link`` how that was decided.
-    gyro_pinned: dict = field(default_factory=dict)
-    gyro_link: dict = field(default_factory=dict)
-
-    def _html_rows(self, u: str) -> list[tuple[str, str]]:
-        return [*super()._html_rows(u), ("against", self.calibration_source),
-                ("held", ", ".join(self.held) or "none")]
-
-    def _json_fields(self) -> dict:
-        out = self._held_dict()
-        out["n_ranked"] = int(self.n_ranked or self.n)
-        out["aux_channels"] = dict(self.aux_channels)
-        out["fit_status"] = dict(self.fit_status)
-        out["held_after_fit"] = list(self.held_after_fit)
-        out["suspicious"] = dict(self.suspicious)
-        out["gyro_pinned"] = jsonable(self.gyro_pinned)
-        out["gyro_link"] = jsonable(self.gyro_link)
-        return out
-
-    def candidate_dict(self, c) -> dict:
-        """As for a fresh diagnosis; an implausible candidate
-        (:func:`streamcal.diagnosis.held.plausibility.implausible_effect`) is neither
-        significant nor material, and ``implausible`` says why."""
-        out = super().candidate_dict(c)
-        why = getattr(c, "implausible", "")
-        if why:
-            out.update(significant=False, material=False, implausible=why)
-        return out
-
-    def _held_dict(self) -> dict:
-        out = super()._json_fields()
-        out.update(held=list(self.held), estimated=self.estimated,
-                   predicted_sigma=self.predicted_sigma, tolerance=self.tolerance, unit=self.unit,
-                   calibration_source=self.calibration_source)
-        return out
 
 
 def _candidate_names(start: HeldStart, candidates) -> list[str]:
@@ -148,11 +82,13 @@ def _on_every_sample(start: HeldStart, c: cand.Candidate, ref: HeldEval,
 def diagnose_against(track, calibration: Calibration | None = None, *,
                      model: Sequence[str] = DEFAULT_MODEL, candidates: Sequence[str] | None = None,
                      ladder: bool = True, calibration_source: str | None = None,
-                     tolerance: float = TOLERANCE, rank_max: int = RANK_MAX) -> HeldDiagnosis:
+                     tolerance: float = TOLERANCE, rank_max: int = RANK_MAX) -> Diagnosis:
     """Diagnose ``track`` relative to ``calibration`` (None: the stated default of
     :func:`streamcal.diagnosis.held.start.default_calibration`), holding what the recording
     does not determine (:class:`~streamcal.diagnosis.held.start.HeldStart` says how and when
-    it refuses). Registration effects (gravity- and gyro-tied) are not ranked here.
+    it refuses); the result's ``held`` (a :class:`~streamcal.diagnosis.held.part.HeldPart`)
+    says what was held and what re-estimated. Registration effects (gravity- and gyro-tied)
+    are not ranked here.
 
     With more than ``rank_max`` samples the candidates are ranked on the subsample of
     :func:`streamcal.diagnosis.held.rank_subset.rank_subset` (every direction cell and stretch of
@@ -195,7 +131,7 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         p for p in ("K_xx", "K_xy", "K_xz", "K_yy", "K_yz", "K_zz", "b_x", "b_y", "b_z")
         if p not in names] + [f"{term.name}" for term, _ in start.held_terms]
     estimated = {k: {"value": v, "sigma": e} for k, (v, e) in base.fit.estimated.items()}
-    return HeldDiagnosis(
+    return Diagnosis(
         model=tuple(start.model), n=n, n_outliers=steps[0]["n_outliers"],
         n_outliers_model=int(outliers.sum()), rms=steps[0]["rms"], noise_floor=floor,
         noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
@@ -205,15 +141,16 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x),
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used},
-        calibration=base.cal, held=held, estimated=estimated,
-        predicted_sigma={k: start.errors[k] for k in names if k in start.errors},
-        tolerance=start.tol, calibration_source=start.source, unit=start.unit,
-        n_ranked=n if idx is None else len(idx),
-        aux_channels=channel_scores(base.s, base.normal, cov),
-        fit_status={"status": base.fit.status, "iterations": base.fit.iterations,
-                    "message": base.fit.message},
-        held_after_fit=start.settled.held_after_fit, suspicious=start.settled.suspicious,
-        gyro_pinned=pin.pinned, gyro_link=pin.report)
+        calibration=base.cal, unit=start.unit, held=HeldPart(
+            parameters=held, estimated=estimated,
+            predicted_sigma={k: start.errors[k] for k in names if k in start.errors},
+            tolerance=start.tol, calibration_source=start.source,
+            n_ranked=n if idx is None else len(idx),
+            aux_channels=channel_scores(base.s, base.normal, cov),
+            fit_status={"status": base.fit.status, "iterations": base.fit.iterations,
+                        "message": base.fit.message},
+            held_after_fit=start.settled.held_after_fit, suspicious=start.settled.suspicious,
+            gyro_pinned=pin.pinned, gyro_link=pin.report))
 
 
 def _without_effects(cal: Calibration, names: Sequence[str]) -> Calibration:

@@ -1,20 +1,23 @@
-"""The result of a diagnosis (:func:`streamcal.diagnosis.diagnose`): a value — frozen, equal
-when its JSON content is, round-tripping through :meth:`Diagnosis.to_dict` and
-:meth:`Diagnosis.from_dict`, shown as HTML in Jupyter."""
+"""The result of a diagnosis (:func:`streamcal.diagnosis.diagnose`): a value — frozen all the
+way down, equal when its JSON content is, round-tripping through :meth:`Diagnosis.to_dict` and
+:meth:`Diagnosis.from_dict`, shown as HTML in Jupyter. One type for every starting point: a
+diagnosis against a held calibration carries its :class:`~streamcal.diagnosis.held.part.HeldPart`
+in ``held``."""
 from __future__ import annotations
 
-import copy
 import dataclasses
 import html
 from dataclasses import dataclass, field
+from typing import Mapping
 
 import numpy as np
 
 from ..calibration import jsonable
 from ..units import quantity
-from ..values import html_table, same
+from ..values import FrozenDict, freeze, html_table, same, thaw
 from . import candidates as cand
 from . import verdict as verdict_mod
+from .held.part import HeldPart
 from .text import TOP, diagnosis_unit, short_repr, summary as summary_lines
 
 
@@ -23,9 +26,9 @@ SAMPLING_KEYS = ("samples_used", "samples_total", "subsample_rule", "outlier_spa
                  "n_outliers_recording")
 #: ``sampling`` when every sample was used.
 EVERY_SAMPLE = "every sample"
-#: Kinds of diagnosis :meth:`Diagnosis.from_dict` tells apart: subclasses whose ``KEY`` (a
-#: class attribute) appears only in their JSON.
-_KINDS: list = []
+#: The fields holding containers: stored deep-frozen (:func:`streamcal.values.freeze`).
+_CONTAINERS = ("candidates", "outlier_spans", "ladder", "residual_families", "noise", "misfit",
+               "sampling", "next_step", "heading_error_deg", "location")
 
 
 @dataclass(frozen=True, eq=False)
@@ -35,13 +38,19 @@ class Diagnosis:
     ``outliers_model`` and ``n_outliers_model``. rms, noise_floor and rms_after in the sensor
     unit (``unit``).
 
-    A value: frozen (:meth:`replace` derives a changed one), equal to another when their JSON
-    contents are (:meth:`to_dict` after :func:`streamcal.calibration.jsonable`: arrays as
-    lists, a NaN "no value" as null, so NaN equals NaN), and ``Diagnosis.from_dict(d.to_dict())
-    == d``. What the JSON does not carry takes no part in equality and is absent (None) after
-    :meth:`from_dict`: the per-sample ``outliers`` mask (its count and spans are carried), the
-    fitted ``calibration`` and the candidates' refits, ``subsample`` (the Track a long
-    recording was diagnosed from) and ``location`` (the place of the heading error).
+    A value: frozen (:meth:`replace` derives a changed one), its containers read-only (tuples,
+    :class:`~streamcal.values.FrozenDict`: ladder steps read like dicts), equal to another when
+    their JSON contents are (:meth:`to_dict` after :func:`streamcal.calibration.jsonable`:
+    arrays as lists, a NaN "no value" as null, so NaN equals NaN), and
+    ``Diagnosis.from_dict(d.to_dict()) == d``. What the JSON does not carry takes no part in
+    equality and is absent (None) after :meth:`from_dict`: the per-sample ``outliers`` mask
+    (its count and spans are carried), the fitted ``calibration`` and the candidates' refits,
+    ``subsample`` (the Track a long recording was diagnosed from) and ``location`` (the place
+    of the heading error).
+
+    ``held``: None for a fresh fit; for a diagnosis against a given (or the stated default)
+    calibration, the :class:`~streamcal.diagnosis.held.part.HeldPart` saying what was held and
+    what re-estimated (its keys are top-level keys of the JSON; ``held`` marks it).
 
     Which residual each rms is on (``residual``: ``"sensor"``, eq. 41 with free directions;
     ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnosis.candidates`): ``rms`` is
@@ -66,11 +75,11 @@ class Diagnosis:
     rms: float
     noise_floor: float
     verdict: str
-    candidates: list
-    outlier_spans: list
-    ladder: list = field(default_factory=list)
-    residual_families: dict = field(default_factory=dict)
-    noise: dict = field(default_factory=dict)
+    candidates: tuple
+    outlier_spans: tuple
+    ladder: tuple = ()
+    residual_families: Mapping = field(default_factory=FrozenDict)
+    noise: Mapping = field(default_factory=FrozenDict)
     calibration: object = field(default=None, repr=False)
     residual: str = "sensor"
     outliers_model: tuple[str, ...] = ()
@@ -83,27 +92,31 @@ class Diagnosis:
     noise_floor_rule: str = field(default_factory=verdict_mod.floor_rule)
     significance_rule: str = field(default_factory=verdict_mod.significance_rule)
     #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
-    misfit: dict | None = None
+    misfit: Mapping | None = None
     #: Which samples the figures used (:mod:`streamcal.diagnosis.subsample`); None: every one.
-    sampling: dict | None = None
+    sampling: Mapping | None = None
     #: Plain sentences (:func:`streamcal.diagnosis.advice.summary`), the command they advise
     #: (argv, None: nothing to do) and the heading error the ladder's first and last rms imply
     #: (None: the horizontal field is unknown, ``heading_error_reason`` says why).
     summary: str = ""
-    next_step: list | None = None
-    heading_error_deg: dict | None = None
+    next_step: tuple[str, ...] | None = None
+    heading_error_deg: Mapping | None = None
     heading_error_reason: str = ""
     #: The sensor unit of every rms ("" when not known).
     unit: str = ""
+    #: What a diagnosis against a held calibration adds (None: a fresh fit).
+    held: HeldPart | None = None
     #: The subsample Track a long recording was diagnosed from (None: the recording itself).
     subsample: object = field(default=None, repr=False, compare=False)
     #: The World Magnetic Model field (:func:`streamcal.geomag.wmm_field`) at the place and date
     #: the heading error used: the one given, else the log's GPS position (None: neither).
-    location: dict | None = field(default=None, repr=False, compare=False)
+    location: Mapping | None = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         object.__setattr__(self, "model", tuple(self.model))
         object.__setattr__(self, "outliers_model", tuple(self.outliers_model or ()))
+        for name in _CONTAINERS:
+            object.__setattr__(self, name, freeze(getattr(self, name)))
         if self.outliers is not None:
             mask = np.array(self.outliers, dtype=bool)
             mask.flags.writeable = False
@@ -115,12 +128,7 @@ class Diagnosis:
         return type(self) is type(other) and same(jsonable(self._json_fields()),
                                                    jsonable(other._json_fields()))
 
-    __hash__ = None   # holds lists and dicts
-
-    def __init_subclass__(cls, **kwargs):
-        super().__init_subclass__(**kwargs)
-        if getattr(cls, "KEY", None):
-            _KINDS.append(cls)
+    __hash__ = None   # holds floats compared NaN-safe
 
     def replace(self, **changes) -> "Diagnosis":
         """A copy with some fields changed (:func:`dataclasses.replace`)."""
@@ -129,25 +137,22 @@ class Diagnosis:
     @classmethod
     def from_dict(cls, d: dict) -> "Diagnosis":
         """The diagnosis a :meth:`to_dict` (or the JSON of ``streamcal diagnose --json``)
-        describes: a :class:`~streamcal.diagnosis.against.HeldDiagnosis` when it has ``held``.
+        describes, with its ``held`` part when the JSON has the key ``held``.
         Null numbers come back as NaN; ``outliers``, ``calibration`` and the candidates' refits
-        are None (the JSON does not carry them). ``d`` is copied, not shared."""
-        d = copy.deepcopy(dict(d))
-        for kind in _KINDS:
-            if cls is not kind and issubclass(kind, cls) and kind.KEY in d:
-                return kind.from_dict(d)
+        are None (the JSON does not carry them). ``d`` is copied (frozen), not shared."""
         values = {}
         for f in dataclasses.fields(cls):
-            if f.name not in d or not f.init:
+            if f.name not in d or not f.init or f.name == "held":
                 continue
             v = d[f.name]
             if f.name in ("model", "outliers_model"):
                 v = tuple(v)
             elif f.name == "candidates":
-                v = [cand.Candidate.from_dict(c) for c in v]
-            elif f.name in ("rms", "noise_floor", "tolerance"):
+                v = tuple(cand.Candidate.from_dict(c) for c in v)
+            elif f.name in ("rms", "noise_floor"):
                 v = float("nan") if v is None else float(v)
             values[f.name] = v
+        values["held"] = HeldPart.from_dict(d)
         sampling = {k: d[k] for k in SAMPLING_KEYS if k in d}
         values["sampling"] = None if sampling.get("subsample_rule", EVERY_SAMPLE) == \
             EVERY_SAMPLE else sampling
@@ -157,7 +162,7 @@ class Diagnosis:
         """Jupyter's view: verdict, summary sentences, rms and floor with units, the ladder
         (each step with its n) and the top candidates; every text escaped."""
         u = diagnosis_unit(self)
-        head = html_table(self._html_rows(u), caption=f"{type(self).__name__}")
+        head = html_table(self._html_rows(u), caption=type(self).__name__)
         steps = html_table(
             [(f"+ {s['added']}" if s.get("added") else ", ".join(s["model"]), s["residual"],
               quantity(s["rms_before"], u, 4) if "rms_before" in s else "–",
@@ -178,7 +183,9 @@ class Diagnosis:
         floor = quantity(self.noise_floor, u, 4) if self.floor_known else "not measurable"
         return [("verdict", self.verdict), ("model", ", ".join(self.model)),
                 ("rms", f"{quantity(self.rms, u, 4)} ({self.residual} residual)"),
-                ("noise floor", floor), ("samples", f"{self.n} ({self.n_outliers} outliers)")]
+                ("noise floor", floor), ("samples", f"{self.n} ({self.n_outliers} outliers)"),
+                *([("against", self.held.calibration_source),
+                   ("held", ", ".join(self.held.parameters) or "none")] if self.held else [])]
 
     def __str__(self) -> str:
         return summary_lines(self)
@@ -206,17 +213,22 @@ class Diagnosis:
         return out
 
     def candidate_dict(self, c) -> dict:
-        """A candidate's JSON: its residual, ``rms_before`` on it, and the two tests apart."""
+        """A candidate's JSON: its residual, ``rms_before`` on it, and the two tests apart; an
+        implausible candidate (:func:`streamcal.diagnosis.held.plausibility.implausible_effect`)
+        is neither significant nor material, and ``implausible`` says why."""
         residual, before = self.baseline(c)
         significant, material = cand.tests(before, c.rms_after, c.p_value,
                                            self.noise_floor if self.floor_known else np.nan)
-        return {**c.to_dict(), "residual": residual, "rms_before": before,
-                "significant": significant, "material": material}
+        out = {**c.to_dict(), "residual": residual, "rms_before": before,
+               "significant": significant, "material": material}
+        if c.implausible:
+            out.update(significant=False, material=False, implausible=c.implausible)
+        return out
 
     def to_dict(self) -> dict:
-        """The JSON content (plain containers of its own: changing them leaves the value as it
-        is)."""
-        return copy.deepcopy(self._json_fields())
+        """The JSON content in plain lists and dicts of its own (changing them leaves the value
+        as it is)."""
+        return thaw(self._json_fields())
 
     def _json_fields(self) -> dict:
         return {"model": list(self.model), "n": self.n, "n_outliers": self.n_outliers,
@@ -238,4 +250,5 @@ class Diagnosis:
                 "ladder": self.ladder, "noise": self.noise,
                 "residual_families": self.residual_families, "unit": self.unit,
                 **(self.sampling or {"samples_used": self.n, "samples_total": self.n,
-                                     "subsample_rule": EVERY_SAMPLE})}
+                                     "subsample_rule": EVERY_SAMPLE}),
+                **(self.held.json_fields(self.n) if self.held is not None else {})}

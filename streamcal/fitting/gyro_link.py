@@ -39,7 +39,8 @@ the nuisances, ∂R/∂(c, g) once per pair set at c = g = 0, :meth:`LinkPairs.r
 at most :data:`MAX_PAIRS` pairs, evenly spaced. With a :class:`SpherePrior` the sphere
 (normal) residual, linearised, is added in χ² units (joint fit: the link alone cannot fix the
 scale);
-Cauchy weights on ‖r_ab‖ of width :data:`CAUCHY_C` σ̂ (σ̂ per axis from the median ‖r_ab‖).
+Cauchy weights on ‖r_ab‖ of width :data:`~streamcal.constants.CAUCHY_C` σ̂ (σ̂ per axis from the
+median ‖r_ab‖).
 Consecutive pairs share samples, so the residuals are correlated over a horizon: the
 covariance is the sandwich H⁻¹ (Σ_B s_B s_Bᵀ) H⁻¹ with the weighted scores s summed over time
 blocks of :data:`BLOCK_HORIZONS` horizons (at least 1 s; pairs more than a horizon
@@ -54,15 +55,13 @@ from typing import Sequence
 
 import numpy as np
 
-from ..constants import OUTLIER_WIDTHS
+from ..constants import CAUCHY_C, OUTLIER_WIDTHS
 from ..errors import InsufficientDataError
 from .entries import B_INDEX, K_INDEX, entry, with_entries
 from .gyro_rates import clear_of_saturation, fresh, horizon_pairs, integrate_rates
 
 #: Seconds between the two readings of a pair (0: consecutive readings).
 HORIZON_S = 1.0
-#: Cauchy width in σ̂ (per axis) of the pair residual.
-CAUCHY_C = 2.385
 #: Sandwich blocks: this many horizons long, at least 1 s.
 BLOCK_HORIZONS = 2
 GN_ROUNDS, RTOL = 12, 1e-8

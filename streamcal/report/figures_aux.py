@@ -48,8 +48,14 @@ def signed_residual(cal, m: np.ndarray, cov) -> np.ndarray:
     return project(cal.K, cal.b, terms, np.asarray(m, float), cov)[2]
 
 
+def _scores(diagnosis) -> dict:
+    """``{channel: r}`` of a diagnosis against a held calibration; {} for a fresh one."""
+    held = getattr(diagnosis, "held", None)
+    return held.aux_channels if held is not None else {}
+
+
 def _channels(diagnosis, cov) -> list[str]:
-    scored = [c for c in getattr(diagnosis, "aux_channels", {}) if c in cov]
+    scored = [c for c in _scores(diagnosis) if c in cov]
     rest = [c for c in cov if c not in scored and c not in (
         "t", "temp", "ax", "ay", "az", "gx", "gy", "gz")]
     chans = ["t"] + (scored + rest)[:MAX_PANELS]
@@ -98,7 +104,7 @@ def aux_residual_figure(track, diagnosis) -> RenderedFigure | None:
             ax.fill_between(xc, lo, hi, color=colour, alpha=0.2, linewidth=0)
             ax.plot(xc, med, "-o", color=colour, markersize=3, label=f"{label} (median, 25–75 %)")
         ax.axhline(0.0, color="#888888", linewidth=0.8)
-        score = getattr(diagnosis, "aux_channels", {}).get(ch)
+        score = _scores(diagnosis).get(ch)
         ax.set_title(ch + (f"  (r = {score:.2f})" if score is not None else ""), fontsize=10)
         ax.set_xlabel(f"{ch} ({channel_unit(ch)})")
         ax.set_ylabel(f"signed sensor residual ({unit})")

@@ -19,33 +19,34 @@ def _num(v, fmt: str = ".4g") -> str:
 
 
 def held_section(d, unit: str) -> str:
-    """The section, or "" for a fresh diagnosis (no ``held``)."""
-    if not hasattr(d, "held") or d.calibration is None:
+    """The section, or "" for a fresh diagnosis (``held`` None)."""
+    h = d.held
+    if h is None or d.calibration is None:
         return ""
     e = html.escape
     rows = []
-    after = {h["parameter"]: h for h in getattr(d, "held_after_fit", [])}
+    after = {a["parameter"]: a for a in h.held_after_fit}
     for name, _ in (*K_PARAMS, *B_PARAMS):
-        pin = getattr(d, "gyro_pinned", {}).get(name)
-        est = d.estimated.get(name) or pin
+        pin = h.gyro_pinned.get(name)
+        est = h.estimated.get(name) or pin
         status = "pinned by the gyro link" if pin else "re-estimated" if est else (
             "held after the fit" if name in after else "held")
         value = est["value"] if est else entry(d.calibration.K, d.calibration.b, name)
         sigma = _num(est["sigma"]) if est else "–"
-        rows.append((name, status, _num(value), sigma, _num(d.predicted_sigma.get(name)), unit))
-    rows += [(e(n), "held", "as in the calibration", "–", "–", "") for n in d.held
+        rows.append((name, status, _num(value), sigma, _num(h.predicted_sigma.get(name)), unit))
+    rows += [(e(n), "held", "as in the calibration", "–", "–", "") for n in h.parameters
              if n not in K_INDEX and n not in B_INDEX]
     head = "".join(f"<th>{h}</th>" for h in ("parameter", "status", "value", "σ (this recording)",
                                              "predicted σ (Cramér–Rao)", "unit"))
     body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
-    n_r = getattr(d, "n_ranked", 0) or d.n
+    n_r = h.n_ranked or d.n
     ranked = (f" The candidate refits used {n_r} of the {d.n} samples (every cell of direction "
               f"× stretch of time kept); the model's rms and these parameters use all {d.n}."
               if n_r < d.n else "")
     return (f'<h2 id="held">Diagnosed against a given calibration</h2>'
-            f"<p>Calibration: <b>{e(str(d.calibration_source))}</b>. A parameter is re-estimated "
+            f"<p>Calibration: <b>{e(str(h.calibration_source))}</b>. A parameter is re-estimated "
             f"from this recording when its predicted (Cramér–Rao) error is below "
-            f"{_num(d.tolerance, '.3g')} {e(unit)} (0.5 % of the field radius), else held at the "
+            f"{_num(h.tolerance, '.3g')} {e(unit)} (0.5 % of the field radius), else held at the "
             f"calibration's value. After the fit the rule is checked again at the fitted point "
             f"(σ within the tolerance, value within its plausible range ± 3 σ); the worst "
             f"failing parameter is held and the fit repeated ({len(after)} held so)."
@@ -55,6 +56,6 @@ def held_section(d, unit: str) -> str:
 
 
 def _status(d) -> str:
-    st = getattr(d, "fit_status", None) or {}
+    st = d.held.fit_status
     return (f" The held fit ended <b>{html.escape(st['status'])}</b> after {st['iterations']} "
             f"iterations." if st else "")

@@ -28,7 +28,7 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ...constants import OUTLIER_WIDTHS
+from ...constants import CAUCHY_C, OUTLIER_WIDTHS
 from ...errors import InsufficientDataError
 from ...fitting.damped_lm import CONVERGED, Damping, damped_lm
 from ...fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry, shifted
@@ -37,8 +37,6 @@ from ..residuals import GN_ITERATIONS, closest_point
 #: A parameter is re-estimated when its predicted (Cramér–Rao) standard error is below this
 #: fraction of the field radius r (0.5 % of r: 0.24 µT at 48 µT).
 TOLERANCE = 0.005
-#: Cauchy width in noise σ (95 % Gaussian efficiency), and inliers within this many widths.
-CAUCHY_C = 2.385
 MAX_ITER, RTOL = 30, 1e-7
 #: λ ÷10 after an accepted step, ×10 after a rejected one.
 DAMPING = Damping(start=1e-3, down=10.0, up=10.0, floor=1e-12)
