@@ -92,7 +92,7 @@ PLACE_KEYS = ("reference_field", "attitude_reference", "orientation")
 
 def _place_lines(e: dict) -> list[str]:
     from ..geomag import text_lines
-    from .diagnose import attitude_lines
+    from ._location import attitude_lines
 
     if "reference_field" not in e:
         return []

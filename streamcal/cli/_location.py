@@ -1,5 +1,5 @@
 """``--lat/--lon/--alt-km/--date``: where and when the recording was made, for the local field
-from the World Magnetic Model (:mod:`streamcal.geomag`)."""
+from the World Magnetic Model (:mod:`streamcal.geomag`), and the attitude reference it gives as text."""
 from __future__ import annotations
 
 
@@ -26,3 +26,31 @@ def location_reference(args) -> dict | None:
     if lat is None or lon is None:
         raise InputError("--lat and --lon go together (the place of the recording)")
     return wmm_field(lat, lon, args.alt_km, parse_date(args.date))
+
+
+def attitude_lines(out: dict) -> list[str]:
+    """The attitude reference and the mounting found (``diagnose --json``'s
+    ``attitude_reference`` and ``orientation``) as text lines; none when the log has neither."""
+    lines = []
+    a = out.get("attitude_reference")
+    if a:
+        h = a.get("heading_error_deg") or {}
+
+        def pair(before, after, unit):
+            if before is None:
+                return "–"
+            return f"{before:.3g} {unit}" + ("" if after is None else f" → {after:.3g} {unit}")
+        lines += ["", f"attitude   the expected field (World Magnetic Model rotated by the logged "
+                      f"attitude) against the calibration in force → streamcal's fit: rms "
+                      f"{pair(a.get('rms_uT_before'), a.get('rms_uT_after'), 'µT')}, heading "
+                      f"error rms {pair(h.get('rms_before'), h.get('rms_after'), '°')}, p95 "
+                      f"{pair(h.get('p95_before'), h.get('p95_after'), '°')}"]
+        if a.get("reason"):
+            lines.append(f"           {a['reason']}")
+        if a.get("caveat"):
+            lines.append(f"           caveat: {a['caveat']}")
+    o = out.get("orientation")
+    if o:
+        lines.append(f"mounting   {o.get('name')} (ArduPilot {o.get('ardupilot')}, PX4 "
+                     f"{o.get('px4')})")
+    return lines

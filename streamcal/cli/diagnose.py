@@ -10,7 +10,7 @@ import sys
 from ..calibration import jsonable
 from ..errors import InputError, InsufficientDataError
 from ._common import RECORDING_HELP, add_input_options, recording_argv, recording_chunks
-from ._location import add_location_options, location_reference
+from ._location import add_location_options, attitude_lines, location_reference
 
 
 def register(subparsers) -> None:
@@ -114,34 +114,6 @@ def _refused(args, exc, ref) -> int:
     else:
         print("\n".join([f"no diagnosis: {exc}"] + attitude_lines(attitude)))
     return 1
-
-
-def attitude_lines(out: dict) -> list[str]:
-    """The attitude reference and the mounting found (``diagnose --json``'s
-    ``attitude_reference`` and ``orientation``) as text lines; none when the log has neither."""
-    lines = []
-    a = out.get("attitude_reference")
-    if a:
-        h = a.get("heading_error_deg") or {}
-
-        def pair(before, after, unit):
-            if before is None:
-                return "–"
-            return f"{before:.3g} {unit}" + ("" if after is None else f" → {after:.3g} {unit}")
-        lines += ["", f"attitude   the expected field (World Magnetic Model rotated by the logged "
-                      f"attitude) against the calibration in force → streamcal's fit: rms "
-                      f"{pair(a.get('rms_uT_before'), a.get('rms_uT_after'), 'µT')}, heading "
-                      f"error rms {pair(h.get('rms_before'), h.get('rms_after'), '°')}, p95 "
-                      f"{pair(h.get('p95_before'), h.get('p95_after'), '°')}"]
-        if a.get("reason"):
-            lines.append(f"           {a['reason']}")
-        if a.get("caveat"):
-            lines.append(f"           caveat: {a['caveat']}")
-    o = out.get("orientation")
-    if o:
-        lines.append(f"mounting   {o.get('name')} (ArduPilot {o.get('ardupilot')}, PX4 "
-                     f"{o.get('px4')})")
-    return lines
 
 
 def _headline(d) -> str:
