@@ -1,5 +1,5 @@
 """``--lat/--lon/--alt-km/--date``: where and when the recording was made, for the local field
-from the World Magnetic Model (:mod:`streamcal.geomag`), and the attitude reference it gives as text."""
+from the World Magnetic Model (:mod:`streamcal.geomag`), and the attitude reference as text."""
 from __future__ import annotations
 
 
