@@ -59,13 +59,15 @@ def test_a_calibration_file_without_a_key_says_missing_key(key):
 
 @pytest.mark.parametrize("fmt", ["ardupilot", "px4", "c-header"])
 def test_export_cannot_express_gives_names_values_and_units(fmt):
+    from streamcal.export.common import ascii_text
+
     cal = Calibration(K=[[45.0, 0, 0], [0, 46.0, 0], [0, 0, 47.0]], b=[1.0, 2.0, 3.0], n=100,
                       model=("hard_iron", "soft_iron", "temperature_offset"),
                       effects={"temperature_offset": {"T0": 33.975, "c": [0.1, -0.2, 0.3]}},
                       field=48.0)
     text, notes = export(cal, fmt)
     assert notes == ["temperature_offset: T0 33.98 °C, c [0.1, -0.2, 0.3] µT/°C"]
-    assert "{" not in notes[0] and notes[0] in text
+    assert "{" not in notes[0] and ascii_text(notes[0]) in text
 
 
 def _track_in(tmp_path, declared: str):
