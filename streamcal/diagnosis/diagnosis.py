@@ -17,6 +17,7 @@ from . import candidates as cand
 from . import misfit as misfit_mod
 from . import verdict as verdict_mod
 from .noise import noise_floor
+from .tied_noise import tied_floor
 from .residuals import families, rms, sensor_residual
 from .result import Diagnosis
 from ..fitting.outlier_rule import outlier_mask, outlier_spans
@@ -104,6 +105,9 @@ class _Context:
         self.track, self.fitter, self.floor = track, fitter, floor
         #: the floor the materiality test uses: NaN once the floor is found unmeasurable
         self.material_floor = floor
+        #: (K, reliable, reason) the tied floors are computed with, once the base is fitted
+        self._tied_basis = None
+        self.tied_floors = {}
         # the tied fits have one robust cost of their own (as streamcal.fit does for them)
         self.kernel = "cauchy" if kernel == "auto" else kernel
         self.m = np.asarray(track.mag, dtype=float)
@@ -120,6 +124,26 @@ class _Context:
             keep = ~np.asarray(track.mag_rows, bool)
             keep[np.flatnonzero(track.mag_rows)[idx]] = True
             self.subset = (idx, track.select(keep))
+
+    def set_floor(self, floor: float, reliable: bool, reason: str, K) -> None:
+        """The magnetometer floor as judged once the base model's rms is known (``floor``
+        NaN when not ``reliable``) and the base calibration's ``K``, which the tied floors
+        scale the reference's error by."""
+        self.material_floor = floor
+        self._tied_basis = (np.asarray(K, float), reliable, reason)
+
+    def floor_for(self, residual: str) -> float:
+        """The floor (sensor unit, NaN when not measurable) a rms on ``residual`` is judged
+        against: the magnetometer's, or the tied residual's own
+        (:mod:`streamcal.diagnosis.tied_noise`, computed once)."""
+        if residual == "sensor":
+            return self.material_floor
+        if residual not in self.tied_floors:
+            K, reliable, reason = self._tied_basis
+            self.tied_floors[residual] = tied_floor(residual, self.track, K, self.floor,
+                                                    reliable, reason)
+        entry = self.tied_floors[residual]
+        return entry.floor if entry.reliable else float("nan")
 
     def gyro_fit(self, model, initial=None, *, fit_lag=False, lag=0.0, quick=True):
         """Gyro-tied fit (:func:`streamcal.fitting.gyro_lag.gyro_lag_fit`) of the non-registration
@@ -249,7 +273,8 @@ def _candidate(ctx: _Context, name: str, numbers, text: str, ref: _Evaluated,
     """A ranked candidate from its :class:`~streamcal.diagnosis.story.Comparison`."""
     return cand.Candidate(
         name, numbers.after, numbers.p_value, text, ev.p - ref.p,
-        cand.is_significant(numbers.before, numbers.after, numbers.p_value, ctx.material_floor),
+        cand.is_significant(numbers.before, numbers.after, numbers.p_value,
+                            ctx.floor_for(RESIDUAL_OF_KIND[ev.kind])),
         ev.cal, residual=RESIDUAL_OF_KIND[ev.kind], rms_before=numbers.before, n=numbers.n,
         _evaluated=ev, _reference=ref)
 
@@ -331,7 +356,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     residual = RESIDUAL_OF_KIND[base.kind]
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
                                                   residual)
-    ctx.material_floor = floor = verdict_mod.reported_floor(nf.floor, reliable)
+    floor = verdict_mod.reported_floor(nf.floor, reliable)
+    ctx.set_floor(floor, reliable, reason, base.cal.K)
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
@@ -345,14 +371,11 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     spans_from, spans_model = spans[-1] if spans else (base, tuple(model))
     steps, added, ranked = story.tell(
         model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added, ranked,
-        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor))
-    sensor = None
-    if base.tied:   # judged on the residual the floor is for: the same calibration, free directions
-        from .scales import sensor_rms
-
-        sensor = sensor_rms(base.cal, track)
-    verdict = verdict_mod.decide(steps[0]["rms"], residual, nf.floor, reliable, ranked,
-                                 sensor_rms=sensor)
+        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value,
+                                      ctx.floor_for(c.residual)))
+    judged = ctx.floor_for(residual)   # the floor of the residual the rms is on
+    verdict = verdict_mod.decide(steps[0]["rms"], residual, judged, bool(np.isfinite(judged)),
+                                 ranked)
     misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float),
                                  ctx.cov, gyro)
     # Spans and mask from the last magnetometer-only model of the ladder: a missing effect
@@ -364,6 +387,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         n_outliers_model=int(outliers.sum()), rms=steps[0]["rms"],
         noise_floor=floor, verdict=verdict, candidates=ranked,
         noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
+        noise_floor_rule=verdict_mod.floor_rule(residual),
+        tied_noise_floors={k: v.to_dict() for k, v in ctx.tied_floors.items()},
         outlier_spans=outlier_spans(t, outliers), ladder=steps,
         residual=RESIDUAL_OF_KIND[base.kind], outliers_model=spans_model, outliers=outliers,
         residual_families=_families(ctx, base, model),

@@ -49,7 +49,10 @@ class Diagnosis:
     in ``candidate_baselines[effect]``, beside ``rms_before``, the model without the effect on
     that same residual — compare a candidate with its ``rms_before``, never with another
     residual's rms. Each ladder step carries its ``residual`` and (after the first) the
-    ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual.
+    ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual; the floor of
+    each tied residual the diagnosis used is in ``tied_noise_floors``
+    (:mod:`streamcal.diagnosis.tied_noise`), and :meth:`floor_for` gives the one a residual is
+    judged against.
 
     Outliers: ``n_outliers`` belongs with ``model`` and ``rms`` (docs/cli.md): the base model's
     outliers, the complement of the samples its rms is over. ``outlier_spans``, the (N,) bool
@@ -81,6 +84,10 @@ class Diagnosis:
     noise_floor_reliable: bool = True
     noise_floor_reason: str = ""
     noise_floor_rule: str = field(default_factory=verdict_mod.floor_rule)
+    #: ``{residual: {"floor", "reliable", "reason", "magnetometer_part", "reference_part",
+    #: "method"}}`` for each gravity- or gyro-tied residual the diagnosis judged (sensor unit;
+    #: floor null when not measurable).
+    tied_noise_floors: dict = field(default_factory=dict)
     significance_rule: str = field(default_factory=verdict_mod.significance_rule)
     #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
     misfit: dict | None = None
@@ -188,6 +195,16 @@ class Diagnosis:
         """A noise floor this recording measured (ratios to it may be shown)."""
         return bool(self.noise_floor_reliable and np.isfinite(self.noise_floor))
 
+    def floor_for(self, residual: str) -> float:
+        """The noise floor (sensor unit) a rms on ``residual`` is judged against: the
+        magnetometer's for the sensor residual, the tied residual's own for a tied one; NaN
+        when not measured."""
+        if residual == "sensor":
+            return float(self.noise_floor) if self.floor_known else float("nan")
+        entry = (self.tied_noise_floors or {}).get(residual) or {}
+        value = entry.get("floor")
+        return float(value) if entry.get("reliable") and value is not None else float("nan")
+
     def baseline(self, candidate) -> tuple[str, float]:
         """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
         on and the rms of the model without it on that residual (sensor unit)."""
@@ -206,7 +223,7 @@ class Diagnosis:
         """A candidate's JSON: its residual, ``rms_before`` on it, and the two tests apart."""
         residual, before = self.baseline(c)
         significant, material = cand.tests(before, c.rms_after, c.p_value,
-                                           self.noise_floor if self.floor_known else np.nan)
+                                           self.floor_for(residual))
         return {**c.to_dict(), "residual": residual, "rms_before": before,
                 "significant": significant, "material": material}
 
@@ -222,6 +239,7 @@ class Diagnosis:
                 "noise_floor_reliable": self.floor_known,
                 "noise_floor_reason": self.noise_floor_reason,
                 "noise_floor_rule": self.noise_floor_rule, "verdict": self.verdict,
+                "tied_noise_floors": self.tied_noise_floors,
                 "significance_rule": self.significance_rule, "misfit": self.misfit,
                 "candidates": [self.candidate_dict(c) for c in self.candidates],
                 "outlier_spans": self.outlier_spans, "residual": self.residual,
