@@ -101,7 +101,7 @@ class _Context:
     """What every refit of one diagnosis shares: the track, its arrays, the fitter and the
     gravity reference (built once, on demand)."""
 
-    def __init__(self, track, fitter, kernel, floor, subset_max=None):
+    def __init__(self, track, fitter, kernel, floor, subset_max=None, gravity=None):
         self.track, self.fitter, self.floor = track, fitter, floor
         #: the floor the materiality test uses: NaN once the floor is found unmeasurable
         self.material_floor = floor
@@ -113,7 +113,7 @@ class _Context:
         self.m = np.asarray(track.mag, dtype=float)
         self.cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
         self.cov.setdefault("t", np.asarray(track.t_mag, dtype=float))
-        self._gref = None
+        self._gref = gravity
         self._gyro = {}
         self._warm = "initial" in inspect.signature(fitter).parameters
         self.subset = None    # (mag sample indices, sub-track) for the ranking refits
@@ -140,8 +140,10 @@ class _Context:
             return self.material_floor
         if residual not in self.tied_floors:
             K, reliable, reason = self._tied_basis
+            gravity = self.gref if residual == "gravity_tied" and self.track.has("accel") \
+                else None
             self.tied_floors[residual] = tied_floor(residual, self.track, K, self.floor,
-                                                    reliable, reason)
+                                                    reliable, reason, gravity=gravity)
         entry = self.tied_floors[residual]
         return entry.floor if entry.reliable else float("nan")
 
@@ -311,9 +313,12 @@ def _families(ctx: _Context, base: _Evaluated, model) -> dict:
 def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
              fitter: Callable | None = None, kernel: str = "auto",
              candidates: Sequence[str] | None = None, ladder: bool = True,
-             subset_max: int | None = SUBSET_MAX) -> Diagnosis:
+             subset_max: int | None = SUBSET_MAX, gravity=None) -> Diagnosis:
     """Diagnose ``model`` on ``track`` (a :class:`streamcal.inputs.track.Track`).
 
+    ``gravity``: the :class:`~streamcal.fitting.gravity.GravityReference` of the track when
+    it cannot be built from the track's rows as one stretch (a long recording's subsample:
+    :mod:`streamcal.diagnosis.subsample` builds it on the stretches it read); None builds it.
     ``calibration``: an existing fit of ``model`` to use instead of fitting; ``fitter(track,
     model) -> Calibration`` replaces :func:`streamcal.fitting.fit`; ``candidates`` restricts the effects
     tried (default: every catalog effect the track supports that the model lacks); ``ladder``
@@ -349,7 +354,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     gyro = np.stack([cov0[k] for k in ("gx", "gy", "gz")], 1) if all(
         k in cov0 for k in ("gx", "gy", "gz")) else None
     nf = noise_floor(m, t, gyro)
-    ctx = _Context(track, fitter, kernel, nf.floor, subset_max)
+    ctx = _Context(track, fitter, kernel, nf.floor, subset_max, gravity)
     cov = ctx.cov
     base = (_Evaluated(calibration, m, cov, nf.floor) if calibration is not None and not _tied(model)
             else ctx.evaluate(model, calibration))

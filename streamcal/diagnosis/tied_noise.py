@@ -68,16 +68,21 @@ class TiedFloor:
 
 
 def tied_floor(residual: str, track, K: np.ndarray, mag_sigma: float, mag_reliable: bool,
-               mag_reason: str = "", horizon_s: float | None = None) -> TiedFloor:
+               mag_reason: str = "", horizon_s: float | None = None,
+               gravity=None) -> TiedFloor:
     """The floor of ``residual`` ("gravity_tied" or "gyro_tied") on ``track`` for a
     calibration with sensor matrix ``K`` (3,3): ``mag_sigma`` the magnetometer floor (sensor
     unit, the rms of the per-axis noise; ``mag_reliable``/``mag_reason`` whether it was
-    measurable), ``horizon_s`` the gyro-tied pairs' horizon (s)."""
+    measurable), ``horizon_s`` the gyro-tied pairs' horizon (s); ``gravity`` the
+    :class:`~streamcal.fitting.gravity.GravityReference` used, whose own ``tilt`` is taken
+    when it carries one (a subsample's, measured on the contiguous stretches read)."""
     radius = field_radius(K)
     magnetometer = float(np.sqrt(MAG_SHARE[residual]) * mag_sigma)
     try:
-        reference, method = (_gravity_part if residual == "gravity_tied" else _gyro_part)(
-            track, radius, horizon_s)
+        if residual == "gravity_tied":
+            reference, method = _gravity_part(track, radius, gravity)
+        else:
+            reference, method = _gyro_part(track, radius, horizon_s)
     except StreamcalError as exc:
         return TiedFloor(residual, float("nan"), magnetometer, float("nan"), "", False,
                          f"the reference's error could not be estimated: {exc}")
@@ -88,10 +93,13 @@ def tied_floor(residual: str, track, K: np.ndarray, mag_sigma: float, mag_reliab
     return TiedFloor(residual, floor, magnetometer, reference, method)
 
 
-def _gravity_part(track, radius: float, _horizon_s) -> tuple[float, str]:
+def _gravity_part(track, radius: float, gravity=None) -> tuple[float, str]:
     from ..fitting.gravity import tilt_sigma
 
-    sigma, how = tilt_sigma(track)
+    if gravity is not None and np.isfinite(gravity.tilt):
+        sigma, how = gravity.tilt, gravity.tilt_method
+    else:
+        sigma, how = tilt_sigma(track)
     return radius * sigma, f"gravity reference: {how}"
 
 

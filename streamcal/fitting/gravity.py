@@ -18,13 +18,14 @@ estimates it from the recording (the motion and noise the accelerometer sees).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import scipy.integrate
 import scipy.signal
 from scipy.spatial.transform import Rotation
 
-from ..errors import MissingColumnsError
+from ..errors import InsufficientDataError, MissingColumnsError
 from ..quaternion import cumulative_rotation
 
 #: Low-pass cut-off (Hz) of the gravity estimate: in the gyro-following frame / raw readings.
@@ -39,12 +40,16 @@ STILL_RATE = 0.05
 @dataclass(frozen=True)
 class GravityReference:
     """Unit down direction ĝ (A,3) in the accelerometer frame at the IMU instants ``t`` (A,) s,
-    with per-sample ``trust`` (A,) in (0, 1]; ``method`` says how it was made."""
+    with per-sample ``trust`` (A,) in (0, 1]; ``method`` says how it was made. ``tilt``
+    (rad) and ``tilt_method``: its own error per horizontal axis (:func:`tilt_sigma`) when
+    known with it (NaN: not computed)."""
 
     t: np.ndarray
     down: np.ndarray
     trust: np.ndarray
     method: str
+    tilt: float = float("nan")
+    tilt_method: str = ""
 
     def at(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(ĝ (M,3) unit, trust (M,)) at the instants ``t`` (M,) s, linear interpolation."""
@@ -181,3 +186,21 @@ def gravity_reference(track) -> GravityReference:
         method = "zero-phase low-pass"
     down = -up / np.linalg.norm(up, axis=1, keepdims=True)
     return GravityReference(t, down, trust, method)
+
+
+def joined(pieces: Sequence[GravityReference]) -> GravityReference:
+    """One reference from references of separate stretches of one recording, each built on its
+    own contiguous rows (time order, not overlapping), so no filter runs across the gaps
+    between them. Its ``tilt`` is the rms of theirs weighted by their IMU samples."""
+    pieces = [p for p in pieces if len(p.t)]
+    if not pieces:
+        raise InsufficientDataError("no accelerometer samples to build the gravity reference")
+    n = np.array([len(p.t) for p in pieces], float)
+    tilts = np.array([p.tilt for p in pieces], float)
+    ok = np.isfinite(tilts)
+    tilt = float(np.sqrt(np.sum(n[ok] * tilts[ok] ** 2) / n[ok].sum())) if ok.any() else np.nan
+    return GravityReference(np.concatenate([p.t for p in pieces]),
+                            np.concatenate([p.down for p in pieces]),
+                            np.concatenate([p.trust for p in pieces]),
+                            pieces[0].method + ", per contiguous stretch read", tilt,
+                            next((p.tilt_method for p in pieces if p.tilt_method), ""))
