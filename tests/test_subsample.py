@@ -75,6 +75,9 @@ def test_a_hidden_lag_on_a_subsample_is_judged_as_on_the_whole_recording():
     assert b.rms_before == pytest.approx(a.rms_before, rel=0.1)
     assert b.rms_after == pytest.approx(a.rms_after, rel=0.1)
     assert sub.floor_for("gravity_tied") == pytest.approx(full.floor_for("gravity_tied"), rel=0.25)
+    # the horizontal field behind the heading error uses the same reference (dip ≈ 60°)
+    assert sub.heading_error_deg["H_uT"] == pytest.approx(full.heading_error_deg["H_uT"],
+                                                          rel=0.05)
 
 
 @pytest.mark.slow

@@ -47,10 +47,12 @@ def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
     return argv
 
 
-def horizontal_field(track, calibration, location: dict | None) -> tuple[float | None, str]:
+def horizontal_field(track, calibration, location: dict | None,
+                     gravity=None) -> tuple[float | None, str]:
     """``(H, where)``: the horizontal field (µT) from the World Magnetic Model at ``location``
     (:func:`streamcal.geomag.wmm_field`), else from the recording (fitted field × cos dip, dip
-    from the accelerometer); ``(None, why not)`` otherwise."""
+    from the accelerometer, ``gravity`` its reference when given); ``(None, why not)``
+    otherwise."""
     if location is not None:
         h = location["intensity_uT"] * math.cos(math.radians(location["inclination_deg"]))
         return h, "World Magnetic Model at the given place"
@@ -62,7 +64,7 @@ def horizontal_field(track, calibration, location: dict | None) -> tuple[float |
                       "and no place was given (--lat/--lon)")
     from .reference_field import fitted_dip
 
-    dip, _ = fitted_dip(track, calibration)
+    dip, _ = fitted_dip(track, calibration, gravity)
     strength = calibration.field or calibration.radius
     if dip is None or not strength:
         return None, "the fitted dip could not be measured"

@@ -12,15 +12,17 @@ import numpy as np
 from ..geomag import NO_LOCATION, compare
 
 
-def fitted_dip(track, calibration) -> tuple[float | None, float | None]:
+def fitted_dip(track, calibration, gravity=None) -> tuple[float | None, float | None]:
     """(median, robust spread) of the calibrated field's dip over the inliers, degrees; (None,
-    None) without accelerometer columns."""
+    None) without accelerometer columns. ``gravity``: the track's gravity reference when it
+    cannot be built from its rows as one stretch (a subsample's); None builds it."""
     from ..fitting.gravity import gravity_reference
     from ..geomag import dip_deg
 
     if not track.has("accel") or not len(track.t_mag):
         return None, None
-    down, _ = gravity_reference(track).at(np.asarray(track.t_mag, dtype=float))
+    gravity = gravity_reference(track) if gravity is None else gravity
+    down, _ = gravity.at(np.asarray(track.t_mag, dtype=float))
     field = calibration.apply_field(track.mag, track.covariates_at_mag())
     inl = calibration.inliers
     if inl is not None and len(inl) == len(field):
