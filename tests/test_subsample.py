@@ -75,9 +75,14 @@ def test_a_hidden_lag_on_a_subsample_is_judged_as_on_the_whole_recording():
     assert b.rms_before == pytest.approx(a.rms_before, rel=0.1)
     assert b.rms_after == pytest.approx(a.rms_after, rel=0.1)
     assert sub.floor_for("gravity_tied") == pytest.approx(full.floor_for("gravity_tied"), rel=0.25)
-    # the horizontal field behind the heading error uses the same reference (dip ≈ 60°)
+    # the horizontal field behind the heading error uses the same reference (dip ≈ 60°), and
+    # so does the comparison with the local field (diagnose --lat/--lon)
     assert sub.heading_error_deg["H_uT"] == pytest.approx(full.heading_error_deg["H_uT"],
                                                           rel=0.05)
+    from streamcal.diagnosis.reference_field import fitted_dip
+
+    dip, _ = fitted_dip(sub.subsample, sub.calibration, sub.gravity)
+    assert dip == pytest.approx(fitted_dip(track, full.calibration)[0], abs=1.0)
 
 
 @pytest.mark.slow

@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     from ..fitting.attitude_reference import log_attitude_reference, log_location
 
     place = ref or log_location(track)[0]
-    local = reference_field(track, result.calibration, place)
+    local = reference_field(track, result.calibration, place,
+                            gravity=getattr(result, "gravity", None))
     attitude = log_attitude_reference(track, ref, result.calibration)
     if args.json:
         out = result.to_dict()

@@ -30,13 +30,14 @@ def fitted_dip(track, calibration, gravity=None) -> tuple[float | None, float | 
     return dip_deg(field, down)
 
 
-def reference_field(track, calibration, ref: dict | None, reason: str = NO_LOCATION) -> dict:
+def reference_field(track, calibration, ref: dict | None, reason: str = NO_LOCATION,
+                    gravity=None) -> dict:
     """The ``"reference_field"`` object of ``diagnose --json`` for ``calibration`` fitted to
     ``track`` against ``ref`` (:func:`streamcal.geomag.wmm_field`, or None: ``reason`` says
-    why)."""
+    why); ``gravity`` as for :func:`fitted_dip`."""
     if ref is None or calibration is None:
         return compare(None, None, "", reason=reason if ref is None
                        else "no calibration to compare")
-    dip, spread = fitted_dip(track, calibration)
+    dip, spread = fitted_dip(track, calibration, gravity)
     return compare(ref, calibration.field or calibration.radius,
                    calibration.unit or track.mag_unit, dip, spread)

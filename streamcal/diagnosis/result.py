@@ -40,8 +40,8 @@ class Diagnosis:
     lists, a NaN "no value" as null, so NaN equals NaN), and ``Diagnosis.from_dict(d.to_dict())
     == d``. What the JSON does not carry takes no part in equality and is absent (None) after
     :meth:`from_dict`: the per-sample ``outliers`` mask (its count and spans are carried), the
-    fitted ``calibration`` and the candidates' refits, and ``subsample`` (the Track a long
-    recording was diagnosed from).
+    fitted ``calibration`` and the candidates' refits, ``subsample`` (the Track a long
+    recording was diagnosed from) and its ``gravity`` reference.
 
     Which residual each rms is on (``residual``: ``"sensor"``, eq. 41 with free directions;
     ``"gravity_tied"`` or ``"gyro_tied"``, see :mod:`streamcal.diagnosis.candidates`): ``rms`` is
@@ -104,6 +104,9 @@ class Diagnosis:
     unit: str = ""
     #: The subsample Track a long recording was diagnosed from (None: the recording itself).
     subsample: object = field(default=None, repr=False, compare=False)
+    #: The gravity reference that subsample was judged with, built on the chunks read
+    #: (:meth:`streamcal.diagnosis.subsample.StratifiedSampler.gravity`; None otherwise).
+    gravity: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         object.__setattr__(self, "model", tuple(self.model))

@@ -322,7 +322,8 @@ def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODE
     (:func:`streamcal.diagnosis.diagnose`). The result carries ``sampling``: ``samples_used``,
     ``samples_total`` (magnetometer samples), ``subsample_rule`` and ``outlier_spans_over``
     (``"recording"`` when the spans were recomputed over every sample with the spans model,
-    ``"subsample"`` otherwise); ``subsample`` is the Track used."""
+    ``"subsample"`` otherwise); ``subsample`` is the Track used and ``gravity`` its gravity
+    reference (None without an accelerometer)."""
     sampler = sampler or StratifiedSampler()
     for chunk in chunks:
         sampler.add(chunk)
@@ -339,7 +340,7 @@ def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODE
     if whole_spans and spans_cal is not None:
         spans, n_out = _whole_spans(spans_cal, float(d.noise_floor), sampler.recording())
         sampling.update(outlier_spans_over="recording", n_outliers_recording=n_out)
-    return d.replace(outlier_spans=spans, sampling=sampling, subsample=sub)
+    return d.replace(outlier_spans=spans, sampling=sampling, subsample=sub, gravity=gravity)
 
 
 def _spans_calibration(d):
