@@ -183,9 +183,14 @@ class Diagnosis:
     def _html_rows(self, u: str) -> list[tuple[str, str]]:
         """The label and value rows at the head of :meth:`_repr_html_` (``u``: sensor unit)."""
         floor = quantity(self.noise_floor, u, 4) if self.floor_known else "not measurable"
-        return [("verdict", self.verdict), ("model", ", ".join(self.model)),
+        rows = [("verdict", self.verdict), ("model", ", ".join(self.model)),
                 ("rms", f"{quantity(self.rms, u, 4)} ({self.residual} residual)"),
                 ("noise floor", floor), ("samples", f"{self.n} ({self.n_outliers} outliers)")]
+        if self.residual != "sensor":   # the floor its rms is judged against
+            own = self.floor_for(self.residual)
+            rows.insert(3, (f"{self.residual.replace('_', '-')} floor",
+                            quantity(own, u, 4) if np.isfinite(own) else "not measurable"))
+        return rows
 
     def __str__(self) -> str:
         return summary_lines(self)
