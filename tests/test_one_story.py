@@ -144,14 +144,15 @@ def test_a_percentage_is_computed_from_the_two_numbers_shown(warm_up, capsys):
 @pytest.mark.parametrize("effect,size", [("time_lag", 0.02), ("mag_accel_misalignment", 0.06)])
 def test_the_loop_closes_on_a_tied_residual(effect, size):
     """A recording whose only missing effect is judged on the gravity-tied residual: named
-    first, then, once in the model, at the noise floor (judged on the same calibration's
-    sensor residual, the one the floor is measured for)."""
+    first, then, once in the model, at the noise floor — the gravity-tied residual's own
+    (streamcal.diagnosis.tied_noise), which its rms is compared with."""
     track = simulate(60.0, 11, effects={effect: size}).track
     before = streamcal.diagnose(track)
     assert before.verdict == "effect_missing" and before.candidates[0].effect == effect
     after = streamcal.diagnose(track, model=("hard_iron", "soft_iron", effect))
     assert after.residual == "gravity_tied"
     assert after.verdict == "at_noise_floor", after.summary
+    assert after.rms <= 1.5 * after.floor_for("gravity_tied")
 
 
 def _ev(norms, inliers, p):

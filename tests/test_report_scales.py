@@ -131,14 +131,17 @@ def test_html_and_terminal_tables_name_the_residual_of_every_row(tied):
     before = d.baseline(d.candidates[0])[1]
     assert f"{before:.4g}" in tied_row
     cells = [c.split(">", 1)[1] for c in tied_row.split("</td>") if "<td" in c]
-    assert cells[5] == "–"                                   # no "× floor" on a tied residual
+    # "× floor" on a tied residual is against that residual's own floor, not the sensor's
+    tied_floor = d.floor_for("gravity_tied")
+    assert cells[5] == f"{d.candidates[0].rms_after / tied_floor:.2f}"
     summary = page.split('class="box missing"', 1)[1].split("</div>", 1)[0]
     assert "gravity-tied residual" in summary and f"{before:.3g}" in summary   # 3 digits there
     text = _text(d)
     line = next(s for s in text.splitlines() if s.startswith(MISALIGNED))
     assert "gravity-tied" in line and f"{before:.4g}" in line
     step = next(s for s in text.splitlines() if s.startswith("+ " + MISALIGNED))
-    assert step.split()[-2] == "–"                          # then the step's outlier count
+    tied_step = next(s for s in d.ladder if s.get("added") == MISALIGNED)
+    assert step.split()[-2] == f"{tied_step['rms'] / tied_floor:.2f}"   # then the outliers
 
 
 @pytest.mark.slow

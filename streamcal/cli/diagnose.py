@@ -5,6 +5,7 @@ import argparse
 import functools
 import importlib
 import json
+import math
 import sys
 
 from ..calibration import jsonable
@@ -81,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     from ..fitting.attitude_reference import log_attitude_reference
 
     place = result.location   # the given place, else the log's GPS: what the library used
-    local = reference_field(track, result.calibration, place)
+    local = reference_field(track, result.calibration, place,
+                            gravity=getattr(result, "gravity", None))
     attitude = log_attitude_reference(track, place, result.calibration)
     if args.json:
         out = result.to_dict()
@@ -276,8 +278,8 @@ def _diagnosis_unit(d) -> str:
 
 def _text(d) -> str:
     """Every rms beside the rms it is compared with on the same residual, each named (see
-    :class:`streamcal.diagnose.Diagnosis`); "× floor" only for the sensor residual and only
-    when the recording measured the floor."""
+    :class:`streamcal.diagnose.Diagnosis`); "× floor" against the floor of the residual each
+    rms is on (a tied residual's own), where the recording measured it."""
     from ..diagnosis.misfit import summary
 
     known = d.floor_known
@@ -299,6 +301,14 @@ def _text(d) -> str:
                         f"{s['outlier_spans_over']}")
     if not known:
         lines.append(f"           why: {d.noise_floor_reason}")
+    for residual, entry in (d.tied_noise_floors or {}).items():
+        name = residual_name(residual)
+        if entry.get("reliable"):
+            lines.append(f"           {name} floor {entry['floor']:.4g} {u} (magnetometer noise "
+                         f"{entry['magnetometer_part']:.3g}, reference "
+                         f"{entry['reference_part']:.3g} {u})")
+        else:
+            lines.append(f"           {name} floor not measurable: {entry.get('reason', '')}")
     rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
     lines += [f"verdict    {d.verdict}   (rule: {rule})"]
     if d.verdict == "unexplained" and d.misfit:
@@ -318,14 +328,20 @@ def _text(d) -> str:
             residual = step.get("residual", "sensor")
             before = f"{step['rms_before']:>9.4g}" if "rms_before" in step else " " * 9
             ratio = ""
-            if known:   # × floor only where the rms is on the residual the floor is for
-                ratio = f"{step['rms'] / d.noise_floor:>9.2f}" if residual == "sensor" \
+            if known:   # × the floor of the residual the rms is on
+                floor = d.floor_for(residual)
+                ratio = f"{step['rms'] / floor:>9.2f}" if math.isfinite(floor) and floor > 0 \
                     else f"{'–':>9}"
             lines.append(f"{name:<34}{residual_name(residual):>13}{before}"
                          f"{step['rms']:>9.4g}{ratio}{step.get('n_outliers', ''):>10}")
         if known:
             lines.append(f"{'noise floor':<34}{'sensor':>13}{'':>9}{d.noise_floor:>9.4g}"
                          f"{1.0:>9.2f}")
+            for residual in d.tied_noise_floors or {}:
+                floor = d.floor_for(residual)
+                if math.isfinite(floor):
+                    lines.append(f"{'noise floor':<34}{residual_name(residual):>13}{'':>9}"
+                                 f"{floor:>9.4g}{1.0:>9.2f}")
     if d.outlier_spans:
         lines += ["", "outlier spans (s): " + ", ".join(f"[{a:.2f}, {b:.2f}]" for a, b in d.outlier_spans)]
     return "\n".join(lines)

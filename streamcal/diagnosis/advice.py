@@ -47,10 +47,12 @@ def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
     return argv
 
 
-def horizontal_field(track, calibration, location: dict | None) -> tuple[float | None, str]:
+def horizontal_field(track, calibration, location: dict | None,
+                     gravity=None) -> tuple[float | None, str]:
     """``(H, where)``: the horizontal field (µT) from the World Magnetic Model at ``location``
     (:func:`streamcal.geomag.wmm_field`), else from the recording (fitted field × cos dip, dip
-    from the accelerometer); ``(None, why not)`` otherwise."""
+    from the accelerometer, ``gravity`` its reference when given); ``(None, why not)``
+    otherwise."""
     if location is not None:
         h = location["intensity_uT"] * math.cos(math.radians(location["inclination_deg"]))
         return h, "World Magnetic Model at the given place"
@@ -62,7 +64,7 @@ def horizontal_field(track, calibration, location: dict | None) -> tuple[float |
                       "and no place was given (--lat/--lon)")
     from .reference_field import fitted_dip
 
-    dip, _ = fitted_dip(track, calibration)
+    dip, _ = fitted_dip(track, calibration, gravity)
     strength = calibration.field or calibration.radius
     if dip is None or not strength:
         return None, "the fitted dip could not be measured"
@@ -113,13 +115,18 @@ def summary(d) -> str:
             text.append(f"To do: {cmd}")
         return " ".join(text)
     if d.verdict == "at_noise_floor":
+        noise = {"gravity_tied": "the sensor's noise and the error of the accelerometer's "
+                                 "gravity direction it is compared with",
+                 "gyro_tied": "the sensor's noise and the gyro's over each compared pair"
+                 }.get(d.residual, "the sensor's noise")
         return (f"The model {', '.join(d.model)} explains this recording: its field error "
-                f"{size} is the sensor's noise. Nothing to do.")
+                f"{size} is {noise}. Nothing to do.")
     from .misfit import summary as misfit_lines
 
     lines = misfit_lines(d.misfit) if d.misfit else []
     where = f" Where it sits: {' '.join(lines[0].split())}." if lines else ""
-    floor = (f" above the noise floor {d.noise_floor:.3g} {u}" if d.floor_known
+    judged = d.floor_for(d.residual)
+    floor = (f" above the noise floor {judged:.3g} {u}" if np.isfinite(judged)
              else " and the noise floor cannot be measured here")
     return (f"The field error is {size}{floor}, and no catalog effect explains it.{where} "
             "To do: record again away from steel and electronics, or look at the report's "

@@ -9,8 +9,10 @@ direction takes the other two), the nested-model F statistic
 
 is referred to F(P, n − p₁). With thousands of samples a physically negligible effect is still
 "significant", so an effect is only called missing when it is also material (the rms drops by
-at least :data:`MIN_DROP`) and the base rms is clearly above the noise floor
-(:data:`ABOVE_FLOOR`): a clean track must come out ``at_noise_floor``.
+at least :data:`MIN_DROP`) and the base rms is clearly above the noise floor of its residual
+(:data:`ABOVE_FLOOR`; the magnetometer's for the sensor residual, a tied residual's own,
+:mod:`streamcal.diagnosis.tied_noise`, for the registration effects): a clean track must come
+out ``at_noise_floor``.
 
 Registration effects (``mag_accel_misalignment``, ``time_lag``) leave no trace in the eq. 41
 residual (every direction is free), so they are judged on the gravity-tied residual of

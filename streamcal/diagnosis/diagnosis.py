@@ -17,6 +17,7 @@ from . import candidates as cand
 from . import misfit as misfit_mod
 from . import verdict as verdict_mod
 from .noise import noise_floor
+from .tied_noise import tied_floor
 from .residuals import families, rms, sensor_residual
 from .result import Diagnosis
 from ..fitting.outlier_rule import outlier_mask, outlier_spans
@@ -100,16 +101,19 @@ class _Context:
     """What every refit of one diagnosis shares: the track, its arrays, the fitter and the
     gravity reference (built once, on demand)."""
 
-    def __init__(self, track, fitter, kernel, floor, subset_max=None):
+    def __init__(self, track, fitter, kernel, floor, subset_max=None, gravity=None):
         self.track, self.fitter, self.floor = track, fitter, floor
         #: the floor the materiality test uses: NaN once the floor is found unmeasurable
         self.material_floor = floor
+        #: (K, reliable, reason) the tied floors are computed with, once the base is fitted
+        self._tied_basis = None
+        self.tied_floors = {}
         # the tied fits have one robust cost of their own (as streamcal.fit does for them)
         self.kernel = "cauchy" if kernel == "auto" else kernel
         self.m = np.asarray(track.mag, dtype=float)
         self.cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
         self.cov.setdefault("t", np.asarray(track.t_mag, dtype=float))
-        self._gref = None
+        self._gref = gravity
         self._gyro = {}
         self._warm = "initial" in inspect.signature(fitter).parameters
         self.subset = None    # (mag sample indices, sub-track) for the ranking refits
@@ -120,6 +124,28 @@ class _Context:
             keep = ~np.asarray(track.mag_rows, bool)
             keep[np.flatnonzero(track.mag_rows)[idx]] = True
             self.subset = (idx, track.select(keep))
+
+    def set_floor(self, floor: float, reliable: bool, reason: str, K) -> None:
+        """The magnetometer floor as judged once the base model's rms is known (``floor``
+        NaN when not ``reliable``) and the base calibration's ``K``, which the tied floors
+        scale the reference's error by."""
+        self.material_floor = floor
+        self._tied_basis = (np.asarray(K, float), reliable, reason)
+
+    def floor_for(self, residual: str) -> float:
+        """The floor (sensor unit, NaN when not measurable) a rms on ``residual`` is judged
+        against: the magnetometer's, or the tied residual's own
+        (:mod:`streamcal.diagnosis.tied_noise`, computed once)."""
+        if residual == "sensor":
+            return self.material_floor
+        if residual not in self.tied_floors:
+            K, reliable, reason = self._tied_basis
+            gravity = self.gref if residual == "gravity_tied" and self.track.has("accel") \
+                else None
+            self.tied_floors[residual] = tied_floor(residual, self.track, K, self.floor,
+                                                    reliable, reason, gravity=gravity)
+        entry = self.tied_floors[residual]
+        return entry.floor if entry.reliable else float("nan")
 
     def gyro_fit(self, model, initial=None, *, fit_lag=False, lag=0.0, quick=True):
         """Gyro-tied fit (:func:`streamcal.fitting.gyro_lag.gyro_lag_fit`) of the non-registration
@@ -249,7 +275,8 @@ def _candidate(ctx: _Context, name: str, numbers, text: str, ref: _Evaluated,
     """A ranked candidate from its :class:`~streamcal.diagnosis.story.Comparison`."""
     return cand.Candidate(
         name, numbers.after, numbers.p_value, text, ev.p - ref.p,
-        cand.is_significant(numbers.before, numbers.after, numbers.p_value, ctx.material_floor),
+        cand.is_significant(numbers.before, numbers.after, numbers.p_value,
+                            ctx.floor_for(RESIDUAL_OF_KIND[ev.kind])),
         ev.cal, residual=RESIDUAL_OF_KIND[ev.kind], rms_before=numbers.before, n=numbers.n,
         _evaluated=ev, _reference=ref)
 
@@ -286,9 +313,12 @@ def _families(ctx: _Context, base: _Evaluated, model) -> dict:
 def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
              fitter: Callable | None = None, kernel: str = "auto",
              candidates: Sequence[str] | None = None, ladder: bool = True,
-             subset_max: int | None = SUBSET_MAX) -> Diagnosis:
+             subset_max: int | None = SUBSET_MAX, gravity=None) -> Diagnosis:
     """Diagnose ``model`` on ``track`` (a :class:`streamcal.inputs.track.Track`).
 
+    ``gravity``: the :class:`~streamcal.fitting.gravity.GravityReference` of the track when
+    it cannot be built from the track's rows as one stretch (a long recording's subsample:
+    :mod:`streamcal.diagnosis.subsample` builds it on the stretches it read); None builds it.
     ``calibration``: an existing fit of ``model`` to use instead of fitting; ``fitter(track,
     model) -> Calibration`` replaces :func:`streamcal.fitting.fit`; ``candidates`` restricts the effects
     tried (default: every catalog effect the track supports that the model lacks); ``ladder``
@@ -324,14 +354,15 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     gyro = np.stack([cov0[k] for k in ("gx", "gy", "gz")], 1) if all(
         k in cov0 for k in ("gx", "gy", "gz")) else None
     nf = noise_floor(m, t, gyro)
-    ctx = _Context(track, fitter, kernel, nf.floor, subset_max)
+    ctx = _Context(track, fitter, kernel, nf.floor, subset_max, gravity)
     cov = ctx.cov
     base = (_Evaluated(calibration, m, cov, nf.floor) if calibration is not None and not _tied(model)
             else ctx.evaluate(model, calibration))
     residual = RESIDUAL_OF_KIND[base.kind]
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
                                                   residual)
-    ctx.material_floor = floor = verdict_mod.reported_floor(nf.floor, reliable)
+    floor = verdict_mod.reported_floor(nf.floor, reliable)
+    ctx.set_floor(floor, reliable, reason, base.cal.K)
     names = _candidate_names(model, track) if candidates is None else [
         n for n in check_known(candidates) if n not in model]
     ranked = _rank(ctx, base, model, names)
@@ -345,14 +376,11 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     spans_from, spans_model = spans[-1] if spans else (base, tuple(model))
     steps, added, ranked = story.tell(
         model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added, ranked,
-        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor))
-    sensor = None
-    if base.tied:   # judged on the residual the floor is for: the same calibration, free directions
-        from .scales import sensor_rms
-
-        sensor = sensor_rms(base.cal, track)
-    verdict = verdict_mod.decide(steps[0]["rms"], residual, nf.floor, reliable, ranked,
-                                 sensor_rms=sensor)
+        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value,
+                                      ctx.floor_for(c.residual)))
+    judged = ctx.floor_for(residual)   # the floor of the residual the rms is on
+    verdict = verdict_mod.decide(steps[0]["rms"], residual, judged, bool(np.isfinite(judged)),
+                                 ranked)
     misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float),
                                  ctx.cov, gyro)
     # Spans and mask from the last magnetometer-only model of the ladder: a missing effect
@@ -364,6 +392,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         n_outliers_model=int(outliers.sum()), rms=steps[0]["rms"],
         noise_floor=floor, verdict=verdict, candidates=ranked,
         noise_floor_reliable=reliable, noise_floor_reason=reason, misfit=misfit,
+        noise_floor_rule=verdict_mod.floor_rule(residual),
+        tied_noise_floors={k: v.to_dict() for k, v in ctx.tied_floors.items()},
         outlier_spans=outlier_spans(t, outliers), ladder=steps,
         residual=RESIDUAL_OF_KIND[base.kind], outliers_model=spans_model, outliers=outliers,
         residual_families=_families(ctx, base, model),

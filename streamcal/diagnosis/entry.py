@@ -46,7 +46,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
             location = log_location(track)[0]
         except InputError:
             location = None
-    h, why = advice.horizontal_field(track, d.calibration, location)
+    h, why = advice.horizontal_field(track, d.calibration, location, kwargs.get("gravity"))
     heading = advice.heading_error(d, h)
     d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why,
                   location=location)

@@ -28,7 +28,7 @@ SAMPLING_KEYS = ("samples_used", "samples_total", "subsample_rule", "outlier_spa
 EVERY_SAMPLE = "every sample"
 #: The fields holding containers: stored deep-frozen (:func:`streamcal.values.freeze`).
 _CONTAINERS = ("candidates", "outlier_spans", "ladder", "residual_families", "noise", "misfit",
-               "sampling", "next_step", "heading_error_deg", "location")
+               "sampling", "next_step", "heading_error_deg", "location", "tied_noise_floors")
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,8 +45,8 @@ class Diagnosis:
     ``Diagnosis.from_dict(d.to_dict()) == d``. What the JSON does not carry takes no part in
     equality and is absent (None) after :meth:`from_dict`: the per-sample ``outliers`` mask
     (its count and spans are carried), the fitted ``calibration`` and the candidates' refits,
-    ``subsample`` (the Track a long recording was diagnosed from) and ``location`` (the place
-    of the heading error).
+    ``subsample`` (the Track a long recording was diagnosed from), its ``gravity`` reference
+    and ``location`` (the place of the heading error).
 
     ``held``: None for a fresh fit; for a diagnosis against a given (or the stated default)
     calibration, the :class:`~streamcal.diagnosis.held.part.HeldPart` saying what was held and
@@ -58,7 +58,10 @@ class Diagnosis:
     in ``candidate_baselines[effect]``, beside ``rms_before``, the model without the effect on
     that same residual — compare a candidate with its ``rms_before``, never with another
     residual's rms. Each ladder step carries its ``residual`` and (after the first) the
-    ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual.
+    ``rms_before`` it was compared with. ``noise_floor`` is on the sensor residual; the floor of
+    each tied residual the diagnosis used is in ``tied_noise_floors``
+    (:mod:`streamcal.diagnosis.tied_noise`), and :meth:`floor_for` gives the one a residual is
+    judged against.
 
     Outliers: ``n_outliers`` belongs with ``model`` and ``rms`` (docs/cli.md): the base model's
     outliers, the complement of the samples its rms is over. ``outlier_spans``, the (N,) bool
@@ -90,6 +93,10 @@ class Diagnosis:
     noise_floor_reliable: bool = True
     noise_floor_reason: str = ""
     noise_floor_rule: str = field(default_factory=verdict_mod.floor_rule)
+    #: ``{residual: {"floor", "reliable", "reason", "magnetometer_part", "reference_part",
+    #: "method"}}`` for each gravity- or gyro-tied residual the diagnosis judged (sensor unit;
+    #: floor null when not measurable).
+    tied_noise_floors: Mapping = field(default_factory=dict)
     significance_rule: str = field(default_factory=verdict_mod.significance_rule)
     #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
     misfit: Mapping | None = None
@@ -111,6 +118,9 @@ class Diagnosis:
     #: The World Magnetic Model field (:func:`streamcal.geomag.wmm_field`) at the place and date
     #: the heading error used: the one given, else the log's GPS position (None: neither).
     location: Mapping | None = field(default=None, repr=False, compare=False)
+    #: The gravity reference that subsample was judged with, built on the chunks read
+    #: (:meth:`streamcal.diagnosis.subsample.StratifiedSampler.gravity`; None otherwise).
+    gravity: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         object.__setattr__(self, "model", tuple(self.model))
@@ -181,11 +191,16 @@ class Diagnosis:
     def _html_rows(self, u: str) -> list[tuple[str, str]]:
         """The label and value rows at the head of :meth:`_repr_html_` (``u``: sensor unit)."""
         floor = quantity(self.noise_floor, u, 4) if self.floor_known else "not measurable"
-        return [("verdict", self.verdict), ("model", ", ".join(self.model)),
+        rows = [("verdict", self.verdict), ("model", ", ".join(self.model)),
                 ("rms", f"{quantity(self.rms, u, 4)} ({self.residual} residual)"),
                 ("noise floor", floor), ("samples", f"{self.n} ({self.n_outliers} outliers)"),
                 *([("against", self.held.calibration_source),
                    ("held", ", ".join(self.held.parameters) or "none")] if self.held else [])]
+        if self.residual != "sensor":   # the floor its rms is judged against
+            own = self.floor_for(self.residual)
+            rows.insert(3, (f"{self.residual.replace('_', '-')} floor",
+                            quantity(own, u, 4) if np.isfinite(own) else "not measurable"))
+        return rows
 
     def __str__(self) -> str:
         return summary_lines(self)
@@ -197,6 +212,16 @@ class Diagnosis:
     def floor_known(self) -> bool:
         """A noise floor this recording measured (ratios to it may be shown)."""
         return bool(self.noise_floor_reliable and np.isfinite(self.noise_floor))
+
+    def floor_for(self, residual: str) -> float:
+        """The noise floor (sensor unit) a rms on ``residual`` is judged against: the
+        magnetometer's for the sensor residual, the tied residual's own for a tied one; NaN
+        when not measured."""
+        if residual == "sensor":
+            return float(self.noise_floor) if self.floor_known else float("nan")
+        entry = (self.tied_noise_floors or {}).get(residual) or {}
+        value = entry.get("floor")
+        return float(value) if entry.get("reliable") and value is not None else float("nan")
 
     def baseline(self, candidate) -> tuple[str, float]:
         """``(residual, rms_before)`` of a candidate: the residual family its ``rms_after`` is
@@ -218,7 +243,7 @@ class Diagnosis:
         is neither significant nor material, and ``implausible`` says why."""
         residual, before = self.baseline(c)
         significant, material = cand.tests(before, c.rms_after, c.p_value,
-                                           self.noise_floor if self.floor_known else np.nan)
+                                           self.floor_for(residual))
         out = {**c.to_dict(), "residual": residual, "rms_before": before,
                "significant": significant, "material": material}
         if c.implausible:
@@ -237,6 +262,7 @@ class Diagnosis:
                 "noise_floor_reliable": self.floor_known,
                 "noise_floor_reason": self.noise_floor_reason,
                 "noise_floor_rule": self.noise_floor_rule, "verdict": self.verdict,
+                "tied_noise_floors": self.tied_noise_floors,
                 "significance_rule": self.significance_rule, "misfit": self.misfit,
                 "candidates": [self.candidate_dict(c) for c in self.candidates],
                 "outlier_spans": self.outlier_spans, "residual": self.residual,

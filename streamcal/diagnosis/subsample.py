@@ -16,6 +16,15 @@ inside a block; the fits drop pairs across gaps). Two strata decide which blocks
   direction about the centre of the algebraic ellipsoid fit of every sample read so far (running
   sufficient statistics).
 
+The gravity reference of the gravity-tied residual (:mod:`streamcal.fitting.gravity`) low-passes
+the accelerometer over tens of seconds: built on the subsample it would run across the gaps
+between the kept blocks (a gravity-tied rms of ≈ 25 µT where the recording gives 1 µT). So it
+is built on each chunk read (contiguous rows, after the last :data:`TAIL_S` seconds of the chunk
+before, so the filter has settled where the chunk starts) and kept for the kept blocks' IMU
+rows; a block within ``TAIL_S / 2`` of a chunk's end waits for the next chunk's reference, which
+holds it well inside. Its own error (``tilt``, for the tied residual's floor) is measured on the
+same chunks (:meth:`StratifiedSampler.gravity`).
+
 Priorities are uniform random numbers from a fixed seed, so a subsample is reproducible. The
 diagnosis then runs on the subsample; the outlier spans are computed over the whole recording
 from a compact copy of every magnetometer sample (time float64, field and covariates float32:
@@ -23,6 +32,7 @@ from a compact copy of every magnetometer sample (time float64, field and covari
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 from typing import Iterable, Sequence
 
@@ -48,6 +58,9 @@ N_CELLS = 100
 #: Recordings with more magnetometer samples than this are diagnosed from a subsample (10 min
 #: at 100 Hz); up to it every sample is used. Decided by the samples, whatever the format.
 LONG_SAMPLES = 60_000
+#: Seconds of the previous chunk the gravity reference of a chunk starts with (the zero-phase
+#: 0.05 Hz low-pass settles within about 10 s).
+TAIL_S = 30.0
 #: Rows per chunk read from the file.
 CHUNK_ROWS = 100_000
 #: Samples per piece when the whole-recording residual is evaluated.
@@ -89,6 +102,14 @@ class StratifiedSampler:
         self.store = {"t": [], "mag": [], "cov": []}
         self.cov_names = None
         self.samples_total = 0
+        # gravity reference: of the chunks the unfinished rows may come from, of the kept
+        # blocks, and (IMU samples, tilt σ) per chunk
+        self._refs: list = []
+        self._tail = None                        # the last TAIL_S s of the previous chunk
+        self._edge = np.inf                      # blocks ending after this wait (s)
+        self._pending: set[int] = set()
+        self.gref: dict[int, object] = {}
+        self._tilts: list[tuple[int, float, str]] = []
 
     # -- reading ---------------------------------------------------------------------------
     def add(self, chunk: Track) -> None:
@@ -99,6 +120,7 @@ class StratifiedSampler:
         if not len(chunk):
             return
         self._keep_mag(chunk)
+        self._reference(chunk)
         data = np.column_stack([chunk.columns[n] for n in self.names])
         if self.left is not None:
             data = np.concatenate([self.left, data])
@@ -126,6 +148,62 @@ class StratifiedSampler:
         ).astype(np.float32) if self.cov_names else np.zeros((len(m), 0), np.float32))
         D = design_matrix(m)
         self.scatter += D.T @ D
+
+    def _reference(self, chunk: Track) -> None:
+        """The gravity reference of one chunk (contiguous rows, after the previous chunk's
+        tail) and its error; the blocks that waited for it take theirs."""
+        from ..fitting.gravity import gravity_reference, tilt_sigma
+
+        if not chunk.has("accel") or int(np.sum(chunk.accel_rows)) < 2:
+            return
+        piece = chunk if self._tail is None else _concatenate([self._tail, chunk])
+        self._refs = [*self._refs[-1:], gravity_reference(piece)]
+        sigma, how = tilt_sigma(chunk)
+        self._tilts.append((int(np.sum(chunk.accel_rows)), sigma, how))
+        t = np.asarray(chunk.t, float)
+        self._tail = chunk.select(t >= t[-1] - TAIL_S)
+        self._edge = float(t[-1]) - TAIL_S / 2
+        self._settle()
+
+    def _settle(self) -> None:
+        """The blocks waiting for a reference take the latest one."""
+        for bid in self._pending:
+            if bid in self.rows:
+                self.gref[bid] = self._reference_rows(self.rows[bid])
+        self._pending = set()
+
+    def _reference_rows(self, rows: np.ndarray):
+        """The reference at the IMU rows of a kept block's ``rows`` (R, C), from the chunk that
+        holds each row; None when the track has no accelerometer."""
+        from ..fitting.gravity import GravityReference
+
+        if not self._refs:
+            return None
+        acols = [self.names.index(k) for k in ("ax", "ay", "az")]
+        t = rows[:, self.names.index("t")][np.isfinite(rows[:, acols]).all(axis=1)]
+        down, trust, taken = np.zeros((len(t), 3)), np.ones(len(t)), np.zeros(len(t), bool)
+        for ref in reversed(self._refs):   # the latest holds a row furthest from its ends
+            inside = ~taken & (t >= ref.t[0]) & (t <= ref.t[-1])
+            if inside.any():
+                down[inside], trust[inside] = ref.at(t[inside])
+                taken |= inside
+        return GravityReference(t[taken], down[taken], trust[taken], self._refs[-1].method)
+
+    def gravity(self):
+        """The gravity reference of the subsample (:meth:`track`): each kept block's, from the
+        chunk its rows were read in, with the chunks' error (``tilt``, the rms over their IMU
+        samples); None without an accelerometer."""
+        from ..fitting.gravity import joined
+
+        pieces = [self.gref[k] for k in sorted(self.gref)
+                  if k in self.rows and self.gref[k] is not None]
+        if not pieces or not self._tilts:
+            return None
+        n = np.array([k for k, _, _ in self._tilts], float)
+        tilt = np.array([s for _, s, _ in self._tilts], float)
+        ref = joined(pieces)
+        return dataclasses.replace(ref, tilt=float(np.sqrt(np.sum(n * tilt ** 2) / n.sum())),
+                                   tilt_method=self._tilts[-1][2] + ", on each chunk read")
 
     def _centre(self, m: np.ndarray) -> np.ndarray:
         """Centre of the algebraic ellipsoid fit of every sample so far (bounding-box middle of
@@ -160,10 +238,15 @@ class StratifiedSampler:
         keep = set(self.meta[:, 0].astype(np.int64)) | set(self.best[:, 2].astype(np.int64))
         for j, bid in enumerate(ids):
             if ok[j] and bid in keep and bid not in self.rows:
-                self.rows[int(bid)] = data[bounds[j]:bounds[j + 1]].copy()
+                self.rows[int(bid)] = rows = data[bounds[j]:bounds[j + 1]].copy()
+                if rows[-1, self.names.index("t")] > self._edge:
+                    self._pending.add(int(bid))    # near the chunk's end: the next one's
+                else:
+                    self.gref[int(bid)] = self._reference_rows(rows)
         for bid in list(self.rows):
             if bid not in keep:
                 del self.rows[bid]
+                self.gref.pop(bid, None)
 
     def _best(self, new: np.ndarray) -> np.ndarray:
         allb = np.concatenate([self.best, new])
@@ -190,6 +273,7 @@ class StratifiedSampler:
             t = self.left[:, self.names.index("t")]
             self._blocks(self.left, np.floor((t - self.t0) / self.block_s).astype(np.int64))
         self.left = None
+        self._settle()   # the recording's own end: as the whole recording's reference has it
 
     # -- results ---------------------------------------------------------------------------
     def track(self) -> Track:
@@ -238,12 +322,16 @@ def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODE
     (:func:`streamcal.diagnosis.diagnose`). The result carries ``sampling``: ``samples_used``,
     ``samples_total`` (magnetometer samples), ``subsample_rule`` and ``outlier_spans_over``
     (``"recording"`` when the spans were recomputed over every sample with the spans model,
-    ``"subsample"`` otherwise); ``subsample`` is the Track used."""
+    ``"subsample"`` otherwise); ``subsample`` is the Track used and ``gravity`` its gravity
+    reference (None without an accelerometer)."""
     sampler = sampler or StratifiedSampler()
     for chunk in chunks:
         sampler.add(chunk)
     sampler.finish()
     sub = sampler.track()
+    gravity = sampler.gravity()
+    if gravity is not None:
+        kwargs = {**kwargs, "gravity": gravity}   # the fresh diagnosis's tied fits use it
     d = diagnose(sub, model, **kwargs)
     sampling = {"samples_used": int(len(sub.mag)), "samples_total": int(sampler.samples_total),
                 "subsample_rule": sampler.rule(), "outlier_spans_over": "subsample"}
@@ -252,7 +340,7 @@ def diagnose_chunks(chunks: Iterable[Track], model: Sequence[str] = DEFAULT_MODE
     if whole_spans and spans_cal is not None:
         spans, n_out = _whole_spans(spans_cal, float(d.noise_floor), sampler.recording())
         sampling.update(outlier_spans_over="recording", n_outliers_recording=n_out)
-    return d.replace(outlier_spans=spans, sampling=sampling, subsample=sub)
+    return d.replace(outlier_spans=spans, sampling=sampling, subsample=sub, gravity=gravity)
 
 
 def _spans_calibration(d):

@@ -26,9 +26,13 @@ def summary(d, top: int = TOP) -> str:
     ``top`` ranked candidates, each ``rms_after`` beside the rms without it on the same
     residual."""
     u = diagnosis_unit(d)
-    if d.floor_known:
+    judged = d.floor_for(d.residual)
+    if d.residual != "sensor":
+        floor = (f"its own floor {quantity(judged, u, 4)} ({d.rms / judged:.2f}× the floor)"
+                 if math.isfinite(judged) and judged > 0 else "its own floor not measurable")
+    elif d.floor_known:
         floor = f"noise floor {quantity(d.noise_floor, u, 4)}"
-        if d.residual == "sensor" and d.noise_floor > 0:
+        if d.noise_floor > 0:
             floor += f" ({d.rms / d.noise_floor:.2f}× the floor)"
     else:
         floor = "noise floor not measurable"

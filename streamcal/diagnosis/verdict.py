@@ -4,8 +4,11 @@ Three verdicts:
 
 - ``effect_missing``: the best catalog effect is both significant and material
   (:func:`significance_rule` says both tests with their numbers);
-- ``at_noise_floor``: no such effect, the noise floor is measurable and the rms (on the sensor
-  residual, the one the floor is for) is within :data:`FLOOR_FACTOR` of it;
+- ``at_noise_floor``: no such effect, the noise floor of the residual the rms is on is measurable
+  and the rms is within :data:`FLOOR_FACTOR` of it — the magnetometer's floor
+  (:mod:`streamcal.diagnosis.noise`) for the sensor residual, the tied residual's own floor
+  (:mod:`streamcal.diagnosis.tied_noise`: the magnetometer's noise it keeps and its reference's
+  error) for a model judged on a gravity- or gyro-tied residual;
 - ``unexplained``: anything else — the rms is clearly above the floor, or the floor cannot be
   measured — with no catalog effect explaining it. The diagnosis then says where the misfit
   sits (:mod:`streamcal.diagnosis.misfit`).
@@ -24,12 +27,25 @@ FLOOR_FACTOR = 1.5
 FLOOR_OVER_RMS_MAX = 1.5
 
 
-def floor_rule(factor: float = FLOOR_FACTOR) -> str:
-    """The ``at_noise_floor`` rule in words (``noise_floor_rule``)."""
+#: What a tied residual's own floor holds, in words.
+TIED_FLOOR_OF = {
+    "gravity_tied": ("the gravity-tied residual's own floor (the magnetometer noise it keeps and "
+                     "the error of the accelerometer's gravity direction from the motion and "
+                     "noise it sees)"),
+    "gyro_tied": ("the gyro-tied residual's own floor (the magnetometer noise of both samples "
+                  "of a pair and the gyro's noise between them)"),
+}
+
+
+def floor_rule(residual: str = "sensor", factor: float = FLOOR_FACTOR) -> str:
+    """The ``at_noise_floor`` rule in words (``noise_floor_rule``) for a model whose rms is on
+    ``residual``: which floor governs."""
+    if residual in TIED_FLOOR_OF:
+        label = residual.replace("_", "-")
+        return (f"at_noise_floor only when {TIED_FLOOR_OF[residual]} is measurable and the "
+                f"{label} rms is at most {factor:g}× that floor")
     return (f"at_noise_floor only when the noise floor is measurable and the sensor-residual "
-            f"rms is at most {factor:g}× the floor (for a model with a registration effect: the "
-            f"same calibration's sensor-residual rms, every direction free, while no effect is "
-            f"significant on its gravity- or gyro-tied residual)")
+            f"rms is at most {factor:g}× the floor")
 
 
 def significance_rule() -> str:
@@ -38,7 +54,8 @@ def significance_rule() -> str:
             f"same residual, samples counted by their effective number (lag-1 autocorrelation), "
             f"p < {cand.P_VALUE:g}; material: the refit lowers that rms by at least "
             f"{100 * cand.MIN_DROP:g}% and the rms is above {cand.ABOVE_FLOOR:g}× the noise floor "
-            f"(when the floor is measurable)")
+            f"of that residual (when the floor is measurable; a gravity- or gyro-tied residual "
+            f"has its own)")
 
 
 def floor_reliable(floor: float, reliable: bool, reason: str, rms: float, residual: str
@@ -62,15 +79,13 @@ def reported_floor(floor: float, reliable: bool) -> float:
 
 
 def decide(rms: float, residual: str, floor: float, reliable: bool, ranked,
-           factor: float = FLOOR_FACTOR, sensor_rms: float | None = None) -> str:
-    """The verdict from the base model's ``rms`` on ``residual``, the noise ``floor`` (sensor
-    residual; ``reliable`` False when it cannot be measured) and the ranked candidates (best
-    first, each with ``significant``, which already includes materiality). A model on a tied
-    residual is judged by ``sensor_rms``, the same calibration on the sensor residual (the
-    residual the floor is measured for)."""
+           factor: float = FLOOR_FACTOR) -> str:
+    """The verdict from the base model's ``rms`` on ``residual``, that residual's noise
+    ``floor`` (the magnetometer's for the sensor residual, the tied residual's own for a tied
+    one; ``reliable`` False when it cannot be measured) and the ranked candidates (best first,
+    each with ``significant``, which already includes materiality)."""
     if ranked and ranked[0].significant:
         return "effect_missing"
-    judged = rms if residual == "sensor" else sensor_rms
-    if reliable and judged is not None and np.isfinite(floor) and judged <= factor * floor:
+    if reliable and np.isfinite(floor) and rms <= factor * floor:
         return "at_noise_floor"
     return "unexplained"

@@ -111,7 +111,17 @@ def _u(unit: str) -> str:
 
 
 def _floor_text(d, unit: str) -> str:
-    """"x× the noise floor (f unit)", or why there is no floor to compare with."""
+    """"x× the noise floor (f unit)", or why there is no floor to compare with; a rms on a tied
+    residual against that residual's own floor."""
+    if d.residual != "sensor":
+        floor = d.floor_for(d.residual)
+        name = d.residual.replace("_", "-")
+        if not np.isfinite(floor):
+            entry = (d.tied_noise_floors or {}).get(d.residual) or {}
+            return (f"the {name} residual's floor cannot be measured from this recording "
+                    f"({_e(entry.get('reason') or d.noise_floor_reason)})")
+        return (f"{_num(d.rms / floor, '.2f')}× the {name} residual's own noise floor "
+                f"({_num(floor)}{_u(unit)})")
     if not d.floor_known:
         return (f"the noise floor cannot be measured from this recording "
                 f"({_e(d.noise_floor_reason)})")
@@ -178,10 +188,11 @@ def diagnosis_section(d, unit: str, *, title: str, anchor: str, reason: str | No
             + _ladder(d, unit) + "</section>")
 
 
-def _floor_ratio(rms: float, residual: str, floor: float) -> str:
-    """× the noise floor, only where the rms is on the residual the floor is for and the
-    floor was measured."""
-    return _num(rms / floor, ".2f") if residual == "sensor" and np.isfinite(floor) else "–"
+def _floor_ratio(rms: float, residual: str, d) -> str:
+    """× the noise floor of the residual the rms is on (the magnetometer's for the sensor
+    residual, a tied residual's own for a tied one), where that floor was measured."""
+    floor = d.floor_for(residual)
+    return _num(rms / floor, ".2f") if np.isfinite(floor) and floor > 0 else "–"
 
 
 _SCALES_NOTE = ("<p class=\"sub\">Each rms is on the residual named in its row, and is compared "
@@ -203,7 +214,7 @@ def _candidates(d, unit: str) -> str:
     for c in d.candidates:
         row = d.candidate_dict(c)
         residual, before = row["residual"], row["rms_before"]
-        ratio = (_floor_ratio(c.rms_after, residual, d.noise_floor),) if d.floor_known else ()
+        ratio = (_floor_ratio(c.rms_after, residual, d),) if d.floor_known else ()
         rows.append((_e(c.effect), _e(RESIDUAL_FAMILIES.get(residual, ("?",))[0]), _num(before),
                      _num(c.rms_after), _e(relative_change(before, c.rms_after)), *ratio,
                      _num(c.p_value, ".2e"), "yes" if row["significant"] else "no",
@@ -227,11 +238,15 @@ def _ladder(d, unit: str) -> str:
                      _num(before) if before is not None else "",
                      _num(step["rms"]),
                      _e(relative_change(before, step["rms"])) if before is not None else "",
-                     *((_floor_ratio(step["rms"], step["residual"], d.noise_floor),)
+                     *((_floor_ratio(step["rms"], step["residual"], d),)
                        if d.floor_known else ()),
                      _num(step.get("p_value"), ".2e") if "p_value" in step else ""))
     if d.floor_known:
         rows.append(("noise floor", "sensor residual", "", _num(d.noise_floor), "", "1.00", ""))
+        for residual in d.tied_noise_floors or {}:
+            if np.isfinite(d.floor_for(residual)):
+                rows.append(("noise floor", _e(residual.replace("_", "-") + " residual"), "",
+                             _num(d.floor_for(residual)), "", "1.00", ""))
     table = _table(("step", "residual", f"rms before ({unit})", f"rms ({unit})", "change",
                     *(("× floor",) if d.floor_known else ()), "p-value"), rows,
                    numeric=tuple(range(2, 7 if d.floor_known else 6)))
@@ -273,6 +288,16 @@ def _noise(d, unit: str) -> str:
             ("σ per axis", _vec(n.get("sigma_axes", [])), unit),
             ("quantization step (LSB) per axis", _vec(n.get("lsb", [])), unit),
             ("estimated by", _e(n.get("method", "")), ""), ("samples used", _e(n.get("n_used", "")), "")]
+    for residual, entry in (d.tied_noise_floors or {}).items():
+        name = residual.replace("_", "-")
+        if entry.get("reliable"):
+            rows += [(f"{name} residual's floor", _num(entry["floor"]), unit),
+                     ("  magnetometer noise it keeps", _num(entry["magnetometer_part"]), unit),
+                     ("  its reference's error", _num(entry["reference_part"]), unit),
+                     ("  reference estimated from", _e(entry.get("method", "")), "")]
+        else:
+            rows.append((f"{name} residual's floor",
+                         "not measurable: " + _e(entry.get("reason", "")), ""))
     return _table(("", "value", "unit"), rows)
 
 
