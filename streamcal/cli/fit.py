@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import json
+import sys
 
 import numpy as np
 
 from ..calibration import DEFAULT_MODEL, jsonable
 from ..model.catalog import EFFECT_NAMES
-from ._common import RECORDING_HELP, add_input_options, read_track
+from ._common import RECORDING_HELP, add_input_options, read_track, recording_argv
 from ._location import add_location_options, location_reference
 from ._output import check_output, messages_to
 
@@ -247,8 +248,18 @@ def _refine(args, track) -> int:
     else:
         given, source = calibration_for(args.cal, track)
     cal = _for_compass(refine(track, given, args.add, calibration_source=source), track)
+    check = _heading_check(args, track, given, cal)
+    if check:
+        cal = cal.replace(extra={**dict(cal.extra or {}), "heading_check": check})
     if args.output:
         cal.save(args.output)
+    if check.get("worse"):
+        print(f"warning: against the attitude reference the refined calibration points the "
+              f"compass worse than {source or 'the given one'}: heading error rms "
+              f"{check['rms_before']:.2f}° → {check['rms_after']:.2f}° ({check['rule']}). This "
+              f"recording fixes the field's magnitude, not its direction; `streamcal fit "
+              f"{' '.join(recording_argv(args))} --attitude` fits against the reference instead",
+              file=sys.stderr)
     if args.json:
         print(json.dumps(jsonable(cal.to_dict()), allow_nan=False))
         return 0
@@ -256,9 +267,26 @@ def _refine(args, track) -> int:
     held = (cal.extra or {}).get("held") or []
     print(f"  held      {', '.join(held) or 'none'} (at the values of "
           f"{source or 'the stated default'}: this recording cannot determine them)")
+    if "rms_after" in check:
+        print(f"  heading   error rms against the attitude reference (the model field rotated "
+              f"by the logged attitude, {check['n']} samples): {check['rms_before']:.2f}° with "
+              f"{source or 'the stated default'} → {check['rms_after']:.2f}° refined (p95 "
+              f"{check['p95_before']:.2f}° → {check['p95_after']:.2f}°)")
     if args.output:
         print(f"written: {args.output}")
     return 0
+
+
+def _heading_check(args, track, given, refined) -> dict:
+    """:func:`streamcal.fitting.heading_check.heading_check` of a refinement when the log has
+    an attitude (the place: --lat/--lon, else its GPS); {} without an attitude or a given
+    calibration, ``{"reason": …}`` when there is no place."""
+    from ..constants import ATTITUDE_COLUMNS
+    from ..fitting.heading_check import heading_check
+
+    if given is None or not all(track.has(c) for c in ATTITUDE_COLUMNS):
+        return {}
+    return heading_check(track, given, refined, location_reference(args))
 
 
 def format_calibration(cal, source: str = "", residual: str = "sensor",

@@ -22,8 +22,9 @@ RESIDUAL_GLOSS = {"gravity_tied": "gravity-tied residual (each reading's directi
                   "gyro_tied": "gyro-tied residual (each reading's direction carried by the "
                                "gyro)"}
 #: How the heading error is estimated from an rms field error (``heading_error_deg["rule"]``).
-HEADING_RULE = ("heading error at worst: atan(rms / H), the angle a field error of the rms "
-                "turns the horizontal field H when it lies across it")
+HEADING_RULE = ("atan(rms / H): the angle a field error of the rms turns the horizontal "
+                "field H when it lies across it; an error in the field's direction, which the "
+                "field's size cannot show, comes on top (heading_check: against the attitude)")
 
 
 def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
@@ -84,6 +85,24 @@ def heading_error(d, h: float | None) -> dict | None:
             "rule": HEADING_RULE}
 
 
+def heading_sentences(d) -> list[str]:
+    """What the logged attitude says of the refinement ``next_step`` writes (``heading_check``):
+    its heading error beside the held calibration's, and a warning when it points worse."""
+    check = d.heading_check or {}
+    if check.get("rms_after") is None:
+        return []
+    before, after = check["rms_before"], check["rms_after"]
+    if not check.get("worse"):
+        return [f"Against the logged attitude the heading error goes from {before:.2f}° to "
+                f"{after:.2f}° rms."]
+    recording = list(d.next_step[2:d.next_step.index("--cal")]) if d.next_step and \
+        "--cal" in d.next_step else ["FLIGHT"]
+    return [f"Careful: against the logged attitude that refinement points the compass worse "
+            f"(heading error {before:.2f}° → {after:.2f}° rms): this recording fixes the "
+            f"field's size, not its direction; `streamcal fit {' '.join(recording)} "
+            f"--attitude` fits against the attitude instead."]
+
+
 def summary(d) -> str:
     """Two to four plain sentences: what is wrong, how large, what to do."""
     u = display_unit(getattr(d.calibration, "unit", None) or getattr(d, "unit", "") or "uT") \
@@ -92,7 +111,7 @@ def summary(d) -> str:
     heading = d.heading_error_deg or {}
     size = f"{first['rms']:.3g} {u}"
     if heading.get("before") is not None:
-        size += f" (a heading error of up to {heading['before']:.1f}°)"
+        size += f" (worth up to {heading['before']:.1f}° of heading)"
     if len(d.ladder) > 1:
         added = [s["added"] for s in d.ladder[1:]]
         what = added[0] if len(added) == 1 else ", ".join(added[:-1]) + " and " + added[-1]
@@ -110,6 +129,7 @@ def summary(d) -> str:
         change = "" if pct is None else f"{pct:+.0f}%, "
         text.append(f"With {what} added the rms{where} falls from {start:.3g} to {after} "
                     f"({change}over the same {first['n']} samples).")
+        text += heading_sentences(d)
         cmd = " ".join(d.next_step) if d.next_step else ""
         if cmd:
             text.append(f"To do: {cmd}")

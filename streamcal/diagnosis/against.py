@@ -141,7 +141,8 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
         residual_families=families(base.cal, m, cov, base.inliers, base.r, base.x),
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used},
-        calibration=base.cal, unit=start.unit, held=HeldPart(
+        calibration=base.cal, unit=start.unit,
+        last_calibration=current(added).cal if added else None, held=HeldPart(
             parameters=held, estimated=estimated,
             predicted_sigma={k: start.errors[k] for k in names if k in start.errors},
             tolerance=start.tol, calibration_source=start.source,

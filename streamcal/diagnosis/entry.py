@@ -6,6 +6,7 @@ from __future__ import annotations
 from typing import Sequence
 
 from ..calibration import DEFAULT_MODEL
+from ..constants import ATTITUDE_COLUMNS
 from ..errors import InsufficientDataError
 from ..model import REGISTRATION_EFFECTS
 from . import advice
@@ -46,6 +47,12 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
             location = log_location(track)[0]
         except InputError:
             location = None
+    if calibration is not None and d.held is not None and d.last_calibration is not None \
+            and all(track.has(c) for c in ATTITUDE_COLUMNS):
+        from ..fitting.heading_check import heading_check
+
+        d = d.replace(heading_check=heading_check(track, calibration, d.last_calibration,
+                                                  location))
     h, why = advice.horizontal_field(track, d.calibration, location, kwargs.get("gravity"))
     heading = advice.heading_error(d, h)
     d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why,

@@ -28,7 +28,8 @@ SAMPLING_KEYS = ("samples_used", "samples_total", "subsample_rule", "outlier_spa
 EVERY_SAMPLE = "every sample"
 #: The fields holding containers: stored deep-frozen (:func:`streamcal.values.freeze`).
 _CONTAINERS = ("candidates", "outlier_spans", "ladder", "residual_families", "noise", "misfit",
-               "sampling", "next_step", "heading_error_deg", "location", "tied_noise_floors")
+               "sampling", "next_step", "heading_error_deg", "location", "tied_noise_floors",
+               "heading_check")
 
 
 @dataclass(frozen=True, eq=False)
@@ -121,6 +122,13 @@ class Diagnosis:
     #: The gravity reference that subsample was judged with, built on the chunks read
     #: (:meth:`streamcal.diagnosis.subsample.StratifiedSampler.gravity`; None otherwise).
     gravity: object = field(default=None, repr=False, compare=False)
+    #: Heading error (degrees) against the logged attitude of the calibration held and of the
+    #: refinement ``next_step`` writes (:func:`streamcal.fitting.heading_check.heading_check`);
+    #: None without an attitude, a held calibration or a refinement.
+    heading_check: Mapping | None = None
+    #: The calibration of the ladder's last model, fitted on every sample (what ``next_step``
+    #: writes); None when the ladder adds nothing or the engine does not keep it.
+    last_calibration: object = field(default=None, repr=False, compare=False)
 
     def __post_init__(self):
         object.__setattr__(self, "model", tuple(self.model))
@@ -273,6 +281,7 @@ class Diagnosis:
                 "summary": self.summary, "next_step": self.next_step,
                 "heading_error_deg": self.heading_error_deg,
                 "heading_error_reason": self.heading_error_reason,
+                "heading_check": self.heading_check,
                 "ladder": self.ladder, "noise": self.noise,
                 "residual_families": self.residual_families, "unit": self.unit,
                 **(self.sampling or {"samples_used": self.n, "samples_total": self.n,
