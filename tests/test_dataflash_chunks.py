@@ -157,6 +157,8 @@ def test_pieces_are_time_ordered_and_bounded(tmp_path):
     for before, after in zip(chunks, chunks[1:]):
         assert before.columns["t"][-1] <= after.columns["t"][0]
     assert max(len(c) for c in chunks) < 2 * rows_per_piece * 2
+    one = list(dataflash_chunks.iter_dataflash_chunks(path, piece_bytes=path.stat().st_size))
+    assert len(one) == 1 and len(one[0]) == sum(len(c) for c in chunks)   # read once, whole
 
 
 @pytest.mark.slow

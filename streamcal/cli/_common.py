@@ -124,8 +124,9 @@ def _command(args) -> str:
 def recording_chunks(args, rows: int):
     """The recording named by ``args.track`` as consecutive Tracks: a section-1 track of at
     most ``rows`` rows each and an ArduPilot DataFlash log piece by piece (both read
-    incrementally, memory bounded by the piece), else one Track (other autopilot logs, captures
-    and mapped CSV files are read whole by their readers)."""
+    incrementally, memory bounded by the piece), a PX4 ULog read whole and given out in slices
+    of ``rows`` rows, else one Track (captures and mapped CSV files are read whole by their
+    readers)."""
     from ..inputs.chunks import iter_track_chunks
     from ..inputs.detect import detect
 
@@ -139,7 +140,16 @@ def recording_chunks(args, rows: int):
             and not getattr(args, "topic", None) and compass != "all" \
             and detect(args.track) == "dataflash":
         return _warned(args, _dataflash_chunks(args.track, compass))
+    if compass != "all" and detect(args.track) == "ulog":
+        # read whole, given out in slices (views): no whole copy downstream
+        return _whole_in_slices(args, rows)
     return iter([read_track(args)])
+
+
+def _whole_in_slices(args, rows: int):
+    track = read_track(args)
+    for a in range(0, max(len(track), 1), rows):
+        yield track.select(slice(a, a + rows))
 
 
 def _dataflash_chunks(path, compass):

@@ -17,7 +17,7 @@ the resumable header walk (:class:`.dataflash_bulk.Walker`):
 What is held grows with the small message types and ~8 bytes per compass sample (the median of
 the logged field's magnitude), not with the size of the log. A log whose message formats change
 part-way, or that the whole-log reader would refuse, is read whole (same Track, same error),
-then given out in slices.
+then given out in slices; a log of one piece is read whole, once.
 """
 from __future__ import annotations
 
@@ -408,6 +408,13 @@ def iter_dataflash_chunks(path, *, compass: int | None = None,
     :func:`~streamcal.inputs.dataflash.read_dataflash`'s Track; InputError as that function."""
     path = Path(path)
     try:
+        small = path.stat().st_size <= piece_bytes
+    except OSError:
+        small = True    # the whole-log reader names the problem
+    if small:   # one piece: read once, not twice
+        yield read_dataflash(path, compass=compass)
+        return
+    try:
         plan = _survey(path, compass, piece_bytes)
     except (_Fallback, InputError):
         yield from _slices(read_dataflash(path, compass=compass))
@@ -451,7 +458,5 @@ def _emit(plan: _Plan, heavy: list, small: list, order, path) -> Track | None:
 
 def _slices(track: Track, rows: int = SLICE_ROWS) -> Iterator[Track]:
     """A whole Track given out as Tracks of at most ``rows`` rows (views, metadata shared)."""
-    n = len(track)
-    for a in range(0, max(n, 1), rows):
-        yield Track({c: v[a:a + rows] for c, v in track.columns.items()}, track.metadata,
-                    track.path)
+    for a in range(0, max(len(track), 1), rows):
+        yield track.select(slice(a, a + rows))
