@@ -181,3 +181,56 @@ def test_field_median_held_as_counts_is_numpys(n):
             med.add(part, chars)
         assert med.median() == np.median(np.linalg.norm(logged, axis=1))
     assert len(med.floats) == 3
+
+
+def test_convert_and_diagnose_read_a_log_piece_by_piece(tmp_path, monkeypatch, capsys):
+    """``convert`` writes the whole read's track from the pieces; ``diagnose`` of a log longer
+    than the subsample threshold goes through the stratified subsample of the pieces (a minute
+    of log keeps every block), every sample counted, also ``--cal log``."""
+    import json
+
+    from streamcal.cli import main
+    from streamcal.diagnosis import subsample
+
+    path = _selfmade(tmp_path, seconds=60.0)
+    monkeypatch.setattr(dataflash_chunks, "PIECE_BYTES", 1 << 14)
+    seen = []
+    real = dataflash_chunks._survey
+    monkeypatch.setattr(dataflash_chunks, "_survey", lambda *a: seen.append(a) or real(*a))
+    out = tmp_path / "out.csv"
+    assert main(["convert", str(path), "-o", str(out)]) == 0
+    whole = dataflash.read_dataflash(path)
+    got = Track.read(out)
+    assert seen and len(got) == len(whole)
+    for name in whole.columns:
+        np.testing.assert_allclose(got.columns[name], whole.columns[name], rtol=1e-9,
+                                   err_msg=name)
+    monkeypatch.setattr(subsample, "LONG_SAMPLES", 1000)
+    for extra in ([], ["--cal", "log"]):
+        capsys.readouterr()
+        assert main(["diagnose", str(path), "--json", *extra]) == 0
+        d = json.loads(capsys.readouterr().out)
+        assert d["samples_total"] == len(whole.t_mag) >= d["samples_used"] > 0
+        assert d["subsample_rule"].startswith("stratified subsample")
+        assert d["outlier_spans_over"] == "recording"
+
+
+def test_reading_in_pieces_holds_less_than_the_whole_read(tmp_path):
+    """Peak memory (tracemalloc) while going through a log piece by piece, each Track dropped
+    once seen, is a fraction of the whole read's: it does not hold the log."""
+    import tracemalloc
+
+    path = _selfmade(tmp_path, seconds=120.0)
+
+    def peak(read):
+        tracemalloc.start()
+        try:
+            read()
+            return tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+
+    whole = peak(lambda: dataflash.read_dataflash(path))
+    pieces = peak(lambda: [len(c) for c in
+                           dataflash_chunks.iter_dataflash_chunks(path, piece_bytes=1 << 16)])
+    assert pieces < whole / 3, (pieces, whole)

@@ -1,5 +1,5 @@
 """An ArduPilot DataFlash log read as consecutive time-ordered Tracks, memory bounded by the piece
-read, not the log (issue #23 item 6).
+read, not the log.
 
 :func:`iter_dataflash_chunks` gives Tracks whose rows, put end to end, are exactly the Track of
 :func:`streamcal.inputs.dataflash.read_dataflash` (same columns, values, order and metadata); each
@@ -9,13 +9,14 @@ the resumable header walk (:class:`.dataflash_bulk.Walker`):
 1. a survey: the small message types (everything but ``MAG*`` and ``IMU``, ~10 Hz) are kept whole
    and made into their streams by the whole-log reader's own functions; of the compasses and the
    IMU only what the whole-log decisions need is kept (row counts, finite rows, the earliest time
-   of each piece, the logged field's magnitude for its median, the distinct offsets);
+   of each piece, the distinct squared magnitudes of the logged field with their counts for its
+   median, the distinct offsets);
 2. the compass and IMU rows, piece by piece, through the same row arithmetic
-   (:func:`.dataflash.mag_values`); a row is given out once no later piece holds an earlier stamp
+   (:func:`.dataflash_mag.mag_values`); a row is given out once no later piece holds an earlier stamp
    (from the survey), so the merge order is the whole log's stable time sort.
 
-What is held grows with the small message types and ~8 bytes per compass sample (the median of
-the logged field's magnitude), not with the size of the log. A log whose message formats change
+What is held grows with the small message types only (and with the compass samples when their
+fields are not integers: the magnitudes for the median), not with the size of the log. A log whose message formats change
 part-way, or that the whole-log reader would refuse, is read whole (same Track, same error),
 then given out in slices; a log of one piece is read whole, once.
 """
@@ -32,8 +33,9 @@ from ..errors import InputError
 from .autopilot_cal import MG_PER_UT, ardupilot_param, ardupilot_param_index, compass_params
 from .attitude_streams import dataflash_attitude
 from .dataflash import (MAG_NAMES, MESSAGES, _baro_temp, _battery, _Messages, _rcou, _time,
-                        add_params, mag_meta, mag_values, read_dataflash, walk_notes)
+                        add_params, read_dataflash, walk_notes)
 from .dataflash_bulk import Walker, decode
+from .dataflash_mag import mag_meta, mag_values
 from .dataflash_throttle import ctun_throttle, rcou_throttle
 from .streams import Stream, drop_nonfinite, merge
 from .track import Track
@@ -402,11 +404,12 @@ def _take(pending: list, limit: float) -> tuple[list, list]:
 
 
 def iter_dataflash_chunks(path, *, compass: int | None = None,
-                          piece_bytes: int = PIECE_BYTES) -> Iterator[Track]:
+                          piece_bytes: int | None = None) -> Iterator[Track]:
     """Yield the DataFlash log at ``path`` (compass ``compass``, default the autopilot's first)
     as consecutive Tracks in time order whose rows end to end are
     :func:`~streamcal.inputs.dataflash.read_dataflash`'s Track; InputError as that function."""
     path = Path(path)
+    piece_bytes = int(piece_bytes or PIECE_BYTES)
     try:
         small = path.stat().st_size <= piece_bytes
     except OSError:
