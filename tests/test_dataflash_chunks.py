@@ -159,6 +159,7 @@ def test_pieces_are_time_ordered_and_bounded(tmp_path):
     assert max(len(c) for c in chunks) < 2 * rows_per_piece * 2
     one = list(dataflash_chunks.iter_dataflash_chunks(path, piece_bytes=path.stat().st_size))
     assert len(one) == 1 and len(one[0]) == sum(len(c) for c in chunks)   # read once, whole
+    assert one[0].path == path and all(c.path == path for c in chunks)
 
 
 @pytest.mark.slow

@@ -415,12 +415,12 @@ def iter_dataflash_chunks(path, *, compass: int | None = None,
     except OSError:
         small = True    # the whole-log reader names the problem
     if small:   # one piece: read once, not twice
-        yield read_dataflash(path, compass=compass)
+        yield _whole(path, compass)
         return
     try:
         plan = _survey(path, compass, piece_bytes)
     except (_Fallback, InputError):
-        yield from _slices(read_dataflash(path, compass=compass))
+        yield from _slices(_whole(path, compass))
         return
     order = ["MAG", "IMU"]   # stream order of the whole-log reader: compass, IMU, then small
     pending_small = list(plan.small)
@@ -455,6 +455,12 @@ def _emit(plan: _Plan, heavy: list, small: list, order, path) -> Track | None:
     if not any(len(s.t) for s in streams):
         return None
     track = merge(streams, plan.meta, t0=plan.t0, names=plan.names)
+    track.path = path
+    return track
+
+
+def _whole(path: Path, compass) -> Track:
+    track = read_dataflash(path, compass=compass)
     track.path = path
     return track
 
