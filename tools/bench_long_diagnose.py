@@ -13,10 +13,13 @@ own subprocess (``python -m streamcal diagnose TRACK --json``, peak RSS from
 1-hour ≤ 10 s and ≤ 400 MB; 4-hour peak RSS ≤ 1.3 × the 1-hour's; verdict and top candidate as
 the full computation's.
 
-``--formats`` adds the 1-hour recording as CSV.gz, as an ArduPilot DataFlash log (written by the
-tests' self-made log writer, ``tests/_selfmade_logs.py``: the same readings, IMU rows, a throttle
-channel and COMPASS_* parameters) diagnosed ``--cal log``, and the CSV ``--cal CAL.json``: the
-subsample is decided by the number of samples, whatever the format or starting point.
+``--formats`` adds the 1-hour recording as CSV.gz, the CSV ``--cal CAL.json``, and the 1-hour
+and 4-hour recordings as ArduPilot DataFlash logs (written by the tests' self-made log writer,
+``tests/_selfmade_logs.py``: the same readings, IMU rows, a throttle channel and COMPASS_*
+parameters), diagnosed as they are and ``--cal log`` (with ``--full-long`` also the full
+``--cal log`` computation of the 1-hour log, the same-run baseline); ``--ulog`` the 1-hour
+recording as a PX4 ULog. The subsample is decided by the number of samples, whatever the format
+or starting point.
 
 ``--baseline CHECKOUT`` runs every row with that checkout's code too (another worktree, e.g. the
 commit this one branched from), alternating baseline / this ``--repeat`` times (default 1), and
@@ -70,12 +73,13 @@ print(json.dumps({"rc": proc.returncode, "maxrss_kib":
 """
 
 
-def _dataflash(track_path: Path, out: Path) -> Path:
-    """The 1-hour track as the DataFlash log ArduPilot would write (self-made writer)."""
+def _flight(track_path: Path):
+    """The track's readings as the tests' self-made flight (``tests/_selfmade_logs.py``): IMU
+    rows, a throttle channel, six motor outputs, battery volts and amps at 10 Hz."""
     import numpy as np
 
     sys.path.insert(0, str(REPO / "tests"))
-    from _selfmade_logs import FlightSlice, write_dataflash
+    from _selfmade_logs import FlightSlice
 
     from streamcal.inputs.track import Track
 
@@ -85,14 +89,31 @@ def _dataflash(track_path: Path, out: Path) -> Path:
     t_mag = np.asarray(track.t_mag)
     t_ch = np.arange(0.0, float(t_mag[-1]), 0.1)
     thr = 0.5 + 0.2 * np.sin(2 * np.pi * t_ch / 60.0)
-    flight = FlightSlice(
+    return FlightSlice(
         t_mag=t_mag, mag_uT=np.asarray(track.mag), t_imu=np.asarray(c["t"])[imu],
         accel=np.column_stack([np.asarray(c[k])[imu] for k in ("ax", "ay", "az")]),
         gyro=np.column_stack([np.asarray(c[k])[imu] for k in ("gx", "gy", "gz")]),
         temp=np.asarray(c["temp"])[imu], throttle_at_mag=np.interp(t_mag, t_ch, thr),
         t_ch=t_ch, throttle=thr, pwm=np.tile((1100 + 800 * thr)[:, None], (1, 6)),
         volts=np.full(len(t_ch), 15.8), amps=5.0 + 20.0 * thr)
+
+
+def _dataflash(track_path: Path, out: Path) -> Path:
+    """The track as the DataFlash log ArduPilot would write (self-made writer)."""
+    flight = _flight(track_path)
+    from _selfmade_logs import write_dataflash
+
     return write_dataflash(out, flight, messages=("IMU", "RCOU", "CURR"))
+
+
+def _ulog(track_path: Path, out: Path) -> Path:
+    """The track as the ULog PX4 would write (self-made writer: sensor_mag, sensor_combined,
+    actuator_outputs, battery_status)."""
+    flight = _flight(track_path)
+    from _selfmade_logs import write_ulog
+
+    return write_ulog(out, flight, topics=("sensor_combined", "actuator_outputs",
+                                           "battery_status"))
 
 
 def _run(path: Path, full: bool, repo: Path = REPO, label: str = "", extra=()) -> dict:
@@ -126,6 +147,8 @@ def main() -> int:
     ap.add_argument("--only", help="comma-separated rows: 5min-full,5min,1h-full,1h,4h")
     ap.add_argument("--formats", action="store_true", help="also the 1-hour recording as CSV.gz, "
                     "as DataFlash diagnosed --cal log, and the CSV --cal CAL.json")
+    ap.add_argument("--ulog", action="store_true", help="with --formats: also the 1-hour "
+                    "recording as a PX4 ULog")
     ap.add_argument("--baseline", metavar="CHECKOUT", help="also run each row with this checkout")
     ap.add_argument("--repeat", type=int, default=1, help="alternations per row (default 1)")
     args = ap.parse_args()
@@ -164,18 +187,39 @@ def main() -> int:
             if not gz.exists():
                 with open(paths["1h"], "rb") as src, gzip.open(gz, "wb", compresslevel=1) as dst:
                     shutil.copyfileobj(src, dst)
-            bin_ = where / "1h.bin"
-            if not bin_.exists():
-                _dataflash(paths["1h"], bin_)
+            bins = {}
+            for name in ("1h", "4h"):
+                if name in paths:
+                    bins[name] = where / f"{name}.bin"
+                    if not bins[name].exists():
+                        start = time.perf_counter()
+                        _dataflash(paths[name], bins[name])
+                        print(f"wrote {bins[name].name}: "
+                              f"{bins[name].stat().st_size / 1e6:.0f} MB in "
+                              f"{time.perf_counter() - start:.0f} s", flush=True)
             cal = where / "cal.json"
             if not cal.exists():
                 from streamcal import fit
                 from streamcal.inputs.track import Track
 
                 fit(Track.read(paths["5min"] if "5min" in paths else paths["1h"])).save(cal)
-            for path, extra in ((gz, ()), (bin_, ("--cal", "log")), (paths["1h"], ("--cal", str(cal)))):
-                runs.setdefault((path.name + " ".join(extra), "sub", "this"), []).append(
-                    _run(path, False, extra=extra))
+            plan = [(gz, (), False), (paths["1h"], ("--cal", str(cal)), False)]
+            if "1h" in bins:
+                plan += [(bins["1h"], (), False), (bins["1h"], ("--cal", "log"), False)]
+                if args.full_long:   # same-run baseline: the full computation
+                    plan.append((bins["1h"], ("--cal", "log"), True))
+            if "4h" in bins:
+                plan.append((bins["4h"], ("--cal", "log"), False))
+            if args.ulog:
+                ulg = where / "1h.ulg"
+                if not ulg.exists():
+                    _ulog(paths["1h"], ulg)
+                plan.append((ulg, (), False))
+                if args.full_long:
+                    plan.append((ulg, (), True))
+            for path, extra, full in plan:
+                runs.setdefault((path.name + " ".join(extra), "full" if full else "sub",
+                                 "this"), []).append(_run(path, full, extra=extra))
         rows = {k[:2]: v[-1] for k, v in runs.items() if k[2] == "this"}
         if args.baseline:
             import statistics
@@ -199,10 +243,24 @@ def main() -> int:
                   f"{one['rss_mb'] / base['rss_mb']:.2f}x RSS of the full 5-min diagnosis")
         if one and four:
             print(f"4 h / 1 h peak RSS: {four['rss_mb'] / one['rss_mb']:.3f} (target <= 1.3)")
+        df1, df4 = rows.get(("1h.bin--cal log", "sub")), rows.get(("4h.bin--cal log", "sub"))
+        dff = rows.get(("1h.bin--cal log", "full"))
+        if df1 and df4:
+            print(f"DataFlash --cal log: 1 h {df1['s']:.1f} s, {df1['rss_mb']:.0f} MiB; 4 h / 1 h "
+                  f"peak RSS {df4['rss_mb'] / df1['rss_mb']:.3f} (target <= 1.3)")
+        ul, ulf = rows.get(("1h.ulg", "sub")), rows.get(("1h.ulg", "full"))
+        if ul and ulf:
+            print(f"ULog 1 h: verdict and top candidate equal to the full computation's: "
+                  f"{(ul['verdict'], ul['top']) == (ulf['verdict'], ulf['top'])}")
+        if df1 and dff:
+            print(f"DataFlash --cal log 1 h: verdict and top candidate equal to the full "
+                  f"computation's: {(df1['verdict'], df1['top']) == (dff['verdict'], dff['top'])}")
         ref = rows.get(("1h", "full"), base)
         if ref:
+            # the ULog carries no temperature (self-made writer): compared with its own full run
             same = all((r["verdict"], r["top"]) == (ref["verdict"], ref["top"])
-                       for k, v in runs.items() if "--cal" not in k[0] for r in v)
+                       for k, v in runs.items()
+                       if "--cal" not in k[0] and not k[0].endswith(".ulg") for r in v)
             print(f"verdict and top candidate equal to the full {ref['track']} diagnosis on "
                   f"every track and run: {same}")
     return 0

@@ -122,18 +122,50 @@ def _command(args) -> str:
 
 
 def recording_chunks(args, rows: int):
-    """The recording named by ``args.track`` as consecutive Tracks of at most ``rows`` rows when
-    it is a section-1 track (read incrementally), else as one Track (autopilot logs, captures
-    and mapped CSV files are read whole by their readers)."""
+    """The recording named by ``args.track`` as consecutive Tracks: a section-1 track of at
+    most ``rows`` rows each and an ArduPilot DataFlash log piece by piece (both read
+    incrementally, memory bounded by the piece), a PX4 ULog read whole and given out in slices
+    of ``rows`` rows, else one Track (captures and mapped CSV files are read whole by their
+    readers)."""
     from ..inputs.chunks import iter_track_chunks
     from ..inputs.detect import detect
 
-    if getattr(args, "columns", None) is None and getattr(args, "compass", None) is None \
+    compass = getattr(args, "compass", None)
+    if getattr(args, "columns", None) is None and compass is None \
             and detect(args.track) == "track":
         return _counted(args, iter_track_chunks(args.track, rows=rows,
                                                 skip_bad_rows=getattr(args, "skip_bad_rows",
                                                                       False)))
+    if getattr(args, "columns", None) is None and getattr(args, "unit", None) is None \
+            and not getattr(args, "topic", None) and compass != "all" \
+            and detect(args.track) == "dataflash":
+        return _warned(args, _dataflash_chunks(args.track, compass))
+    if compass != "all" and detect(args.track) == "ulog":
+        # read whole, given out in slices (views): no whole copy downstream
+        return _whole_in_slices(args, rows)
     return iter([read_track(args)])
+
+
+def _whole_in_slices(args, rows: int):
+    track = read_track(args)
+    for a in range(0, max(len(track), 1), rows):
+        yield track.select(slice(a, a + rows))
+
+
+def _dataflash_chunks(path, compass):
+    from pathlib import Path
+
+    from ..inputs.dataflash_chunks import iter_dataflash_chunks
+
+    yield from iter_dataflash_chunks(Path(path), compass=compass)
+
+
+def _warned(args, chunks):
+    """The chunks unchanged; what a cut or damaged log lost is said on stderr with the first."""
+    for k, chunk in enumerate(chunks):
+        if not k:
+            say_read_warnings(args.track, chunk, _command(args))
+        yield chunk
 
 
 def _counted(args, chunks):

@@ -54,12 +54,13 @@ import numpy as np
 
 from ..errors import InputError
 from .track import Track
-from .autopilot_cal import (MG_PER_UT, ardupilot_matrix, ardupilot_param, ardupilot_param_index,
+from .autopilot_cal import (MG_PER_UT, ardupilot_param, ardupilot_param_index,
                             compass_params)
 from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
 from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
 from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
+from .dataflash_mag import mag_meta, mag_values
 
 MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "PARM",
             "MSG")
@@ -127,26 +128,42 @@ def _parse(path: Path) -> _Messages:
             raise InputError(f"{path}: cannot read the DataFlash log ({exc}): unknown layout") \
                 from None
         if name == "PARM" and {"Name", "Value"} <= set(cols):
-            for key, value in zip(cols["Name"].tolist(), cols["Value"].tolist()):
-                out.params[str(key)] = float(value)
+            add_params(out.params, cols, path)
         elif name == "MSG" and "Message" in cols:
             out.texts += [str(m) for m in cols["Message"].tolist()]
         elif name not in ("PARM", "MSG"):
             out.fields[name] = list(fmt.columns)
             out.cols[name] = cols
             out.types[name] = dict(zip(fmt.columns, fmt.format))
+    out.texts += walk_notes(chain)
+    return out
+
+
+def walk_notes(chain) -> list[str]:
+    """What the walk of a log lost (a cut, skipped runs, trailing bytes), one text each."""
+    notes = []
     if chain.cut > 0:
-        out.texts.append(f"truncated: {chain.cut} trailing bytes ignored (the log ends inside a "
-                         "message; read to the last complete one)")
+        notes.append(f"truncated: {chain.cut} trailing bytes ignored (the log ends inside a "
+                     "message; read to the last complete one)")
     if chain.skipped:
         runs = ", ".join(f"{n} at offset {at}" for at, n in chain.skipped[:5])
         more = f" and {len(chain.skipped) - 5} more runs" if len(chain.skipped) > 5 else ""
-        out.texts.append(f"Skipped {sum(n for _, n in chain.skipped)} bad bytes ({runs}{more}): "
-                         "resynchronised on the next message header")
+        notes.append(f"Skipped {sum(n for _, n in chain.skipped)} bad bytes ({runs}{more}): "
+                     "resynchronised on the next message header")
     if chain.trailing:
-        out.texts.append(f"Skipped {chain.trailing} trailing bytes after the last message "
-                         "(no message header)")
-    return out
+        notes.append(f"Skipped {chain.trailing} trailing bytes after the last message "
+                     "(no message header)")
+    return notes
+
+
+def add_params(params: dict, cols: dict, path: Path) -> None:
+    """PARM rows (``Name``, ``Value`` columns) into ``params``, the last value of a name kept."""
+    for key, value in zip(cols["Name"].tolist(), cols["Value"].tolist()):
+        try:
+            params[str(key)] = float(value)
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: PARM {key!s:.40}: value {value!r:.40} is not a number: "
+                             "unknown layout") from None
 
 
 def _parse_pymavlink(path: Path) -> _Messages:
@@ -251,49 +268,15 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
     params_of = ardupilot_param_index(msgs.params, instance)
     meta["compass_params_index"] = str(params_of)
     msgs, name = _mag_rows(msgs, path, instance)
-    t = _time(msgs, name, path)
     logged = np.column_stack([msgs.array(name, c) for c in ("MagX", "MagY", "MagZ")])
     meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(logged, axis=1)) / MG_PER_UT:.4g}"
-    raw = logged.copy()
-    if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ"):
-        mofs = np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")])
-        raw -= mofs
-        meta["mag_motor_offsets_undone"] = (
-            f"{name}.MOfsX/Y/Z subtracted per sample" if np.any(mofs)
-            else f"none ({name}.MOfs all 0)")
-    else:
-        mofs = None
-        meta["mag_motor_offsets_undone"] = f"could not: {name} has no MOfsX/Y/Z"
-    S = ardupilot_matrix(msgs.params, params_of)
-    dia, odi = ardupilot_param("DIA", params_of), ardupilot_param("ODI", params_of)[8:]
-    if np.allclose(S, np.eye(3)):
-        meta["mag_soft_iron_undone"] = f"none ({dia}/{odi} identity or not logged)"
-    else:
-        raw = np.linalg.solve(S, raw.T).T
-        meta["mag_soft_iron_undone"] = f"inverse of the PARM {dia}/{odi} matrix applied" + (
-            " (assumes motor offsets added after the matrix, ArduPilot 4.x order)"
-            if mofs is not None and np.any(mofs) else "")
-    ofs_names = [ardupilot_param("OFS", params_of, a) for a in "XYZ"]
-    if msgs.has(name, "OfsX", "OfsY", "OfsZ"):
-        ofs = np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")])
-        raw -= ofs
-        values = np.unique(ofs, axis=0)
-        shown = ",".join(f"{v:g}" for v in values[0]) if len(values) == 1 else \
-            f"{len(values)} different sets over the log"
-        meta["mag_offsets_undone"] = (f"{name}.OfsX/Y/Z subtracted per sample (ArduPilot adds "
-                                      f"them: logged = raw + Ofs); Ofs = {shown} mG")
-    elif all(n in msgs.params for n in ofs_names):
-        ofs = np.array([msgs.params[n] for n in ofs_names])
-        raw -= ofs
-        meta["mag_offsets_undone"] = (f"PARM {ofs_names[0][:-2]}_X/Y/Z subtracted ({name} has no "
-                                      f"OfsX/Y/Z; assumed constant) = "
-                                      f"{','.join(f'{v:g}' for v in ofs)} mG")
-    else:
-        meta["mag_offsets_undone"] = (f"could not: {name} has no OfsX/Y/Z and no "
-                                      f"{ofs_names[0][:-2]}_* parameter was logged; mx,my,mz are "
-                                      "the corrected field")
-    mag = raw / MG_PER_UT
-    return Stream(name, t, {"mx": mag[:, 0], "my": mag[:, 1], "mz": mag[:, 2]})
+    mofs = np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")]) \
+        if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ") else None
+    ofs = np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")]) \
+        if msgs.has(name, "OfsX", "OfsY", "OfsZ") else None
+    mag_meta(msgs, name, params_of, meta, mofs is not None and bool(np.any(mofs)),
+             None if ofs is None else np.unique(ofs, axis=0))
+    return Stream(name, _time(msgs, name, path), mag_values(msgs, name, params_of, logged))
 
 
 def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:

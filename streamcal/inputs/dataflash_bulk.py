@@ -97,54 +97,87 @@ class Walk:
     trailing: int = 0
 
 
-def walk(data: bytes) -> Walk:
-    """Follow the message chain from byte 0 (see the module docstring for the rules).
+class Walker:
+    """The message chain walked piece by piece: :meth:`feed` consecutive stretches of the file,
+    each starting where the previous call said to resume; ``walk`` holds the formats, name map,
+    skipped runs, ``cut`` and ``trailing`` found so far (identical to :func:`walk` of the whole
+    file once the last stretch was fed with ``final=True``)."""
 
-    The candidate headers (every ``0xA3 0x95``) are found with numpy; the Python loop only
-    visits candidates (one per message plus the rare payload bytes that look like a header).
-    """
-    size = len(data)
-    buf = np.frombuffer(data, dtype=np.uint8)
-    cand = np.flatnonzero((buf[:-2] == 0xA3) & (buf[1:-1] == 0x95)) if size >= 3 else \
-        np.zeros(0, dtype=np.int64)
-    types = buf[cand + 2]
-    lengths = [0] * 256
-    lengths[FMT_TYPE] = FMT_LENGTH
-    out = Walk()
-    keep, keep_types = [], []
-    pos = 0
-    for c, t in zip(cand.tolist(), types.tolist()):
-        if c < pos:
-            continue  # header-like bytes inside a message already taken
-        length = lengths[t]
-        if not length:
-            continue  # unknown type: not a message start, keep scanning
-        if c > pos:
-            out.skipped.append((pos, c - pos))
-        if c + length > size:
-            out.cut = size - c
-            pos = size
-            break
-        if t == FMT_TYPE:
-            ftype, flen, name, fmt, cols = _FMT_BODY.unpack_from(data, c + 3)
-            if flen >= 3:
-                lengths[ftype] = flen
-                fmt_obj = Format(ftype, _fmt_text(name), flen, _fmt_text(fmt),
-                                 [col for col in _fmt_text(cols).split(",") if col] or [])
-                out.formats[ftype] = fmt_obj
-                out.name_to_type[fmt_obj.name] = ftype
-        keep.append(c)
-        keep_types.append(t)
-        pos = c + length
-    if pos < size:
-        if size - pos >= 2 and data[size - 2:] == MAGIC:  # the file ends inside a header
-            if size - 2 > pos:
-                out.skipped.append((pos, size - 2 - pos))
-            out.cut = 2
-        else:
-            out.trailing = size - pos
-    offsets = np.asarray(keep, dtype=np.int64)
-    kinds = np.asarray(keep_types, dtype=np.uint8)
+    def __init__(self):
+        self.lengths = [0] * 256
+        self.lengths[FMT_TYPE] = FMT_LENGTH
+        self.walk = Walk()
+        self.pos = 0                 # absolute offset where the next message must start
+
+    def feed(self, data: bytes, base: int, final: bool) -> tuple[np.ndarray, np.ndarray, int]:
+        """Walk ``data``, the file's bytes from absolute offset ``base`` (``final``: they run
+        to the end of the file). Returns ``(offsets, types, resume)``: the messages found
+        (offsets relative to ``data``, int64; their type ids, uint8) and the relative offset the
+        next call must start from (the bytes from there are given again, then the next ones).
+
+        The candidate headers (every ``0xA3 0x95``) are found with numpy; the Python loop only
+        visits candidates (one per message plus the rare payload bytes that look like a header).
+        """
+        size = len(data)
+        out, lengths = self.walk, self.lengths
+        buf = np.frombuffer(data, dtype=np.uint8)
+        cand = np.flatnonzero((buf[:-2] == 0xA3) & (buf[1:-1] == 0x95)) if size >= 3 else \
+            np.zeros(0, dtype=np.int64)
+        types = buf[cand + 2]
+        keep, keep_types = [], []
+        pos = self.pos - base        # relative; negative inside a skipped run begun earlier
+        resume = None
+        for c, t in zip(cand.tolist(), types.tolist()):
+            if c < pos:
+                continue  # header-like bytes inside a message already taken
+            length = lengths[t]
+            if not length:
+                continue  # unknown type: not a message start, keep scanning
+            if c + length > size:
+                if not final:
+                    resume = c   # the message runs into the next stretch
+                    break
+                if c > pos:
+                    out.skipped.append((base + pos, c - pos))
+                out.cut = size - c
+                pos = size
+                break
+            if c > pos:
+                out.skipped.append((base + pos, c - pos))
+            if t == FMT_TYPE:
+                ftype, flen, name, fmt, cols = _FMT_BODY.unpack_from(data, c + 3)
+                if flen >= 3:
+                    lengths[ftype] = flen
+                    fmt_obj = Format(ftype, _fmt_text(name), flen, _fmt_text(fmt),
+                                     [col for col in _fmt_text(cols).split(",") if col] or [])
+                    out.formats[ftype] = fmt_obj
+                    out.name_to_type[fmt_obj.name] = ftype
+            keep.append(c)
+            keep_types.append(t)
+            pos = c + length
+        self.pos = base + pos
+        if not final:
+            if resume is None:   # the last 2 bytes were not examined as header starts
+                resume = min(max(pos, size - 2), size)
+            return np.asarray(keep, dtype=np.int64), np.asarray(keep_types, dtype=np.uint8), \
+                max(resume, 0)
+        if pos < size:
+            if size - pos >= 2 and data[size - 2:] == MAGIC:  # the file ends inside a header
+                if size - 2 > pos:
+                    out.skipped.append((base + pos, size - 2 - pos))
+                out.cut = 2
+            else:
+                out.trailing = size - pos
+            self.pos = base + size
+        return np.asarray(keep, dtype=np.int64), np.asarray(keep_types, dtype=np.uint8), size
+
+
+def walk(data: bytes) -> Walk:
+    """Follow the message chain of a whole file from byte 0 (see the module docstring for the
+    rules); ``offsets[type]`` the messages of each type."""
+    walker = Walker()
+    offsets, kinds, _ = walker.feed(data, 0, final=True)
+    out = walker.walk
     for t in np.unique(kinds).tolist():
         out.offsets[t] = offsets[kinds == t]
     return out

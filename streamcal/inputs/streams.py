@@ -42,12 +42,13 @@ class Stream:
 
 
 def merge(streams: Sequence[Stream], metadata: Mapping[str, str], *,
-          t0: float | None = None) -> Track:
+          t0: float | None = None, names: Sequence[str] | None = None) -> Track:
     """Stack the streams' rows into one track, time ordered, ``t`` shifted so it starts at
     ``t0`` (default: the earliest stamp of any stream) = 0 s.
 
-    Streams with no rows are left out; a column named by several streams is shared. Raises
-    :class:`InputError` if no stream has a row.
+    Streams with no rows are left out; a column named by several streams is shared; ``names``
+    (default: the streams' columns) are the columns the track has, empty where no stream fills
+    them. Raises :class:`InputError` if no stream has a row.
     """
     streams = [s for s in streams if len(s.t)]
     if not streams:
@@ -55,7 +56,8 @@ def merge(streams: Sequence[Stream], metadata: Mapping[str, str], *,
     t = np.concatenate([s.t for s in streams])
     if t0 is None:
         t0 = float(t.min())
-    names = list(dict.fromkeys(name for s in streams for name in s.columns))
+    if names is None:
+        names = list(dict.fromkeys(name for s in streams for name in s.columns))
     n = len(t)
     columns = {name: np.full(n, np.nan) for name in names}
     start = 0
@@ -66,17 +68,18 @@ def merge(streams: Sequence[Stream], metadata: Mapping[str, str], *,
         start = stop
     order = np.argsort(t, kind="stable")
     t = t[order] - t0
-    columns = {name: values[order] for name, values in columns.items()}
+    for name in names:   # one column at a time: the unsorted one is freed at once
+        columns[name] = columns[name][order]
 
     def triple(names3):
         if names3[0] not in columns:
             return None
-        return np.column_stack([columns.pop(c) for c in names3])
+        return tuple(columns.pop(c) for c in names3)
 
     mag, accel, gyro = triple(MAG), triple(ACCEL), triple(GYRO)
     temp = columns.pop(TEMP, None)
-    return Track.from_arrays(t, mag=mag, accel=accel, gyro=gyro, temp=temp, aux=columns,
-                             metadata=metadata)
+    # the arrays were made for this track: no copies (a long log's track is most of the memory)
+    return Track._from_arrays(t, mag, accel, gyro, temp, columns, metadata, copy=False)
 
 
 def drop_nonfinite(streams: Sequence[Stream], meta: dict) -> list[Stream]:

@@ -103,7 +103,17 @@ class Track:
             accel: (N,3) m/s²; gyro: (N,3) rad/s; temp: (N,) °C; aux: ``{name: (N,)}``.
             metadata: ``{key: value}`` strings, written as ``# key: value`` lines.
         """
-        t = np.array(t, dtype=np.float64, copy=True)
+        return cls._from_arrays(t, mag, accel, gyro, temp, aux, metadata, copy=True)
+
+    @classmethod
+    def _from_arrays(cls, t, mag, accel, gyro, temp, aux, metadata, *, copy: bool) -> "Track":
+        """:meth:`from_arrays`; ``copy=False`` keeps the given float64 arrays (a triple may
+        then be a tuple of three (N,) columns), for readers that built them for the track."""
+        def own(values):
+            return np.array(values, dtype=np.float64, copy=True) if copy else \
+                np.asarray(values, dtype=np.float64)
+
+        t = own(t)
         if t.ndim != 1:
             raise TrackError(f"t must be 1-D, got shape {t.shape}", column=TIME)
         n = len(t)
@@ -113,18 +123,20 @@ class Track:
             values = triples[kind]
             if values is None and kind != "mag":
                 continue
-            values = np.full((n, 3), np.nan) if values is None else \
-                np.array(values, dtype=np.float64, copy=True)
+            if isinstance(values, tuple):     # three columns, kept as they are
+                columns.update(zip(TRIPLES[kind], (own(v) for v in values)))
+                continue
+            values = np.full((n, 3), np.nan) if values is None else own(values)
             if values.shape != (n, 3):
                 raise TrackError(f"{kind} must have shape ({n}, 3), got {values.shape}",
                                  column=TRIPLES[kind][0])
             columns.update(zip(TRIPLES[kind], values.T.copy()))
         if temp is not None:
-            columns[TEMP] = np.array(temp, dtype=np.float64, copy=True)
+            columns[TEMP] = own(temp)
         for name, values in dict(aux or {}).items():
             if name in KNOWN or not trackio.COLUMN_NAME.fullmatch(str(name)):
                 raise TrackError(f"invalid auxiliary column name {name!r}", column=str(name))
-            columns[str(name)] = np.array(values, dtype=np.float64, copy=True)
+            columns[str(name)] = own(values)
         for name, values in columns.items():
             if values.shape != (n,):
                 raise TrackError(f"must have shape ({n},), got {values.shape}", column=name)
