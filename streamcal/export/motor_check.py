@@ -200,7 +200,7 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
     for which, c in (("the calibration", cal), ("the calibration in force", cal_in_force)):
         lacking = [name for name in needed_channels(c) if name not in cov] if c else []
         if lacking:
-            raise InputError(f"{which} compensates {', '.join(lacking)}, which the recording "
+            raise InputError(f"{which} needs channel {', '.join(lacking)} (its motor term), which the recording "
                              f"lacks (channels: {', '.join(track.aux_names) or 'none'})")
     m = np.asarray(track.mag, dtype=float)
     if ref is None:
