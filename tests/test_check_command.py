@@ -206,3 +206,28 @@ def test_compare_tolerances():
     assert (out["spread"], out["heading"], out["worse"]) == ("lower", "higher", True)
     out = compare({"spread_pct": 0.5}, {"spread_pct": 0.35})
     assert (out["spread"], out["heading"], out["better"]) == ("lower", None, True)
+
+
+def test_second_compass(tmp_path, capsys):
+    """A calibration fitted for compass 1 (exported as COMPASS_*2_*) is checked with the same
+    formula on compass 1; read at another compass, a line on stderr says which to give."""
+    from ._dataflash_log import write_flight
+
+    log = tmp_path / "two.bin"
+    write_flight(log, [{"ofs": (30.0, -20.0, 10.0)},
+                       {"ofs": (-50.0, 40.0, 5.0), "err": np.array([150.0, 0.0, 0.0])}],
+                 motct=1, mot=(20.0, -10.0, 30.0))
+    new = tmp_path / "c1.json"
+    assert main(["fit", str(log), "--compass", "1", "--cal", "autopilot", "--add",
+                 "aux_interference=throttle", "-o", str(new)]) == 0
+    out = _json(["check", str(new), str(log), "--compass", "1"], capsys)
+    track = read_recording(log, compass=1)
+    cov, m = track.covariates_at_mag(), np.asarray(track.mag, float)
+    in_force = autopilot_calibration(track)
+    assert out["before"]["ardupilot"] == figures(
+        firmware_field(in_force, "ardupilot", m, motor_signal(in_force, "ardupilot", cov)), None)
+    # compass 1's calibration in force misses 15 µT of hard iron
+    assert out["after"]["ardupilot"]["spread_pct"] < 0.2 * out["before"]["ardupilot"]["spread_pct"]
+    assert main(["check", str(new), str(log)]) == 0
+    err = capsys.readouterr().err
+    assert "fitted for compass 1" in err and "--compass 1" in err

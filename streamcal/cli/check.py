@@ -48,6 +48,7 @@ def run(args) -> int:
     if cal.sensor != "mag" or cal.unit != "uT":
         raise InputError(f"{args.calibration}: a magnetometer calibration in µT is needed, this "
                          f"one is for {cal.sensor!r} in {cal.unit!r}")
+    _say_other_compass(args, cal, track)
     ref = location_reference(args)
     in_force = calibration_in_force(track)
     firmware = "px4" if track.metadata.get("input_format") == "px4-ulog" else "ardupilot"
@@ -71,6 +72,18 @@ def run(args) -> int:
         return 0
     print("\n".join(_split_text(out) if args.split else _check_text(out)))
     return 0
+
+
+def _say_other_compass(args, cal, track) -> None:
+    """A line on stderr when CAL was fitted for another compass than the one read."""
+    import sys
+
+    fitted = (cal.extra or {}).get("compass_instance")
+    read = track.metadata.get("compass_instance")
+    if fitted is not None and read is not None and int(fitted) != int(read):
+        print(f"streamcal check: {args.calibration} was fitted for compass {int(fitted)}, "
+              f"{args.track} is read at compass {int(read)} (give --compass {int(fitted)})",
+              file=sys.stderr)
 
 
 def _split_channel(args, cal, in_force) -> str:

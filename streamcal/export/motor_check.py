@@ -68,7 +68,12 @@ def firmware_field(cal: Calibration, firmware: str, m_uT: np.ndarray,
                    signal: np.ndarray | None) -> np.ndarray:
     """``cal`` exported for ``firmware`` and applied with its formula to readings ``m_uT``
     (M,3) µT with the motor channel's values ``signal`` (M,) (throttle 0..1 or current A):
-    the corrected field (M,3) in µT, in the exported matrix's frame."""
+    the corrected field (M,3) in µT, in the exported matrix's frame. A calibration fitted for
+    another compass than the first is exported under the first's parameter names: the formula
+    is the same for every parameter set."""
+    extra = dict(cal.extra or {})
+    if extra.pop("compass_params_index", 0):
+        cal = cal.replace(extra=extra)
     if firmware == "ardupilot":
         params = read_parameters(export_ardupilot(cal)[0], firmware)
         return apply_ardupilot(params, MG_PER_UT * m_uT, signal) / MG_PER_UT
@@ -114,8 +119,9 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
     against the attitude reference over the held-out samples inside the attitude's span, when
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
-    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``g_uT`` (the
-    fitted term, µT per channel unit). InputError
+    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``n_heading``
+    (the checked samples with a heading error), ``g_uT`` (the fitted term, µT per channel
+    unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
     lacks it, or the calibration in force compensates another channel. A motor term in force
     on ``channel`` is held by ``refit`` and fitted afresh by ``after``.
@@ -151,6 +157,7 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
            "checked_s": [round(float(check_part.t_mag[0]), 3),
                          round(float(check_part.t_mag[-1]), 3)],
            "n_checked": int(len(m)),
+           "n_heading": int(len(data.rows)) if data is not None else 0,
            "g_uT": [float(v) for v in
                     cals["after"].effects["aux_interference"]["channels"][channel]["g"]]}
     if data is None:
@@ -200,8 +207,9 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
     for which, c in (("the calibration", cal), ("the calibration in force", cal_in_force)):
         lacking = [name for name in needed_channels(c) if name not in cov] if c else []
         if lacking:
-            raise InputError(f"{which} needs channel {', '.join(lacking)} (its motor term), which the recording "
-                             f"lacks (channels: {', '.join(track.aux_names) or 'none'})")
+            raise InputError(f"{which} needs channel {', '.join(lacking)} (its motor term), "
+                             f"which the recording lacks (channels: "
+                             f"{', '.join(track.aux_names) or 'none'})")
     m = np.asarray(track.mag, dtype=float)
     if ref is None:
         ref, why = log_location(track)
