@@ -167,11 +167,16 @@ def test_bad_input_is_one_line_and_exit_2(two_flights, tmp_path, capsys):
                                     messages=("IMU", "CURR"))
     not_cal = tmp_path / "not_cal.json"
     not_cal.write_text('{"hello": 1}\n')
+    counts = tmp_path / "counts.csv"
+    counts.write_text("time,Bx,By,Bz\n" + "".join(f"{0.1 * k},{300 + k},{-200 - k},{100}\n"
+                                                  for k in range(100)))
     cases = [([str(new), str(no_mag)], "nomag.bin"),
              ([str(not_cal), str(second)], "not_cal.json"),
              ([str(new), str(throttle_only)], "battery_current_a"),
              (["autopilot", str(second), "--split", "first"], "no motor term"),
-             ([str(new), str(second), "--lat", "47"], "--lat and --lon")]
+             ([str(new), str(second), "--lat", "47"], "--lat and --lon"),
+             ([str(new), str(counts), "--columns", "mx=Bx,my=By,mz=Bz,t=time", "--unit",
+               "counts"], "in counts")]
     for argv, what in cases:
         capsys.readouterr()
         assert main(["check", *argv]) == 2, argv

@@ -44,6 +44,9 @@ def run(args) -> int:
     track = read_track(args)
     if track.mag is None or not len(track.t_mag):
         raise InputError(f"{args.track}: no magnetometer samples")
+    if track.mag_unit != "uT":
+        raise InputError(f"{args.track}: the readings are in {track.mag_unit}; the firmwares' "
+                         "formulas take a field in physical units (give --unit)")
     cal, source = calibration_for(args.calibration, track, "CAL")
     if cal.sensor != "mag" or cal.unit != "uT":
         raise InputError(f"{args.calibration}: a magnetometer calibration in µT is needed, this "
