@@ -296,3 +296,24 @@ def test_report_with_every_compass_diagnosis(two, tmp_path, capsys):
         shown = re.search(r"Heading error: up to ([0-9.]+)°", section).group(1)
         assert float(shown) == pytest.approx(d["heading_error_deg"]["before"], abs=0.005)
         assert f"{d['ladder'][0]['rms']:.4g}" in section
+
+
+def test_report_terminal_says_each_compass_as_diagnose_does(two, tmp_path, capsys):
+    """report --compass all prints, per compass, what diagnose --compass all begins with: the
+    compass, its verdict line and its local-field lines (the same text), then the table."""
+    path, _ = two
+    place = ["--lat", "78", "--lon", "15", "--date", "2025-06-01"]
+    assert main(["diagnose", str(path), "--compass", "all", "--json", *place]) == 0
+    compasses = json.loads(capsys.readouterr().out)["compasses"]
+    assert main(["diagnose", str(path), "--compass", "all", *place]) == 0
+    diagnosed = capsys.readouterr().out
+    assert main(["report", str(path), "--compass", "all", "-o", str(tmp_path / "r.html"),
+                 *place]) == 0
+    blocks = capsys.readouterr().out.split("\n\n")
+    assert blocks[len(compasses)].startswith("consistency")
+    for c, block in zip(compasses, blocks):
+        lines = block.splitlines()
+        assert lines[0] == f"compass {c['instance']} (device id {c['device_id']})"
+        assert lines[1].startswith(f"verdict    {c['diagnosis']['verdict']}   (rule: ")
+        assert lines[2].startswith("reference  WMM") and "78.0000°, 15.0000°" in lines[2]
+        assert lines[1] in diagnosed and "\n".join(lines[2:]) in diagnosed

@@ -17,7 +17,7 @@ import sys
 from ..errors import StreamcalError
 
 #: Order in ``--help``; modules found in this package but not listed come after.
-ORDER = ("demo", "fit", "diagnose", "report", "convert", "export", "apply", "batch", "replay",
+ORDER = ("demo", "fit", "diagnose", "report", "convert", "export", "check", "apply", "batch", "replay",
          "daemon", "serial", "record")
 
 

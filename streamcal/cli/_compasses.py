@@ -99,6 +99,17 @@ def _place_lines(e: dict) -> list[str]:
     return [""] + text_lines(e["reference_field"]) + attitude_lines(e)
 
 
+def _terminal_lines(e: dict) -> list[str]:
+    """What ``report --compass all`` says of one compass on the terminal, as ``diagnose
+    --compass all`` begins it: the compass, its verdict, the local field and the attitude
+    reference (or why there is no calibration)."""
+    from .diagnose import verdict_line
+
+    if e["diagnosis"] is None:
+        return [_compass_title(e), f"no calibration: {e['error']}"]
+    return [_compass_title(e), verdict_line(e["diagnosis"])] + _place_lines(e)[1:]
+
+
 def _pair_line(p: dict) -> str:
     def f(v, fmt=".3g"):
         return "–" if v is None else format(v, fmt)
@@ -203,6 +214,8 @@ def report_all(args, model, output) -> int:
     out = write_report(output, first["track"], first["diagnosis"], reason=first["error"],
                        intro="\n".join(sections), name=Path(args.track).name)
     say = messages_to(out)
+    for e in entries:
+        print("\n".join(_terminal_lines(e)) + "\n", file=say)
     print(_table([p.to_dict() for p in pairs]), file=say)
     print(f"report written to {out}", file=say)
     if all(e["diagnosis"] is None for e in entries):

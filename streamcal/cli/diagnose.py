@@ -276,6 +276,12 @@ def _diagnosis_unit(d) -> str:
     return display_unit(diagnosis_unit(d))
 
 
+def verdict_line(d) -> str:
+    """``verdict    effect_missing   (rule: …)``: the verdict and the rule that gave it."""
+    rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
+    return f"verdict    {d.verdict}   (rule: {rule})"
+
+
 def _text(d) -> str:
     """Every rms beside the rms it is compared with on the same residual, each named (see
     :class:`streamcal.diagnose.Diagnosis`); "× floor" against the floor of the residual each
@@ -309,8 +315,7 @@ def _text(d) -> str:
                          f"{entry['reference_part']:.3g} {u})")
         else:
             lines.append(f"           {name} floor not measurable: {entry.get('reason', '')}")
-    rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
-    lines += [f"verdict    {d.verdict}   (rule: {rule})"]
+    lines.append(verdict_line(d))
     if d.verdict == "unexplained" and d.misfit:
         lines += ["", "where the misfit sits (share of the residual energy vs share of samples)"]
         lines += ["  " + line for line in summary(d.misfit)]

@@ -1,4 +1,6 @@
-"""A motor compensation checked the way a user would load it, on samples it was not fitted on.
+"""A motor compensation checked the way a user would load it, on samples it was not fitted on:
+the other part of the same flight (:func:`held_out_check`) or another flight of the same
+vehicle (:func:`flight_check`, ``streamcal check CAL FLIGHT``).
 
 A flight is split in time: the first part refines the calibration in force with a motor term on
 one channel (``fit FLIGHT --cal autopilot --add aux_interference=CHANNEL``), the term is
@@ -26,14 +28,19 @@ from ..constants import MAD_TO_SIGMA
 from ..diagnosis.against import refine
 from ..errors import InputError
 from ..fitting.attitude_reference import attitude_data, heading_error_deg, log_location
+from ..fitting.heading_check import WORSE_DEG, WORSE_FRACTION
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS
 from .ardupilot import MG_PER_UT, apply_ardupilot
 from .ardupilot import export as export_ardupilot
-from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS
+from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, motor_channel
 from .px4 import apply_px4
 from .px4 import export as export_px4
 
 FIRMWARES = ("ardupilot", "px4")
+#: A change of the field-magnitude spread counts when it exceeds this (percentage points) and
+#: :data:`WORSE_FRACTION` of the spread before; the heading's counts as in
+#: :mod:`streamcal.fitting.heading_check` (:data:`WORSE_DEG`, :data:`WORSE_FRACTION`).
+SPREAD_PP = 0.1
 
 
 def split_in_time(track, fraction: float = 0.5) -> tuple:
@@ -61,7 +68,12 @@ def firmware_field(cal: Calibration, firmware: str, m_uT: np.ndarray,
                    signal: np.ndarray | None) -> np.ndarray:
     """``cal`` exported for ``firmware`` and applied with its formula to readings ``m_uT``
     (M,3) µT with the motor channel's values ``signal`` (M,) (throttle 0..1 or current A):
-    the corrected field (M,3) in µT, in the exported matrix's frame."""
+    the corrected field (M,3) in µT, in the exported matrix's frame. A calibration fitted for
+    another compass than the first is exported under the first's parameter names: the formula
+    is the same for every parameter set."""
+    extra = dict(cal.extra or {})
+    if extra.pop("compass_params_index", 0):
+        cal = cal.replace(extra=extra)
     if firmware == "ardupilot":
         params = read_parameters(export_ardupilot(cal)[0], firmware)
         return apply_ardupilot(params, MG_PER_UT * m_uT, signal) / MG_PER_UT
@@ -107,8 +119,9 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
     against the attitude reference over the held-out samples inside the attitude's span, when
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
-    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``g_uT`` (the
-    fitted term, µT per channel unit). InputError
+    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``n_heading``
+    (the checked samples with a heading error), ``g_uT`` (the fitted term, µT per channel
+    unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
     lacks it, or the calibration in force compensates another channel. A motor term in force
     on ``channel`` is held by ``refit`` and fitted afresh by ``after``.
@@ -144,16 +157,101 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
            "checked_s": [round(float(check_part.t_mag[0]), 3),
                          round(float(check_part.t_mag[-1]), 3)],
            "n_checked": int(len(m)),
+           "n_heading": int(len(data.rows)) if data is not None else 0,
            "g_uT": [float(v) for v in
                     cals["after"].effects["aux_interference"]["channels"][channel]["g"]]}
     if data is None:
         out["heading"] = f"no heading error: {why}"
 
-    def figures(field: np.ndarray) -> dict:
-        return {**_spread(field),
-                **(_heading(field[data.rows], data) if data is not None else {})}
-
     for name, cal in cals.items():
-        out[name] = {fw: figures(firmware_field(cal, fw, m, signal)) for fw in FIRMWARES}
-    out["streamcal"] = figures(_own_field(cals["after"], m, {channel: signal}))
+        out[name] = {fw: figures(firmware_field(cal, fw, m, signal), data) for fw in FIRMWARES}
+    out["streamcal"] = figures(_own_field(cals["after"], m, {channel: signal}), data)
+    return out
+
+
+def figures(field: np.ndarray, data) -> dict:
+    """Spread figures of ``field`` (M,3) µT over every sample, heading figures over the
+    samples of ``data`` (:class:`~streamcal.fitting.attitude_reference.AttitudeData` of the
+    same samples, or None: no heading figures)."""
+    return {**_spread(field), **(_heading(field[data.rows], data) if data is not None else {})}
+
+
+def motor_signal(cal: Calibration, firmware: str, cov: dict) -> np.ndarray | None:
+    """(M,) values of the channel ``firmware``'s motor compensation takes from ``cal``'s
+    ``aux_interference`` term (:func:`.common.motor_channel`), None when it takes none."""
+    channels = ((cal.effects or {}).get("aux_interference") or {}).get("channels", {})
+    chosen = motor_channel(list(channels), second_battery=firmware == "px4")[0]
+    return None if chosen is None else np.asarray(cov[chosen], dtype=float)
+
+
+def needed_channels(cal: Calibration) -> list[str]:
+    """The auxiliary channels ``cal``'s ``aux_interference`` term reads."""
+    return list(((cal.effects or {}).get("aux_interference") or {}).get("channels", {}))
+
+
+def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
+                 ref: dict | None = None) -> dict:
+    """``cal`` on every magnetometer sample of ``track`` (µT; a flight it was not fitted on)
+    beside ``cal_in_force`` (the calibration in the log's parameters; None: the readings as
+    logged).
+
+    Returns ``{"n", "n_heading", "channels", "before", "after", "compare"}``: ``before``
+    ``{firmware: figures}`` of ``cal_in_force`` exported and applied with each firmware's
+    formula, or ``{"logged": figures}`` of the readings; ``after`` the same of ``cal`` plus
+    ``"streamcal"`` (its own correction, every covariate at its value); ``channels``
+    ``{firmware: the motor channel its formula takes, or None}``; figures as in
+    :func:`held_out_check`, ``compare`` :func:`compare` of each firmware's pair. Without a
+    heading figure (no attitude or place: ``ref``, else the log's GPS) ``heading`` says why and
+    ``n_heading`` is 0. InputError when ``track`` lacks a channel either calibration reads."""
+    cov = track.covariates_at_mag()
+    for which, c in (("the calibration", cal), ("the calibration in force", cal_in_force)):
+        lacking = [name for name in needed_channels(c) if name not in cov] if c else []
+        if lacking:
+            raise InputError(f"{which} needs channel {', '.join(lacking)} (its motor term), "
+                             f"which the recording lacks (channels: "
+                             f"{', '.join(track.aux_names) or 'none'})")
+    m = np.asarray(track.mag, dtype=float)
+    if ref is None:
+        ref, why = log_location(track)
+    data, why = attitude_data(track, ref) if ref is not None else (None, why)
+    out = {"n": int(len(m)), "n_heading": int(len(data.rows)) if data is not None else 0,
+           "channels": {fw: motor_channel(needed_channels(cal), second_battery=fw == "px4")[0]
+                        for fw in FIRMWARES}}
+    if data is None:
+        out["heading"] = f"no heading error: {why}"
+    if cal_in_force is None:
+        out["before"] = {"logged": figures(m, data)}
+    else:
+        out["before"] = {fw: figures(firmware_field(cal_in_force, fw, m,
+                                                    motor_signal(cal_in_force, fw, cov)), data)
+                         for fw in FIRMWARES}
+    out["after"] = {fw: figures(firmware_field(cal, fw, m, motor_signal(cal, fw, cov)), data)
+                    for fw in FIRMWARES}
+    out["after"]["streamcal"] = figures(_own_field(cal, m, cov), data)
+    out["compare"] = {fw: compare(out["before"].get(fw, out["before"].get("logged")),
+                                  out["after"][fw]) for fw in FIRMWARES}
+    return out
+
+
+def compare(before: dict, after: dict) -> dict:
+    """How ``after``'s figures stand against ``before``'s: ``{"spread", "heading"}`` each
+    ``"lower"``, ``"higher"`` or ``"same"`` (within the tolerance, :data:`SPREAD_PP` /
+    :data:`WORSE_DEG`, and :data:`WORSE_FRACTION` of the value before; heading None without
+    heading figures), ``"worse"`` (either higher), ``"better"`` (one lower, none higher) and
+    ``"rule"`` in words."""
+    def change(key: str, floor: float):
+        if key not in before or key not in after:
+            return None
+        tol = max(floor, WORSE_FRACTION * before[key])
+        return ("lower" if after[key] < before[key] - tol else
+                "higher" if after[key] > before[key] + tol else "same")
+
+    out = {"spread": change("spread_pct", SPREAD_PP),
+           "heading": change("heading_rms_deg", WORSE_DEG)}
+    moves = [v for v in out.values() if v is not None]
+    out["worse"] = "higher" in moves
+    out["better"] = "lower" in moves and not out["worse"]
+    out["rule"] = (f"a figure changes when it moves by more than {SPREAD_PP:g} percentage point "
+                   f"(spread) or {WORSE_DEG:g}° (heading rms) and {100 * WORSE_FRACTION:g} % "
+                   f"of its value before")
     return out
