@@ -36,11 +36,14 @@ A log cut inside a message (a crash, a power cut) is read to its last complete m
 damaged stretch is skipped to the next valid message header; both are counted in
 ``read_warnings``.
 
-ArduPilot logs the *corrected* field: with COMPASS_OFS = ``o`` (added, ``AP_Compass``), motor
-offsets ``MOfs`` and the soft-iron matrix ``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs``
-(offsets → matrix → motor, the order of ``AP_Compass_Backend::correct_field``). The reader
-returns ``raw = S⁻¹ (MAG − MOfs) − o`` with ``o`` and ``MOfs`` taken per sample from the MAG
-message itself, and says in the metadata what it undid.
+ArduPilot logs the *corrected* field (``Compass::get_field``, int16 mG): with COMPASS_OFS = ``o``
+(added), the motor offsets ``MOfs`` (``mot · c``, logged as applied) and the soft-iron matrix
+``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs`` from Copter 3.6 / Plane 3.9 / Rover 3.4 on,
+``MAG = S (raw + o + MOfs)`` before (:func:`~.autopilot_cal.ardupilot_correction_order`, from the
+version in the log's MSG text; the current order when none is logged). The reader returns
+``raw = S⁻¹ (MAG − MOfs) − o`` or ``raw = S⁻¹ MAG − MOfs − o`` with ``o`` and ``MOfs`` taken per
+sample from the MAG message itself, and says in the metadata what it undid and in which order
+(``ardupilot_correction_order``, ``ardupilot_correction_order_from``).
 """
 from __future__ import annotations
 
@@ -54,8 +57,9 @@ import numpy as np
 
 from ..errors import InputError
 from .track import Track
-from .autopilot_cal import (MG_PER_UT, ardupilot_matrix, ardupilot_param, ardupilot_param_index,
-                            compass_params)
+from .autopilot_cal import (FIRMWARE_VERSION, MG_PER_UT, MOTOR_AFTER_MATRIX, MOTOR_BEFORE_MATRIX,
+                            ardupilot_correction_order, ardupilot_matrix, ardupilot_param,
+                            ardupilot_param_index, compass_params)
 from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
 from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
@@ -254,16 +258,20 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
     t = _time(msgs, name, path)
     logged = np.column_stack([msgs.array(name, c) for c in ("MagX", "MagY", "MagZ")])
     meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(logged, axis=1)) / MG_PER_UT:.4g}"
+    order, why = ardupilot_correction_order(meta.get("firmware"))
+    meta["ardupilot_correction_order"] = order
+    meta["ardupilot_correction_order_from"] = why
     raw = logged.copy()
+    mofs = None
     if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ"):
         mofs = np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")])
-        raw -= mofs
         meta["mag_motor_offsets_undone"] = (
-            f"{name}.MOfsX/Y/Z subtracted per sample" if np.any(mofs)
+            f"{name}.MOfsX/Y/Z subtracted per sample ({order})" if np.any(mofs)
             else f"none ({name}.MOfs all 0)")
     else:
-        mofs = None
         meta["mag_motor_offsets_undone"] = f"could not: {name} has no MOfsX/Y/Z"
+    if mofs is not None and order == MOTOR_AFTER_MATRIX:
+        raw -= mofs
     S = ardupilot_matrix(msgs.params, params_of)
     dia, odi = ardupilot_param("DIA", params_of), ardupilot_param("ODI", params_of)[8:]
     if np.allclose(S, np.eye(3)):
@@ -271,8 +279,9 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
     else:
         raw = np.linalg.solve(S, raw.T).T
         meta["mag_soft_iron_undone"] = f"inverse of the PARM {dia}/{odi} matrix applied" + (
-            " (assumes motor offsets added after the matrix, ArduPilot 4.x order)"
-            if mofs is not None and np.any(mofs) else "")
+            f" ({order}: {why})" if mofs is not None and np.any(mofs) else "")
+    if mofs is not None and order == MOTOR_BEFORE_MATRIX:
+        raw -= mofs
     ofs_names = [ardupilot_param("OFS", params_of, a) for a in "XYZ"]
     if msgs.has(name, "OfsX", "OfsY", "OfsZ"):
         ofs = np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")])
@@ -441,7 +450,8 @@ def _track(msgs: _Messages, path: Path, instance: int) -> Track:
                         "before logging)",
             "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
                      "rcou_c* us; battery_current_a A; battery_voltage_v V; throttle 0..1"}
-    firmware = next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
+    firmware = next((m for m in msgs.texts if FIRMWARE_VERSION.search(m)), None) or \
+        next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
     if firmware:
         meta["firmware"] = firmware
     streams = [_mag(msgs, path, meta, instance)]
