@@ -26,7 +26,8 @@ from ..constants import MAD_TO_SIGMA
 from ..diagnosis.against import refine
 from ..errors import InputError
 from ..fitting.attitude_reference import attitude_data, heading_error_deg, log_location
-from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS
+from ..inputs.autopilot_cal import MOTOR_AFTER_MATRIX, UT_PER_GAUSS
+from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A
 from .ardupilot import MG_PER_UT, apply_ardupilot
 from .ardupilot import export as export_ardupilot
 from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS
@@ -58,13 +59,15 @@ def read_parameters(text: str, firmware: str) -> dict:
 
 
 def firmware_field(cal: Calibration, firmware: str, m_uT: np.ndarray,
-                   signal: np.ndarray | None) -> np.ndarray:
+                   signal: np.ndarray | None, ardupilot_order: str = MOTOR_AFTER_MATRIX
+                   ) -> np.ndarray:
     """``cal`` exported for ``firmware`` and applied with its formula to readings ``m_uT``
     (M,3) µT with the motor channel's values ``signal`` (M,) (throttle 0..1 or current A):
-    the corrected field (M,3) in µT, in the exported matrix's frame."""
+    the corrected field (M,3) in µT, in the exported matrix's frame; ArduPilot's motor term
+    written and added in ``ardupilot_order``."""
     if firmware == "ardupilot":
-        params = read_parameters(export_ardupilot(cal)[0], firmware)
-        return apply_ardupilot(params, MG_PER_UT * m_uT, signal) / MG_PER_UT
+        params = read_parameters(export_ardupilot(cal, order=ardupilot_order)[0], firmware)
+        return apply_ardupilot(params, MG_PER_UT * m_uT, signal, ardupilot_order) / MG_PER_UT
     params = read_parameters(export_px4(cal)[0], firmware)
     power = None
     if signal is not None and params.get("CAL_MAG_COMP_TYP"):
@@ -107,6 +110,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
     against the attitude reference over the held-out samples inside the attitude's span, when
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
+    ArduPilot's formula adds the motor term in the order of the firmware ``cal_in_force`` came
+    from (``extra["ardupilot_correction_order"]``; the newest when absent).
     Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``g_uT`` (the
     fitted term, µT per channel unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
@@ -153,7 +158,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
         return {**_spread(field),
                 **(_heading(field[data.rows], data) if data is not None else {})}
 
+    order = (cal_in_force.extra or {}).get("ardupilot_correction_order", MOTOR_AFTER_MATRIX)
     for name, cal in cals.items():
-        out[name] = {fw: figures(firmware_field(cal, fw, m, signal)) for fw in FIRMWARES}
+        out[name] = {fw: figures(firmware_field(cal, fw, m, signal, order)) for fw in FIRMWARES}
     out["streamcal"] = figures(_own_field(cals["after"], m, {channel: signal}))
     return out

@@ -68,6 +68,8 @@ MOTOR_BEFORE_MATRIX = "offsets, motor, matrix"
 #: The first release of each vehicle whose motor term comes after the matrix (the per-motor
 #: compensation, ArduPilot pull request 7539, reached master early 2018).
 _MOTOR_AFTER_MATRIX_FROM = {"copter": (3, 6), "plane": (3, 9), "rover": (3, 4)}
+#: The first release of each vehicle with COMPASS_DIA/ODI (the onboard calibrator, 2015).
+_MATRIX_FROM = {"copter": (3, 4), "plane": (3, 4), "rover": (3, 0)}
 FIRMWARE_VERSION = re.compile(r"(copter|plane|rover|sub|tracker)\S*\s+v?(\d+)\.(\d+)", re.I)
 #: Per-compass parameter kinds (``AP_Compass`` var_info); MOTCT and PRIMARY are shared.
 _PER_COMPASS = ("OFS", "DIA", "ODI", "MOT", "SCALE", "ORIENT", "DEV_ID", "USE", "EXTERNAL")
@@ -133,6 +135,9 @@ def ardupilot_correction_order(firmware: str | None) -> tuple[str, str]:
     name = f"{vehicle.capitalize()} {version[0]}.{version[1]}"
     if first is None:
         return MOTOR_AFTER_MATRIX, f"{name}: the current order assumed"
+    if version < _MATRIX_FROM[vehicle]:
+        return MOTOR_BEFORE_MATRIX, (f"{name} has no COMPASS_DIA/ODI matrix: COMPASS_MOT is "
+                                     "added with the offsets")
     if version < first:
         return MOTOR_BEFORE_MATRIX, (f"{name} adds COMPASS_MOT before the COMPASS_DIA/ODI matrix "
                                      f"(after it from {first[0]}.{first[1]})")
