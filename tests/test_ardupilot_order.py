@@ -1,5 +1,5 @@
 """ArduPilot's order of the compass corrections, which changed with the per-motor compensation:
-Copter < 3.6, Plane < 3.9, Rover < 3.4 add COMPASS_MOT before the COMPASS_DIA/ODI matrix, later
+Copter < 3.6, Plane < 3.9, Rover < 3.3 add COMPASS_MOT before the COMPASS_DIA/ODI matrix, later
 firmware after it. Self-made logs (tests/_selfmade_logs.py) with a soft iron and a motor term
 in force, written by each formula under the version text of a firmware that uses it: the reader
 gets the sensor's reading back, the autopilot calibration rebuilds the logged field, and the
@@ -38,7 +38,7 @@ def flight():
     ("ArduPlane V3.8.5 (1a2b3c4d)", MOTOR_BEFORE_MATRIX),
     ("ArduPlane V3.9.0 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
     ("APM:Rover v3.2.0 (1a2b3c4d)", MOTOR_BEFORE_MATRIX),
-    ("ArduRover V3.4.0 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
+    ("APM:Rover V3.3.1 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
     ("ArduRover V4.2.3 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
     ("Copter 3.5", MOTOR_BEFORE_MATRIX),
     (None, MOTOR_AFTER_MATRIX),

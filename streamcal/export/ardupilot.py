@@ -1,7 +1,7 @@
 """ArduPilot parameter file (``NAME,VALUE`` lines, as Mission Planner / MAVProxy load them).
 
 ArduPilot (``AP_Compass_Backend::correct_field``) corrects a body-frame reading ``r`` in
-milligauss as offsets → soft-iron matrix → motor compensation (Copter 3.6, Plane 3.9, Rover 3.4
+milligauss as offsets → soft-iron matrix → motor compensation (Copter 3.6, Plane 3.9, Rover 3.3
 and later; :data:`~streamcal.inputs.autopilot_cal.MOTOR_AFTER_MATRIX`)::
 
     f = S (r + COMPASS_OFS) + COMPASS_MOT · c
@@ -123,7 +123,7 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
     which = "first compass" if not suffix else f"compass {int(suffix) - 1}: COMPASS_*{suffix}_"
     lines = [f"# streamcal calibration for ArduPilot ({which}), {cal.created}",
              ("# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG"
-              " (Copter 3.6, Plane 3.9, Rover 3.4 and later)" if order == MOTOR_AFTER_MATRIX else
+              " (Copter 3.6, Plane 3.9, Rover 3.3 and later)" if order == MOTOR_AFTER_MATRIX else
               "# ArduPilot corrects f = S (r + COMPASS_OFS + COMPASS_MOT * c), offsets in mG"
               " (Copter 3.4-3.5, Plane 3.4-3.8, Rover 3.0-3.2)"),
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"

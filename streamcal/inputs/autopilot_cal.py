@@ -4,7 +4,7 @@ streamcal Calibration.
 ArduPilot corrects a body-frame reading ``r`` (milligauss) in ``AP_Compass_Backend::
 correct_field``; the place of the motor term changed with the per-motor compensation (2018):
 
-* Copter 3.6, Plane 3.9, Rover 3.4 and later (:data:`MOTOR_AFTER_MATRIX`)::
+* Copter 3.6, Plane 3.9, Rover 3.3 and later (:data:`MOTOR_AFTER_MATRIX`)::
 
     f = S (r + o) + mot · c          S = [[DIA_X, ODI_X, ODI_Y],
                                           [ODI_X, DIA_Y, ODI_Z],
@@ -67,7 +67,7 @@ MOTOR_AFTER_MATRIX = "offsets, matrix, motor"
 MOTOR_BEFORE_MATRIX = "offsets, motor, matrix"
 #: The first release of each vehicle whose motor term comes after the matrix (the per-motor
 #: compensation, ArduPilot pull request 7539, reached master early 2018).
-_MOTOR_AFTER_MATRIX_FROM = {"copter": (3, 6), "plane": (3, 9), "rover": (3, 4)}
+_MOTOR_AFTER_MATRIX_FROM = {"copter": (3, 6), "plane": (3, 9), "rover": (3, 3)}
 #: The first release of each vehicle with COMPASS_DIA/ODI (the onboard calibrator, 2015).
 _MATRIX_FROM = {"copter": (3, 4), "plane": (3, 4), "rover": (3, 0)}
 FIRMWARE_VERSION = re.compile(r"(copter|plane|rover|sub|tracker)\S*\s+v?(\d+)\.(\d+)", re.I)
@@ -125,7 +125,7 @@ def ardupilot_matrix(params: Mapping[str, float], instance: int = 0) -> np.ndarr
 def ardupilot_correction_order(firmware: str | None) -> tuple[str, str]:
     """(order, why) of the corrections the firmware named by ``firmware`` applies (its version
     text as logged, e.g. "ArduCopter V3.5.7 (b11c6af3)" or "APM:Rover v3.2.0"):
-    :data:`MOTOR_BEFORE_MATRIX` for Copter < 3.6, Plane < 3.9, Rover < 3.4, else (also when the
+    :data:`MOTOR_BEFORE_MATRIX` for Copter < 3.6, Plane < 3.9, Rover < 3.3, else (also when the
     version or vehicle is unknown) :data:`MOTOR_AFTER_MATRIX`."""
     match = FIRMWARE_VERSION.search(firmware or "")
     if not match:

@@ -38,7 +38,7 @@ damaged stretch is skipped to the next valid message header; both are counted in
 
 ArduPilot logs the *corrected* field (``Compass::get_field``, int16 mG): with COMPASS_OFS = ``o``
 (added), the motor offsets ``MOfs`` (``mot · c``, logged as applied) and the soft-iron matrix
-``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs`` from Copter 3.6 / Plane 3.9 / Rover 3.4 on,
+``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs`` from Copter 3.6 / Plane 3.9 / Rover 3.3 on,
 ``MAG = S (raw + o + MOfs)`` before (:func:`~.autopilot_cal.ardupilot_correction_order`, from the
 version in the log's MSG text; the current order when none is logged). The reader returns
 ``raw = S⁻¹ (MAG − MOfs) − o`` or ``raw = S⁻¹ MAG − MOfs − o`` with ``o`` and ``MOfs`` taken per
