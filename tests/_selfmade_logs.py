@@ -155,10 +155,13 @@ def ardupilot_params(*, motor_comp: np.ndarray | None = None) -> dict:
 
 def dataflash_bytes(flight: FlightSlice, *, params: dict | None = None,
                     motor_comp: np.ndarray | None = None, messages=("IMU", "RCOU", "BAT", "CURR"),
-                    with_mag: bool = True, c7_not_pwm: bool = False) -> bytes:
-    """The log ArduPilot writes for ``flight``: logged MAG = S (10 m + o) + MOfs (mG, int16),
-    ``MOfs = COMPASS_MOT · throttle`` when ``motor_comp`` (mG at full throttle) is given; RCOU C7
-    unused (0) or, with ``c7_not_pwm``, a counter far outside any PWM range."""
+                    with_mag: bool = True, c7_not_pwm: bool = False, firmware: str = FIRMWARE,
+                    motor_before_matrix: bool = False) -> bytes:
+    """The log ArduPilot writes for ``flight``: logged MAG = S (10 m + o) + MOfs (mG, int16), or
+    with ``motor_before_matrix`` (Copter 3.4–3.5, Plane ≤ 3.8, Rover ≤ 3.2) S (10 m + o + MOfs);
+    ``MOfs = COMPASS_MOT · throttle`` when ``motor_comp`` (mG at full throttle) is given; the
+    version text ``firmware`` in a MSG message; RCOU C7 unused (0) or, with ``c7_not_pwm``, a
+    counter far outside any PWM range."""
     params = ardupilot_params(motor_comp=motor_comp) if params is None else params
     S = np.array([[params["COMPASS_DIA_X"], params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"]],
                   [params["COMPASS_ODI_X"], params["COMPASS_DIA_Y"], params["COMPASS_ODI_Z"]],
@@ -166,10 +169,13 @@ def dataflash_bytes(flight: FlightSlice, *, params: dict | None = None,
     o = np.array([params[f"COMPASS_OFS_{a}"] for a in "XYZ"])
     mot = np.array([params.get(f"COMPASS_MOT_{a}", 0.0) for a in "XYZ"])
     mofs = np.round(flight.throttle_at_mag[:, None] * mot)
-    logged = np.round((10.0 * flight.mag_uT + o) @ S.T + mofs)
+    if motor_before_matrix:
+        logged = np.round((10.0 * flight.mag_uT + o + mofs) @ S.T)
+    else:
+        logged = np.round((10.0 * flight.mag_uT + o) @ S.T + mofs)
     out = [df_format(n) for n in ("FMT", "PARM", "MSG", *(("MAG",) if with_mag else ()),
                                   *messages)]
-    out.append(df_message("MSG", 0, FIRMWARE.encode()))
+    out.append(df_message("MSG", 0, firmware.encode()))
     out += [df_message("PARM", 0, k.encode(), float(v)) for k, v in params.items()]
     rows = []   # (time µs, order, bytes): written in time order, as the firmware does
     if with_mag:

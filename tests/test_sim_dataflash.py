@@ -97,7 +97,8 @@ def test_motor_offsets_undone_and_the_compass_mot_term_rebuilt(flight, tmp_path)
     logged, _, mofs = _mag_messages(path)
     assert np.ptp(mofs, axis=0).min() > 10 and "per sample" in \
         track.metadata["mag_motor_offsets_undone"]
-    assert "ArduPilot 4.x order" in track.metadata["mag_soft_iron_undone"]
+    assert "(offsets, matrix, motor: Copter 4.0 adds COMPASS_MOT after" in \
+        track.metadata["mag_soft_iron_undone"]
     np.testing.assert_allclose(track.mag, flight.mag_uT, atol=0.1)
     cal = autopilot_calibration(track)
     g = cal.effects["aux_interference"]["channels"]["throttle"]["g"]

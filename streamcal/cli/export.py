@@ -17,6 +17,10 @@ def register(sub) -> None:
     p.add_argument("calibration", metavar="CAL.json",
                    help="calibration file (docs/calibration_file.md)")
     p.add_argument("--format", required=True, choices=FORMATS)
+    p.add_argument("--firmware-version", metavar="VERSION",
+                   help="--format ardupilot: the firmware the parameters are for, e.g. "
+                        "'Copter 3.5' (before Copter 3.6, Plane 3.9, Rover 3.3 COMPASS_MOT is "
+                        "added before the COMPASS_DIA/ODI matrix); default: the newest order")
     p.add_argument("-o", "--output", metavar="FILE", help="file to write (atomic); default (or -): stdout")
     p.set_defaults(func=run)
 
@@ -27,7 +31,7 @@ def run(args) -> int:
     from ..export import export
 
     cal = Calibration.load(args.calibration)
-    text, notes = export(cal, args.format)
+    text, notes = export(cal, args.format, args.firmware_version)
     for note in notes:
         print(f"streamcal export: {args.format} cannot express: {note}", file=sys.stderr)
     if args.output and args.output != "-":

@@ -23,10 +23,16 @@ _EXPORTERS = {"ardupilot": ardupilot.export, "px4": px4.export, "c-header": c_he
               "json": _json}
 
 
-def export(cal: Calibration, fmt: str) -> tuple[str, list[str]]:
-    """(file text, notes on what ``fmt`` cannot express) for a calibration."""
+def export(cal: Calibration, fmt: str,
+           firmware_version: str | None = None) -> tuple[str, list[str]]:
+    """(file text, notes on what ``fmt`` cannot express) for a calibration; ``firmware_version``
+    (ArduPilot only, e.g. "Copter 3.5") chooses the order COMPASS_MOT is written for."""
     try:
         exporter = _EXPORTERS[fmt]
     except KeyError:
         raise InputError(f"export: unknown format {fmt!r}; known: {', '.join(FORMATS)}") from None
+    if firmware_version is not None:
+        if fmt != "ardupilot":
+            raise InputError(f"--firmware-version applies to --format ardupilot, not {fmt}")
+        return ardupilot.export(cal, firmware_version)
     return exporter(cal)

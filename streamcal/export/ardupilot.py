@@ -1,16 +1,20 @@
 """ArduPilot parameter file (``NAME,VALUE`` lines, as Mission Planner / MAVProxy load them).
 
-ArduPilot (``AP_Compass`` backend) corrects a body-frame reading ``r`` in milligauss as
-offsets → soft-iron matrix → motor compensation::
+ArduPilot (``AP_Compass_Backend::correct_field``) corrects a body-frame reading ``r`` in
+milligauss as offsets → soft-iron matrix → motor compensation (Copter 3.6, Plane 3.9, Rover 3.3
+and later; :data:`~streamcal.inputs.autopilot_cal.MOTOR_AFTER_MATRIX`)::
 
     f = S (r + COMPASS_OFS) + COMPASS_MOT · c
 
-``S`` symmetric: diagonal COMPASS_DIA_X/Y/Z, off-diagonal COMPASS_ODI_X = S12, _Y = S13,
-_Z = S23. Offsets are *added* and in mG (1 µT = 10 mG), so ``COMPASS_OFS = −10·o``.
-COMPASS_MOTCT selects ``c``: 1 throttle (0..1), 2 battery current (A). Streamcal's channel term
-``g·a`` in the sensor frame becomes, after the matrix, ``COMPASS_MOT = −10 · S g`` (mG per A,
-or mG at full throttle). One channel only; an aux channel named ``throttle`` (0..1) maps to
-MOTCT 1, ``battery_current_a`` / ``motor_current`` / ``current`` (A) to MOTCT 2.
+and, in older firmware (:data:`~streamcal.inputs.autopilot_cal.MOTOR_BEFORE_MATRIX`), as
+``f = S (r + COMPASS_OFS + COMPASS_MOT · c)``. ``S`` symmetric: diagonal COMPASS_DIA_X/Y/Z,
+off-diagonal COMPASS_ODI_X = S12, _Y = S13, _Z = S23. Offsets are *added* and in mG
+(1 µT = 10 mG), so ``COMPASS_OFS = −10·o``. COMPASS_MOTCT selects ``c``: 1 throttle (0..1), 2
+battery current (A). Streamcal's channel term ``g·a`` in the sensor frame becomes
+``COMPASS_MOT = −10 · S g`` after the matrix, ``−10 · g`` before it (mG per A, or mG at full
+throttle). The newest order is written unless a firmware version says otherwise. One channel
+only; an aux channel named ``throttle`` (0..1) maps to MOTCT 1, ``battery_current_a`` /
+``motor_current`` / ``current`` (A) to MOTCT 2.
 """
 from __future__ import annotations
 
@@ -19,6 +23,9 @@ import re
 import numpy as np
 
 from ..calibration import Calibration
+from ..errors import InputError
+from ..inputs.autopilot_cal import (FIRMWARE_VERSION, MOTOR_AFTER_MATRIX, MOTOR_BEFORE_MATRIX,
+                                    ardupilot_correction_order)
 from .common import (ascii_text, correction, fmt, hold_others, joint_fit_note, motor_channel,
                      mounting, orientation_words)
 
@@ -27,18 +34,34 @@ MG_PER_UT = 10.0
 MOTCT = {"throttle": 1, "current": 2}
 
 
-def apply_ardupilot(params: dict, r_mG: np.ndarray, c=None) -> np.ndarray:
-    """ArduPilot's documented correction of readings ``r_mG`` (N,3) with ``params``: (N,3) mG."""
+def apply_ardupilot(params: dict, r_mG: np.ndarray, c=None,
+                    order: str = MOTOR_AFTER_MATRIX) -> np.ndarray:
+    """ArduPilot's correction of readings ``r_mG`` (N,3) with ``params`` and the motor channel's
+    values ``c`` (N,), the motor term added in ``order``: (N,3) mG."""
     S = np.diag([params[f"COMPASS_DIA_{a}"] for a in "XYZ"])
     S[0, 1] = S[1, 0] = params["COMPASS_ODI_X"]
     S[0, 2] = S[2, 0] = params["COMPASS_ODI_Y"]
     S[1, 2] = S[2, 1] = params["COMPASS_ODI_Z"]
     ofs = np.array([params[f"COMPASS_OFS_{a}"] for a in "XYZ"])
-    f = (np.asarray(r_mG) + ofs) @ S.T
+    motor = 0.0
     if c is not None and params.get("COMPASS_MOTCT", 0):
         mot = np.array([params[f"COMPASS_MOT_{a}"] for a in "XYZ"])
-        f = f + np.asarray(c, dtype=float)[:, None] * mot
-    return f
+        motor = np.asarray(c, dtype=float)[:, None] * mot
+    if order == MOTOR_BEFORE_MATRIX:
+        return (np.asarray(r_mG) + ofs + motor) @ S.T
+    return (np.asarray(r_mG) + ofs) @ S.T + motor
+
+
+def target_order(firmware_version: str | None) -> str:
+    """The correction order of the firmware ``firmware_version`` names ("Copter 3.5",
+    "ArduPlane V3.8.2"); the newest when None. InputError when it names no vehicle and
+    version."""
+    if firmware_version is None:
+        return MOTOR_AFTER_MATRIX
+    if not FIRMWARE_VERSION.search(firmware_version):
+        raise InputError(f"--firmware-version {firmware_version!r}: expected an ArduPilot "
+                         "vehicle and version, e.g. 'Copter 3.5' or 'ArduPlane V3.8.2'")
+    return ardupilot_correction_order(firmware_version)[0]
 
 
 def slot_suffix(cal: Calibration) -> str:
@@ -58,9 +81,12 @@ def _named(params: dict, suffix: str) -> dict:
             for name, value in params.items()}
 
 
-def export(cal: Calibration) -> tuple[str, list[str]]:
+def export(cal: Calibration, firmware_version: str | None = None, *,
+           order: str | None = None) -> tuple[str, list[str]]:
     """(file text, notes on what ArduPilot cannot express), in the parameter names of the
-    compass the calibration was fitted for."""
+    compass the calibration was fitted for, COMPASS_MOT in the correction order of
+    ``firmware_version`` (:func:`target_order`; the newest when None) or ``order``."""
+    order = order or target_order(firmware_version)
     corr = correction(cal)
     S, notes = corr.S, list(corr.not_expressed)
     rot, orient, more = mounting(cal, "ardupilot")
@@ -85,7 +111,8 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
               "battery's current (A) or throttle (0..1); held at its level a0" for name in others]
     notes += joint_fit_note(chosen, others)
     if chosen is not None:
-        mot = -MG_PER_UT * (S @ corr.channels[chosen])
+        g = corr.channels[chosen]
+        mot = -MG_PER_UT * (S @ g if order == MOTOR_AFTER_MATRIX else g)
         for k, a in enumerate("XYZ"):
             params[f"COMPASS_MOT_{a}"] = mot[k]
         params["COMPASS_MOTCT"] = motct
@@ -95,7 +122,10 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     params = _named(params, suffix)
     which = "first compass" if not suffix else f"compass {int(suffix) - 1}: COMPASS_*{suffix}_"
     lines = [f"# streamcal calibration for ArduPilot ({which}), {cal.created}",
-             "# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG",
+             ("# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG"
+              " (Copter 3.6, Plane 3.9, Rover 3.3 and later)" if order == MOTOR_AFTER_MATRIX else
+              "# ArduPilot corrects f = S (r + COMPASS_OFS + COMPASS_MOT * c), offsets in mG"
+              " (Copter 3.4-3.5, Plane 3.4-3.8, Rover 3.0-3.2)"),
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
              + ("" if corr.field_known else " (K's mean radius: field strength unknown)"),
              "# the rotation between streamcal's and this frame is unobservable from the "
@@ -103,6 +133,12 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
     if chosen is not None:
         lines.append(f"# COMPASS_MOT from aux_interference on {chosen!r} "
                      f"(COMPASS_MOTCT {motct}: {'current, mG/A' if motct == 2 else 'throttle 0..1, mG'})")
+        logged = (cal.extra or {}).get("ardupilot_correction_order")
+        if logged and logged != order and firmware_version is None:
+            lines.append(f"# the calibration comes from a log whose firmware adds COMPASS_MOT "
+                         f"in the order '{logged}'; these are for '{order}': export "
+                         "--firmware-version VERSION writes the order of the firmware it loads "
+                         "into")
     if orient is not None:
         lines.append(f"# COMPASS_ORIENT {orient}: the compass is mounted rotated "
                      f"({orientation_words(cal)}); offsets and matrix are in the "

@@ -29,7 +29,8 @@ from ..diagnosis.against import refine
 from ..errors import InputError
 from ..fitting.attitude_reference import attitude_data, heading_error_deg, log_location
 from ..fitting.heading_check import WORSE_DEG, WORSE_FRACTION
-from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A, UT_PER_GAUSS
+from ..inputs.autopilot_cal import MOTOR_AFTER_MATRIX, UT_PER_GAUSS
+from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A
 from .ardupilot import MG_PER_UT, apply_ardupilot
 from .ardupilot import export as export_ardupilot
 from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, motor_channel
@@ -65,18 +66,20 @@ def read_parameters(text: str, firmware: str) -> dict:
 
 
 def firmware_field(cal: Calibration, firmware: str, m_uT: np.ndarray,
-                   signal: np.ndarray | None) -> np.ndarray:
+                   signal: np.ndarray | None, ardupilot_order: str = MOTOR_AFTER_MATRIX
+                   ) -> np.ndarray:
     """``cal`` exported for ``firmware`` and applied with its formula to readings ``m_uT``
     (M,3) µT with the motor channel's values ``signal`` (M,) (throttle 0..1 or current A):
-    the corrected field (M,3) in µT, in the exported matrix's frame. A calibration fitted for
-    another compass than the first is exported under the first's parameter names: the formula
-    is the same for every parameter set."""
+    the corrected field (M,3) in µT, in the exported matrix's frame; ArduPilot's motor term
+    written and added in ``ardupilot_order``. A calibration fitted for another compass than the
+    first is exported under the first's parameter names: the formula is the same for every
+    parameter set."""
     extra = dict(cal.extra or {})
     if extra.pop("compass_params_index", 0):
         cal = cal.replace(extra=extra)
     if firmware == "ardupilot":
-        params = read_parameters(export_ardupilot(cal)[0], firmware)
-        return apply_ardupilot(params, MG_PER_UT * m_uT, signal) / MG_PER_UT
+        params = read_parameters(export_ardupilot(cal, order=ardupilot_order)[0], firmware)
+        return apply_ardupilot(params, MG_PER_UT * m_uT, signal, ardupilot_order) / MG_PER_UT
     params = read_parameters(export_px4(cal)[0], firmware)
     power = None
     if signal is not None and params.get("CAL_MAG_COMP_TYP"):
@@ -119,6 +122,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
     against the attitude reference over the held-out samples inside the attitude's span, when
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
+    ArduPilot's formula adds the motor term in the order of the firmware ``cal_in_force`` came
+    from (``extra["ardupilot_correction_order"]``; the newest when absent).
     Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``n_heading``
     (the checked samples with a heading error), ``g_uT`` (the fitted term, µT per channel
     unit). InputError
@@ -163,8 +168,10 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     if data is None:
         out["heading"] = f"no heading error: {why}"
 
+    order = (cal_in_force.extra or {}).get("ardupilot_correction_order", MOTOR_AFTER_MATRIX)
     for name, cal in cals.items():
-        out[name] = {fw: figures(firmware_field(cal, fw, m, signal), data) for fw in FIRMWARES}
+        out[name] = {fw: figures(firmware_field(cal, fw, m, signal, order), data)
+                     for fw in FIRMWARES}
     out["streamcal"] = figures(_own_field(cals["after"], m, {channel: signal}), data)
     return out
 
@@ -211,6 +218,7 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
                              f"which the recording lacks (channels: "
                              f"{', '.join(track.aux_names) or 'none'})")
     m = np.asarray(track.mag, dtype=float)
+    order = track.metadata.get("ardupilot_correction_order", MOTOR_AFTER_MATRIX)
     if ref is None:
         ref, why = log_location(track)
     data, why = attitude_data(track, ref) if ref is not None else (None, why)
@@ -223,10 +231,10 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
         out["before"] = {"logged": figures(m, data)}
     else:
         out["before"] = {fw: figures(firmware_field(cal_in_force, fw, m,
-                                                    motor_signal(cal_in_force, fw, cov)), data)
-                         for fw in FIRMWARES}
-    out["after"] = {fw: figures(firmware_field(cal, fw, m, motor_signal(cal, fw, cov)), data)
-                    for fw in FIRMWARES}
+                                                    motor_signal(cal_in_force, fw, cov), order),
+                                     data) for fw in FIRMWARES}
+    out["after"] = {fw: figures(firmware_field(cal, fw, m, motor_signal(cal, fw, cov), order),
+                                data) for fw in FIRMWARES}
     out["after"]["streamcal"] = figures(_own_field(cal, m, cov), data)
     out["compare"] = {fw: compare(out["before"].get(fw, out["before"].get("logged")),
                                   out["after"][fw]) for fw in FIRMWARES}

@@ -19,7 +19,8 @@ from typing import TYPE_CHECKING, Mapping
 
 from ..errors import InputError, TrackError
 from .track import Track
-from .autopilot_cal import calibration_from_ardupilot, calibration_from_px4
+from .autopilot_cal import (MOTOR_AFTER_MATRIX, calibration_from_ardupilot,
+                            calibration_from_px4)
 from .columns import parse_columns, parse_unit
 from .detect import FORMATS, detect
 
@@ -148,7 +149,9 @@ def autopilot_calibration(track: Track) -> "Calibration":
         return calibration_from_ardupilot(ardupilot, float(field),
                                           source=f"{where} (compass "
                                                  f"{md.get('compass_instance', 0)}) COMPASS_* "
-                                                 "parameters", instance=instance)
+                                                 "parameters", instance=instance,
+                                          order=md.get("ardupilot_correction_order",
+                                                       MOTOR_AFTER_MATRIX))
     undone = md.get("mag_calibration_undone", "")
     if undone.startswith("could not"):
         raise InputError(f"{where}: mx,my,mz are PX4's calibrated field ({undone}): its "

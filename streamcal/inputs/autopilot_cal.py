@@ -1,23 +1,31 @@
 """An autopilot's own compass calibration (ArduPilot ``COMPASS_*``, PX4 ``CAL_MAGn_*``) as a
 streamcal Calibration.
 
-ArduPilot corrects a body-frame reading ``r`` (milligauss) as (``AP_Compass`` backend, in this
-order: offsets, soft-iron matrix, motor compensation)::
+ArduPilot corrects a body-frame reading ``r`` (milligauss) in ``AP_Compass_Backend::
+correct_field``; the place of the motor term changed with the per-motor compensation (2018):
+
+* Copter 3.6, Plane 3.9, Rover 3.3 and later (:data:`MOTOR_AFTER_MATRIX`)::
 
     f = S (r + o) + mot · c          S = [[DIA_X, ODI_X, ODI_Y],
                                           [ODI_X, DIA_Y, ODI_Z],
                                           [ODI_Y, ODI_Z, DIA_Z]]
 
-with ``o`` = COMPASS_OFS_* (mG, *added*), ``mot`` = COMPASS_MOT_* and ``c`` the battery current
-(A, COMPASS_MOTCT = 2) or the throttle (0..1, COMPASS_MOTCT = 1). An all-zero DIA means 1.
-Solving for the reading in µT (``m = r / 10``) with ``f = |F| x``::
+* Copter 3.4–3.5, Plane 3.4–3.8, Rover 3.0–3.2 (:data:`MOTOR_BEFORE_MATRIX`)::
 
-    m = (|F|/10) S⁻¹ x − o/10 − S⁻¹ mot c / 10
+    f = S (r + o + mot · c)
+
+with ``o`` = COMPASS_OFS_* (mG, *added*), ``mot`` = COMPASS_MOT_* and ``c`` the battery current
+(A, COMPASS_MOTCT = 2) or the throttle (0..1, COMPASS_MOTCT = 1). An all-zero DIA means 1; older
+firmware has no DIA/ODI (``S = 1``, both orders agree). Solving for the reading in µT
+(``m = r / 10``) with ``f = |F| x``::
+
+    m = (|F|/10) S⁻¹ x − o/10 − S⁻¹ mot c / 10      (motor after the matrix)
+    m = (|F|/10) S⁻¹ x − o/10 − mot c / 10          (motor before the matrix)
 
 which is streamcal's ``m = A x + b + g c`` with ``A = |F| S⁻¹`` (|F| in µT), ``b = −o/10`` µT and
-``aux_interference`` ``g = −S⁻¹ mot / 10`` µT per unit of the channel. ``A`` is symmetric;
-its canonical upper-triangular form ``K`` (``A = K Q``) describes the same ellipsoid, with
-directions rotated by ``Q``.
+``aux_interference`` ``g = −S⁻¹ mot / 10`` (or ``−mot / 10``) µT per unit of the channel. ``A``
+is symmetric; its canonical upper-triangular form ``K`` (``A = K Q``) describes the same
+ellipsoid, with directions rotated by ``Q``.
 
 PX4 corrects a reading ``r`` (gauss) as ``c = R S (r + p·comp − o)`` (``sensor_calibration/
 Magnetometer``): ``o`` = CAL_MAGn_XOFF.. (G, *subtracted*), ``S`` symmetric from XSCALE.. and
@@ -54,6 +62,15 @@ MOTCT_CHANNELS = {1: "throttle", 2: "battery_current_a"}
 #: Compass parameters of every instance (COMPASS_OFS_X, COMPASS_OFS2_X, …) and the shared ones.
 COMPASS_PARAMS = re.compile(r"COMPASS_(?:(?:OFS|DIA|ODI|MOT)[23]?_[XYZ]|MOTCT|PRIMARY"
                             r"|(?:SCALE|ORIENT|DEV_ID|USE)[23]?|EXTERNAL|EXTERN[23]|PRIO[123]_ID)")
+#: ArduPilot's orders of the compass corrections (``AP_Compass_Backend::correct_field``).
+MOTOR_AFTER_MATRIX = "offsets, matrix, motor"
+MOTOR_BEFORE_MATRIX = "offsets, motor, matrix"
+#: The first release of each vehicle whose motor term comes after the matrix (the per-motor
+#: compensation, ArduPilot pull request 7539, reached master early 2018).
+_MOTOR_AFTER_MATRIX_FROM = {"copter": (3, 6), "plane": (3, 9), "rover": (3, 3)}
+#: The first release of each vehicle with COMPASS_DIA/ODI (the onboard calibrator, 2015).
+_MATRIX_FROM = {"copter": (3, 4), "plane": (3, 4), "rover": (3, 0)}
+FIRMWARE_VERSION = re.compile(r"(copter|plane|rover|sub|tracker)\S*\s+v?(\d+)\.(\d+)", re.I)
 #: Per-compass parameter kinds (``AP_Compass`` var_info); MOTCT and PRIMARY are shared.
 _PER_COMPASS = ("OFS", "DIA", "ODI", "MOT", "SCALE", "ORIENT", "DEV_ID", "USE", "EXTERNAL")
 _SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY")
@@ -105,6 +122,28 @@ def ardupilot_matrix(params: Mapping[str, float], instance: int = 0) -> np.ndarr
     return S * scale
 
 
+def ardupilot_correction_order(firmware: str | None) -> tuple[str, str]:
+    """(order, why) of the corrections the firmware named by ``firmware`` applies (its version
+    text as logged, e.g. "ArduCopter V3.5.7 (b11c6af3)" or "APM:Rover v3.2.0"):
+    :data:`MOTOR_BEFORE_MATRIX` for Copter < 3.6, Plane < 3.9, Rover < 3.3, else (also when the
+    version or vehicle is unknown) :data:`MOTOR_AFTER_MATRIX`."""
+    match = FIRMWARE_VERSION.search(firmware or "")
+    if not match:
+        return MOTOR_AFTER_MATRIX, "no ArduPilot version in the log: the current order assumed"
+    vehicle, version = match.group(1).lower(), (int(match.group(2)), int(match.group(3)))
+    first = _MOTOR_AFTER_MATRIX_FROM.get(vehicle)
+    name = f"{vehicle.capitalize()} {version[0]}.{version[1]}"
+    if first is None:
+        return MOTOR_AFTER_MATRIX, f"{name}: the current order assumed"
+    if version < _MATRIX_FROM[vehicle]:
+        return MOTOR_BEFORE_MATRIX, (f"{name} has no COMPASS_DIA/ODI matrix: COMPASS_MOT is "
+                                     "added with the offsets")
+    if version < first:
+        return MOTOR_BEFORE_MATRIX, (f"{name} adds COMPASS_MOT before the COMPASS_DIA/ODI matrix "
+                                     f"(after it from {first[0]}.{first[1]})")
+    return MOTOR_AFTER_MATRIX, f"{name} adds COMPASS_MOT after the COMPASS_DIA/ODI matrix"
+
+
 def _check(params: Mapping[str, float], offsets: list[str], S: np.ndarray, matrix_params: str,
            field_uT: float, source: str) -> None:
     """InputError naming what is missing or unusable: an offset parameter, the field strength,
@@ -122,7 +161,8 @@ def _check(params: Mapping[str, float], offsets: list[str], S: np.ndarray, matri
 
 def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
                                source: str = "ArduPilot parameters",
-                               instance: int = 0) -> Calibration:
+                               instance: int = 0,
+                               order: str = MOTOR_AFTER_MATRIX) -> Calibration:
     """Calibration equivalent to the ``COMPASS_*`` parameters of compass ``instance`` (from 0:
     COMPASS_OFS_*, …; 1: COMPASS_OFS2_*, …; 2: COMPASS_OFS3_*, …).
 
@@ -131,8 +171,12 @@ def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
         field_uT: the field strength ArduPilot's corrected field has, µT (e.g. the median
             norm of the logged MAG field / 10); sets the scale of ``K``.
         source: said in the calibration's ``extra["source"]``.
+        order: where the firmware adds the motor term (:func:`ardupilot_correction_order`);
+            kept in ``extra["ardupilot_correction_order"]``.
     Raises :class:`InputError` if the offsets are missing or the matrix is not invertible.
     """
+    if order not in (MOTOR_AFTER_MATRIX, MOTOR_BEFORE_MATRIX):
+        raise InputError(f"{source}: unknown ArduPilot correction order {order!r}")
     S = ardupilot_matrix(params, instance)
     ofs = [ardupilot_param("OFS", instance, a) for a in "XYZ"]
     _check(params, ofs, S, f"{ardupilot_param('DIA', instance)}/ODI", field_uT, source)
@@ -146,11 +190,12 @@ def calibration_from_ardupilot(params: Mapping[str, float], field_uT: float,
     mot = np.array([params.get(ardupilot_param("MOT", instance, a), 0.0) for a in "XYZ"],
                    dtype=float)
     if motct in MOTCT_CHANNELS and np.any(mot):
-        g = -(S_inv @ mot) / MG_PER_UT
+        g = -(S_inv @ mot if order == MOTOR_AFTER_MATRIX else mot) / MG_PER_UT
         model.append("aux_interference")
         effects["aux_interference"] = {"channels": {MOTCT_CHANNELS[motct]: {
             "a0": 0.0, "g": [float(v) for v in g]}}}
     extra = {"source": source, "frame_rotation_Q": Q.tolist(),
+             "ardupilot_correction_order": order,
              "note": "K is the canonical form of ArduPilot's symmetric matrix; calibrated "
                      "directions are ArduPilot's corrected field rotated by frame_rotation_Q"}
     return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),

@@ -36,11 +36,14 @@ A log cut inside a message (a crash, a power cut) is read to its last complete m
 damaged stretch is skipped to the next valid message header; both are counted in
 ``read_warnings``.
 
-ArduPilot logs the *corrected* field: with COMPASS_OFS = ``o`` (added, ``AP_Compass``), motor
-offsets ``MOfs`` and the soft-iron matrix ``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs``
-(offsets → matrix → motor, the order of ``AP_Compass_Backend::correct_field``). The reader
-returns ``raw = S⁻¹ (MAG − MOfs) − o`` with ``o`` and ``MOfs`` taken per sample from the MAG
-message itself, and says in the metadata what it undid.
+ArduPilot logs the *corrected* field (``Compass::get_field``, int16 mG): with COMPASS_OFS = ``o``
+(added), the motor offsets ``MOfs`` (``mot · c``, logged as applied) and the soft-iron matrix
+``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs`` from Copter 3.6 / Plane 3.9 / Rover 3.3 on,
+``MAG = S (raw + o + MOfs)`` before (:func:`~.autopilot_cal.ardupilot_correction_order`, from the
+version in the log's MSG text; the current order when none is logged). The reader returns
+``raw = S⁻¹ (MAG − MOfs) − o`` or ``raw = S⁻¹ MAG − MOfs − o`` with ``o`` and ``MOfs`` taken per
+sample from the MAG message itself, and says in the metadata what it undid and in which order
+(``ardupilot_correction_order``, ``ardupilot_correction_order_from``).
 """
 from __future__ import annotations
 
@@ -54,7 +57,7 @@ import numpy as np
 
 from ..errors import InputError
 from .track import Track
-from .autopilot_cal import (MG_PER_UT, ardupilot_param, ardupilot_param_index,
+from .autopilot_cal import (FIRMWARE_VERSION, MG_PER_UT, ardupilot_param, ardupilot_param_index,
                             compass_params)
 from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
@@ -276,7 +279,8 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
         if msgs.has(name, "OfsX", "OfsY", "OfsZ") else None
     mag_meta(msgs, name, params_of, meta, mofs is not None and bool(np.any(mofs)),
              None if ofs is None else np.unique(ofs, axis=0))
-    return Stream(name, _time(msgs, name, path), mag_values(msgs, name, params_of, logged))
+    return Stream(name, _time(msgs, name, path), mag_values(msgs, name, params_of, logged,
+                                                          meta["ardupilot_correction_order"]))
 
 
 def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
@@ -424,7 +428,8 @@ def _track(msgs: _Messages, path: Path, instance: int) -> Track:
                         "before logging)",
             "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
                      "rcou_c* us; battery_current_a A; battery_voltage_v V; throttle 0..1"}
-    firmware = next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
+    firmware = next((m for m in msgs.texts if FIRMWARE_VERSION.search(m)), None) or \
+        next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
     if firmware:
         meta["firmware"] = firmware
     streams = [_mag(msgs, path, meta, instance)]

@@ -30,7 +30,8 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
-from .autopilot_cal import MG_PER_UT, ardupilot_param, ardupilot_param_index, compass_params
+from .autopilot_cal import (FIRMWARE_VERSION, MG_PER_UT, ardupilot_param, ardupilot_param_index,
+                            compass_params)
 from .attitude_streams import dataflash_attitude
 from .dataflash import (MAG_NAMES, MESSAGES, _baro_temp, _battery, _Messages, _rcou, _time,
                         add_params, read_dataflash, walk_notes)
@@ -287,7 +288,8 @@ def _plan(msgs: _Messages, rows: dict, path: Path, compass, n_pieces: int) -> _P
                         "before logging)",
             "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
                      "rcou_c* us; battery_current_a A; battery_voltage_v V; throttle 0..1"}
-    firmware = next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
+    firmware = next((m for m in msgs.texts if FIRMWARE_VERSION.search(m)), None) or \
+        next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
     if firmware:
         meta["firmware"] = firmware
     params_of = ardupilot_param_index(msgs.params, instance)
@@ -375,7 +377,9 @@ def _heavy_streams(plan: _Plan, decoded: dict, path: Path) -> list[Stream]:
             m = _Messages(msgs.fields, msgs.types, {name: {c: v[keep] for c, v in
                                                            msgs.cols[name].items()}},
                           msgs.params, [], path)
-        out.append(Stream(name, _time(m, name, path), mag_values(m, name, params_of)))
+        out.append(Stream(name, _time(m, name, path),
+                          mag_values(m, name, params_of,
+                                     order=plan.meta["ardupilot_correction_order"])))
     if plan.imu is not None and msgs.count("IMU"):
         m = msgs
         if msgs.has("IMU", "I"):

@@ -9,16 +9,22 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import InputError
-from .autopilot_cal import MG_PER_UT, ardupilot_matrix, ardupilot_param
+from .autopilot_cal import (MG_PER_UT, MOTOR_AFTER_MATRIX, MOTOR_BEFORE_MATRIX,
+                            ardupilot_correction_order, ardupilot_matrix, ardupilot_param)
 
 
 def mag_meta(msgs, name: str, params_of: int, meta: dict, mofs_nonzero: bool,
              ofs_sets: np.ndarray | None) -> None:
     """What :func:`mag_values` undoes, into ``meta``: ``mofs_nonzero`` whether any logged motor
-    offset is not 0, ``ofs_sets`` the distinct logged OfsX/Y/Z rows (None: no such fields)."""
+    offset is not 0, ``ofs_sets`` the distinct logged OfsX/Y/Z rows (None: no such fields); the
+    order of the corrections from ``meta["firmware"]``
+    (:func:`~.autopilot_cal.ardupilot_correction_order`) as ``ardupilot_correction_order``."""
+    order, why = ardupilot_correction_order(meta.get("firmware"))
+    meta["ardupilot_correction_order"] = order
+    meta["ardupilot_correction_order_from"] = why
     if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ"):
         meta["mag_motor_offsets_undone"] = (
-            f"{name}.MOfsX/Y/Z subtracted per sample" if mofs_nonzero
+            f"{name}.MOfsX/Y/Z subtracted per sample ({order})" if mofs_nonzero
             else f"none ({name}.MOfs all 0)")
     else:
         meta["mag_motor_offsets_undone"] = f"could not: {name} has no MOfsX/Y/Z"
@@ -28,8 +34,7 @@ def mag_meta(msgs, name: str, params_of: int, meta: dict, mofs_nonzero: bool,
         meta["mag_soft_iron_undone"] = f"none ({dia}/{odi} identity or not logged)"
     else:
         meta["mag_soft_iron_undone"] = f"inverse of the PARM {dia}/{odi} matrix applied" + (
-            " (assumes motor offsets added after the matrix, ArduPilot 4.x order)"
-            if mofs_nonzero else "")
+            f" ({order}: {why})" if mofs_nonzero else "")
     ofs_names = [ardupilot_param("OFS", params_of, a) for a in "XYZ"]
     if ofs_sets is not None:
         shown = ",".join(f"{v:g}" for v in ofs_sets[0]) if len(ofs_sets) == 1 else \
@@ -47,15 +52,19 @@ def mag_meta(msgs, name: str, params_of: int, meta: dict, mofs_nonzero: bool,
                                       "the corrected field")
 
 
-def mag_values(msgs, name: str, params_of: int, logged: np.ndarray | None = None
-               ) -> dict:
-    """``{"mx","my","mz": (n,)}`` µT: the raw field ``S⁻¹ (MAG − MOfs) − Ofs`` of the rows of
-    ``name`` in ``msgs`` (row by row, so a log read in pieces gives the same values)."""
+def mag_values(msgs, name: str, params_of: int, logged: np.ndarray | None = None,
+               order: str = MOTOR_AFTER_MATRIX) -> dict:
+    """``{"mx","my","mz": (n,)}`` µT: the raw field of the rows of ``name`` in ``msgs`` (row by
+    row, so a log read in pieces gives the same values): ``S⁻¹ (MAG − MOfs) − Ofs`` in the
+    current ``order`` (:data:`~.autopilot_cal.MOTOR_AFTER_MATRIX`), ``S⁻¹ MAG − MOfs − Ofs``
+    in the older one (:data:`~.autopilot_cal.MOTOR_BEFORE_MATRIX`)."""
     if logged is None:
         logged = np.column_stack([msgs.array(name, c) for c in ("MagX", "MagY", "MagZ")])
     raw = logged.copy()
-    if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ"):
-        raw -= np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")])
+    mofs = np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")]) \
+        if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ") else None
+    if mofs is not None and order == MOTOR_AFTER_MATRIX:
+        raw -= mofs
     S = ardupilot_matrix(msgs.params, params_of)
     if not np.allclose(S, np.eye(3)):
         try:
@@ -65,6 +74,8 @@ def mag_values(msgs, name: str, params_of: int, logged: np.ndarray | None = None
                              f"{ardupilot_param('DIA', params_of)}/"
                              f"{ardupilot_param('ODI', params_of)[8:]} parameters is singular: "
                              "cannot undo it (damaged parameters?)") from None
+    if mofs is not None and order == MOTOR_BEFORE_MATRIX:
+        raw -= mofs
     ofs_names = [ardupilot_param("OFS", params_of, a) for a in "XYZ"]
     if msgs.has(name, "OfsX", "OfsY", "OfsZ"):
         raw -= np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")])
