@@ -235,3 +235,13 @@ def test_reading_in_pieces_holds_less_than_the_whole_read(tmp_path):
     pieces = peak(lambda: [len(c) for c in
                            dataflash_chunks.iter_dataflash_chunks(path, piece_bytes=1 << 16)])
     assert pieces < whole / 3, (pieces, whole)
+
+
+@pytest.mark.parametrize("firmware, before", [("ArduCopter V3.5.7 (b11c6af3)", True),
+                                              ("ArduCopter V3.6.12 (a76b3ef7)", False)])
+def test_firmware_order_in_pieces_is_the_whole_track(tmp_path, firmware, before):
+    """A log flown with a motor term and a soft-iron matrix, in either order of ArduPilot's
+    corrections: undone the same way piece by piece as whole."""
+    path = _selfmade(tmp_path, motor_comp=np.array([150.0, -90.0, 210.0]), firmware=firmware,
+                     motor_before_matrix=before)
+    check_chunks_are_the_whole_track(path)
