@@ -16,8 +16,9 @@ Figures on the held-out part:
   do not dominate;
 * heading error against the attitude reference (the World Magnetic Model rotated by the logged
   attitude, :mod:`streamcal.fitting.attitude_reference`) where the log has attitude and a
-  position: rms and 95th percentile (degrees) over the samples inside the attitude's span, with
-  that module's caveat (the logged yaw is itself steered by the compass).
+  position: rms and 95th percentile (degrees) over the samples inside the attitude's span that
+  the robust fit against the reference keeps (``on_reference_inliers``, the samples of every
+  heading figure), with that module's caveat (the logged yaw is itself steered by the compass).
 """
 from __future__ import annotations
 
@@ -27,7 +28,8 @@ from ..calibration import Calibration
 from ..constants import MAD_TO_SIGMA
 from ..diagnosis.against import refine
 from ..errors import InputError
-from ..fitting.attitude_reference import attitude_data, heading_error_deg, log_location
+from ..fitting.attitude_reference import (attitude_data, heading_error_deg, log_location,
+                                          on_reference_inliers)
 from ..fitting.heading_check import WORSE_DEG, WORSE_FRACTION
 from ..inputs.autopilot_cal import MOTOR_AFTER_MATRIX, UT_PER_GAUSS
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A
@@ -120,7 +122,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     and ``after`` (refined with it); each ``{firmware: figures}``, plus ``streamcal`` (the
     ``after`` calibration's own correction). Figures: ``spread_pct`` and
     ``spread_robust_pct`` over every held-out sample; ``heading_rms_deg``, ``heading_p95_deg``
-    against the attitude reference over the held-out samples inside the attitude's span, when
+    against the attitude reference over the held-out samples inside the attitude's span that
+    the reference fit keeps, when
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
     ArduPilot's formula adds the motor term in the order of the firmware ``cal_in_force`` came
     from (``extra["ardupilot_correction_order"]``; the newest when absent).
@@ -157,6 +160,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     m = np.asarray(check_part.mag, dtype=float)
     signal = np.asarray(check_part.covariates_at_mag()[channel], dtype=float)
     data, why = attitude_data(check_part, ref) if ref is not None else (None, why)
+    if data is not None:
+        data = on_reference_inliers(data, needed_channels(cal_in_force))
     out = {"channel": channel, "fit_on": fit_on,
            "fitted_s": [round(float(fit_part.t_mag[0]), 3), round(float(fit_part.t_mag[-1]), 3)],
            "checked_s": [round(float(check_part.t_mag[0]), 3),
@@ -222,6 +227,8 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
     if ref is None:
         ref, why = log_location(track)
     data, why = attitude_data(track, ref) if ref is not None else (None, why)
+    if data is not None:
+        data = on_reference_inliers(data, needed_channels(cal_in_force) if cal_in_force else ())
     out = {"n": int(len(m)), "n_heading": int(len(data.rows)) if data is not None else 0,
            "channels": {fw: motor_channel(needed_channels(cal), second_battery=fw == "px4")[0]
                         for fw in FIRMWARES}}

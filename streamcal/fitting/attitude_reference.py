@@ -234,6 +234,18 @@ def reference_fit(data: AttitudeData, channels=(), detect: bool = True) -> tuple
     return fit_reference(data.m, data.expected, chans), ""
 
 
+def on_reference_inliers(data: AttitudeData, channels=()) -> AttitudeData:
+    """``data`` kept to the samples every heading figure against the attitude is over: the
+    inliers of the robust fit against the reference (:func:`reference_fit` over the
+    interference ``channels`` the samples carry, no mounting search), so that a disturbance
+    counts in no calibration's figure."""
+    keep = reference_fit(data, channels, detect=False)[0].inliers
+    return AttitudeData(t=data.t[keep], m=data.m[keep], q=data.q[keep],
+                        expected=data.expected[keep],
+                        cov={k: np.asarray(v)[keep] for k, v in data.cov.items()},
+                        ref=data.ref, rows=data.rows[keep])
+
+
 def implausible(fit: ReferenceFit) -> str:
     """Why the fit cannot be a calibration (its gains outside :data:`GAIN_RANGE`), or ""."""
     gains = np.linalg.eigvalsh(fit.A)
