@@ -195,3 +195,9 @@ def recording_argv(args) -> list[str]:
         elif value not in (None, False):
             words += [flag, str(value)]
     return words
+
+
+def verdict_line(d) -> str:
+    """``verdict    effect_missing   (rule: …)``: the verdict and the rule that gave it."""
+    rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
+    return f"verdict    {d.verdict}   (rule: {rule})"

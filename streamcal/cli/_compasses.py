@@ -9,7 +9,7 @@ from pathlib import Path
 
 from ..calibration import jsonable
 from ..errors import InsufficientDataError
-from ._common import _command, recording_argv, say_read_warnings
+from ._common import _command, recording_argv, say_read_warnings, verdict_line
 
 
 def _diagnose_each(args, model) -> list[dict]:
@@ -103,8 +103,6 @@ def _terminal_lines(e: dict) -> list[str]:
     """What ``report --compass all`` says of one compass on the terminal, as ``diagnose
     --compass all`` begins it: the compass, its verdict, the local field and the attitude
     reference (or why there is no calibration)."""
-    from .diagnose import verdict_line
-
     if e["diagnosis"] is None:
         return [_compass_title(e), f"no calibration: {e['error']}"]
     return [_compass_title(e), verdict_line(e["diagnosis"])] + _place_lines(e)[1:]

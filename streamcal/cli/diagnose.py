@@ -10,7 +10,8 @@ import sys
 
 from ..calibration import jsonable
 from ..errors import InputError, InsufficientDataError
-from ._common import RECORDING_HELP, add_input_options, recording_argv, recording_chunks
+from ._common import (RECORDING_HELP, add_input_options, recording_argv, recording_chunks,
+                      verdict_line)
 from ._location import add_location_options, attitude_lines, location_reference
 
 
@@ -274,12 +275,6 @@ def _diagnosis_unit(d) -> str:
     from ..units import display_unit
 
     return display_unit(diagnosis_unit(d))
-
-
-def verdict_line(d) -> str:
-    """``verdict    effect_missing   (rule: …)``: the verdict and the rule that gave it."""
-    rule = d.significance_rule if d.verdict == "effect_missing" else d.noise_floor_rule
-    return f"verdict    {d.verdict}   (rule: {rule})"
 
 
 def _text(d) -> str:
