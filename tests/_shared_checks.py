@@ -283,6 +283,22 @@ def check_string_where_a_number_is_needed_named(path, tmp_path, layout: bytes) -
         dataflash.read_dataflash(bad)
 
 
+def damaged(blob: bytes, rng, head: int, head_share: float) -> bytes:
+    """``blob`` with 1–24 bytes flipped, runs inserted or deleted (a share ``head_share`` of them
+    in its first ``head`` bytes)."""
+    out = bytearray(blob)
+    for _ in range(int(rng.integers(1, 25))):
+        at = int(rng.integers(0, head if rng.random() < head_share else len(out)))
+        op = rng.random()
+        if op < 0.4:
+            out[at] ^= int(rng.integers(1, 256))
+        elif op < 0.7:
+            out[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
+        else:
+            del out[at:at + int(rng.integers(1, 9))]
+    return bytes(out)
+
+
 def check_random_damage(head: bytes, tmp_path, seed: int, fmt_block: int) -> None:
     """Flipped, inserted and deleted bytes (70 % of them in the first ``fmt_block`` bytes, where
     the FMT messages are) in ``head``: the reader returns a Track or raises InputError naming
@@ -290,19 +306,8 @@ def check_random_damage(head: bytes, tmp_path, seed: int, fmt_block: int) -> Non
     from streamcal.errors import InputError
     from streamcal.inputs import dataflash
 
-    rng = np.random.default_rng(seed)
-    blob = bytearray(head)
-    for _ in range(int(rng.integers(1, 25))):
-        at = int(rng.integers(0, fmt_block if rng.random() < 0.7 else len(blob)))
-        op = rng.random()
-        if op < 0.4:
-            blob[at] ^= int(rng.integers(1, 256))
-        elif op < 0.7:
-            blob[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
-        else:
-            del blob[at:at + int(rng.integers(1, 9))]
     path = tmp_path / "damaged.bin"
-    path.write_bytes(bytes(blob))
+    path.write_bytes(damaged(head, np.random.default_rng(seed), fmt_block, 0.7))
     for skip in (False, True):
         try:
             track = dataflash.read_dataflash(path, skip_bad_rows=skip)

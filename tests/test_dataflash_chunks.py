@@ -11,6 +11,7 @@ from streamcal.inputs.dataflash_bulk import Walker, walk
 from streamcal.inputs.track import Track
 
 from ._dataflash_log import write_flight
+from ._shared_checks import damaged
 from ._selfmade_logs import flight_slice, write_dataflash
 from .test_inputs_flight import BINS
 
@@ -99,19 +100,9 @@ def test_damaged_and_cut_logs_in_pieces(tmp_path):
 def test_random_damage_in_pieces(tmp_path, seed):
     """Bytes flipped, inserted, deleted: a Track equal to the whole read's, or the same
     InputError."""
-    rng = np.random.default_rng(seed)
-    blob = bytearray(_selfmade(tmp_path, seconds=8.0).read_bytes())
-    for _ in range(int(rng.integers(1, 25))):
-        at = int(rng.integers(0, 1200 if rng.random() < 0.5 else len(blob)))
-        op = rng.random()
-        if op < 0.4:
-            blob[at] ^= int(rng.integers(1, 256))
-        elif op < 0.7:
-            blob[at:at] = rng.integers(0, 256, int(rng.integers(1, 9)), dtype=np.uint8).tobytes()
-        else:
-            del blob[at:at + int(rng.integers(1, 9))]
+    blob = _selfmade(tmp_path, seconds=8.0).read_bytes()
     path = tmp_path / "damaged.bin"
-    path.write_bytes(bytes(blob))
+    path.write_bytes(damaged(blob, np.random.default_rng(seed), 1200, 0.5))
     try:
         dataflash.read_dataflash(path)
     except InputError as exc:

@@ -283,6 +283,37 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
                                                           meta["ardupilot_correction_order"]))
 
 
+def slow_streams(msgs: _Messages, path: Path, meta: dict, baro: bool) -> list[Stream]:
+    """The low-rate streams beside the compass and the IMU, in the track's order: the
+    barometer's temperature (when ``baro``: the IMU logs none), the motor outputs, the
+    batteries, the attitude and the throttle (when no CURR carries it)."""
+    out = []
+    if baro:
+        out.append(_baro_temp(msgs, path, meta))
+    out.append(_rcou(msgs, path, meta))
+    out += _battery(msgs, path, meta)
+    out += dataflash_attitude(msgs, lambda name: _time(msgs, name, path), meta)
+    if "throttle_source" not in meta:
+        def time_of(name):
+            return _time(msgs, name, path)
+
+        out.append(ctun_throttle(msgs, time_of, meta) or rcou_throttle(msgs, time_of, meta))
+    return [s for s in out if s is not None]
+
+
+def compass_meta(msgs: _Messages, params_of: int, meta: dict) -> None:
+    """The compass's device id and parameters in force, and what a damaged log lost, into
+    ``meta``."""
+    device = msgs.params.get(ardupilot_param("DEV_ID", params_of))
+    if device:
+        meta["compass_device_id"] = f"{int(device)}"
+    for name, value in compass_params(msgs.params, params_of).items():
+        meta[f"param.{name}"] = f"{value:g}"
+    notes = [m for m in msgs.texts if m.startswith(("truncated", "Skipped"))]
+    if notes:
+        meta["read_warnings"] = "; ".join(notes)
+
+
 def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
     names = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
     if not msgs.has("IMU", *names) or not msgs.count("IMU"):
@@ -436,31 +467,8 @@ def _track(msgs: _Messages, path: Path, instance: int) -> Track:
     imu = _imu(msgs, path, meta)
     if imu is not None:
         streams.append(imu)
-    if "temp" not in (imu.columns if imu else {}):
-        baro = _baro_temp(msgs, path, meta)
-        if baro is not None:
-            streams.append(baro)
-    rcou = _rcou(msgs, path, meta)
-    if rcou is not None:
-        streams.append(rcou)
-    streams += _battery(msgs, path, meta)
-    streams += dataflash_attitude(msgs, lambda name: _time(msgs, name, path), meta)
-    if "throttle_source" not in meta:
-        def time_of(name):
-            return _time(msgs, name, path)
-
-        throttle = ctun_throttle(msgs, time_of, meta) or rcou_throttle(msgs, time_of, meta)
-        if throttle is not None:
-            streams.append(throttle)
-    params_of = int(meta["compass_params_index"])
-    device = msgs.params.get(ardupilot_param("DEV_ID", params_of))
-    if device:
-        meta["compass_device_id"] = f"{int(device)}"
-    for name, value in compass_params(msgs.params, params_of).items():
-        meta[f"param.{name}"] = f"{value:g}"
-    notes = [m for m in msgs.texts if m.startswith(("truncated", "Skipped"))]
-    if notes:
-        meta["read_warnings"] = "; ".join(notes)
+    streams += slow_streams(msgs, path, meta, baro="temp" not in (imu.columns if imu else {}))
+    compass_meta(msgs, int(meta["compass_params_index"]), meta)
     streams = drop_nonfinite(streams, meta)
     if not any(len(s.t) for s in streams if "mx" in s.columns):
         raise InputError(f"{path}: no intact MAG message of compass {instance} "

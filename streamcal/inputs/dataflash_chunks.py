@@ -30,14 +30,11 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
-from .autopilot_cal import (FIRMWARE_VERSION, MG_PER_UT, ardupilot_param, ardupilot_param_index,
-                            compass_params)
-from .attitude_streams import dataflash_attitude
-from .dataflash import (MAG_NAMES, MESSAGES, _baro_temp, _battery, _Messages, _rcou, _time,
-                        add_params, read_dataflash, walk_notes)
+from .autopilot_cal import FIRMWARE_VERSION, MG_PER_UT, ardupilot_param_index
+from .dataflash import (MAG_NAMES, MESSAGES, _Messages, _time, add_params, compass_meta,
+                        read_dataflash, slow_streams, walk_notes)
 from .dataflash_bulk import Walker, decode
 from .dataflash_mag import mag_meta, mag_values
-from .dataflash_throttle import ctun_throttle, rcou_throttle
 from .streams import Stream, drop_nonfinite, merge
 from .track import Track
 
@@ -307,29 +304,8 @@ def _plan(msgs: _Messages, rows: dict, path: Path, compass, n_pieces: int) -> _P
         if imu:
             meta["temp_source"] = "IMU.Temp (the IMU's die temperature)"
         counts.append(("IMU", imu_rows))
-    small = []
-    if not imu:
-        baro = _baro_temp(msgs, path, meta)
-        small += [baro] if baro is not None else []
-    rcou = _rcou(msgs, path, meta)
-    small += [rcou] if rcou is not None else []
-    small += _battery(msgs, path, meta)
-    small += dataflash_attitude(msgs, lambda n: _time(msgs, n, path), meta)
-    if "throttle_source" not in meta:
-        def time_of(n):
-            return _time(msgs, n, path)
-
-        throttle = ctun_throttle(msgs, time_of, meta) or rcou_throttle(msgs, time_of, meta)
-        if throttle is not None:
-            small.append(throttle)
-    device = msgs.params.get(ardupilot_param("DEV_ID", params_of))
-    if device:
-        meta["compass_device_id"] = f"{int(device)}"
-    for pname, value in compass_params(msgs.params, params_of).items():
-        meta[f"param.{pname}"] = f"{value:g}"
-    notes = [m for m in msgs.texts if m.startswith(("truncated", "Skipped"))]
-    if notes:
-        meta["read_warnings"] = "; ".join(notes)
+    small = slow_streams(msgs, path, meta, baro=not imu)
+    compass_meta(msgs, params_of, meta)
     # drop_nonfinite of the whole log: the compass/IMU counts from the survey, in stream order
     kept = drop_nonfinite(small, scratch := {})
     dropped = [f"{r.count - r.finite} {n}" for n, r in counts if r.count > r.finite]
