@@ -449,12 +449,14 @@ def read_dataflash_pymavlink(path, *, skip_bad_rows: bool = False,
     return _track(msgs, path, default_compass(msgs) if compass is None else compass)
 
 
-def _track(msgs: _Messages, path: Path, instance: int) -> Track:
+def head_meta(msgs: _Messages, path: Path, instance: int, present) -> dict:
+    """The metadata every track of a log starts with: what it is, the compass ``instance``
+    among the ``present`` ones, units, and the firmware's version text when logged."""
     meta = {"sensor": f"ardupilot compass (instance {instance})",
             "source": f"ArduPilot DataFlash log {path.name}",
             "input_format": "ardupilot-dataflash", "mag_unit": "uT",
             "compass_instance": str(instance),
-            "compasses_in_log": ",".join(map(str, compass_instances(msgs))),
+            "compasses_in_log": ",".join(map(str, present)),
             "mag_axes": "body frame (ArduPilot rotates by COMPASS_ORIENT/AHRS_ORIENTATION "
                         "before logging)",
             "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
@@ -463,6 +465,11 @@ def _track(msgs: _Messages, path: Path, instance: int) -> Track:
         next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
     if firmware:
         meta["firmware"] = firmware
+    return meta
+
+
+def _track(msgs: _Messages, path: Path, instance: int) -> Track:
+    meta = head_meta(msgs, path, instance, compass_instances(msgs))
     streams = [_mag(msgs, path, meta, instance)]
     imu = _imu(msgs, path, meta)
     if imu is not None:

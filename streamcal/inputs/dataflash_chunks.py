@@ -22,7 +22,6 @@ then given out in slices; a log of one piece is read whole, once.
 """
 from __future__ import annotations
 
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
@@ -30,9 +29,9 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError
-from .autopilot_cal import FIRMWARE_VERSION, MG_PER_UT, ardupilot_param_index
+from .autopilot_cal import MG_PER_UT, ardupilot_param_index
 from .dataflash import (MAG_NAMES, MESSAGES, _Messages, _time, add_params, compass_meta,
-                        read_dataflash, slow_streams, walk_notes)
+                        head_meta, read_dataflash, slow_streams, walk_notes)
 from .dataflash_bulk import Walker, decode
 from .dataflash_mag import mag_meta, mag_values
 from .streams import Stream, drop_nonfinite, merge
@@ -276,19 +275,7 @@ def _plan(msgs: _Messages, rows: dict, path: Path, compass, n_pieces: int) -> _P
     if key not in rows:
         raise _Fallback   # no MagX/Y/Z, or no rows of that instance: the reader says so
     mag_rows = rows[key]
-    meta = {"sensor": f"ardupilot compass (instance {instance})",
-            "source": f"ArduPilot DataFlash log {path.name}",
-            "input_format": "ardupilot-dataflash", "mag_unit": "uT",
-            "compass_instance": str(instance),
-            "compasses_in_log": ",".join(map(str, present)),
-            "mag_axes": "body frame (ArduPilot rotates by COMPASS_ORIENT/AHRS_ORIENTATION "
-                        "before logging)",
-            "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
-                     "rcou_c* us; battery_current_a A; battery_voltage_v V; throttle 0..1"}
-    firmware = next((m for m in msgs.texts if FIRMWARE_VERSION.search(m)), None) or \
-        next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
-    if firmware:
-        meta["firmware"] = firmware
+    meta = head_meta(msgs, path, instance, present)
     params_of = ardupilot_param_index(msgs.params, instance)
     meta["compass_params_index"] = str(params_of)
     meta["autopilot_field_uT"] = f"{mag_rows.norms.median() / MG_PER_UT:.4g}"
