@@ -89,3 +89,20 @@ def test_a_worse_refinement_is_said_in_the_summary_and_by_fit(tmp_path, monkeypa
     words = " ".join(advice.heading_sentences(D))
     assert words.startswith("Careful") and f"{check['rms_after']:.2f}°" in words
     assert "streamcal fit flight.bin --attitude" in words
+
+
+def test_real_copter_refinement_turns_the_heading_and_is_said(flight_dir, tmp_path):
+    """The 2014 copter, diagnosed against the calibration in force: the recommended refinement
+    lowers the field error but points the compass worse against the logged attitude; the summary
+    says so with the numbers the pasted `fit --cal` gives and keeps in its file."""
+    log = str(flight_dir / "ardupilot_erle_15-12-2014_16.BIN")
+    d = json.loads(_run("diagnose", log, "--cal", "log", "--json").stdout)
+    check = d["heading_check"]
+    assert d["ladder"][-1]["rms"] < d["ladder"][0]["rms"]
+    assert check["worse"] and check["rms_after"] > check["rms_before"]
+    assert "Careful" in d["summary"] and f"{check['rms_after']:.2f}°" in d["summary"]
+    argv = [a if a != "refined.json" else str(tmp_path / "r.json") for a in d["next_step"][1:]]
+    run = _run(*argv)
+    assert "warning: against the attitude reference" in run.stderr
+    saved = json.loads((tmp_path / "r.json").read_text())
+    assert saved["heading_check"] == check
