@@ -298,11 +298,14 @@ class Calibration:
             raise CalibrationFileError(f"{path}: cannot read ({exc.strerror or exc})") from None
         if len(raw) > MAX_FILE_BYTES:
             raise CalibrationFileError(f"{path}: {len(raw)} bytes or more is too large for a "
-                                       "calibration file")
+                                       "calibration file (a small JSON file; a recording or a "
+                                       "log goes where the command reads one)")
         try:
             text = raw.decode("utf-8")
         except UnicodeDecodeError as exc:
-            raise CalibrationFileError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+            raise CalibrationFileError(f"{path}: not a calibration file: a calibration is JSON "
+                                       f"text, and byte {exc.start} is not UTF-8 (a binary "
+                                       "file, such as a flight log?)") from None
         return cls.from_json(text, source=path)
 
 

@@ -66,6 +66,10 @@ def test_load_refuses_a_symlink_and_a_huge_file(tmp_path):
         Calibration.load(big)
     with pytest.raises(CalibrationFileError, match="cannot read"):
         Calibration.load(tmp_path / "missing.json")
+    log = tmp_path / "flight.bin"
+    log.write_bytes(bytes([0xA3, 0x95, 0x80, 0x80]) + bytes(range(256)))   # a DataFlash head
+    with pytest.raises(CalibrationFileError, match="not a calibration file: .* byte 0 .* flight log"):
+        Calibration.load(log)
 
 
 def test_radius_is_the_cube_root_of_det_K():
