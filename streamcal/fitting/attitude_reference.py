@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 from ..calibration import Calibration, canonical_form
 from ..constants import ATTITUDE_COLUMNS
 from ..geomag import ned_field, parse_date, wmm_field
-from .mount_rotations import as_dict
+from ..inputs.mount_rotations import as_dict
 from .reference_fit import ReferenceFit, detect_rotation, fit_reference, residual_rotation_deg
 
 CAVEAT = ("the logged attitude is the autopilot's estimate and its yaw is itself steered by "
@@ -142,7 +142,7 @@ def px4_rotation(meta) -> np.ndarray | None:
     """The rotation (3,3) PX4 turns a ``sensor_mag`` reading by after its calibration:
     CAL_MAGn_ROT for an external compass, SENS_BOARD_ROT for an internal one (ROT = −1);
     None when it is the identity or not a numbered rotation."""
-    from .mount_rotations import by_number
+    from ..inputs.mount_rotations import by_number
 
     prefix = meta.get("mag_cal_params")
     if meta.get("input_format") != "px4-ulog" or not prefix:
@@ -346,7 +346,7 @@ def mounting_advice(meta, found) -> dict:
     ``sensor_mag`` is the sensor's own frame, so it is ``found`` itself. ``{}`` when the
     log names no such parameter; ``"value": None`` when the product is not a numbered
     rotation."""
-    from .mount_rotations import by_number, matching
+    from ..inputs.mount_rotations import by_number, matching
 
     meta = dict(meta or {})
     if meta.get("input_format") == "ardupilot-dataflash":
