@@ -221,6 +221,10 @@ TOPICS = {
     "actuator_controls_0": [("uint64_t", "timestamp", 1), ("float", "control", 8)],
     "battery_status": [("uint64_t", "timestamp", 1), ("float", "voltage_v", 1),
                        ("float", "current_a", 1)],
+    "vehicle_attitude": [("uint64_t", "timestamp", 1), ("float", "q", 4)],
+    "vehicle_gps_position": [("uint64_t", "timestamp", 1), ("uint64_t", "time_utc_usec", 1),
+                             ("int32_t", "lat", 1), ("int32_t", "lon", 1), ("int32_t", "alt", 1),
+                             ("uint8_t", "fix_type", 1)],
 }
 
 
@@ -323,3 +327,79 @@ def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, combined: bool 
 def write_ulog(path: Path, flight: FlightSlice, **kw) -> Path:
     Path(path).write_bytes(ulog_bytes(flight, **kw))
     return Path(path)
+
+
+# ---------------------------------------------------------------- PX4 flight with attitude and GPS
+
+
+def px4_mounted_params(mount: np.ndarray, rot: int, S_body: np.ndarray, b_body: np.ndarray,
+                       *, comp_g_per_ka=None) -> dict:
+    """CAL_MAG0_* (gauss) that calibrate a compass mounted ``mount`` (sensor → body) reading
+    ``m = mountᵀ (S_body e + b_body)`` µT: PX4's ``R S (r − o) = e / 100`` with ``R = mount``
+    (CAL_MAG0_ROT = ``rot``), so ``S = mountᵀ S_body⁻¹ mount`` and ``o = mountᵀ b_body / 100``;
+    ``comp_g_per_ka`` (3,) G/kA on battery 0's current (CAL_MAG_COMP_TYP 2) when given."""
+    S = mount.T @ np.linalg.inv(S_body) @ mount
+    o = mount.T @ np.asarray(b_body, float) / 100.0
+    params = {f"CAL_MAG0_{a}OFF": float(o[k]) for k, a in enumerate("XYZ")}
+    params.update({f"CAL_MAG0_{a}SCALE": float(S[k, k]) for k, a in enumerate("XYZ")})
+    params.update({"CAL_MAG0_XODIAG": float(S[0, 1]), "CAL_MAG0_YODIAG": float(S[0, 2]),
+                   "CAL_MAG0_ZODIAG": float(S[1, 2])})
+    comp = np.zeros(3) if comp_g_per_ka is None else np.asarray(comp_g_per_ka, float)
+    params.update({f"CAL_MAG0_{a}COMP": float(comp[k]) for k, a in enumerate("XYZ")})
+    return {**params, "CAL_MAG0_ID": DEVICE_ID, "CAL_MAG0_ROT": int(rot),
+            "CAL_MAG_PRIME": DEVICE_ID, "SENS_BOARD_ROT": 0,
+            "CAL_MAG_COMP_TYP": 2 if comp_g_per_ka is not None else 0}
+
+
+def px4_flight_ulog_bytes(track, params: dict) -> bytes:
+    """The ULog PX4 writes for a :func:`streamcal.sim.flight.simulated_log` track: its sensor-
+    frame readings as ``sensor_mag`` (G), its attitude as ``vehicle_attitude.q``, its GPS
+    position and date as ``vehicle_gps_position`` (1 Hz 3-D fixes), its ``battery_current_a``
+    as ``battery_status`` and its accelerometer in ``sensor_combined``; ``params`` as P
+    messages."""
+    import datetime
+
+    names = ["sensor_mag", "vehicle_attitude", "vehicle_gps_position", "sensor_combined"]
+    if track.has("battery_current_a"):
+        names.append("battery_status")
+    out = [ULOG_MAGIC + bytes([1]) + struct.pack("<Q", 0), _umsg(b"B", bytes(40))]
+    for name in names:
+        fields = "".join(f"{c}{'' if n == 1 else f'[{n}]'} {f};" for c, f, n in TOPICS[name])
+        out.append(_umsg(b"F", f"{name}:{fields}".encode()))
+    for key, value in (("sys_name", "PX4"), ("ver_hw", "SELFMADE_V1")):
+        k = f"char[{len(value)}] {key}".encode()
+        out.append(_umsg(b"I", bytes([len(k)]) + k + value.encode()))
+    for key, value in params.items():
+        kind, code = ("int32_t", "<i") if isinstance(value, int) else ("float", "<f")
+        k = f"{kind} {key}".encode()
+        out.append(_umsg(b"P", bytes([len(k)]) + k + struct.pack(code, value)))
+    ids = {name: i for i, name in enumerate(names)}
+    out += [_umsg(b"A", struct.pack("<BH", 0, i) + name.encode()) for name, i in ids.items()]
+    rows = []
+
+    def data(t: float, name: str, *values) -> None:
+        us = int(round(t * 1e6)) + 1_000_000
+        rows.append((us, ids[name], _umsg(b"D", struct.pack("<H", ids[name])
+                                          + _topic_struct(TOPICS[name]).pack(us, *values))))
+
+    t = track.t_mag
+    q = np.column_stack([track.columns[c][track.mag_rows] for c in
+                         ("att_qw", "att_qx", "att_qy", "att_qz")])
+    accel = track.accel
+    for k, tk in enumerate(t):
+        data(tk, "sensor_mag", DEVICE_ID, *(track.mag[k] / 100.0), 31.5)
+        data(tk + 0.001, "vehicle_attitude", *q[k])
+        data(tk + 0.002, "sensor_combined", 0.0, 0.0, 0.0, *accel[k])
+        if "battery_status" in ids:
+            data(tk + 0.003, "battery_status", 12.0,
+                 float(track.columns["battery_current_a"][track.mag_rows][k]))
+    meta = track.metadata
+    day = datetime.datetime.fromisoformat(meta["gps_date"]).replace(
+        tzinfo=datetime.timezone.utc)
+    lat, lon = float(meta["gps_lat_deg"]), float(meta["gps_lon_deg"])
+    for tk in np.arange(t[0], t[-1], 1.0):
+        utc = int((day.timestamp() + 12 * 3600 + tk) * 1e6)
+        data(tk + 0.004, "vehicle_gps_position", utc, int(round(lat * 1e7)),
+             int(round(lon * 1e7)), int(round(float(meta["gps_alt_m"]) * 1e3)), 3)
+    rows.sort(key=lambda r: (r[0], r[1]))
+    return b"".join(out) + b"".join(r[2] for r in rows)

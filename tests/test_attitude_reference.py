@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from streamcal.fitting.attitude_reference import attitude_reference, attitude_data
-from streamcal.fitting.mount_rotations import by_name, mount_rotations
+from streamcal.inputs.mount_rotations import by_name, mount_rotations
 from streamcal.fitting.reference_fit import fit_reference
 from streamcal.sim.flight import simulated_log
 
@@ -265,7 +265,7 @@ def test_cli_fit_attitude_and_its_refusals(tmp_path):
 
 def test_mounting_advice_composes_with_the_configured_rotation():
     from streamcal.fitting.attitude_reference import mounting_advice
-    from streamcal.fitting.mount_rotations import by_number
+    from streamcal.inputs.mount_rotations import by_number
 
     ardupilot = {"input_format": "ardupilot-dataflash", "param.COMPASS_ORIENT": "8"}
     # MAG is logged after COMPASS_ORIENT 8 (ROLL_180); a further YAW_90 makes ROLL_180_YAW_90

@@ -46,6 +46,22 @@ def test_the_calibration_maps_raw_readings_onto_the_field_it_was_made_for():
     assert "rotation R only turns the directions" in cal.extra["note"]
 
 
+
+def test_the_rotation_puts_the_directions_in_the_body_frame():
+    """With PX4's rotation R (the board rotation of :func:`_raw_readings`) the calibrated
+    directions, turned by frame_rotation_Q, are PX4's corrected field R S (r − o): the body
+    frame; K (the ellipsoid) is the same as without R."""
+    from streamcal.fitting.attitude_reference import body_field
+
+    params, S, o = _px4_params()
+    m, u = _raw_readings(S, o)
+    R = Rotation.from_euler("xyz", [10, -20, 35], degrees=True).as_matrix()
+    cal = calibration_from_px4(params, FIELD_UT, prefix="CAL_MAG1_", rotation=R)
+    np.testing.assert_allclose(body_field(cal, m, {}), FIELD_UT * u, atol=1e-9)
+    plain = calibration_from_px4(params, FIELD_UT, prefix="CAL_MAG1_")
+    np.testing.assert_allclose(cal.K, plain.K, atol=1e-9)
+    assert not np.allclose(body_field(plain, m, {}), FIELD_UT * u, atol=1e-3)
+
 def test_battery_current_compensation_becomes_an_aux_interference_term():
     """CAL_MAG_COMP_TYP = 2: p is battery 0's current in kA; on raw readings (sensor_mag) the
     compensation is a term of the model on battery_current_a (A)."""

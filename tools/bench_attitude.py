@@ -55,7 +55,7 @@ def _turned(track, matrix):
 
 def real_logs() -> None:
     from streamcal.fitting.attitude_reference import attitude_reference, calibration_in_force
-    from streamcal.fitting.mount_rotations import by_name
+    from streamcal.inputs.mount_rotations import by_name
     from streamcal.inputs import read_recording
 
     print("real logs: rms of f − e and heading error (rms), before → after")
@@ -72,7 +72,7 @@ def real_logs() -> None:
 
 def simulated() -> None:
     from streamcal.fitting.attitude_reference import attitude_data
-    from streamcal.fitting.mount_rotations import by_name
+    from streamcal.inputs.mount_rotations import by_name
     from streamcal.fitting.no_tumble import fit_heading, fit_planar
     from streamcal.fitting.reference_fit import detect_rotation
     from streamcal.geomag import parse_date, wmm_field

@@ -146,7 +146,7 @@ def mounting(cal: Calibration, firmware: str) -> tuple[np.ndarray | None, int | 
     (its sensor → body matrix, the number ``firmware`` is to be set to — the rotation found, or
     after the one configured in the log when ``orientation["set"]`` says so —, notes);
     (None, None, []) without one."""
-    from ..fitting.mount_rotations import by_name
+    from ..inputs.mount_rotations import by_name
 
     orient = (cal.extra or {}).get("orientation")
     if not orient or orient.get("name", "NONE") == "NONE":

@@ -28,14 +28,14 @@ from ..calibration import Calibration
 from ..constants import MAD_TO_SIGMA
 from ..diagnosis.against import refine
 from ..errors import InputError
-from ..fitting.attitude_reference import (attitude_data, heading_error_deg, log_location,
-                                          on_reference_inliers)
+from ..fitting.attitude_reference import (attitude_data, body_field, heading_error_deg,
+                                          log_location, on_reference_inliers)
 from ..fitting.heading_check import WORSE_DEG, WORSE_FRACTION
-from ..inputs.autopilot_cal import MOTOR_AFTER_MATRIX, UT_PER_GAUSS
+from ..inputs.autopilot_cal import MOTOR_AFTER_MATRIX, UT_PER_GAUSS, px4_rotation
 from ..inputs.autopilot_cal import PX4_KA_PER_A as KA_PER_A
 from .ardupilot import MG_PER_UT, apply_ardupilot
 from .ardupilot import export as export_ardupilot
-from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, motor_channel
+from .common import CURRENT_CHANNELS, THROTTLE_CHANNELS, motor_channel, mounting
 from .px4 import apply_px4
 from .px4 import export as export_px4
 
@@ -68,25 +68,37 @@ def read_parameters(text: str, firmware: str) -> dict:
 
 
 def firmware_field(cal: Calibration, firmware: str, m_uT: np.ndarray,
-                   signal: np.ndarray | None, ardupilot_order: str = MOTOR_AFTER_MATRIX
-                   ) -> np.ndarray:
+                   signal: np.ndarray | None, ardupilot_order: str = MOTOR_AFTER_MATRIX,
+                   meta=None) -> np.ndarray:
     """``cal`` exported for ``firmware`` and applied with its formula to readings ``m_uT``
     (M,3) µT with the motor channel's values ``signal`` (M,) (throttle 0..1 or current A):
-    the corrected field (M,3) in µT, in the exported matrix's frame; ArduPilot's motor term
-    written and added in ``ardupilot_order``. A calibration fitted for another compass than the
-    first is exported under the first's parameter names: the formula is the same for every
-    parameter set."""
+    the corrected field (M,3) in µT in the body frame, as the firmware turns it there;
+    ArduPilot's motor term written and added in ``ardupilot_order``. A calibration fitted for
+    another compass than the first is exported under the first's parameter names: the formula
+    is the same for every parameter set.
+
+    The frame: ArduPilot rotates a reading by the COMPASS_ORIENT the export writes (a mounting
+    rotation ``cal`` found) before its formula; PX4 turns its formula's output by the
+    CAL_MAGn_ROT the export writes, else by the one configured in the log when the readings
+    are ``sensor_mag``'s (:func:`~streamcal.inputs.autopilot_cal.px4_rotation` of the
+    track's metadata ``meta``); otherwise the readings' frame is the body frame."""
     extra = dict(cal.extra or {})
     if extra.pop("compass_params_index", 0):
         cal = cal.replace(extra=extra)
+    written = mounting(cal, firmware)[0]
+    turn = px4_rotation(meta or {}) if written is None else written
     if firmware == "ardupilot":
+        if written is not None:
+            m_uT, turn = m_uT @ written.T, None
         params = read_parameters(export_ardupilot(cal, order=ardupilot_order)[0], firmware)
-        return apply_ardupilot(params, MG_PER_UT * m_uT, signal, ardupilot_order) / MG_PER_UT
-    params = read_parameters(export_px4(cal)[0], firmware)
-    power = None
-    if signal is not None and params.get("CAL_MAG_COMP_TYP"):
-        power = signal * (KA_PER_A if params["CAL_MAG_COMP_TYP"] >= 2 else 1.0)
-    return apply_px4(params, m_uT / UT_PER_GAUSS, power) * UT_PER_GAUSS
+        field = apply_ardupilot(params, MG_PER_UT * m_uT, signal, ardupilot_order) / MG_PER_UT
+    else:
+        params = read_parameters(export_px4(cal)[0], firmware)
+        power = None
+        if signal is not None and params.get("CAL_MAG_COMP_TYP"):
+            power = signal * (KA_PER_A if params["CAL_MAG_COMP_TYP"] >= 2 else 1.0)
+        field = apply_px4(params, m_uT / UT_PER_GAUSS, power) * UT_PER_GAUSS
+    return field if turn is None else field @ turn.T
 
 
 def _spread(field: np.ndarray) -> dict:
@@ -101,13 +113,6 @@ def _heading(field: np.ndarray, data) -> dict:
     head = np.abs(heading_error_deg(data.q, field, data.b_ned))
     return {"heading_rms_deg": round(float(np.sqrt(np.mean(head ** 2))), 3),
             "heading_p95_deg": round(float(np.percentile(head, 95)), 3)}
-
-
-def _own_field(cal: Calibration, m: np.ndarray, cov: dict) -> np.ndarray:
-    """Streamcal's own correction of ``cal`` in the frame its matrix is exported in."""
-    x = cal.apply(m, cov)
-    Q = (cal.extra or {}).get("frame_rotation_Q")
-    return (cal.field or cal.radius) * (x if Q is None else x @ np.asarray(Q, float))
 
 
 def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: float = 0.5,
@@ -158,6 +163,7 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
             "after": refine(fit_part, cal_in_force, ["aux_interference"],
                             calibration_source=source)}
     m = np.asarray(check_part.mag, dtype=float)
+    meta = check_part.metadata
     signal = np.asarray(check_part.covariates_at_mag()[channel], dtype=float)
     data, why = attitude_data(check_part, ref) if ref is not None else (None, why)
     if data is not None:
@@ -175,9 +181,9 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
 
     order = (cal_in_force.extra or {}).get("ardupilot_correction_order", MOTOR_AFTER_MATRIX)
     for name, cal in cals.items():
-        out[name] = {fw: figures(firmware_field(cal, fw, m, signal, order), data)
+        out[name] = {fw: figures(firmware_field(cal, fw, m, signal, order, meta), data)
                      for fw in FIRMWARES}
-    out["streamcal"] = figures(_own_field(cals["after"], m, {channel: signal}), data)
+    out["streamcal"] = figures(body_field(cals["after"], m, {channel: signal}, meta), data)
     return out
 
 
@@ -222,8 +228,8 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
             raise InputError(f"{which} needs channel {', '.join(lacking)} (its motor term), "
                              f"which the recording lacks (channels: "
                              f"{', '.join(track.aux_names) or 'none'})")
-    m = np.asarray(track.mag, dtype=float)
-    order = track.metadata.get("ardupilot_correction_order", MOTOR_AFTER_MATRIX)
+    m, meta = np.asarray(track.mag, dtype=float), track.metadata
+    order = meta.get("ardupilot_correction_order", MOTOR_AFTER_MATRIX)
     if ref is None:
         ref, why = log_location(track)
     data, why = attitude_data(track, ref) if ref is not None else (None, why)
@@ -238,11 +244,11 @@ def flight_check(track, cal: Calibration, cal_in_force: Calibration | None, *,
         out["before"] = {"logged": figures(m, data)}
     else:
         out["before"] = {fw: figures(firmware_field(cal_in_force, fw, m,
-                                                    motor_signal(cal_in_force, fw, cov), order),
-                                     data) for fw in FIRMWARES}
-    out["after"] = {fw: figures(firmware_field(cal, fw, m, motor_signal(cal, fw, cov), order),
-                                data) for fw in FIRMWARES}
-    out["after"]["streamcal"] = figures(_own_field(cal, m, cov), data)
+                                                    motor_signal(cal_in_force, fw, cov), order,
+                                                    meta), data) for fw in FIRMWARES}
+    out["after"] = {fw: figures(firmware_field(cal, fw, m, motor_signal(cal, fw, cov), order,
+                                               meta), data) for fw in FIRMWARES}
+    out["after"]["streamcal"] = figures(body_field(cal, m, cov, meta), data)
     out["compare"] = {fw: compare(out["before"].get(fw, out["before"].get("logged")),
                                   out["after"][fw]) for fw in FIRMWARES}
     return out

@@ -29,7 +29,8 @@ from scipy.spatial.transform import Rotation
 from ..calibration import Calibration, canonical_form
 from ..constants import ATTITUDE_COLUMNS
 from ..geomag import ned_field, parse_date, wmm_field
-from .mount_rotations import as_dict
+from ..inputs.autopilot_cal import px4_rotation
+from ..inputs.mount_rotations import as_dict
 from .reference_fit import ReferenceFit, detect_rotation, fit_reference, residual_rotation_deg
 
 CAVEAT = ("the logged attitude is the autopilot's estimate and its yaw is itself steered by "
@@ -127,45 +128,29 @@ def heading_error_deg(q: np.ndarray, field_body: np.ndarray, b_ned: np.ndarray) 
     return np.degrees((ang + np.pi) % (2 * np.pi) - np.pi)
 
 
-def body_field(cal: Calibration, m: np.ndarray, cov: dict) -> np.ndarray:
+def body_field(cal: Calibration, m: np.ndarray, cov: dict, meta=None) -> np.ndarray:
     """A calibration's field in the body frame (M,3) µT: ``|B| Qᵀ K⁻¹ (m − b − terms)`` with
     ``Q`` = ``extra["frame_rotation_Q"]`` (the frame an autopilot's or a reference fit's
-    calibration was built in), else the canonical frame as it is."""
+    calibration was built in: body-frame directions rotated by Q); without it the calibrated
+    field is in the frame of the readings, turned into the body frame by PX4's rotation when
+    the track's metadata ``meta`` say the readings are ``sensor_mag``'s (:func:`px4_rotation`)."""
     x = cal.apply(m, cov)
     Q = (cal.extra or {}).get("frame_rotation_Q")
     if Q is not None:
         x = x @ np.asarray(Q, float)
+    elif (R := px4_rotation(meta or {})) is not None:
+        x = x @ R.T
     return (cal.field or cal.radius) * x
 
 
-def px4_rotation(meta) -> np.ndarray | None:
-    """The rotation (3,3) PX4 turns a ``sensor_mag`` reading by after its calibration:
-    CAL_MAGn_ROT for an external compass, SENS_BOARD_ROT for an internal one (ROT = −1);
-    None when it is the identity or not a numbered rotation."""
-    from .mount_rotations import by_number
-
-    prefix = meta.get("mag_cal_params")
-    if meta.get("input_format") != "px4-ulog" or not prefix:
-        return None
-    try:
-        rot = int(float(meta.get(f"param.{prefix}ROT", -1)))
-        number = rot if rot >= 0 else int(float(meta.get("param.SENS_BOARD_ROT", 0)))
-    except ValueError:
-        return None
-    found = by_number(number, "px4")
-    return None if found is None or found.name == "NONE" else found.matrix
-
-
 def before_field(track, cal: Calibration | None, data: AttitudeData) -> np.ndarray:
-    """The body-frame field (M,3) µT of the calibration in force: :func:`body_field`, turned
-    by PX4's rotation when the readings are ``sensor_mag``'s (the sensor's own frame); the
-    readings as logged when ``cal`` is None."""
-    if cal is None:
-        return data.m
-    field = body_field(cal, data.m, data.cov)
-    meta = track.metadata
-    R = px4_rotation(meta) if meta.get("mag_calibrated_by_px4") == "no" else None
-    return field if R is None else field @ R.T
+    """The body-frame field (M,3) µT of the calibration in force (:func:`body_field`); the
+    readings as logged (turned by PX4's rotation when they are ``sensor_mag``'s) when ``cal``
+    is None."""
+    if cal is not None:
+        return body_field(cal, data.m, data.cov, track.metadata)
+    R = px4_rotation(track.metadata)
+    return data.m if R is None else data.m @ R.T
 
 
 def calibration_from_fit(fit: ReferenceFit, field_uT: float, source: str,
@@ -304,7 +289,7 @@ def attitude_reference(track, cal_before: Calibration | None = None,
     if not failed:
         after_cal = cal_after or calibration_from_fit(fit, data.ref["intensity_uT"],
                                                       "attitude reference fit")
-        after = body_field(after_cal, data.m, data.cov)
+        after = body_field(after_cal, data.m, data.cov, track.metadata)
         ra, ha, pa = _stats(data, after, keep)
         angle = residual_rotation_deg(fit.body_field(data.m, data.cov) if cal_after is None
                                       else after, data.expected, fit.weights)
@@ -346,7 +331,7 @@ def mounting_advice(meta, found) -> dict:
     ``sensor_mag`` is the sensor's own frame, so it is ``found`` itself. ``{}`` when the
     log names no such parameter; ``"value": None`` when the product is not a numbered
     rotation."""
-    from .mount_rotations import by_number, matching
+    from ..inputs.mount_rotations import by_number, matching
 
     meta = dict(meta or {})
     if meta.get("input_format") == "ardupilot-dataflash":

@@ -28,7 +28,7 @@ from ..errors import InsufficientDataError
 from ..geomag import ned_field
 from .attitude_reference import calibration_from_fit
 from .reference_fit import CAUCHY_WIDTH, ReferenceFit
-from .mount_rotations import mount_rotations
+from ..inputs.mount_rotations import mount_rotations
 
 #: The planar fit refuses when a horizontal offset is less certain than this (µT, 1 σ), or
 #: when the headings cover less than MIN_ARC_DEG of the circle (on simulated rovers an arc of

@@ -1,8 +1,8 @@
 """A compass mounted rotated, seen from gravity alone (no attitude in the log): the angle of the
 calibrated field below the plane normal to gravity (the dip) must be the World Magnetic Model's
-inclination at every sample. Each mounting rotation of :mod:`.mount_rotations` turns the field
-before the dip is taken; a wrong one leaves a dip that is off and that changes with the
-vehicle's attitude.
+inclination at every sample. Each mounting rotation of
+:mod:`streamcal.inputs.mount_rotations` turns the field before the dip is taken; a wrong one
+leaves a dip that is off and that changes with the vehicle's attitude.
 
 Rotations that keep the axes gravity moves along give the same dips: a vehicle that stays level
 cannot tell a yaw mounting (YAW_90…) from none. Those ties are reported (``ambiguous_with``),
@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mount_rotations import as_dict, mount_rotations
+from ..inputs.mount_rotations import as_dict, mount_rotations
 
 #: Candidates whose dip misfit is within this factor of the best one's (plus
 #: :data:`TIE_FLOOR_DEG`) are ties.

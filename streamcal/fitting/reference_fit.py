@@ -6,12 +6,12 @@ Model, readings ``m`` (N,3) µT in the logged frame, expected body-frame field `
 
     R m = A e + b' + Σ_c g'_c (a_c − a0_c)
 
-``R`` a mounting rotation (:mod:`.mount_rotations`, NONE unless detected), ``A`` symmetric
-(the inverse of the autopilots' symmetric soft-iron correction: scale, soft iron; 6
+``R`` a mounting rotation (:mod:`streamcal.inputs.mount_rotations`, NONE unless detected), ``A``
+symmetric (the inverse of the autopilots' symmetric soft-iron correction: scale, soft iron; 6
 parameters), ``b'`` the offset and ``g'_c`` the interference per unit of channel ``c`` (a motor
 current, the throttle), all in the body frame. The problem is linear: a robust (Cauchy, IRLS)
-least squares with a weak Gaussian prior on every parameter — ``A`` around the identity with
-σ = :data:`PRIOR_SIGMA_A`, the rest centred on the given values — so that what the slice of
+least squares with a weak Gaussian prior on every parameter — ``A`` around the identity with σ =
+:data:`PRIOR_SIGMA_A`, the rest centred on the given values — so that what the slice of
 attitudes does not determine stays at the prior instead of wandering (a level flight hardly
 tells the vertical offset from the vertical scale). A parameter whose posterior σ stays over
 :data:`HELD_SHARE` of its prior σ counts as held by the prior, and is reported.
@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .mount_rotations import MountRotation, mount_rotations
+from ..inputs.mount_rotations import MountRotation, mount_rotations
 
 #: Cauchy width in units of the robust residual scale (95 % efficiency at the normal).
 CAUCHY_WIDTH = 2.3849

@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Mapping
 from ..errors import InputError, TrackError
 from .track import Track
 from .autopilot_cal import (MOTOR_AFTER_MATRIX, calibration_from_ardupilot,
-                            calibration_from_px4)
+                            calibration_from_px4, px4_rotation)
 from .columns import parse_columns, parse_unit
 from .detect import FORMATS, detect
 
@@ -160,4 +160,5 @@ def autopilot_calibration(track: Track) -> "Calibration":
     return calibration_from_px4(params, float(field), prefix=prefix,
                                 compensation_in_readings=md.get("mag_calibrated_by_px4") == "yes",
                                 channels=[name for name in track.columns if track.has(name)],
-                                source=f"{where} {prefix}* parameters")
+                                source=f"{where} {prefix}* parameters",
+                                rotation=px4_rotation(md))

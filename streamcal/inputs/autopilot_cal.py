@@ -36,7 +36,9 @@ CAL_MAGn_XCOMP.. with ``p`` the power signal of CAL_MAG_COMP_TYP (1 throttle 0..
     m = |F| S⁻¹ Rᵀ u + 100 o − 100 comp p
 
 so ``A = |F| S⁻¹ Rᵀ``: the rotation only turns the free directions, and ``K`` is the canonical
-form of ``|F| S⁻¹``; ``b = 100 o``; ``g = −100 comp`` µT per unit throttle, ``−0.1 comp`` µT/A
+form of ``|F| S⁻¹`` whatever ``R`` (``A = K Q``, ``Q`` = ``frame_rotation_Q`` carries ``R``:
+:func:`px4_rotation`, the one place that says which frame a PX4 reading ends up in);
+``b = 100 o``; ``g = −100 comp`` µT per unit throttle, ``−0.1 comp`` µT/A
 on battery current. (PX4 applies the throttle term only while armed; the throttle it scales
 with is 0 when disarmed.)
 """
@@ -49,6 +51,7 @@ import numpy as np
 
 from ..calibration import Calibration, canonical_form
 from ..errors import InputError
+from .mount_rotations import by_number
 
 MG_PER_UT = 10.0
 UT_PER_GAUSS = 100.0
@@ -220,7 +223,8 @@ def px4_offsets(params: Mapping[str, float], prefix: str = "CAL_MAG0_") -> np.nd
 def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: str = "CAL_MAG0_",
                          compensation_in_readings: bool = False,
                          channels: Collection[str] = tuple(PX4_COMP_CHANNELS.values()),
-                         source: str = "PX4 parameters") -> Calibration:
+                         source: str = "PX4 parameters",
+                         rotation: np.ndarray | None = None) -> Calibration:
     """Calibration equivalent to PX4's ``prefix`` (``CAL_MAGn_``) parameters, on readings in µT.
 
     Args:
@@ -232,17 +236,23 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
         channels: the columns the readings come with; a compensation whose signal is not
             among them cannot be a term.
         source: said in the calibration's ``extra["source"]``.
+        rotation: (3,3) the rotation PX4 turns the corrected readings by into the body frame
+            (:func:`px4_rotation` of the track; None: the readings' frame is the body frame).
+            It goes into ``extra["frame_rotation_Q"]``: the calibrated directions are then
+            body-frame directions, as PX4's corrected field is.
     Raises :class:`InputError` if the offsets are missing or ``S`` is not invertible. Power
     compensation that cannot be a term (its signal not among ``channels``) is left out and said
     in ``extra["note"]``.
     """
     S = px4_matrix(params, prefix)
     _check(params, [f"{prefix}{a}OFF" for a in "XYZ"], S, f"{prefix}SCALE/ODIAG", field_uT, source)
-    K, Q = canonical_form(field_uT * np.linalg.inv(S))
+    R = np.eye(3) if rotation is None else np.asarray(rotation, float)
+    K, Q = canonical_form(field_uT * np.linalg.inv(S) @ R.T)
     b = UT_PER_GAUSS * px4_offsets(params, prefix)      # present: _check
     model, effects = ["hard_iron", "soft_iron"], {}
     notes = ["K is the canonical form of |F| S⁻¹ (PX4's rotation R only turns the directions); "
-             "calibrated directions are PX4's corrected field rotated by frame_rotation_Q"]
+             "calibrated directions are PX4's corrected field (body frame) rotated by "
+             "frame_rotation_Q"]
     comp_type = int(params.get("CAL_MAG_COMP_TYP", 0) or 0)
     comp = np.array([params.get(f"{prefix}{a}COMP", 0.0) for a in "XYZ"], dtype=float)
     if comp_type and np.any(comp):
@@ -262,6 +272,26 @@ def calibration_from_px4(params: Mapping[str, float], field_uT: float, prefix: s
     extra = {"source": source, "frame_rotation_Q": Q.tolist(), "note": "; ".join(notes)}
     return Calibration(K=K, b=b, model=tuple(model), effects=effects, field=float(field_uT),
                        method="px4_params", unit="uT", extra=extra)
+
+
+def px4_rotation(meta: Mapping[str, str]) -> np.ndarray | None:
+    """The rotation (3,3) that takes a track's PX4 readings, once corrected, into the body frame
+    (``body = R · corrected``), from the track's metadata: CAL_MAGn_ROT for an external
+    compass, SENS_BOARD_ROT for an internal one (ROT = −1), when the readings are
+    ``sensor_mag``'s (the sensor's own frame; PX4 rotates after its calibration). None when
+    they are already in the body frame (a calibrated topic, another autopilot's log), or the
+    rotation is the identity or not a numbered one (:mod:`.mount_rotations`)."""
+    prefix = meta.get("mag_cal_params")
+    if meta.get("input_format") != "px4-ulog" or not prefix \
+            or not str(meta.get("mag_calibrated_by_px4", "")).startswith("no"):
+        return None
+    try:
+        rot = int(float(meta.get(f"param.{prefix}ROT", -1)))
+        number = rot if rot >= 0 else int(float(meta.get("param.SENS_BOARD_ROT", 0)))
+    except ValueError:
+        return None
+    found = by_number(number, "px4")
+    return None if found is None or found.name == "NONE" else np.array(found.matrix)
 
 
 def compass_slot(metadata: dict) -> dict:

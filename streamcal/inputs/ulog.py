@@ -351,7 +351,9 @@ def _track(ulog, path: Path, cut: int, instance: int, skipped=()) -> Track:
             meta[f"px4_{key}"] = str(info[key]).strip() or "?"
     streams = [_mag(ulog, path, meta, instance)]
     meta["mag_axes"] = ("body frame (PX4 rotated it)" if meta["mag_calibrated_by_px4"] == "yes"
-                        else "board frame of the driver (sensor_mag); body if SENS_BOARD_ROT = 0")
+                        else "the sensor's own frame (sensor_mag): PX4 turns it into the body "
+                             "frame after its calibration by CAL_MAGn_ROT, SENS_BOARD_ROT for "
+                             "an internal compass")
     for stream in (_imu(ulog), _actuators(ulog, meta), _throttle(ulog, meta),
                    *_battery(ulog, meta)):
         if stream is not None:

@@ -3,7 +3,7 @@ reference, the mounting-rotation detection and the calibrations without a tumble
 
 Frames as the autopilots use them: earth NED, body forward-right-down; the attitude ``R``
 turns body vectors to NED. The compass is mounted rotated by ``mount`` (sensor → body, as
-:mod:`streamcal.fitting.mount_rotations` defines it) and reads, in its own frame::
+:mod:`streamcal.inputs.mount_rotations` defines it) and reads, in its own frame::
 
     m = mountᵀ (S e + b_body + g · current) + noise
 
