@@ -12,7 +12,8 @@ import pytest
 from streamcal.cli import main
 from streamcal.export import export
 from streamcal.export.ardupilot import apply_ardupilot
-from streamcal.export.motor_check import _own_field, held_out_check, read_parameters
+from streamcal.export.motor_check import held_out_check, read_parameters
+from streamcal.fitting.attitude_reference import body_field
 from streamcal.inputs import autopilot_calibration, read_recording
 from streamcal.inputs.autopilot_cal import (MOTOR_AFTER_MATRIX, MOTOR_BEFORE_MATRIX,
                                             ardupilot_correction_order)
@@ -127,7 +128,7 @@ def test_export_in_either_order_corrects_as_streamcal_does(flight, tmp_path):
     correction; the newest parameters under the old formula do not."""
     track, cal = _calibration_of(flight, tmp_path, OLD_FIRMWARE, True)
     thr = flight.throttle_at_mag
-    own = _own_field(cal, track.mag, {"throttle": thr})
+    own = body_field(cal, track.mag, {"throttle": thr}, track.metadata)
     old_text = export(cal, "ardupilot", "Copter 3.5")[0]
     new_text = export(cal, "ardupilot")[0]
     old, new = (read_parameters(t, "ardupilot") for t in (old_text, new_text))
@@ -197,7 +198,7 @@ def test_fit_cal_autopilot_then_export_round_trip(tmp_path, capsys):
     assert cal.extra["ardupilot_correction_order"] == MOTOR_BEFORE_MATRIX
     track = read_recording(log)
     thr = np.interp(track.t_mag, flight.t_mag, flight.throttle_at_mag)
-    own = _own_field(cal, track.mag, {"throttle": thr})
+    own = body_field(cal, track.mag, {"throttle": thr}, track.metadata)
     f = apply_ardupilot(read_parameters(out.read_text(), "ardupilot"), 10.0 * track.mag, thr,
                         MOTOR_BEFORE_MATRIX) / 10.0
     # the refit turns the exported matrix's frame by the unobservable rotation: compare |f|
