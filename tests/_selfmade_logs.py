@@ -256,17 +256,9 @@ def px4_params(*, comp_type: int = 0, rot: int = -1, board_rot: int = 0) -> dict
     return {**params, **ints}
 
 
-def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, combined: bool = False,
-               params: dict | None = None,
-               topics=("sensor_combined", "actuator_outputs", "actuator_controls_0",
-                       "battery_status"), with_mag: bool = True) -> bytes:
-    """The ULog PX4 writes for ``flight``: ``sensor_mag`` (the driver's reading, G) or, when
-    ``calibrated``, ``vehicle_magnetometer`` = S (r − o) with the CAL_MAG0_* of ``params``; with
-    ``combined`` that corrected field rides in ``sensor_combined`` instead (older logs)."""
-    params = px4_params() if params is None else params
-    layout = dict(TOPICS, sensor_combined=COMBINED_WITH_MAG) if combined else TOPICS
-    mag_topic = "vehicle_magnetometer" if calibrated else "sensor_mag"
-    names = ([mag_topic] if with_mag and not combined else []) + list(topics)
+def ulog_head(names, layout: dict, params: dict) -> list[bytes]:
+    """The head of a ULog: magic, flag bits, a format per topic of ``names`` (fields from
+    ``layout``), the system's name and ``params`` as P messages."""
     out = [ULOG_MAGIC + bytes([1]) + struct.pack("<Q", 0), _umsg(b"B", bytes(40))]
     for name in names:
         fields = "".join(f"{c}{'' if n == 1 else f'[{n}]'} {f};" for c, f, n in layout[name])
@@ -278,6 +270,32 @@ def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, combined: bool 
         kind, code = ("int32_t", "<i") if isinstance(value, int) else ("float", "<f")
         k = f"{kind} {key}".encode()
         out.append(_umsg(b"P", bytes([len(k)]) + k + struct.pack(code, value)))
+    return out
+
+
+def px4_matrix_offsets(params: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(S (3,3), o (3,))`` of CAL_MAG0_*: the symmetric matrix and the offsets, gauss."""
+    S = np.array([[params["CAL_MAG0_XSCALE"], params["CAL_MAG0_XODIAG"],
+                   params["CAL_MAG0_YODIAG"]],
+                  [params["CAL_MAG0_XODIAG"], params["CAL_MAG0_YSCALE"],
+                   params["CAL_MAG0_ZODIAG"]],
+                  [params["CAL_MAG0_YODIAG"], params["CAL_MAG0_ZODIAG"],
+                   params["CAL_MAG0_ZSCALE"]]])
+    return S, np.array([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+
+
+def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, combined: bool = False,
+               params: dict | None = None,
+               topics=("sensor_combined", "actuator_outputs", "actuator_controls_0",
+                       "battery_status"), with_mag: bool = True) -> bytes:
+    """The ULog PX4 writes for ``flight``: ``sensor_mag`` (the driver's reading, G) or, when
+    ``calibrated``, ``vehicle_magnetometer`` = S (r − o) with the CAL_MAG0_* of ``params``; with
+    ``combined`` that corrected field rides in ``sensor_combined`` instead (older logs)."""
+    params = px4_params() if params is None else params
+    layout = dict(TOPICS, sensor_combined=COMBINED_WITH_MAG) if combined else TOPICS
+    mag_topic = "vehicle_magnetometer" if calibrated else "sensor_mag"
+    names = ([mag_topic] if with_mag and not combined else []) + list(topics)
+    out = ulog_head(names, layout, params)
     for msg_id, name in enumerate(names):
         out.append(_umsg(b"A", struct.pack("<BH", 0, msg_id) + name.encode()))
     ids = {name: i for i, name in enumerate(names)}
@@ -290,13 +308,7 @@ def ulog_bytes(flight: FlightSlice, *, calibrated: bool = False, combined: bool 
 
     r_g = flight.mag_uT / 100.0
     if with_mag and (calibrated or combined):
-        S = np.array([[params["CAL_MAG0_XSCALE"], params["CAL_MAG0_XODIAG"],
-                       params["CAL_MAG0_YODIAG"]],
-                      [params["CAL_MAG0_XODIAG"], params["CAL_MAG0_YSCALE"],
-                       params["CAL_MAG0_ZODIAG"]],
-                      [params["CAL_MAG0_YODIAG"], params["CAL_MAG0_ZODIAG"],
-                       params["CAL_MAG0_ZSCALE"]]])
-        o = np.array([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+        S, o = px4_matrix_offsets(params)
         corrected = (r_g - o) @ S.T
         if combined:
             latest = np.searchsorted(flight.t_mag, flight.t_imu, side="right") - 1
@@ -362,17 +374,7 @@ def px4_flight_ulog_bytes(track, params: dict) -> bytes:
     names = ["sensor_mag", "vehicle_attitude", "vehicle_gps_position", "sensor_combined"]
     if track.has("battery_current_a"):
         names.append("battery_status")
-    out = [ULOG_MAGIC + bytes([1]) + struct.pack("<Q", 0), _umsg(b"B", bytes(40))]
-    for name in names:
-        fields = "".join(f"{c}{'' if n == 1 else f'[{n}]'} {f};" for c, f, n in TOPICS[name])
-        out.append(_umsg(b"F", f"{name}:{fields}".encode()))
-    for key, value in (("sys_name", "PX4"), ("ver_hw", "SELFMADE_V1")):
-        k = f"char[{len(value)}] {key}".encode()
-        out.append(_umsg(b"I", bytes([len(k)]) + k + value.encode()))
-    for key, value in params.items():
-        kind, code = ("int32_t", "<i") if isinstance(value, int) else ("float", "<f")
-        k = f"{kind} {key}".encode()
-        out.append(_umsg(b"P", bytes([len(k)]) + k + struct.pack(code, value)))
+    out = ulog_head(names, TOPICS, params)
     ids = {name: i for i, name in enumerate(names)}
     out += [_umsg(b"A", struct.pack("<BH", 0, i) + name.encode()) for name, i in ids.items()]
     rows = []

@@ -25,7 +25,7 @@ from streamcal.inputs import px4_rotation, read_recording
 from streamcal.inputs.mount_rotations import by_name
 from streamcal.sim.flight import simulated_log
 
-from ._selfmade_logs import px4_flight_ulog_bytes, px4_mounted_params
+from ._selfmade_logs import px4_flight_ulog_bytes, px4_matrix_offsets, px4_mounted_params
 
 S_BODY = np.array([[1.05, 0.03, -0.02], [0.03, 0.96, 0.01], [-0.02, 0.01, 1.02]])
 B_BODY = np.array([15.0, -9.0, 22.0])
@@ -49,13 +49,7 @@ def _flight(path, seed: int, internal: bool = False):
 def _px4_formula(params: dict, m_uT: np.ndarray, amps: np.ndarray) -> np.ndarray:
     """PX4's correction of readings (M,3) µT into the body frame, µT, with the known mounting:
     ``R S (r + 0.001 I comp − o)`` in gauss (CAL_MAG_COMP_TYP 2 or 0)."""
-    S = np.array([[params["CAL_MAG0_XSCALE"], params["CAL_MAG0_XODIAG"],
-                   params["CAL_MAG0_YODIAG"]],
-                  [params["CAL_MAG0_XODIAG"], params["CAL_MAG0_YSCALE"],
-                   params["CAL_MAG0_ZODIAG"]],
-                  [params["CAL_MAG0_YODIAG"], params["CAL_MAG0_ZODIAG"],
-                   params["CAL_MAG0_ZSCALE"]]])
-    o = np.array([params[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    S, o = px4_matrix_offsets(params)
     r = m_uT / 100.0
     if params.get("CAL_MAG_COMP_TYP", 0) == 2:
         r = r + 0.001 * amps[:, None] * np.array([params[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])
