@@ -25,7 +25,7 @@ from .result import Diagnosis
 from .held.part import HeldPart
 from .held.plausibility import implausible_effect, theta_sigmas
 from .held.fit import TOLERANCE
-from .held.start import MIN_SAMPLES, HeldEval, HeldStart, default_calibration  # noqa: F401
+from .held.start import HeldEval, HeldStart
 from .held.rank_subset import RANK_MAX, rank_subset
 from .residuals import families
 

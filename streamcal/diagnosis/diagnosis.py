@@ -101,7 +101,7 @@ class _Context:
     """What every refit of one diagnosis shares: the track, its arrays, the fitter and the
     gravity reference (built once, on demand)."""
 
-    def __init__(self, track, fitter, kernel, floor, subset_max=None, gravity=None):
+    def __init__(self, track, fitter, kernel, floor, subset_max=None, gravity=None, cov=None):
         self.track, self.fitter, self.floor = track, fitter, floor
         #: the floor the materiality test uses: NaN once the floor is found unmeasurable
         self.material_floor = floor
@@ -111,7 +111,8 @@ class _Context:
         # the tied fits have one robust cost of their own (as streamcal.fit does for them)
         self.kernel = "cauchy" if kernel == "auto" else kernel
         self.m = np.asarray(track.mag, dtype=float)
-        self.cov = {k: np.asarray(v, dtype=float) for k, v in track.covariates_at_mag().items()}
+        cov = track.covariates_at_mag() if cov is None else cov
+        self.cov = {k: np.asarray(v, dtype=float) for k, v in cov.items()}
         self.cov.setdefault("t", np.asarray(track.t_mag, dtype=float))
         self._gref = gravity
         self._gyro = {}
@@ -354,7 +355,7 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     gyro = np.stack([cov0[k] for k in ("gx", "gy", "gz")], 1) if all(
         k in cov0 for k in ("gx", "gy", "gz")) else None
     nf = noise_floor(m, t, gyro)
-    ctx = _Context(track, fitter, kernel, nf.floor, subset_max, gravity)
+    ctx = _Context(track, fitter, kernel, nf.floor, subset_max, gravity, cov0)
     cov = ctx.cov
     base = (_Evaluated(calibration, m, cov, nf.floor) if calibration is not None and not _tied(model)
             else ctx.evaluate(model, calibration))

@@ -97,7 +97,7 @@ class Diagnosis:
     #: ``{residual: {"floor", "reliable", "reason", "magnetometer_part", "reference_part",
     #: "method"}}`` for each gravity- or gyro-tied residual the diagnosis judged (sensor unit;
     #: floor null when not measurable).
-    tied_noise_floors: Mapping = field(default_factory=dict)
+    tied_noise_floors: Mapping = field(default_factory=FrozenDict)
     significance_rule: str = field(default_factory=verdict_mod.significance_rule)
     #: Where the base model's residual energy sits (:func:`streamcal.diagnosis.misfit.localise`).
     misfit: Mapping | None = None

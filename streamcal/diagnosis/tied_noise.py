@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..calibration import field_radius
-from ..errors import StreamcalError
+from ..errors import InsufficientDataError, StreamcalError
 from .noise import noise_floor
 
 #: Share of each noise component a tied residual keeps, in units of σ²: the gravity-tied one
@@ -113,11 +113,7 @@ def _gyro_part(track, radius: float, horizon_s: float | None) -> tuple[float, st
     nf = noise_floor(w, t, w)
     sigma = nf.floor if nf.reliable else nf.measured
     if not np.isfinite(sigma):
-        raise _Unmeasurable(nf.reason or "the gyro's noise could not be measured")
+        raise InsufficientDataError(nf.reason or "the gyro's noise could not be measured")
     dt = float(np.median(np.diff(t)))
     part = radius * sigma * np.sqrt(2.0 * horizon * dt)
     return float(part), f"gyro noise {sigma:.3g} rad/s ({nf.method}) over {horizon:g} s"
-
-
-class _Unmeasurable(StreamcalError):
-    """The gyro's noise cannot be measured."""

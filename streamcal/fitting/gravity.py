@@ -191,16 +191,11 @@ def gravity_reference(track) -> GravityReference:
 def joined(pieces: Sequence[GravityReference]) -> GravityReference:
     """One reference from references of separate stretches of one recording, each built on its
     own contiguous rows (time order, not overlapping), so no filter runs across the gaps
-    between them. Its ``tilt`` is the rms of theirs weighted by their IMU samples."""
+    between them. Its ``tilt`` is not computed (NaN): the caller knows the stretches' error."""
     pieces = [p for p in pieces if len(p.t)]
     if not pieces:
         raise InsufficientDataError("no accelerometer samples to build the gravity reference")
-    n = np.array([len(p.t) for p in pieces], float)
-    tilts = np.array([p.tilt for p in pieces], float)
-    ok = np.isfinite(tilts)
-    tilt = float(np.sqrt(np.sum(n[ok] * tilts[ok] ** 2) / n[ok].sum())) if ok.any() else np.nan
     return GravityReference(np.concatenate([p.t for p in pieces]),
                             np.concatenate([p.down for p in pieces]),
                             np.concatenate([p.trust for p in pieces]),
-                            pieces[0].method + ", per contiguous stretch read", tilt,
-                            next((p.tilt_method for p in pieces if p.tilt_method), ""))
+                            pieces[0].method + ", per contiguous stretch read")

@@ -9,7 +9,7 @@ from dataclasses import dataclass, field
 from typing import Mapping
 
 from ...calibration import jsonable
-from ...values import FrozenDict, fields_equal, freeze, thaw
+from ...values import FrozenDict, fields_equal, freeze
 
 #: The diagnosis' JSON keys of the held part, in the order ``diagnose --json`` writes them
 #: (after the keys every diagnosis has); ``held`` marks a held diagnosis.
@@ -74,10 +74,6 @@ class HeldPart:
                 "fit_status": self.fit_status, "held_after_fit": self.held_after_fit,
                 "suspicious": self.suspicious, "gyro_pinned": jsonable(self.gyro_pinned),
                 "gyro_link": jsonable(self.gyro_link)}
-
-    def to_dict(self, n: int) -> dict:
-        """:meth:`json_fields` in plain lists and dicts of their own."""
-        return thaw(self.json_fields(n))
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "HeldPart | None":
