@@ -131,16 +131,15 @@ def recording_chunks(args, rows: int):
     from ..inputs.detect import detect
 
     compass = getattr(args, "compass", None)
-    if getattr(args, "columns", None) is None and compass is None \
-            and detect(args.track) == "track":
+    kind = detect(args.track) if compass != "all" else None   # the file's head read once
+    if getattr(args, "columns", None) is None and compass is None and kind == "track":
         return _counted(args, iter_track_chunks(args.track, rows=rows,
                                                 skip_bad_rows=getattr(args, "skip_bad_rows",
                                                                       False)))
     if getattr(args, "columns", None) is None and getattr(args, "unit", None) is None \
-            and not getattr(args, "topic", None) and compass != "all" \
-            and detect(args.track) == "dataflash":
+            and not getattr(args, "topic", None) and kind == "dataflash":
         return _warned(args, _dataflash_chunks(args.track, compass))
-    if compass != "all" and detect(args.track) == "ulog":
+    if kind == "ulog":
         # read whole, given out in slices (views): no whole copy downstream
         return _whole_in_slices(args, rows)
     return iter([read_track(args)])

@@ -19,7 +19,7 @@ def _diagnose_each(args, model) -> list[dict]:
     from ..diagnosis import diagnose
     from ..errors import InputError
     from ..inputs import autopilot_calibration, read_compasses
-    from ._location import location_reference
+    from ._location import beside_diagnosis, location_reference
 
     ref = location_reference(args)
     tracks = read_compasses(args.track)
@@ -47,19 +47,9 @@ def _diagnose_each(args, model) -> list[dict]:
         except InsufficientDataError as exc:
             entry["error"] = str(exc)
         else:
-            entry.update(_place(track, entry["diagnosis"]))
+            entry.update(beside_diagnosis(track, entry["diagnosis"]))
         out.append(entry)
     return out
-
-
-def _place(track, d) -> dict:
-    """What single-compass ``diagnose`` says beside the diagnosis, at the place the diagnosis
-    used (``d.location``): ``{"reference_field", "attitude_reference"?, "orientation"?}``."""
-    from ..diagnosis.reference_field import reference_field
-    from ..fitting.attitude_reference import log_attitude_reference
-
-    return {"reference_field": reference_field(track, d.calibration, d.location),
-            **log_attitude_reference(track, d.location, d.calibration)}
 
 
 def _consistency(entries: list[dict]) -> list:
@@ -86,7 +76,7 @@ def _entry_json(e: dict) -> dict:
     return out
 
 
-#: The keys :func:`_place` adds to a compass's entry, as in single-compass ``diagnose --json``.
+#: The keys :func:`._location.beside_diagnosis` adds to a compass's entry, as in single-compass ``diagnose --json``.
 PLACE_KEYS = ("reference_field", "attitude_reference", "orientation")
 
 

@@ -54,3 +54,14 @@ def attitude_lines(out: dict) -> list[str]:
         lines.append(f"mounting   {o.get('name')} (ArduPilot {o.get('ardupilot')}, PX4 "
                      f"{o.get('px4')})")
     return lines
+
+
+def beside_diagnosis(track, d) -> dict:
+    """What ``diagnose`` says beside the diagnosis ``d`` of ``track``, at the place it used
+    (``d.location``): ``{"reference_field", "attitude_reference"?, "orientation"?}``."""
+    from ..diagnosis.reference_field import reference_field
+    from ..fitting.attitude_reference import log_attitude_reference
+
+    return {"reference_field": reference_field(track, d.calibration, d.location,
+                                                gravity=d.gravity),
+            **log_attitude_reference(track, d.location, d.calibration)}

@@ -64,11 +64,6 @@ def run(args) -> int:
             out = flight_check(track, cal, in_force, ref=ref)
     except InputError as exc:
         raise InputError(f"{args.calibration} on {args.track}: {exc}") from None
-    if args.split:
-        from ..export.motor_check import compare
-
-        out["compare"] = {fw: compare(out["before"][fw], out["after"][fw])
-                          for fw in ("ardupilot", "px4")}
     out = {**names, "in_force": _in_force_words(in_force), **out}
     if args.json:
         print(json.dumps(jsonable(out), allow_nan=False))

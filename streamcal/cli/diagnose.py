@@ -12,7 +12,8 @@ from ..calibration import jsonable
 from ..errors import InputError, InsufficientDataError
 from ._common import (RECORDING_HELP, add_input_options, recording_argv, recording_chunks,
                       verdict_line)
-from ._location import add_location_options, attitude_lines, location_reference
+from ._location import (add_location_options, attitude_lines, beside_diagnosis,
+                        location_reference)
 
 
 def register(subparsers) -> None:
@@ -58,7 +59,6 @@ def run(args: argparse.Namespace) -> int:
     if getattr(args, "compass", None) == "all":
         from ._compasses import diagnose_all
         return diagnose_all(args, model, describe=lambda d: _text(d) + held_text(d))
-    from ..diagnosis.reference_field import reference_field
     from ..geomag import text_lines
 
     report = _report_module() if args.plots else None
@@ -80,12 +80,9 @@ def run(args: argparse.Namespace) -> int:
     if report is not None:
         written = report.write_diagnosis_plots(result, track, args.plots)
         plots = plots_written(args.plots, written)
-    from ..fitting.attitude_reference import log_attitude_reference
-
-    place = result.location   # the given place, else the log's GPS: what the library used
-    local = reference_field(track, result.calibration, place,
-                            gravity=getattr(result, "gravity", None))
-    attitude = log_attitude_reference(track, place, result.calibration)
+    # at the given place, else the log's GPS: what the library used
+    attitude = beside_diagnosis(track, result)
+    local = attitude.pop("reference_field")
     if args.json:
         out = result.to_dict()
         out["reference_field"] = local

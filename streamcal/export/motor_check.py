@@ -132,7 +132,8 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     the track has attitude and a position (``ref`` or its GPS), else ``heading`` says why not.
     ArduPilot's formula adds the motor term in the order of the firmware ``cal_in_force`` came
     from (``extra["ardupilot_correction_order"]``; the newest when absent).
-    Also ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``n_heading``
+    ``compare``: :func:`compare` of each firmware's ``before`` and ``after``. Also
+    ``channel``, ``fit_on``, ``fitted_s``, ``checked_s``, ``n_checked``, ``n_heading``
     (the checked samples with a heading error), ``g_uT`` (the fitted term, µT per channel
     unit). InputError
     when the channel is not a throttle or battery current the firmwares take, or the track
@@ -146,8 +147,7 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     if channel not in track.aux_names:
         raise InputError(f"motor compensation check: the track has no channel {channel!r} "
                          f"(channels: {', '.join(track.aux_names) or 'none'})")
-    in_force = list(((cal_in_force.effects or {}).get("aux_interference") or {})
-                    .get("channels", {}))
+    in_force = needed_channels(cal_in_force)
     if any(c != channel for c in in_force):
         raise InputError(f"motor compensation check: the calibration in force compensates "
                          f"{', '.join(in_force)}; check that channel, not {channel!r}")
@@ -184,6 +184,7 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
         out[name] = {fw: figures(firmware_field(cal, fw, m, signal, order, meta), data)
                      for fw in FIRMWARES}
     out["streamcal"] = figures(body_field(cals["after"], m, {channel: signal}, meta), data)
+    out["compare"] = {fw: compare(out["before"][fw], out["after"][fw]) for fw in FIRMWARES}
     return out
 
 
@@ -197,8 +198,7 @@ def figures(field: np.ndarray, data) -> dict:
 def motor_signal(cal: Calibration, firmware: str, cov: dict) -> np.ndarray | None:
     """(M,) values of the channel ``firmware``'s motor compensation takes from ``cal``'s
     ``aux_interference`` term (:func:`.common.motor_channel`), None when it takes none."""
-    channels = ((cal.effects or {}).get("aux_interference") or {}).get("channels", {})
-    chosen = motor_channel(list(channels), second_battery=firmware == "px4")[0]
+    chosen = motor_channel(needed_channels(cal), second_battery=firmware == "px4")[0]
     return None if chosen is None else np.asarray(cov[chosen], dtype=float)
 
 

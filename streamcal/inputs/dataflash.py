@@ -273,12 +273,12 @@ def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
     msgs, name = _mag_rows(msgs, path, instance)
     logged = np.column_stack([msgs.array(name, c) for c in ("MagX", "MagY", "MagZ")])
     meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(logged, axis=1)) / MG_PER_UT:.4g}"
-    mofs = np.column_stack([msgs.array(name, c) for c in ("MOfsX", "MOfsY", "MOfsZ")]) \
-        if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ") else None
-    ofs = np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")]) \
-        if msgs.has(name, "OfsX", "OfsY", "OfsZ") else None
-    mag_meta(msgs, name, params_of, meta, mofs is not None and bool(np.any(mofs)),
-             None if ofs is None else np.unique(ofs, axis=0))
+    # only what mag_meta words need: mag_values below reads the offsets itself
+    mofs_nonzero = msgs.has(name, "MOfsX", "MOfsY", "MOfsZ") and \
+        any(np.any(msgs.array(name, c)) for c in ("MOfsX", "MOfsY", "MOfsZ"))
+    ofs_sets = np.unique(np.column_stack([msgs.array(name, c) for c in ("OfsX", "OfsY", "OfsZ")]),
+                         axis=0) if msgs.has(name, "OfsX", "OfsY", "OfsZ") else None
+    mag_meta(msgs, name, params_of, meta, bool(mofs_nonzero), ofs_sets)
     return Stream(name, _time(msgs, name, path), mag_values(msgs, name, params_of, logged,
                                                           meta["ardupilot_correction_order"]))
 

@@ -162,10 +162,11 @@ def _survey_heavy(msgs: _Messages, path, piece: int, rows: dict) -> None:
         if not msgs.has(name, *_MAGC):   # the whole-log reader refuses this compass
             rows.setdefault((name, "no MagX/Y/Z"), _Rows()).count += msgs.count(name)
             continue
-        layout_i = msgs.has(name, "I")
-        for inst in (np.unique(msgs.array(name, "I")).tolist() if layout_i else [None]):
-            sel = (msgs.array(name, "I") == inst) if layout_i else slice(None)
-            t = _time(msgs, name, path)[sel]
+        ids = msgs.array(name, "I") if msgs.has(name, "I") else None
+        t_all = _time(msgs, name, path)   # once per message name, sliced per instance
+        for inst in (np.unique(ids).tolist() if ids is not None else [None]):
+            sel = (ids == inst) if ids is not None else slice(None)
+            t = t_all[sel]
             logged = np.column_stack([msgs.array(name, c)[sel] for c in _MAGC])
             mofs = np.column_stack([msgs.array(name, c)[sel] for c in ("MOfsX", "MOfsY", "MOfsZ")]
                                    ) if msgs.has(name, "MOfsX", "MOfsY", "MOfsZ") else None

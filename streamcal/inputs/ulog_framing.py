@@ -53,6 +53,9 @@ class Framing:
     skipped: list = field(default_factory=list)
     spans: list = field(default_factory=list)
     _ids: dict = field(default_factory=dict)   # subscribed msg_id -> size of its data (or None)
+    # (data, offset, length): the look-ahead of the last accepted message, which is what
+    # plausible() gives at that offset as long as nothing is taken in between
+    _ahead: tuple = (None, -1, 0)
 
     def plausible(self, data: bytes, at: int) -> int:
         """The length of the plausible message at ``at`` (header included), else 0."""
@@ -105,14 +108,19 @@ class Framing:
         """The length of the message at ``at`` when it is plausible and so is what follows it
         (a plausible message, the end of the file, or a last message the file's end cuts),
         counted as read (:meth:`take`); else 0, nothing counted."""
-        n = self.plausible(data, at)
+        seen, where, n = self._ahead
+        if seen is not data or where != at:
+            n = self.plausible(data, at)
+        self._ahead = (None, -1, 0)
         if not n:
             return 0
         changes = data[at + 2] == ord("A") or self.first_data(data, at)
         saved = dict(self._ids) if changes else None
         self.take(data, at, n)
         nxt = at + n
-        if nxt == len(data) or self.plausible(data, nxt) or self._cut_at(data, nxt):
+        ahead = self.plausible(data, nxt)
+        if nxt == len(data) or ahead or self._cut_at(data, nxt):
+            self._ahead = (data, nxt, ahead)
             return n
         if saved is not None:
             self._ids = saved
