@@ -76,7 +76,8 @@ def run(args) -> int:
     diagnosis, reason = diagnose_or_reason(track, model, recording=recording_argv(args),
                                            location=ref, **kwargs)
     place = diagnosis.location if diagnosis is not None else ref   # the one the library used
-    local = reference_field(track, getattr(diagnosis, "calibration", None), place)
+    local = reference_field(track, getattr(diagnosis, "calibration", None), place,
+                            gravity=getattr(diagnosis, "gravity", None))   # as diagnose does
     out = write_report(out, track, diagnosis, reason=reason, name=Path(args.track).name,
                        intro=_reference_html(text_lines(local)))
     say = messages_to(out)
