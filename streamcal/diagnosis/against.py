@@ -189,6 +189,6 @@ def refine(track, calibration: Calibration | None, add: Sequence[str], *,
     ev = start.base
     for name in names:
         ev = start.add(name, ev)
-    held = [p for p in start.names if p not in start.free and p not in start.pin.pinned]
+    held = [p for p in start.names if p not in ev.free and p not in start.pin.pinned]
     return ev.cal.replace(extra={**dict(ev.cal.extra or {}), "held": held,
                                  "refined_from": start.source})

@@ -31,7 +31,8 @@ import numpy as np
 from ...constants import CAUCHY_C, OUTLIER_WIDTHS
 from ...errors import InsufficientDataError
 from ...fitting.damped_lm import CONVERGED, Damping, damped_lm
-from ...fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry, shifted
+from ...fitting.entries import (B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, RADIUS, entry,
+                                field_radius, shifted)
 from ..residuals import GN_ITERATIONS, closest_point
 
 #: A parameter is re-estimated when its predicted (Cramér–Rao) standard error is below this
@@ -55,11 +56,6 @@ def core_params(model: Sequence[str]) -> list[str]:
     return names
 
 
-def field_radius(K: np.ndarray) -> float:
-    """Geometric mean of diag K (sensor unit)."""
-    return float(np.prod(np.abs(np.diag(K))) ** (1 / 3))
-
-
 def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
     """Closest point of the model surface to each reading (eq. 41): returns ``r`` (N,3) =
     g(x̂) − m, ``x̂`` (N,3), the signed normal distance ``s`` (N,), the unit normals (N,3) and
@@ -72,13 +68,17 @@ def project(K, b, terms, m, cov, x=None, iters: int = GN_ITERATIONS):
     return r, x, s, normal, np.broadcast_to(J @ np.linalg.inv(cal.K), (len(x), 3, 3))
 
 
-def jacobian(free: Sequence[str], terms, x, normal, D, cov, u) -> np.ndarray:
+def jacobian(free: Sequence[str], terms, x, normal, D, cov, u, K_base=None) -> np.ndarray:
     """Rows a_j = n_jᵀ ∂g(x_j)/∂p (N,P) for the named core parameters ``free`` then every θ of
-    ``terms`` (the derivative of s_j is −a_j); ``u`` = K x (N,3)."""
+    ``terms`` (the derivative of s_j is −a_j); ``u`` = K x (N,3). ``K_base``: the K the
+    ``radius`` scales (:func:`streamcal.fitting.entries.shifted`), needed with ``radius``."""
     nD = np.einsum("ni,nik->nk", normal, D)            # nᵀ ∂g/∂u
     cols = []
     for name in free:
-        if name in K_INDEX:
+        if name == RADIUS:      # ∂K/∂r = K_base / r(K_base)
+            K_base = np.asarray(K_base, float)
+            cols.append(np.einsum("nk,nk->n", nD, x @ K_base.T) / field_radius(K_base))
+        elif name in K_INDEX:
             i, j = K_INDEX[name]
             cols.append(nD[:, i] * x[:, j])
         else:
@@ -109,7 +109,7 @@ def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
     held: the worst of the others is held until every estimated one is within ``tolerance``
     or only ``keep`` is left (whose errors are then the caller's to judge)."""
     _, x, _, normal, D = project(K, b, terms, m, cov)
-    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T)
+    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T, K)
     free = list(names)
     errors = {}
     while free:
@@ -121,6 +121,27 @@ def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
             break
         free.pop(max(may_hold, key=lambda k: err[k]))
     return free, errors
+
+
+def radius_free(free: Sequence[str], K, b, m, cov, terms, sigma: float,
+                tolerance: float) -> tuple[bool, float]:
+    """Whether the field radius (``radius``, the scale of the whole K) is to be estimated on
+    top of the estimated set ``free``, and its predicted error (sensor unit): yes when the
+    diagonal of K is not all in ``free`` (it would repeat it), its error is within
+    ``tolerance`` and no parameter of ``free`` has its error pushed over the tolerance by it.
+
+    Why: a calibration's field strength is a number the recording measures wherever the
+    field it sees differs in size from the one it was made at (a motor field an autopilot's
+    calibration in force leaves, another place); held, the difference goes into whatever
+    else is fitted (a motor term ~10 % low)."""
+    if {"K_xx", "K_yy", "K_zz"} <= set(free):
+        return False, float("nan")
+    _, x, _, normal, D = project(K, b, terms, m, cov)
+    A = jacobian([*free, RADIUS], [], x, normal, D, cov, x @ np.asarray(K).T, K)
+    err = predicted_errors(A, sigma)
+    before = predicted_errors(A[:, :-1], sigma)
+    ok = err[-1] <= tolerance and all(e <= max(tolerance, e0) for e, e0 in zip(err, before))
+    return bool(ok), float(err[-1])
 
 
 @dataclass
@@ -146,6 +167,8 @@ class HeldFit:
     #: still fell); ``message`` in words.
     status: str = CONVERGED
     message: str = ""
+    #: The factor the ``radius`` scaled the given K by (1 when it was held).
+    scale: float = 1.0
 
 
 def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequence[str],
@@ -184,7 +207,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
 
     def linearize(p_, st):
         K_, _, terms_, _, x_, s_, normal_, D_ = st
-        A = jacobian(free, terms_[len(held_terms):], x_, normal_, D_, cov, x_ @ K_.T)
+        A = jacobian(free, terms_[len(held_terms):], x_, normal_, D_, cov, x_ @ K_.T, K0)
         w = 1.0 / (1.0 + (s_ / tau) ** 2)
         # einsum, not BLAS: threaded BLAS on these thin (N, ≤30) products spins on a busy
         # machine (9 of 18 s of a 20-minute flight's diagnosis) for a few MFLOP of work
@@ -209,7 +232,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     sigma = float(np.sqrt(np.mean(s[inliers] ** 2))) if inliers.sum() > P else sigma
     estimated = {}
     if P:
-        A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T)
+        A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T, K0)
         w = 1.0 / (1.0 + (s / tau) ** 2)
         H = np.einsum("np,nq->pq", A * w[:, None], A)
         try:
@@ -225,6 +248,8 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
             labels += [f"{term.name}[{k}]" for k in range(len(th))]
         estimated = {n: (float(v), float(e)) for n, v, e in zip(labels, values, sd)}
     rn = np.linalg.norm(r, axis=1)
+    scale = 1.0 + p[list(free).index(RADIUS)] / field_radius(K0) if RADIUS in free else 1.0
     return HeldFit(K=K, b=b, thetas=[t for _, t in terms[len(held_terms):]], r=r, x=x, s=s,
                    normal=normal, inliers=rn <= OUTLIER_WIDTHS * tau, sigma=sigma, tau=tau,
-                   estimated=estimated, iterations=it, status=status, message=message)
+                   estimated=estimated, iterations=it, status=status, message=message,
+                   scale=float(scale))

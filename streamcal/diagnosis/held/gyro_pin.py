@@ -93,7 +93,7 @@ def sphere_prior(K, b, fit, names: Sequence[str], m, cov, held_terms) -> SphereP
     (F = AᵀWA/σ̂², c = AᵀWs/σ̂², W Cauchy weights of the width and σ̂ of the held fit
     ``fit``, :class:`streamcal.diagnosis.held.HeldFit`)."""
     _, x, s, normal, D = project(K, b, list(held_terms), m, cov)
-    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T)
+    A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T, K)
     w = 1.0 / (1.0 + (s / fit.tau) ** 2)
     sig2 = max(fit.sigma, 1e-12) ** 2
     return SpherePrior(list(names), np.einsum("n,np,nq->pq", w, A, A) / sig2,

@@ -9,7 +9,8 @@ every fit :func:`settle` checks each estimated parameter p at the fitted point:
 * its error σ_p = max(the fit's own σ̂²(AᵀWA)⁻¹ error, the Cramér–Rao error recomputed at the
   fitted K and b with the noise max(noise floor, σ̂ of the fit's inliers));
 * its value against a plausible range, r the field radius of the given calibration:
-  off-diagonal |K_ij| ≤ r, diagonal K_ii within [r/2, 2r], |b_i − b_i,given| ≤ r
+  off-diagonal |K_ij| ≤ r, diagonal K_ii and the radius within [r/2, 2r],
+  |b_i − b_i,given| ≤ r
   (:func:`plausible_range`).
 
 A parameter with σ_p above the tolerance, or outside its range by more than
@@ -26,7 +27,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ...fitting.entries import B_INDEX, K_INDEX
+from ...fitting.entries import B_INDEX, K_INDEX, RADIUS
 from .fit import HeldFit, jacobian, predicted_errors, project
 
 #: A value further than this many of its own σ outside its plausible range is implausible.
@@ -41,7 +42,7 @@ def plausible_range(name: str, r: float, b_given: np.ndarray) -> tuple[float, fl
     if name in B_INDEX:
         c = float(b_given[B_INDEX[name]])
         return c - r, c + r
-    i, j = K_INDEX[name]
+    i, j = (0, 0) if name == RADIUS else K_INDEX[name]
     if i == j:
         return DIAG_RANGE[0] * r, DIAG_RANGE[1] * r
     return -r, r
@@ -70,7 +71,7 @@ def check(fit: HeldFit, free: Sequence[str], m, cov, held_terms, noise: float, t
         return {}
     # a base fit: its only effect terms are the calibration's, held
     _, x, _, normal, D = project(fit.K, fit.b, list(held_terms), m, cov)
-    A = jacobian(list(free), [], x, normal, D, cov, x @ fit.K.T)
+    A = jacobian(list(free), [], x, normal, D, cov, x @ fit.K.T, fit.K)
     predicted = predicted_errors(A, max(noise, fit.sigma))
     out = {}
     for name, pred in zip(free, predicted):

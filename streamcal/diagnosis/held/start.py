@@ -16,28 +16,33 @@ from typing import Sequence
 import numpy as np
 
 from ...calibration import DEFAULT_MODEL, Calibration
-from ...errors import InputError, InsufficientDataError
-from ...fitting.entries import B_PARAMS
+from ...errors import InputError, InsufficientDataError, StreamcalError
+from ...fitting.entries import B_PARAMS, RADIUS
 from ...fitting.outlier_rule import outlier_mask, residual_width
 from ...model import REGISTRATION_EFFECTS, build_effects, terms_from_params
 from ...model.build import check_known
 from .gyro_pin import confirm, gyro_pin, pinned_model
-from .fit import TOLERANCE, HeldFit, choose_free, core_params, field_radius, held_fit
-from .recheck import settle
+from .fit import (TOLERANCE, HeldFit, choose_free, core_params, field_radius, held_fit,
+                  radius_free)
+from .recheck import check, settle
 from ..noise import noise_floor
 
 #: Fewest samples for any diagnosis against a calibration.
 MIN_SAMPLES = 30
 #: Default-calibration iterations (b on the slice, then r from it).
 DEFAULT_ROUNDS = 3
+#: The radius fitted on each half of a recording agrees within this many σ of the difference
+#: when an added effect releases it.
+STABLE_SIGMAS = 3.0
 
 
 class HeldEval:
     """One held fit as an evaluation of :mod:`streamcal.diagnosis.story`: residuals (N,3), the
-    one outlier rule's inliers (N,) over the times ``t`` (N,) s, free parameters ``p``."""
+    one outlier rule's inliers (N,) over the times ``t`` (N,) s, the number of free
+    parameters ``p``, the estimated core parameters ``free``."""
 
-    def __init__(self, fit: HeldFit, cal: Calibration, p: int, terms=(), t=None):
-        self.fit, self.p, self.terms = fit, p, list(terms)
+    def __init__(self, fit: HeldFit, cal: Calibration, p: int, terms=(), t=None, free=()):
+        self.fit, self.p, self.terms, self.free = fit, p, list(terms), list(free)
         self.r, self.x, self.s, self.normal = fit.r, fit.x, fit.s, fit.normal
         self.rss = np.sum(fit.r ** 2, axis=1)
         # the width from this model's own residual, as a fresh fit takes it (not the noise
@@ -63,8 +68,10 @@ def _calibration(K, b, base: Calibration, terms, fit: HeldFit, model) -> Calibra
     effects = dict(base.effects)
     for term, theta in terms:
         effects[term.name] = term.to_physical(theta, 1.0)
+    # the field strength follows the radius, so that the corrected field's matrix keeps its scale
+    field = None if base.field is None else float(base.field) * fit.scale
     return base.replace(K=K, b=b, model=tuple(model), effects=effects, inliers=fit.inliers,
-                        weights=None, directions=fit.x,
+                        weights=None, directions=fit.x, field=field,
                         extra={**dict(base.extra or {}), "tau": fit.tau})
 
 
@@ -186,8 +193,17 @@ class HeldStart:
         settled = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma), free, m,
                          cov, held_terms, sigma, tol, field_radius(K0), b0, keep)
         free, fit = settled.free, settled.fit
+        # then the field strength, at the fitted point, over what was settled
+        add_radius, errors[RADIUS] = radius_free(free, fit.K, fit.b, m, cov, held_terms, sigma,
+                                                 tol)
+        if add_radius:   # kept only when nothing estimated without it has to be held
+            with_radius = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma),
+                                 [*free, RADIUS], m, cov, held_terms, sigma, tol,
+                                 field_radius(K0), b0, keep)
+            if set(with_radius.free) == {*free, RADIUS}:
+                settled, free, fit = with_radius, with_radius.free, with_radius.fit
         # held parameters the gyro link determines (only when that helps: gyro_pin's rules)
-        pin = gyro_pin(track, m, t, cov, held_terms, fit, free,
+        pin = gyro_pin(track, m, t, cov, held_terms, fit, [p for p in free if p != RADIUS],
                        [p for p in names if p not in free], tol, field_radius(K0))
         K0p, b0p = pinned_model(K0, b0, pin)
         again = confirm(pin, fit, lambda: settle(
@@ -197,9 +213,11 @@ class HeldStart:
             K0, b0, settled, free, fit = K0p, b0p, again, again.free, again.fit
         self.K0, self.b0, self.sigma, self.tol, self.errors = K0, b0, sigma, tol, errors
         self.free, self.settled, self.pin, self.base_cal = free, settled, pin, base_cal
+        if np.isfinite(errors[RADIUS]):   # considered: the diagonal was not all estimated
+            self.names = [*names, RADIUS]
         self.radius = field_radius(K0)
         self.base = HeldEval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model),
-                             len(free), [], t)
+                             len(free), [], t, free)
 
     def cov_at(self, rows=None) -> dict:
         """The covariates (N,) at every sample, or at the sample indices ``rows`` (the ranking
@@ -210,18 +228,23 @@ class HeldStart:
             self._rows, self._cov_rows = rows, {k: v[rows] for k, v in self.cov.items()}
         return self._cov_rows
 
-    def evaluate(self, new_terms, start: HeldEval | None = None, rows=None) -> HeldEval:
+    def evaluate(self, new_terms, start: HeldEval | None = None, rows=None,
+                 free: Sequence[str] | None = None) -> HeldEval:
         """Fit the base model plus ``new_terms`` (``[(term, θ start), …]``) from ``start``'s
-        K, b (default the held values) on every sample, or on the sample indices ``rows``."""
+        K, b (default the held values) on every sample, or on the sample indices ``rows``,
+        estimating ``free`` (default ``start``'s, else the base's)."""
         m, cov, t = self.m, self.cov_at(rows), self.t
         if rows is not None:
             m, t = m[rows], t[rows]
         K_s, b_s = (self.K0, self.b0) if start is None else (start.fit.K, start.fit.b)
-        fit = held_fit(m, cov, K_s, b_s, self.free, self.held_terms, new_terms, self.sigma)
+        free = list(free if free is not None else start.free if start is not None else self.free)
+        fit = held_fit(m, cov, K_s, b_s, free, self.held_terms, new_terms, self.sigma)
+        if start is not None:     # K_s carries start's radius already
+            fit.scale *= start.fit.scale
         terms = [term for term, _ in new_terms]
         cal = _calibration(fit.K, fit.b, self.base_cal, list(zip(terms, fit.thetas)), fit,
                            (*self.model, *(term.name for term in terms)))
-        return HeldEval(fit, cal, len(self.free) + sum(len(th) for th in fit.thetas), terms, t)
+        return HeldEval(fit, cal, len(free) + sum(len(th) for th in fit.thetas), terms, t, free)
 
     def add(self, name: str, ref: HeldEval, rows=None) -> HeldEval:
         """``ref``'s model plus the effect ``name``, started where a linear fit of ``ref``'s
@@ -233,4 +256,53 @@ class HeldStart:
         ev = self.evaluate([*prior, (term, start)], ref, rows)
         if np.any(start != term.initial()) and not ev.rms <= ref.rms * 10:
             ev = self.evaluate([*prior, (term, term.initial())], ref, rows)
-        return ev
+        return self._with_radius(ev, rows)
+
+    def _with_radius(self, ev: HeldEval, rows) -> HeldEval:
+        """``ev`` with the field radius estimated too, when the base held it but the model
+        with ``ev``'s effects determines it: an effect the base lacked (a motor field) can be
+        what left it undetermined. Three conditions: its predicted error (:func:`radius_free`),
+        the re-check at the fitted point (:func:`streamcal.diagnosis.held.recheck.check`) of
+        every estimated parameter, and the same radius, determined, from each half of the
+        samples in time: a field strength is one number for the recording, and a model that
+        leaves much unexplained can drift along it on one half."""
+        if RADIUS in ev.free or RADIUS not in self.names or not np.isfinite(ev.rms):
+            return ev
+        m, cov = (self.m, self.cov) if rows is None else (self.m[rows], self.cov_at(rows))
+        terms = [*self.held_terms, *zip(ev.terms, ev.fit.thetas)]
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            ok, _ = radius_free(ev.free, ev.fit.K, ev.fit.b, m, cov, terms, self.sigma,
+                                self.tol)
+        if not ok:
+            return ev
+        prior = list(zip(ev.terms, ev.fit.thetas))
+        free = [*ev.free, RADIUS]
+        # a fit drifting along an undetermined direction overflows on its way (as in settle)
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            trial = self.evaluate(prior, ev, rows, free)
+            failed = check(trial.fit, trial.free, m, cov, [*self.held_terms,
+                           *zip(trial.terms, trial.fit.thetas)], self.sigma, self.tol,
+                           self.radius, self.b0)
+        if failed or not self._same_on_each_half(prior, ev, rows, free):
+            return ev
+        return trial
+
+    def _same_on_each_half(self, prior, ev: HeldEval, rows, free) -> bool:
+        """Whether the model ``prior`` estimating ``free`` (with the radius), started at
+        ``ev``, determines the radius on each half in time of the samples (``rows``, None: all;
+        its error within √2 × the tolerance) and gives both the same within
+        :data:`STABLE_SIGMAS` σ of the difference."""
+        idx = np.arange(len(self.m)) if rows is None else np.asarray(rows)
+        idx = idx[np.argsort(self.t[idx], kind="stable")]
+        values = []
+        for half in (idx[:len(idx) // 2], idx[len(idx) // 2:]):
+            try:
+                with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                    fit = self.evaluate(prior, ev, half, free).fit
+            except (StreamcalError, np.linalg.LinAlgError, ValueError):
+                return False
+            values.append(fit.estimated.get(RADIUS, (np.nan, np.inf)))
+        (a, sa), (b, sb) = values
+        # half the samples: the tolerance on the error × √2
+        return bool(np.isfinite([a, b, sa, sb]).all() and max(sa, sb) <= np.sqrt(2) * self.tol
+                    and abs(a - b) <= STABLE_SIGMAS * np.hypot(sa, sb))
