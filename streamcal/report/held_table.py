@@ -7,7 +7,7 @@ import html
 
 import numpy as np
 
-from ..fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, entry
+from ..fitting.entries import B_INDEX, B_PARAMS, K_INDEX, K_PARAMS, RADIUS, entry
 
 
 def _num(v, fmt: str = ".4g") -> str:
@@ -26,7 +26,9 @@ def held_section(d, unit: str) -> str:
     e = html.escape
     rows = []
     after = {a["parameter"]: a for a in h.held_after_fit}
-    for name, _ in (*K_PARAMS, *B_PARAMS):
+    radius = [RADIUS] if (RADIUS in h.parameters or RADIUS in h.estimated
+                          or RADIUS in h.predicted_sigma) else []
+    for name in [*(n for n, _ in (*K_PARAMS, *B_PARAMS)), *radius]:
         pin = h.gyro_pinned.get(name)
         est = h.estimated.get(name) or pin
         status = "pinned by the gyro link" if pin else "re-estimated" if est else (
@@ -35,7 +37,7 @@ def held_section(d, unit: str) -> str:
         sigma = _num(est["sigma"]) if est else "–"
         rows.append((name, status, _num(value), sigma, _num(h.predicted_sigma.get(name)), unit))
     rows += [(e(n), "held", "as in the calibration", "–", "–", "") for n in h.parameters
-             if n not in K_INDEX and n not in B_INDEX]
+             if n not in K_INDEX and n not in B_INDEX and n != RADIUS]
     head = "".join(f"<th>{h}</th>" for h in ("parameter", "status", "value", "σ (this recording)",
                                              "predicted σ (Cramér–Rao)", "unit"))
     body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
