@@ -76,7 +76,13 @@ _MATRIX_FROM = {"copter": (3, 4), "plane": (3, 4), "rover": (3, 0)}
 FIRMWARE_VERSION = re.compile(r"(copter|plane|rover|sub|tracker)\S*\s+v?(\d+)\.(\d+)", re.I)
 #: Per-compass parameter kinds (``AP_Compass`` var_info); MOTCT and PRIMARY are shared.
 _PER_COMPASS = ("OFS", "DIA", "ODI", "MOT", "SCALE", "ORIENT", "DEV_ID", "USE", "EXTERNAL")
-_SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY")
+_SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY", "AHRS_ORIENTATION")
+#: The rotation parameter of an internal compass, which turns with the board: each firmware
+#: ignores the compass's own one there (ArduPilot ``AP_Compass_Backend::rotate_field`` turns an
+#: internal compass by AHRS_ORIENTATION, an external one by COMPASS_ORIENTn; PX4
+#: ``sensor_calibration::Magnetometer`` by the board rotation SENS_BOARD_ROT when CAL_MAGn_ROT
+#: is −1, internal). The board rotation turns the accelerometer and gyro too.
+BOARD_ROTATION = {"ardupilot": "AHRS_ORIENTATION", "px4": "SENS_BOARD_ROT"}
 
 
 def ardupilot_param(kind: str, instance: int = 0, axis: str | None = None) -> str:
@@ -100,6 +106,24 @@ def ardupilot_param_index(params: Mapping[str, float], instance: int) -> int:
             if params.get(ardupilot_param("DEV_ID", n)) == wanted:
                 return n
     return instance
+
+
+def compass_rotation_param(meta: Mapping[str, str]) -> tuple[str, str] | None:
+    """``(firmware, parameter)`` whose rotation turns an autopilot log's compass into the body
+    frame, from the track's metadata: ArduPilot COMPASS_ORIENTn of the compass's parameter set,
+    or AHRS_ORIENTATION when its COMPASS_EXTERNAL/EXTERNn is logged as 0 (internal); PX4
+    CAL_MAGn_ROT, or SENS_BOARD_ROT when it is −1 (internal). None for other inputs."""
+    if meta.get("input_format") == "ardupilot-dataflash":
+        index = int(float(meta.get("compass_params_index", 0) or 0))
+        external = meta.get(f"param.{ardupilot_param('EXTERNAL', index)}")
+        internal = external is not None and float(external) == 0
+        return "ardupilot", BOARD_ROTATION["ardupilot"] if internal else \
+            ardupilot_param("ORIENT", index)
+    if meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
+        own = meta["mag_cal_params"] + "ROT"
+        internal = float(meta.get(f"param.{own}", 0)) < 0
+        return "px4", BOARD_ROTATION["px4"] if internal else own
+    return None
 
 
 def compass_params(params: Mapping[str, float], instance: int = 0) -> dict:
