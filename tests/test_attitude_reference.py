@@ -457,3 +457,21 @@ def test_a_refused_diagnosis_still_says_what_the_attitude_reference_shows(tmp_pa
     assert main(["diagnose", str(path)]) == 1
     text = capsys.readouterr().out
     assert text.startswith("no diagnosis: ") and "heading error rms" in text
+
+
+def test_the_reference_fit_weighs_with_the_shared_cauchy_width():
+    """The reference fit's robust weights are the Cauchy weights of width
+    streamcal.constants.CAUCHY_C σ̂ (the one width of every σ̂-scaled Cauchy fit) on its own
+    converged residuals."""
+    from streamcal.constants import CAUCHY_C
+
+    rng = np.random.default_rng(4)
+    e = rng.normal(size=(600, 3))
+    e *= 48.0 / np.linalg.norm(e, axis=1, keepdims=True)
+    m = e @ S_TRUE.T + B_TRUE + rng.normal(0.0, 0.4, e.shape)
+    m[::25] += rng.normal(0.0, 30.0, m[::25].shape)           # outliers: weights well below 1
+    fit = fit_reference(m, e)
+    r = m - e @ fit.A.T - fit.b
+    expected = 1.0 / (1.0 + np.sum(r * r, axis=1) / (CAUCHY_C * fit.scale) ** 2)
+    assert fit.weights[::25].max() < 0.2
+    np.testing.assert_allclose(fit.weights, expected, rtol=1e-7)
