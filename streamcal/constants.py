@@ -12,7 +12,8 @@ STILL_RATE = 0.05
 #: A residual farther than this many kernel widths is reported an outlier.
 OUTLIER_WIDTHS = 2.0
 #: Cauchy kernel width in noise σ̂ (95 % Gaussian efficiency, three digits) of the fits that
-#: re-estimate σ̂ per axis: the held fit and the gyro link.
+#: re-estimate σ̂: the held fit, the gyro link and the fits against a reference field
+#: (fitting.reference_fit, fitting.no_tumble).
 CAUCHY_C = 2.385
 #: Track columns of the vehicle's logged attitude: the unit quaternion (scalar first) that turns
 #: body-frame (forward-right-down) vectors into the local NED earth frame. They are not

@@ -75,7 +75,7 @@ def wmm_field(lat: float, lon: float, alt_km: float = 0.0, date: _dt.date | None
     except ImportError:
         raise InputError("--lat/--lon need the pygeomag package (pip install pygeomag)") from None
     name, cof = next(((n, f) for n, f, first in _EARLIER if first <= year < first + 5),
-                     (MODEL, _COF))
+                     _EARLIER[-1][:2] if year < _EARLIER[-1][2] else (MODEL, _COF))
     model = GeoMag(coefficients_file=cof)
     start, end = model.life_span
     if not start <= year < end:

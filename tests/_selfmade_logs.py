@@ -119,6 +119,7 @@ LAYOUT = {
     "RCOU": (0x85, "QHHHHHHHH", "TimeUS,C1,C2,C3,C4,C5,C6,C7,C8"),
     "BAT": (0x86, "QBff", "TimeUS,I,Volt,Curr"),
     "CURR": (0x87, "Qhh", "TimeUS,Throttle,Volt"),
+    "VER": (0x88, "QBHBBBBIZH", "TimeUS,BT,BST,Maj,Min,Pat,FWT,GH,FWS,APJ"),
 }
 
 
@@ -156,12 +157,13 @@ def ardupilot_params(*, motor_comp: np.ndarray | None = None) -> dict:
 def dataflash_bytes(flight: FlightSlice, *, params: dict | None = None,
                     motor_comp: np.ndarray | None = None, messages=("IMU", "RCOU", "BAT", "CURR"),
                     with_mag: bool = True, c7_not_pwm: bool = False, firmware: str = FIRMWARE,
-                    motor_before_matrix: bool = False) -> bytes:
+                    motor_before_matrix: bool = False, version: str | None = None) -> bytes:
     """The log ArduPilot writes for ``flight``: logged MAG = S (10 m + o) + MOfs (mG, int16), or
     with ``motor_before_matrix`` (Copter 3.4–3.5, Plane ≤ 3.8, Rover ≤ 3.2) S (10 m + o + MOfs);
     ``MOfs = COMPASS_MOT · throttle`` when ``motor_comp`` (mG at full throttle) is given; the
-    version text ``firmware`` in a MSG message; RCOU C7 unused (0) or, with ``c7_not_pwm``, a
-    counter far outside any PWM range."""
+    version text ``firmware`` in a MSG message (and ``version`` as the firmware string of a VER
+    message, as 4.1 and later log it); RCOU C7 unused (0) or, with ``c7_not_pwm``, a counter far
+    outside any PWM range."""
     params = ardupilot_params(motor_comp=motor_comp) if params is None else params
     S = np.array([[params["COMPASS_DIA_X"], params["COMPASS_ODI_X"], params["COMPASS_ODI_Y"]],
                   [params["COMPASS_ODI_X"], params["COMPASS_DIA_Y"], params["COMPASS_ODI_Z"]],
@@ -175,6 +177,9 @@ def dataflash_bytes(flight: FlightSlice, *, params: dict | None = None,
         logged = np.round((10.0 * flight.mag_uT + o) @ S.T + mofs)
     out = [df_format(n) for n in ("FMT", "PARM", "MSG", *(("MAG",) if with_mag else ()),
                                   *messages)]
+    if version is not None:
+        out.insert(0, df_format("VER"))
+        out.append(df_message("VER", 0, 9, 0, 4, 5, 1, 255, 0xB11C6AF3, version.encode(), 9))
     out.append(df_message("MSG", 0, firmware.encode()))
     out += [df_message("PARM", 0, k.encode(), float(v)) for k, v in params.items()]
     rows = []   # (time µs, order, bytes): written in time order, as the firmware does

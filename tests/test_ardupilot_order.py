@@ -42,6 +42,12 @@ def flight():
     ("APM:Rover V3.3.1 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
     ("ArduRover V4.2.3 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
     ("Copter 3.5", MOTOR_BEFORE_MATRIX),
+    ("ArduSub V3.4-RC3 (1a2b3c4d)", MOTOR_BEFORE_MATRIX),
+    ("ArduSub V3.5.4 (1a2b3c4d)", MOTOR_BEFORE_MATRIX),
+    ("ArduSub V4.0.0 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
+    ("AntennaTracker V1.0.0 (1a2b3c4d)", MOTOR_BEFORE_MATRIX),
+    ("AntennaTracker V1.1.0 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
+    ("AntennaTracker V4.2.0 (1a2b3c4d)", MOTOR_AFTER_MATRIX),
     (None, MOTOR_AFTER_MATRIX),
     ("PX4 v1.12", MOTOR_AFTER_MATRIX),
 ])
@@ -63,6 +69,37 @@ def test_reading_recovered_in_the_order_of_the_logged_firmware(flight, tmp_path,
                                                   else MOTOR_AFTER_MATRIX)
     assert meta["ardupilot_correction_order_from"].startswith("Copter 3.")
     assert meta["ardupilot_correction_order"] in meta["mag_soft_iron_undone"]
+
+
+def test_no_vehicle_is_assumed_in_the_current_order():
+    """Every vehicle ArduPilot logs has a known order: none falls to "assumed"."""
+    for text in ("ArduSub V3.5.4", "AntennaTracker V1.0.0", "ArduSub V4.1.2",
+                 "AntennaTracker V4.5.0"):
+        assert "assumed" not in ardupilot_correction_order(text)[1]
+    assert "assumed" in ardupilot_correction_order("PX4 v1.12")[1]
+
+
+@pytest.mark.parametrize("version, msg, before", [
+    ("ArduCopter V3.5.7 (b11c6af3)", "Frame: QUAD", True),
+    ("ArduCopter V4.1.5 (b11c6af3)", OLD_FIRMWARE, False),   # VER wins over a stale MSG
+])
+def test_the_ver_message_names_the_firmware(flight, tmp_path, version, msg, before):
+    """4.1 and later log a VER message: its firmware string decides the order (the MSG texts
+    may not name the version, or name another)."""
+    path = write_dataflash(tmp_path / "f.bin", flight, motor_comp=MOT, firmware=msg,
+                           motor_before_matrix=before, version=version)
+    track = read_recording(path)
+    assert track.metadata["firmware"] == version
+    np.testing.assert_allclose(track.mag, flight.mag_uT, atol=0.1)
+    assert track.metadata["ardupilot_correction_order"] == (MOTOR_BEFORE_MATRIX if before
+                                                            else MOTOR_AFTER_MATRIX)
+    # the chunked reader (VER in the first piece only) and pymavlink's decoding say the same
+    from streamcal.inputs.dataflash import read_dataflash_pymavlink
+    from streamcal.inputs.dataflash_chunks import iter_dataflash_chunks
+
+    last = list(iter_dataflash_chunks(path, piece_bytes=4096))[-1]
+    assert last.metadata["firmware"] == read_dataflash_pymavlink(path).metadata["firmware"] \
+        == version
 
 
 def test_the_other_order_misses_the_reading(flight, tmp_path):

@@ -280,12 +280,64 @@ def test_mounting_advice_composes_with_the_configured_rotation():
                                                                  "value": 2}
     # PX4's sensor_mag is the sensor's own frame: the rotation found is the one to set
     px4 = {"input_format": "px4-ulog", "mag_cal_params": "CAL_MAG1_", "mag_calibrated_by_px4": "no",
-           "param.CAL_MAG1_ROT": "-1"}
+           "param.CAL_MAG1_ROT": "0", "param.SENS_BOARD_ROT": "4"}
     advice = mounting_advice(px4, by_name("ROLL_180"))
     assert advice["set"] == {"param": "CAL_MAG1_ROT", "value": 8}
     assert mounting_advice({"input_format": "track"}, by_name("ROLL_180")) == {}
     # ArduPilot's 26 (PITCH_180_YAW_90) is the matrix of 14 (ROLL_180_YAW_270)
     assert by_number(26).ardupilot == 14
+
+
+def test_an_internal_compass_is_turned_by_the_board_rotation():
+    """An internal compass turns with the board: PX4 ignores CAL_MAGn_ROT (−1) and turns it by
+    SENS_BOARD_ROT, ArduPilot ignores COMPASS_ORIENTn (COMPASS_EXTERNAL 0) and turns it by
+    AHRS_ORIENTATION; the advice names those."""
+    from streamcal.fitting.attitude_reference import mounting_advice
+
+    px4 = {"input_format": "px4-ulog", "mag_cal_params": "CAL_MAG1_", "mag_calibrated_by_px4": "no",
+           "param.CAL_MAG1_ROT": "-1", "param.SENS_BOARD_ROT": "4"}
+    advice = mounting_advice(px4, by_name("ROLL_180"))
+    assert advice == {"configured": {"param": "SENS_BOARD_ROT", "value": 4},
+                      "set": {"param": "SENS_BOARD_ROT", "value": 8}}
+    # the calibrated topic is logged after the board rotation (YAW_180): ROLL_180 after it,
+    # Rx(180) Rz(180) = Ry(180)
+    calibrated = dict(px4, mag_calibrated_by_px4="yes")
+    assert mounting_advice(calibrated, by_name("ROLL_180"))["set"] == {
+        "param": "SENS_BOARD_ROT", "value": by_name("PITCH_180").px4}
+    ardupilot = {"input_format": "ardupilot-dataflash", "compass_params_index": "1",
+                 "param.COMPASS_ORIENT2": "8", "param.COMPASS_EXTERN2": "0",
+                 "param.AHRS_ORIENTATION": "2"}
+    advice = mounting_advice(ardupilot, by_name("NONE"))
+    assert advice == {"configured": {"param": "AHRS_ORIENTATION", "value": 2},
+                      "set": {"param": "AHRS_ORIENTATION", "value": 2}}
+    external = dict(ardupilot, **{"param.COMPASS_EXTERN2": "1"})
+    assert mounting_advice(external, by_name("NONE"))["set"] == {"param": "COMPASS_ORIENT2",
+                                                                 "value": 8}
+
+
+@pytest.mark.parametrize("firmware", ["ardupilot", "px4"])
+def test_export_leaves_the_board_rotation_of_an_internal_compass(firmware):
+    """The board rotation turns the IMU too: an export never writes it, and says what it would
+    be when a rotation was found; the compass's own parameter is not written either."""
+    from streamcal.export import export
+    from streamcal.fitting.attitude_reference import fit_attitude_reference
+
+    track, _ = simulated_log("flight", mount=by_name("YAW_90").matrix, b_body=B_TRUE)
+    if firmware == "ardupilot":
+        meta = dict(track.metadata, input_format="ardupilot-dataflash",
+                    **{"param.COMPASS_ORIENT": "0", "param.COMPASS_EXTERNAL": "0",
+                       "param.AHRS_ORIENTATION": "0"})
+        own, board = "COMPASS_ORIENT", "AHRS_ORIENTATION"
+    else:
+        meta = dict(track.metadata, input_format="px4-ulog", mag_cal_params="CAL_MAG0_",
+                    mag_calibrated_by_px4="yes",
+                    **{"param.CAL_MAG0_ROT": "-1", "param.SENS_BOARD_ROT": "0"})
+        own, board = "CAL_MAG0_ROT", "SENS_BOARD_ROT"
+    cal = fit_attitude_reference(type(track)(track.columns, meta))
+    assert cal.extra["orientation"]["set"] == {"param": board, "value": 2}
+    text, notes = export(cal, firmware)
+    assert own not in text and f"{board} 2" in text
+    assert any(board in n and "accelerometer and gyro" in n for n in notes)
 
 
 def test_export_sets_the_combined_orientation():
@@ -405,3 +457,21 @@ def test_a_refused_diagnosis_still_says_what_the_attitude_reference_shows(tmp_pa
     assert main(["diagnose", str(path)]) == 1
     text = capsys.readouterr().out
     assert text.startswith("no diagnosis: ") and "heading error rms" in text
+
+
+def test_the_reference_fit_weighs_with_the_shared_cauchy_width():
+    """The reference fit's robust weights are the Cauchy weights of width
+    streamcal.constants.CAUCHY_C σ̂ (the one width of every σ̂-scaled Cauchy fit) on its own
+    converged residuals."""
+    from streamcal.constants import CAUCHY_C
+
+    rng = np.random.default_rng(4)
+    e = rng.normal(size=(600, 3))
+    e *= 48.0 / np.linalg.norm(e, axis=1, keepdims=True)
+    m = e @ S_TRUE.T + B_TRUE + rng.normal(0.0, 0.4, e.shape)
+    m[::25] += rng.normal(0.0, 30.0, m[::25].shape)           # outliers: weights well below 1
+    fit = fit_reference(m, e)
+    r = m - e @ fit.A.T - fit.b
+    expected = 1.0 / (1.0 + np.sum(r * r, axis=1) / (CAUCHY_C * fit.scale) ** 2)
+    assert fit.weights[::25].max() < 0.2
+    np.testing.assert_allclose(fit.weights, expected, rtol=1e-7)

@@ -115,8 +115,10 @@ def test_attitude_line_of_the_calibration_in_force_is_the_truths(tmp_path, inter
     ref = log_attitude_reference(track)
     assert ref["attitude_reference"]["heading_error_deg"]["rms_before"] == pytest.approx(
         truth, rel=0.02)
-    if not internal:
-        assert ref["orientation"]["set"] == {"param": "CAL_MAG0_ROT", "value": MOUNT.px4}
+    # an internal compass is turned by the board rotation (CAL_MAG0_ROT −1): already right
+    param = "SENS_BOARD_ROT" if internal else "CAL_MAG0_ROT"
+    assert ref["orientation"]["configured"] == {"param": param, "value": MOUNT.px4}
+    assert ref["orientation"]["set"] == {"param": param, "value": MOUNT.px4}
 
 
 def test_fit_heading_check_of_a_refinement_is_the_truths(flights):

@@ -67,6 +67,33 @@ def test_gyro_tied_floor_is_within_a_factor_of_the_truth(seed, noise):
     assert est.reliable and truth / WITHIN <= est.floor <= WITHIN * truth, (est, truth)
 
 
+@pytest.mark.parametrize("gyro", [True, False], ids=["gyro", "accelerometer only"])
+def test_the_gravity_reference_carries_its_own_tilt_error(gyro):
+    """gravity_reference measures tilt_sigma's figure with the reference, exactly."""
+    from streamcal.fitting.gravity import tilt_sigma
+
+    track = simulate(30.0, 7).track
+    if not gyro:
+        track = type(track)({k: v for k, v in track.columns.items()
+                             if k not in ("gx", "gy", "gz")}, track.metadata)
+    ref = gravity_reference(track)
+    assert (ref.tilt, ref.tilt_method) == tilt_sigma(track)
+    assert ref.tilt > 0 and ("gyro-following" in ref.tilt_method) == gyro
+
+
+def test_a_gravity_tied_diagnosis_integrates_the_gyro_once(monkeypatch):
+    """The reference and its error share one integration of the gyro."""
+    import streamcal.fitting.gravity as gravity
+
+    calls = []
+    frame = gravity._gyro_frame
+    monkeypatch.setattr(gravity, "_gyro_frame", lambda *a: calls.append(1) or frame(*a))
+    track = simulate(30.0, 33, effects={"time_lag": 0.02}).track
+    d = diagnose(track, model=(*BASE, "time_lag"), fitter=fitter, candidates=[], ladder=False)
+    assert d.residual == "gravity_tied" and d.tied_noise_floors["gravity_tied"]["reliable"]
+    assert len(calls) == 1
+
+
 def test_an_unmeasurable_magnetometer_floor_makes_the_tied_floor_unmeasurable():
     res = simulate(20.0, 5)
     est = tied_floor("gravity_tied", res.track, res.truth.K, float("nan"), False, "why not")

@@ -16,16 +16,20 @@ def add_location_options(p) -> None:
 
 def location_reference(args) -> dict | None:
     """The model field at ``args``' place (:func:`streamcal.geomag.wmm_field`), None when no
-    location was given; one of --lat/--lon alone is an error."""
+    location was given; one of --lat/--lon alone, a place or a date the model does not cover
+    and a malformed --date (given alone too) are errors. A few milliseconds: commands call it
+    before reading anything, so that a mistyped option is said at once."""
     from ..errors import InputError
     from ..geomag import parse_date, wmm_field
 
     lat, lon = getattr(args, "lat", None), getattr(args, "lon", None)
+    date = getattr(args, "date", None)
+    date = parse_date(date) if date is not None else None
     if lat is None and lon is None:
         return None
     if lat is None or lon is None:
         raise InputError("--lat and --lon go together (the place of the recording)")
-    return wmm_field(lat, lon, args.alt_km, parse_date(args.date))
+    return wmm_field(lat, lon, args.alt_km, date)
 
 
 def attitude_lines(out: dict) -> list[str]:

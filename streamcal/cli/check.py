@@ -41,6 +41,7 @@ def run(args) -> int:
     from ..fitting.attitude_reference import calibration_in_force
     from ._calarg import calibration_for
 
+    ref = location_reference(args)     # a mistyped --lat/--date said before the reading
     track = read_track(args)
     if track.mag is None or not len(track.t_mag):
         raise InputError(f"{args.track}: no magnetometer samples")
@@ -52,7 +53,6 @@ def run(args) -> int:
         raise InputError(f"{args.calibration}: a magnetometer calibration in µT is needed, this "
                          f"one is for {cal.sensor!r} in {cal.unit!r}")
     _say_other_compass(args, cal, track)
-    ref = location_reference(args)
     in_force = calibration_in_force(track)
     firmware = "px4" if track.metadata.get("input_format") == "px4-ulog" else "ardupilot"
     names = {"cal": args.calibration, "recording": args.track, "firmware": firmware}

@@ -247,6 +247,9 @@ def run(args) -> int:
     from ._common import fake_track_reader
     from ._live_replay import TrackSpan, announce, replay_speed, serve_after_replay
 
+    from ._location import location_reference
+
+    location_reference(args)    # a mistyped --lat/--date said before the device is opened
     started = time.monotonic()
     span = TrackSpan(fake_track_reader(args))
     spec = args.bus if args.bus is not None else args.port

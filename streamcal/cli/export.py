@@ -19,7 +19,8 @@ def register(sub) -> None:
     p.add_argument("--format", required=True, choices=FORMATS)
     p.add_argument("--firmware-version", metavar="VERSION",
                    help="--format ardupilot: the firmware the parameters are for, e.g. "
-                        "'Copter 3.5' (before Copter 3.6, Plane 3.9, Rover 3.3 COMPASS_MOT is "
+                        "'Copter 3.5' (before Copter 3.6, Plane 3.9, Rover 3.3, Sub 4.0 and "
+                        "AntennaTracker 1.1 COMPASS_MOT is "
                         "added before the COMPASS_DIA/ODI matrix); default: the newest order")
     p.add_argument("-o", "--output", metavar="FILE", help="file to write (atomic); default (or -): stdout")
     p.set_defaults(func=run)

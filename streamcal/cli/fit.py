@@ -138,9 +138,9 @@ def _named_channels(args, track):
     return track.keep_aux(named), add + ["aux_interference"]
 
 
-def _no_tumble(args, track, initial):
-    """The calibration of ``--heading`` / ``--planar`` against the model field at
-    ``--lat/--lon/--date`` or the log's GPS position."""
+def _no_tumble(args, track, initial, ref):
+    """The calibration of ``--heading`` / ``--planar`` against the model field ``ref`` at
+    ``--lat/--lon/--date``, else at the log's GPS position."""
     from ..errors import InputError
     from ..fitting.attitude_reference import log_location
     from ..fitting.no_tumble import fit_heading, fit_planar
@@ -151,7 +151,6 @@ def _no_tumble(args, track, initial):
     if (args.add and not args.attitude) or args.model != ",".join(DEFAULT_MODEL):
         raise InputError("--heading and --planar fit offsets and iron, --attitude also "
                          "--add aux_interference[=CHANNEL]; --model and other --add do not apply")
-    ref = location_reference(args)
     if ref is None and not args.attitude:
         ref, why = log_location(track)
         if ref is None:
@@ -170,6 +169,7 @@ def run(args) -> int:
     from ..errors import InsufficientDataError
     from ..fitting import fit
     check_output(args.output)
+    ref = location_reference(args)     # a mistyped --lat/--date said before the reading
     track = read_track(args)
     if not (args.planar or args.attitude or args.heading is not None):
         track, args.add = _named_channels(args, track)
@@ -180,14 +180,14 @@ def run(args) -> int:
             raise InputError("--cal refines a given calibration; --heading, --planar and "
                              "--attitude fit one against the World Magnetic Model: one or the "
                              "other")
-        return _refine(args, track)
+        return _refine(args, track, ref)
     initial = None
     if getattr(args, "initial", None):
         from ._calarg import load_calibration_arg
 
         initial, _ = load_calibration_arg(args.initial, "--initial")
     if args.planar or args.attitude or args.heading is not None:
-        cal = _no_tumble(args, track, initial)
+        cal = _no_tumble(args, track, initial, ref)
     else:
         try:
             cal = fit(track, sensor=args.sensor, model=args.model, add=args.add,
@@ -232,7 +232,7 @@ def _for_compass(cal, track):
     return cal.replace(extra={**dict(cal.extra or {}), **slot}) if slot else cal
 
 
-def _refine(args, track) -> int:
+def _refine(args, track, ref) -> int:
     """``fit TRACK --cal CAL [--add EFFECT …]``: :func:`streamcal.diagnosis.against.refine`."""
     from ..diagnosis.against import refine
     from ..errors import InputError
@@ -248,7 +248,7 @@ def _refine(args, track) -> int:
     else:
         given, source = calibration_for(args.cal, track)
     cal = _for_compass(refine(track, given, args.add, calibration_source=source), track)
-    check = _heading_check(args, track, given, cal)
+    check = _heading_check(track, given, cal, ref)
     if check:
         cal = cal.replace(extra={**dict(cal.extra or {}), "heading_check": check})
     if args.output:
@@ -277,16 +277,16 @@ def _refine(args, track) -> int:
     return 0
 
 
-def _heading_check(args, track, given, refined) -> dict:
+def _heading_check(track, given, refined, ref) -> dict:
     """:func:`streamcal.fitting.heading_check.heading_check` of a refinement when the log has
-    an attitude (the place: --lat/--lon, else its GPS); {} without an attitude or a given
-    calibration, ``{"reason": …}`` when there is no place."""
+    an attitude (the place: ``ref`` from --lat/--lon, else its GPS); {} without an attitude or
+    a given calibration, ``{"reason": …}`` when there is no place."""
     from ..constants import ATTITUDE_COLUMNS
     from ..fitting.heading_check import heading_check
 
     if given is None or not all(track.has(c) for c in ATTITUDE_COLUMNS):
         return {}
-    return heading_check(track, given, refined, location_reference(args))
+    return heading_check(track, given, refined, ref)
 
 
 def format_calibration(cal, source: str = "", residual: str = "sensor",

@@ -65,8 +65,11 @@ def run(args) -> int:
     from ..stream import CalibrationStore, CoverageBuffer, StreamingCalibrator
     from ..inputs.chunks import iter_track_blocks
 
+    from ._location import location_reference
+
     if args.block < 1:
         raise InputError(f"--block: must be a positive number of rows, got {args.block}")
+    location_reference(args)    # a mistyped --lat/--date said before the reading
     model = tuple(m.strip() for m in args.model.split(",") if m.strip())
     # section-1 tracks are read in chunks (memory bounded by a chunk, not the recording's
     # length); other formats are read whole by their libraries

@@ -100,6 +100,9 @@ def run(args) -> int:
     from ._common import fake_track_reader
     from ._live_replay import TrackSpan, announce, replay_speed, serve_after_replay
 
+    from ._location import location_reference
+
+    location_reference(args)    # a mistyped --lat/--date said before the port is opened
     started = time.monotonic()
     span = TrackSpan(fake_track_reader(args))
     speed = replay_speed(args, args.port)

@@ -181,6 +181,11 @@ class _Context:
         return self.gyro_fit(model, initial, fit_lag=True)
 
     @property
+    def built_gref(self):
+        """The gravity reference given or built so far (None: none was needed)."""
+        return self._gref
+
+    @property
     def gref(self):
         if self._gref is None:
             self._gref = gravity_reference(self.track)
@@ -401,4 +406,4 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
         noise={"sigma_axes": [float(v) for v in nf.sigma_axes], "lsb": [float(v) for v in nf.lsb],
                "method": nf.method, "n_used": nf.n_used, "measured": nf.measured,
                "second_difference_corr": nf.d2_corr},
-        calibration=base.cal, unit=track.mag_unit)
+        calibration=base.cal, unit=track.mag_unit, gravity=ctx.built_gref)

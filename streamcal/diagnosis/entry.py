@@ -53,7 +53,8 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
 
         d = d.replace(heading_check=heading_check(track, calibration, d.last_calibration,
                                                   location))
-    h, why = advice.horizontal_field(track, d.calibration, location, kwargs.get("gravity"))
+    gravity = d.gravity if d.gravity is not None else kwargs.get("gravity")
+    h, why = advice.horizontal_field(track, d.calibration, location, gravity)
     heading = advice.heading_error(d, h)
     d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why,
                   location=location)

@@ -119,8 +119,9 @@ class Diagnosis:
     #: The World Magnetic Model field (:func:`streamcal.geomag.wmm_field`) at the place and date
     #: the heading error used: the one given, else the log's GPS position (None: neither).
     location: Mapping | None = field(default=None, repr=False, compare=False)
-    #: The gravity reference that subsample was judged with, built on the chunks read
-    #: (:meth:`streamcal.diagnosis.subsample.StratifiedSampler.gravity`; None otherwise).
+    #: The gravity reference the diagnosis was judged with (a subsample's built on the chunks
+    #: read, :meth:`streamcal.diagnosis.subsample.StratifiedSampler.gravity`), for what is said
+    #: beside it to reuse; None when it needed none.
     gravity: object = field(default=None, repr=False, compare=False)
     #: Heading error (degrees) against the logged attitude of the calibration held and of the
     #: refinement ``next_step`` writes (:func:`streamcal.fitting.heading_check.heading_check`);

@@ -75,7 +75,8 @@ def tied_floor(residual: str, track, K: np.ndarray, mag_sigma: float, mag_reliab
     unit, the rms of the per-axis noise; ``mag_reliable``/``mag_reason`` whether it was
     measurable), ``horizon_s`` the gyro-tied pairs' horizon (s); ``gravity`` the
     :class:`~streamcal.fitting.gravity.GravityReference` used, whose own ``tilt`` is taken
-    when it carries one (a subsample's, measured on the contiguous stretches read)."""
+    when it carries one (:func:`~streamcal.fitting.gravity.gravity_reference` measures it with
+    the reference; a subsample's is measured on the contiguous stretches read)."""
     radius = field_radius(K)
     magnetometer = float(np.sqrt(MAG_SHARE[residual]) * mag_sigma)
     try:

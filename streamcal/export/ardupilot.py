@@ -123,9 +123,10 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
     which = "first compass" if not suffix else f"compass {int(suffix) - 1}: COMPASS_*{suffix}_"
     lines = [f"# streamcal calibration for ArduPilot ({which}), {cal.created}",
              ("# ArduPilot corrects f = S (r + COMPASS_OFS) + COMPASS_MOT * c, offsets in mG"
-              " (Copter 3.6, Plane 3.9, Rover 3.3 and later)" if order == MOTOR_AFTER_MATRIX else
+              " (Copter 3.6, Plane 3.9, Rover 3.3, Sub 4.0, Tracker 1.1 and later)"
+              if order == MOTOR_AFTER_MATRIX else
               "# ArduPilot corrects f = S (r + COMPASS_OFS + COMPASS_MOT * c), offsets in mG"
-              " (Copter 3.4-3.5, Plane 3.4-3.8, Rover 3.0-3.2)"),
+              " (Copter 3.4-3.5, Plane 3.4-3.8, Rover 3.0-3.2, Sub 3.x, Tracker 1.0)"),
              f"# S is the symmetric (polar) form of |B| K^-1, |B| = {corr.field_uT:.6g} uT"
              + ("" if corr.field_known else " (K's mean radius: field strength unknown)"),
              "# the rotation between streamcal's and this frame is unobservable from the "

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..calibration import Calibration
 from ..errors import InputError
+from ..inputs.autopilot_cal import BOARD_ROTATION
 from ..units import effect_params
 
 #: Effects that are part of the matrix and offsets themselves.
@@ -145,7 +146,8 @@ def mounting(cal: Calibration, firmware: str) -> tuple[np.ndarray | None, int | 
     """The mounting rotation a calibration found (``extra["orientation"]``, docs/flight_logs.md):
     (its sensor → body matrix, the number ``firmware`` is to be set to — the rotation found, or
     after the one configured in the log when ``orientation["set"]`` says so —, notes);
-    (None, None, []) without one."""
+    (None, None, []) without one. The board's rotation (an internal compass) is never written:
+    it turns the IMU too; a note says what it would be when it differs from the log's."""
     from ..inputs.mount_rotations import by_name
 
     orient = (cal.extra or {}).get("orientation")
@@ -157,18 +159,30 @@ def mounting(cal: Calibration, firmware: str) -> tuple[np.ndarray | None, int | 
         return None, None, [f"mounting rotation {orient['name']!r}: not a known rotation"]
     number = orient.get(firmware)
     chosen = orient.get("set") or {}
+    configured = (orient.get("configured") or {}).get("value")
     if chosen.get("param"):
-        if chosen["param"].startswith("COMPASS_ORIENT") != (firmware == "ardupilot"):
+        if _firmware_of(chosen["param"]) != firmware:
             return None, None, [f"mounting rotation {orient['name']} was found relative to the "
-                                f"frame of {chosen['param']} = "
-                                f"{(orient.get('configured') or {}).get('value')} of the other "
+                                f"frame of {chosen['param']} = {configured} of the other "
                                 "autopilot; its rotation parameter is not written"]
         number = chosen.get("value")     # found after the rotation already configured in the log
+        if chosen["param"] == BOARD_ROTATION[firmware]:
+            return None, None, [] if number == configured else [
+                f"the compass is internal and appears mounted {orient['name']} from the frame "
+                f"of the readings: {chosen['param']} {number} would turn it, but that is the "
+                f"board's rotation (now {configured}) and turns the accelerometer and gyro too; "
+                "not written: set it by hand only if the whole board is mounted so"]
     if number is None:
         return None, None, [f"mounting rotation {orient['name']}: {firmware} has no number for it"
                             + (" combined with the one configured in the log"
                                if chosen.get("param") else "")]
     return matrix, int(number), []
+
+
+def _firmware_of(param: str) -> str:
+    """The autopilot a rotation parameter belongs to (COMPASS_ORIENTn, AHRS_ORIENTATION:
+    ArduPilot; CAL_MAGn_ROT, SENS_BOARD_ROT: PX4)."""
+    return "ardupilot" if param.startswith(("COMPASS_ORIENT", "AHRS_ORIENTATION")) else "px4"
 
 
 def orientation_words(cal: Calibration) -> str:

@@ -326,28 +326,25 @@ def mounting_advice(meta, found) -> dict:
     """What a mounting rotation ``found`` (relative to the frame of the readings) means for the
     autopilot's parameter: ``{"configured": {"param", "value"}, "set": {"param", "value"}}``.
 
-    ArduPilot's MAG and PX4's calibrated topics are logged after the configured rotation
-    (COMPASS_ORIENT, CAL_MAGn_ROT), so the rotation to set is ``found`` after it; PX4's
-    ``sensor_mag`` is the sensor's own frame, so it is ``found`` itself. ``{}`` when the
-    log names no such parameter; ``"value": None`` when the product is not a numbered
-    rotation."""
+    The parameter is the compass's (COMPASS_ORIENTn, CAL_MAGn_ROT), or the board's
+    (AHRS_ORIENTATION, SENS_BOARD_ROT) for an internal compass
+    (:func:`~streamcal.inputs.autopilot_cal.compass_rotation_param`). ArduPilot's MAG and
+    PX4's calibrated topics are logged after the configured rotation, so the rotation to set
+    is ``found`` after it; PX4's ``sensor_mag`` is the sensor's own frame, so it is ``found``
+    itself. ``{}`` when the log names no such parameter; ``"value": None`` when the product is
+    not a numbered rotation."""
+    from ..inputs.autopilot_cal import compass_rotation_param
     from ..inputs.mount_rotations import by_number, matching
 
     meta = dict(meta or {})
-    if meta.get("input_format") == "ardupilot-dataflash":
-        # COMPASS_ORIENT, COMPASS_ORIENT2, … of the parameter set the compass read uses
-        index = int(float(meta.get("compass_params_index", 0) or 0))
-        param = "COMPASS_ORIENT" + (str(index + 1) if index else "")
-        firmware, logged_after = "ardupilot", True
-    elif meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
-        param = meta["mag_cal_params"] + "ROT"
-        firmware, logged_after = "px4", meta.get("mag_calibrated_by_px4") == "yes"
-    else:
-        return {}
     try:
-        configured = max(int(float(meta[f"param.{param}"])), 0)   # PX4: -1 = internal, none
+        firmware, param = compass_rotation_param(meta) or (None, None)
+        if param is None:
+            return {}
+        configured = max(int(float(meta[f"param.{param}"])), 0)
     except (KeyError, ValueError):
         return {}
+    logged_after = firmware == "ardupilot" or meta.get("mag_calibrated_by_px4") == "yes"
     base = by_number(configured, firmware)
     if base is None:
         total = None

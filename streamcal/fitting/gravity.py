@@ -41,8 +41,8 @@ STILL_RATE = 0.05
 class GravityReference:
     """Unit down direction ĝ (A,3) in the accelerometer frame at the IMU instants ``t`` (A,) s,
     with per-sample ``trust`` (A,) in (0, 1]; ``method`` says how it was made. ``tilt``
-    (rad) and ``tilt_method``: its own error per horizontal axis (:func:`tilt_sigma`) when
-    known with it (NaN: not computed)."""
+    (rad) and ``tilt_method``: its own error per horizontal axis (:func:`tilt_sigma`; NaN:
+    not computed)."""
 
     t: np.ndarray
     down: np.ndarray
@@ -126,25 +126,36 @@ def tilt_sigma(track) -> tuple[float, str]:
       df / ∫ |H|² df`` for the filter H (= 1/(2π fc)², ≈ 10 s² at 0.05 Hz).
 
     What the gyro-following frame cannot see (a tilt of the accelerometer itself) is the
-    misalignment the registration fit estimates, not noise."""
+    misalignment the registration fit estimates, not noise.
+
+    :func:`gravity_reference` gives the same figure as its ``tilt``, the gyro integrated once
+    for both."""
     if not track.has("accel"):
         raise MissingColumnsError("the gravity reference needs accelerometer columns "
                                   "(ax, ay, az), which the track lacks")
     t, f = _specific_force(track)
+    followed = _lowpass(_gyro_frame(track, t, f).apply(f), t, CUTOFF_GYRO_HZ) \
+        if track.has("gyro") else None
+    return _tilt(t, f, followed)
+
+
+def _tilt(t: np.ndarray, f: np.ndarray, followed: np.ndarray | None) -> tuple[float, str]:
+    """:func:`tilt_sigma` from the IMU instants ``t`` (A,) s, the specific force ``f`` (A,3)
+    in g and, with a gyro, its low-passed image in the gyro-following frame ``followed``
+    (A,3; None without a gyro)."""
     excess = np.linalg.norm(f, axis=1) - 1.0
     duration = float(t[-1] - t[0]) if len(t) > 1 else 0.0
-    cutoff = CUTOFF_GYRO_HZ if track.has("gyro") else CUTOFF_ACCEL_HZ
+    gyro = followed is not None
+    cutoff = CUTOFF_GYRO_HZ if gyro else CUTOFF_ACCEL_HZ
     band = max(cutoff, MIN_DOF / (2.0 * duration)) if duration > 0 else cutoff
-    weight = np.ones_like(excess) if track.has("gyro") else 1.0 / (1.0 + (excess / TRUST_G) ** 2)
+    weight = np.ones_like(excess) if gyro else 1.0 / (1.0 + (excess / TRUST_G) ** 2)
     passed = _lowpass(excess, t, band)
     mean = np.sum(weight * passed) / np.sum(weight)
     motion = np.sum(weight * (passed - mean) ** 2) / np.sum(weight) * cutoff / band
     how = (f"vertical specific force, low-passed at {band:.3g} Hz and scaled to the "
            f"reference's {cutoff:g} Hz")
     drift = 0.0
-    if track.has("gyro"):
-        q = _gyro_frame(track, t, f)
-        followed = _lowpass(q.apply(f), t, cutoff)
+    if gyro:
         along = followed / np.linalg.norm(followed, axis=1, keepdims=True)
         rate = np.gradient(followed, t, axis=0)
         tilt_rate = rate - np.sum(rate * along, axis=1, keepdims=True) * along
@@ -169,23 +180,27 @@ def _gyro_frame(track, t: np.ndarray, f: np.ndarray):
 
 
 def gravity_reference(track) -> GravityReference:
-    """The down direction from ``track``'s accelerometer (and gyro when present)."""
+    """The down direction from ``track``'s accelerometer (and gyro when present), with its own
+    error ``tilt`` (:func:`tilt_sigma`; NaN with fewer than two IMU samples)."""
     if not track.has("accel"):
         raise MissingColumnsError("the registration effects need accelerometer columns "
                                   "(ax, ay, az), which the track lacks")
     t, f = _specific_force(track)
     norm = np.linalg.norm(f, axis=1)
     trust = 1.0 / (1.0 + ((norm - 1.0) / TRUST_G) ** 2)
+    followed = None
     if track.has("gyro"):
         q = _gyro_frame(track, t, f)   # body → gyro-following frame
-        up = q.inv().apply(_lowpass(q.apply(f), t, CUTOFF_GYRO_HZ))
+        followed = _lowpass(q.apply(f), t, CUTOFF_GYRO_HZ)
+        up = q.inv().apply(followed)
         trust = np.ones_like(trust)  # the filter has removed the linear acceleration
         method = "gyro-aided zero-phase low-pass"
     else:
         up = _lowpass(f, t, CUTOFF_ACCEL_HZ)
         method = "zero-phase low-pass"
     down = -up / np.linalg.norm(up, axis=1, keepdims=True)
-    return GravityReference(t, down, trust, method)
+    tilt, how = _tilt(t, f, followed) if len(t) >= 2 else (float("nan"), "")
+    return GravityReference(t, down, trust, method, tilt, how)
 
 
 def joined(pieces: Sequence[GravityReference]) -> GravityReference:

@@ -23,11 +23,11 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ..calibration import Calibration
-from ..constants import STILL_RATE
+from ..constants import CAUCHY_C, STILL_RATE
 from ..errors import InsufficientDataError
 from ..geomag import ned_field
 from .attitude_reference import calibration_from_fit
-from .reference_fit import CAUCHY_WIDTH, ReferenceFit
+from .reference_fit import ReferenceFit
 from ..inputs.mount_rotations import mount_rotations
 
 #: The planar fit refuses when a horizontal offset is less certain than this (µT, 1 σ), or
@@ -157,7 +157,7 @@ def fit_planar(track, ref: dict) -> Calibration:
     theta = np.array([1.0, 1.0, 0.0, centre[0], centre[1], np.median(m[:, 2]) - Z])
     scale = 5.0
     for _ in range(3):      # the Cauchy width follows the robust scale of the residual
-        sol = least_squares(residual, theta, loss="cauchy", f_scale=CAUCHY_WIDTH * scale,
+        sol = least_squares(residual, theta, loss="cauchy", f_scale=CAUCHY_C * scale,
                             x_scale=[0.1, 0.1, 0.1, 10.0, 10.0, 10.0])
         theta = sol.x
         r = sol.fun.reshape(2, -1).T
@@ -178,7 +178,7 @@ def fit_planar(track, ref: dict) -> Calibration:
     inliers = r2 <= CHI2_2_INLIER * scale ** 2
     fit = ReferenceFit(
         rotation=mount_rotations()[0], A=A, b=b,
-        weights=1.0 / (1.0 + r2 / (CAUCHY_WIDTH * scale) ** 2), scale=scale,
+        weights=1.0 / (1.0 + r2 / (CAUCHY_C * scale) ** 2), scale=scale,
         rms=float(np.sqrt(np.mean(r2[inliers]))), inliers=inliers,
         held={name: 1.0 for name in VERTICAL_IRON},
         sigma=dict(zip(("A11", "A22", "A12", "bx", "by", "bz"), map(float, sigma))))

@@ -22,10 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..constants import CAUCHY_C
 from ..inputs.mount_rotations import MountRotation, mount_rotations
 
-#: Cauchy width in units of the robust residual scale (95 % efficiency at the normal).
-CAUCHY_WIDTH = 2.3849
 #: Median of a χ² with 3 degrees of freedom: median ‖r‖² = this · σ² for isotropic noise σ.
 CHI2_3_MEDIAN = 2.3660
 #: Prior σ of the entries of A around the identity (soft iron and scale rarely exceed 30 %).
@@ -147,7 +146,7 @@ def fit_reference(m, expected, channels: dict | None = None, rotation: MountRota
         r2 = np.einsum("ni,ni->n", r, r)
         scale = max(float(np.sqrt(np.median(r2) / CHI2_3_MEDIAN)), 1e-3)
         if iteration > 0:
-            w = 1.0 / (1.0 + r2 / (CAUCHY_WIDTH * scale) ** 2)
+            w = 1.0 / (1.0 + r2 / (CAUCHY_C * scale) ** 2)
         info = np.einsum("n,nip,niq->pq", w, Jf, Jf) / scale ** 2
         prior = 1.0 / prior_sigma[free] ** 2
         rhs = np.einsum("n,nip,ni->p", w, Jf, target) / scale ** 2 + prior * theta0[free]

@@ -4,13 +4,15 @@ streamcal Calibration.
 ArduPilot corrects a body-frame reading ``r`` (milligauss) in ``AP_Compass_Backend::
 correct_field``; the place of the motor term changed with the per-motor compensation (2018):
 
-* Copter 3.6, Plane 3.9, Rover 3.3 and later (:data:`MOTOR_AFTER_MATRIX`)::
+* Copter 3.6, Plane 3.9, Rover 3.3, Sub 4.0, AntennaTracker 1.1 and later
+  (:data:`MOTOR_AFTER_MATRIX`)::
 
     f = S (r + o) + mot · c          S = [[DIA_X, ODI_X, ODI_Y],
                                           [ODI_X, DIA_Y, ODI_Z],
                                           [ODI_Y, ODI_Z, DIA_Z]]
 
-* Copter 3.4–3.5, Plane 3.4–3.8, Rover 3.0–3.2 (:data:`MOTOR_BEFORE_MATRIX`)::
+* Copter 3.4–3.5, Plane 3.4–3.8, Rover 3.0–3.2, Sub 3.4–3.5, AntennaTracker 1.0
+  (:data:`MOTOR_BEFORE_MATRIX`)::
 
     f = S (r + o + mot · c)
 
@@ -69,14 +71,28 @@ COMPASS_PARAMS = re.compile(r"COMPASS_(?:(?:OFS|DIA|ODI|MOT)[23]?_[XYZ]|MOTCT|PR
 MOTOR_AFTER_MATRIX = "offsets, matrix, motor"
 MOTOR_BEFORE_MATRIX = "offsets, motor, matrix"
 #: The first release of each vehicle whose motor term comes after the matrix (the per-motor
-#: compensation, ArduPilot pull request 7539, reached master early 2018).
-_MOTOR_AFTER_MATRIX_FROM = {"copter": (3, 6), "plane": (3, 9), "rover": (3, 3)}
-#: The first release of each vehicle with COMPASS_DIA/ODI (the onboard calibrator, 2015).
-_MATRIX_FROM = {"copter": (3, 4), "plane": (3, 4), "rover": (3, 0)}
+#: compensation, ArduPilot pull request 7539, reached master early 2018). Sub 3.5–3.5.4
+#: (2017–2019) came from a branch cut in April 2017, Sub 4.0 (March 2020) from master
+#: (ArduSub release notes; Sub 3.4's AP_Compass_Backend adds the motor term before the
+#: matrix); AntennaTracker 1.0 is of July 2016, 1.1 (2019) was branched from master
+#: (AntennaTracker release notes).
+_MOTOR_AFTER_MATRIX_FROM = {"copter": (3, 6), "plane": (3, 9), "rover": (3, 3), "sub": (4, 0),
+                            "tracker": (1, 1)}
+#: The first release of each vehicle with COMPASS_DIA/ODI (the onboard calibrator, 2015):
+#: every ArduSub (its first release, 3.4, has them) and every AntennaTracker that writes a
+#: DataFlash log (0.7.5, December 2015, on).
+_MATRIX_FROM = {"copter": (3, 4), "plane": (3, 4), "rover": (3, 0), "sub": (3, 4),
+                "tracker": (0, 0)}
 FIRMWARE_VERSION = re.compile(r"(copter|plane|rover|sub|tracker)\S*\s+v?(\d+)\.(\d+)", re.I)
 #: Per-compass parameter kinds (``AP_Compass`` var_info); MOTCT and PRIMARY are shared.
 _PER_COMPASS = ("OFS", "DIA", "ODI", "MOT", "SCALE", "ORIENT", "DEV_ID", "USE", "EXTERNAL")
-_SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY")
+_SHARED = ("COMPASS_MOTCT", "COMPASS_PRIMARY", "AHRS_ORIENTATION")
+#: The rotation parameter of an internal compass, which turns with the board: each firmware
+#: ignores the compass's own one there (ArduPilot ``AP_Compass_Backend::rotate_field`` turns an
+#: internal compass by AHRS_ORIENTATION, an external one by COMPASS_ORIENTn; PX4
+#: ``sensor_calibration::Magnetometer`` by the board rotation SENS_BOARD_ROT when CAL_MAGn_ROT
+#: is −1, internal). The board rotation turns the accelerometer and gyro too.
+BOARD_ROTATION = {"ardupilot": "AHRS_ORIENTATION", "px4": "SENS_BOARD_ROT"}
 
 
 def ardupilot_param(kind: str, instance: int = 0, axis: str | None = None) -> str:
@@ -100,6 +116,24 @@ def ardupilot_param_index(params: Mapping[str, float], instance: int) -> int:
             if params.get(ardupilot_param("DEV_ID", n)) == wanted:
                 return n
     return instance
+
+
+def compass_rotation_param(meta: Mapping[str, str]) -> tuple[str, str] | None:
+    """``(firmware, parameter)`` whose rotation turns an autopilot log's compass into the body
+    frame, from the track's metadata: ArduPilot COMPASS_ORIENTn of the compass's parameter set,
+    or AHRS_ORIENTATION when its COMPASS_EXTERNAL/EXTERNn is logged as 0 (internal); PX4
+    CAL_MAGn_ROT, or SENS_BOARD_ROT when it is −1 (internal). None for other inputs."""
+    if meta.get("input_format") == "ardupilot-dataflash":
+        index = int(float(meta.get("compass_params_index", 0) or 0))
+        external = meta.get(f"param.{ardupilot_param('EXTERNAL', index)}")
+        internal = external is not None and float(external) == 0
+        return "ardupilot", BOARD_ROTATION["ardupilot"] if internal else \
+            ardupilot_param("ORIENT", index)
+    if meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
+        own = meta["mag_cal_params"] + "ROT"
+        internal = float(meta.get(f"param.{own}", 0)) < 0
+        return "px4", BOARD_ROTATION["px4"] if internal else own
+    return None
 
 
 def compass_params(params: Mapping[str, float], instance: int = 0) -> dict:
@@ -128,8 +162,9 @@ def ardupilot_matrix(params: Mapping[str, float], instance: int = 0) -> np.ndarr
 def ardupilot_correction_order(firmware: str | None) -> tuple[str, str]:
     """(order, why) of the corrections the firmware named by ``firmware`` applies (its version
     text as logged, e.g. "ArduCopter V3.5.7 (b11c6af3)" or "APM:Rover v3.2.0"):
-    :data:`MOTOR_BEFORE_MATRIX` for Copter < 3.6, Plane < 3.9, Rover < 3.3, else (also when the
-    version or vehicle is unknown) :data:`MOTOR_AFTER_MATRIX`."""
+    :data:`MOTOR_BEFORE_MATRIX` for Copter < 3.6, Plane < 3.9, Rover < 3.3, Sub < 4.0,
+    AntennaTracker < 1.1, else (also when the version or vehicle is unknown)
+    :data:`MOTOR_AFTER_MATRIX`."""
     match = FIRMWARE_VERSION.search(firmware or "")
     if not match:
         return MOTOR_AFTER_MATRIX, "no ArduPilot version in the log: the current order assumed"

@@ -15,6 +15,7 @@ BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.I = k, or
 CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later)
 BARO   Temp °C                           ``temp`` when IMU has no temperature (said so)
 PARM   Name, Value                       the compass's COMPASS_* in the metadata (``param.NAME``)
+VER    FWS (4.1 and later)               ``firmware``, the version text; else the MSG that names it
 ====== ================================ ==================================================
 
 Time is ``TimeUS`` (µs) or ``TimeMS`` (ms), shifted to start at 0 s; each message is its own row.
@@ -40,7 +41,7 @@ ArduPilot logs the *corrected* field (``Compass::get_field``, int16 mG): with CO
 (added), the motor offsets ``MOfs`` (``mot · c``, logged as applied) and the soft-iron matrix
 ``S`` of COMPASS_DIA/ODI, ``MAG = S (raw + o) + MOfs`` from Copter 3.6 / Plane 3.9 / Rover 3.3 on,
 ``MAG = S (raw + o + MOfs)`` before (:func:`~.autopilot_cal.ardupilot_correction_order`, from the
-version in the log's MSG text; the current order when none is logged). The reader returns
+version in the log's VER message or MSG text; the current order when none is logged). The reader returns
 ``raw = S⁻¹ (MAG − MOfs) − o`` or ``raw = S⁻¹ MAG − MOfs − o`` with ``o`` and ``MOfs`` taken per
 sample from the MAG message itself, and says in the metadata what it undid and in which order
 (``ardupilot_correction_order``, ``ardupilot_correction_order_from``).
@@ -66,7 +67,7 @@ from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
 from .dataflash_mag import mag_meta, mag_values
 
 MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "PARM",
-            "MSG")
+            "MSG", "VER")
 MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
 MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
@@ -461,11 +462,20 @@ def head_meta(msgs: _Messages, path: Path, instance: int, present) -> dict:
                         "before logging)",
             "units": "mx,my,mz uT (from mG /10); ax,ay,az m/s^2; gx,gy,gz rad/s; temp degC; "
                      "rcou_c* us; battery_current_a A; battery_voltage_v V; throttle 0..1"}
-    firmware = next((m for m in msgs.texts if FIRMWARE_VERSION.search(m)), None) or \
-        next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
+    firmware = firmware_text(msgs)
     if firmware:
         meta["firmware"] = firmware
     return meta
+
+
+def firmware_text(msgs: _Messages) -> str | None:
+    """The firmware's version text: VER's firmware string (FWS, logged from 4.1 on, e.g.
+    "ArduCopter V4.3.7 (f1a2b3c4)") when it names a vehicle and version, else the first MSG
+    text that does, else the first MSG text with a version; None when the log has none."""
+    versions = [str(v) for v in msgs.cols["VER"]["FWS"].tolist()] if msgs.has("VER", "FWS") \
+        else []
+    return next((m for m in versions + msgs.texts if FIRMWARE_VERSION.search(m)), None) or \
+        next((m for m in msgs.texts if re.search(r"V\d+\.\d+", m)), None)
 
 
 def _track(msgs: _Messages, path: Path, instance: int) -> Track:

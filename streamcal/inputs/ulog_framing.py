@@ -22,6 +22,8 @@ HEADER_BYTES = 16
 #: subscription, unsubscription, data, logging, tagged logging, sync, dropout).
 MESSAGE_TYPES = frozenset(b"BFIMPQARDLCSO")
 SYNC_MAGIC = b"\x2f\x73\x13\x20\x25\x0c\xbb\x12"
+#: incompat_flags[0] bit of the flag bits message: data appended at ``appended_offsets``.
+DATA_APPENDED = 0x01
 #: Smallest payload of each type (bytes); the exact size where it is fixed.
 _MIN_SIZE = {ord("B"): 40, ord("A"): 4, ord("D"): 10, ord("L"): 9, ord("C"): 11,
              ord("I"): 3, ord("P"): 3, ord("M"): 4, ord("Q"): 4, ord("F"): 3}
@@ -170,7 +172,39 @@ def framing(data: bytes) -> Framing:
 
 
 def kept_bytes(data: bytes, f: Framing) -> bytes:
-    """The file with the damaged stretches and the cut tail left out."""
+    """The file with the damaged stretches and the cut tail left out; the flag bits message's
+    appended-data offsets are moved with the bytes they point at (:func:`moved_offset`)."""
     if not f.skipped:
         return data[:f.end]
-    return data[:HEADER_BYTES] + b"".join(data[a:b] for a, b in f.spans)
+    return _with_appended_offsets(data[:HEADER_BYTES] + b"".join(data[a:b] for a, b in f.spans),
+                                  f)
+
+
+def moved_offset(offset: int, f: Framing) -> int:
+    """Where the byte at file ``offset`` is in :func:`kept_bytes`' output: before the next kept
+    byte when it was cut out (a damaged stretch, or the cut tail: then the output's end)."""
+    at = HEADER_BYTES
+    if offset < at:
+        return offset
+    for start, stop in f.spans:
+        if offset < start:
+            return at
+        if offset <= stop:
+            return at + offset - start
+        at += stop - start
+    return at
+
+
+def _with_appended_offsets(kept: bytes, f: Framing) -> bytes:
+    """``kept`` with the appended-data offsets of its flag bits message (ULog: incompat_flags[0]
+    bit 0, then up to three uint64 file offsets where appended data starts; a reader seeks
+    there, so an offset left pointing at the uncut file lands inside a message) moved."""
+    p = HEADER_BYTES + 3
+    if len(kept) < p + _MIN_SIZE[ord("B")] or kept[HEADER_BYTES + 2] != ord("B") \
+            or not kept[p + 8] & DATA_APPENDED:
+        return kept
+    offsets = struct.unpack_from("<3Q", kept, p + 16)
+    moved = [moved_offset(o, f) if o else 0 for o in offsets]
+    out = bytearray(kept)
+    struct.pack_into("<3Q", out, p + 16, *moved)
+    return bytes(out)
