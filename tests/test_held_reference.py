@@ -142,3 +142,14 @@ def test_a_place_given_on_the_command_line_is_in_the_pasted_command(tmp_path):
     plain = json.loads(_run("diagnose", str(path), "--cal", str(tmp_path / "cal.json"),
                             "--json").stdout)
     assert "held_attitude_reference" not in plain and "--lat" not in (plain["next_step"] or [])
+
+
+def test_candidates_ranked_on_a_subsample_use_the_reference_there():
+    track, _, given = _level_flight()
+    whole = diagnose_against(track, given)
+    sub = diagnose_against(track, given, rank_max=400)
+    assert sub.held.n_ranked < len(track.mag) == whole.held.n_ranked
+    assert sub.held.attitude_reference == whole.held.attitude_reference
+    # the base is fitted on every sample either way: the same held fit
+    assert sub.held.estimated == whole.held.estimated
+    assert {c.effect for c in sub.candidates} == {c.effect for c in whole.candidates}
