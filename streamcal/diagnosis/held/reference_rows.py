@@ -42,10 +42,9 @@ import numpy as np
 
 from ...calibration import Calibration
 from ...constants import ATTITUDE_COLUMNS, CAUCHY_C
-from ...fitting.attitude_reference import (CAVEAT, MIN_SAMPLES, attitude_data, implausible,
-                                           reference_inliers)
-from ...inputs.autopilot_cal import px4_rotation
+from ...fitting.attitude_reference import CAVEAT, MIN_SAMPLES, attitude_data, reference_inliers
 from ...fitting.entries import K_INDEX
+from ...inputs.autopilot_cal import px4_rotation
 from .fit import jacobian, project
 
 #: A held calibration whose median direction is further than this from the reference (degrees)
@@ -123,8 +122,6 @@ def reference_rows(track, calibration: Calibration | None,
         return None, why
     aux = dict((calibration.effects if calibration else {}).get("aux_interference") or {})
     kept, fit = reference_inliers(data, list(aux.get("channels", {})))
-    if implausible(fit):
-        return None, implausible(fit)
     if len(kept.t) < MIN_SAMPLES:
         return None, f"only {len(kept.t)} samples follow the attitude reference"
     e = kept.expected / np.linalg.norm(kept.expected, axis=1, keepdims=True)
