@@ -31,8 +31,9 @@ Its width is the reference's own: the robust per-axis scale σ_a (radians) of th
 residual of the robust fit against the reference (:func:`streamcal.fitting.attitude_reference.
 reference_inliers`: the attitude's error, the model's, the noise), times the field radius r,
 as the magnitude block's is the noise floor: each block's samples count as independent at their
-own width. The samples are the ones every heading figure is over (the reference fit's inliers, the interference channels of the
-calibration held), so the heading a refinement is judged by is over the samples it was fitted on.
+own width. The samples are the ones every heading figure is over (the reference fit's inliers,
+over the interference channels of the calibration held), so the heading a refinement is judged
+by is over the samples it was fitted on.
 """
 from __future__ import annotations
 
