@@ -165,6 +165,11 @@ def held_text(d) -> str:
         lines += [f"  {k:<8}{v['value']:>12.5g} ± {v['sigma']:.3g}" for k, v in h.estimated.items()]
     lines += _recheck_lines(d, unit)
     lines += _gyro_lines(d, unit)
+    used = h.attitude_reference
+    if used:
+        lines += [f"attitude   the held fit also fitted the field's direction against the attitude "
+                  f"reference ({used['samples']} samples, width {used['width_deg']:.2g}°)",
+                  f"           caveat: {used['caveat']}"]
     return "\n".join(lines)
 
 

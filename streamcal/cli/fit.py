@@ -247,7 +247,8 @@ def _refine(args, track, ref) -> int:
         given, source = None, None   # the stated default a diagnosis without --cal holds
     else:
         given, source = calibration_for(args.cal, track)
-    cal = _for_compass(refine(track, given, args.add, calibration_source=source), track)
+    cal = _for_compass(refine(track, given, args.add, calibration_source=source, location=ref),
+                       track)
     check = _heading_check(track, given, cal, ref)
     if check:
         cal = cal.replace(extra={**dict(cal.extra or {}), "heading_check": check})
@@ -267,6 +268,11 @@ def _refine(args, track, ref) -> int:
     held = (cal.extra or {}).get("held") or []
     print(f"  held      {', '.join(held) or 'none'} (at the values of "
           f"{source or 'the stated default'}: this recording cannot determine them)")
+    used = (cal.extra or {}).get("attitude_reference_used")
+    if used:
+        print(f"  attitude  fitted with the field's direction against the attitude reference too "
+              f"({used['samples']} samples, width {used['width_deg']:.2g}°); caveat: "
+              f"{used['caveat']}")
     if "rms_after" in check:
         print(f"  heading   error rms against the attitude reference (the model field rotated "
               f"by the logged attitude, {check['n']} samples): {check['rms_before']:.2f}° with "

@@ -28,10 +28,11 @@ HEADING_RULE = ("atan(rms / H): the angle a field error of the rms turns the hor
 
 
 def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
-              output: str = "refined.json") -> list[str] | None:
+              output: str = "refined.json", place: Sequence[str] = ()) -> list[str] | None:
     """The argv that fits the ladder's last model on this recording (None when the ladder adds
     nothing): ``fit REC --add E …`` for a fresh diagnosis, ``fit REC --cal CAL --add E … -o
-    OUTPUT`` for one against a held calibration."""
+    OUTPUT`` for one against a held calibration, with ``place`` (:func:`place_argv`) after the
+    effects."""
     added = [s["added"] for s in d.ladder[1:]]
     if not added:
         return None
@@ -43,9 +44,17 @@ def next_step(d, recording: Sequence[str], cal_arg: str | None = None,
         argv += ["--model", ",".join(d.model)]
     for name in added:
         argv += ["--add", name]
+    argv += list(place)
     if d.held is not None:
         argv += ["-o", output]
     return argv
+
+
+def place_argv(location: dict) -> list[str]:
+    """``--lat … --lon … --alt-km … --date …`` of a :func:`streamcal.geomag.wmm_field` result,
+    the numbers as Python writes them (read back exactly)."""
+    return ["--lat", repr(float(location["lat"])), "--lon", repr(float(location["lon"])),
+            "--alt-km", repr(float(location["alt_km"])), "--date", str(location["date"])]
 
 
 def horizontal_field(track, calibration, location: dict | None,
@@ -92,9 +101,13 @@ def heading_sentences(d) -> list[str]:
     if check.get("rms_after") is None:
         return []
     before, after = check["rms_before"], check["rms_after"]
+    held = getattr(d, "held", None)
+    joint = (" The refinement fits the field's direction against that attitude too; its yaw "
+             "is itself steered by the compass." if held is not None and held.attitude_reference
+             else "")
     if not check.get("worse"):
         return [f"Against the logged attitude the heading error goes from {before:.2f}° to "
-                f"{after:.2f}° rms."]
+                f"{after:.2f}° rms.{joint}"]
     recording = list(d.next_step[2:d.next_step.index("--cal")]) if d.next_step and \
         "--cal" in d.next_step else ["FLIGHT"]
     return [f"Careful: against the logged attitude that refinement points the compass worse "

@@ -82,7 +82,8 @@ def _on_every_sample(start: HeldStart, c: cand.Candidate, ref: HeldEval,
 def diagnose_against(track, calibration: Calibration | None = None, *,
                      model: Sequence[str] = DEFAULT_MODEL, candidates: Sequence[str] | None = None,
                      ladder: bool = True, calibration_source: str | None = None,
-                     tolerance: float = TOLERANCE, rank_max: int = RANK_MAX) -> Diagnosis:
+                     tolerance: float = TOLERANCE, rank_max: int = RANK_MAX,
+                     location: dict | None = None, attitude: bool = True) -> Diagnosis:
     """Diagnose ``track`` relative to ``calibration`` (None: the stated default of
     :func:`streamcal.diagnosis.held.start.default_calibration`), holding what the recording
     does not determine (:class:`~streamcal.diagnosis.held.start.HeldStart` says how and when
@@ -93,9 +94,15 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
     With more than ``rank_max`` samples the candidates are ranked on the subsample of
     :func:`streamcal.diagnosis.held.rank_subset.rank_subset` (every direction cell and stretch of
     time kept; each candidate's ``n`` says how many samples its numbers are over); each effect
-    the ladder adds is refitted on every sample, and the ladder is on every sample."""
+    the ladder adds is refitted on every sample, and the ladder is on every sample.
+
+    Where ``track`` has an attitude and a place (``location``, else its GPS) every held fit
+    also fits the direction against the attitude reference (:mod:`.held.reference_rows`;
+    ``attitude=False``: the magnitude alone); the result's ``held.attitude_reference`` says
+    over which samples."""
     start = HeldStart(track, calibration, model=model, calibration_source=calibration_source,
-                      tolerance=tolerance)
+                      tolerance=tolerance,
+                      reference=_reference(track, calibration, location, attitude))
     base, nf, m, t, cov = start.base, start.nf, start.m, start.t, start.cov
     n = len(m)
     reliable, reason = verdict_mod.floor_reliable(nf.floor, nf.reliable, nf.reason, base.rms,
@@ -151,7 +158,22 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
             fit_status={"status": base.fit.status, "iterations": base.fit.iterations,
                         "message": base.fit.message},
             held_after_fit=start.settled.held_after_fit, suspicious=start.settled.suspicious,
-            gyro_pinned=pin.pinned, gyro_link=pin.report))
+            gyro_pinned=pin.pinned, gyro_link=pin.report,
+            attitude_reference=_described(start)))
+
+
+def _reference(track, calibration, location, attitude: bool):
+    """The attitude reference's rows for the held fit (:func:`.held.reference_rows.
+    reference_rows`), None without one or when ``attitude`` is False."""
+    if not attitude:
+        return None
+    from .held.reference_rows import reference_rows
+
+    return reference_rows(track, calibration, location)[0]
+
+
+def _described(start: HeldStart) -> dict:
+    return {} if start.reference is None else start.reference.describe()
 
 
 def _without_effects(cal: Calibration, names: Sequence[str]) -> Calibration:
@@ -164,18 +186,23 @@ def _without_effects(cal: Calibration, names: Sequence[str]) -> Calibration:
 
 
 def refine(track, calibration: Calibration | None, add: Sequence[str], *,
-           calibration_source: str | None = None, tolerance: float = TOLERANCE) -> Calibration:
+           calibration_source: str | None = None, tolerance: float = TOLERANCE,
+           location: dict | None = None, attitude: bool = True) -> Calibration:
     """``calibration`` (None: the stated default) refined on ``track`` with the effects ``add``
     (in order): what the
     recording determines re-estimated, the rest held — the fit a held diagnosis promises
     (``streamcal fit TRACK --cal CAL --add EFFECT``). An effect of ``add`` that ``calibration``
     already carries (an autopilot's motor compensation in force) is fitted afresh, not kept
     at the calibration's values. The result's ``extra["held"]`` lists the held parameters; its
-    rms and inliers follow the one outlier rule."""
+    rms and inliers follow the one outlier rule. With an attitude and a place (``location``,
+    else the track's GPS) the held fit also fits the direction against the attitude reference,
+    as :func:`diagnose_against` does; ``extra["attitude_reference_used"]`` then says over which
+    samples."""
+    reference = _reference(track, calibration, location, attitude)
     if calibration is not None:
         calibration = _without_effects(calibration, [n for n in check_known(add) if n in TERMS])
     start = HeldStart(track, calibration, calibration_source=calibration_source,
-                      tolerance=tolerance)
+                      tolerance=tolerance, reference=reference)
     names = [n for n in check_known(add) if n not in start.model]
     bad = [n for n in names if n not in TERMS]
     if bad:
@@ -190,5 +217,6 @@ def refine(track, calibration: Calibration | None, add: Sequence[str], *,
     for name in names:
         ev = start.add(name, ev)
     held = [p for p in start.names if p not in ev.free and p not in start.pin.pinned]
+    used = {"attitude_reference_used": _described(start)} if start.reference is not None else {}
     return ev.cal.replace(extra={**dict(ev.cal.extra or {}), "held": held,
-                                 "refined_from": start.source})
+                                 "refined_from": start.source, **used})

@@ -36,9 +36,13 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
       calibration instead (held parameters listed), which refuses in turn only when even the
       hard-iron offset cannot be determined.
     """
-    d = _engine(track, model, calibration, calibration_source, kwargs)
+    d = _engine(track, model, calibration, calibration_source, location, kwargs)
     if recording is None:
         recording = [str(track.path) if getattr(track, "path", None) else "TRACK"]
+    # the held fit used the attitude reference at a place the user gave: the pasted command
+    # needs it too, for the promise to be what it gives
+    place = advice.place_argv(location) if location is not None and d.held is not None \
+        and d.held.attitude_reference else []
     if location is None:   # the log's own GPS position and date, when it has them
         from ..errors import InputError
         from ..fitting.attitude_reference import log_location
@@ -58,15 +62,15 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     heading = advice.heading_error(d, h)
     d = d.replace(heading_error_deg=heading, heading_error_reason="" if heading else why,
                   location=location)
-    d = d.replace(next_step=advice.next_step(d, list(recording), cal_arg))
+    d = d.replace(next_step=advice.next_step(d, list(recording), cal_arg, place=place))
     return d.replace(summary=advice.summary(d))
 
 
-def _engine(track, model, calibration, calibration_source, kwargs):
+def _engine(track, model, calibration, calibration_source, location, kwargs):
     if calibration is not None and not any(n in REGISTRATION_EFFECTS for n in calibration.model):
         return diagnose_against(track, calibration, candidates=kwargs.get("candidates"),
                                 ladder=kwargs.get("ladder", True),
-                                calibration_source=calibration_source)
+                                calibration_source=calibration_source, location=location)
     try:
         return _fresh.diagnose(track, model, calibration=calibration, **kwargs)
     except InsufficientDataError:
@@ -74,4 +78,4 @@ def _engine(track, model, calibration, calibration_source, kwargs):
                 any(n in REGISTRATION_EFFECTS for n in model):
             raise
     return diagnose_against(track, None, model=model, candidates=kwargs.get("candidates"),
-                            ladder=kwargs.get("ladder", True))
+                            ladder=kwargs.get("ladder", True), location=location)

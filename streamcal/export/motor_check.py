@@ -159,9 +159,9 @@ def held_out_check(track, cal_in_force: Calibration, channel: str, *, fraction: 
     if fit_on == "last":
         fit_part, check_part = check_part, fit_part
     cals = {"before": cal_in_force,
-            "refit": refine(fit_part, cal_in_force, [], calibration_source=source),
+            "refit": refine(fit_part, cal_in_force, [], calibration_source=source, location=ref),
             "after": refine(fit_part, cal_in_force, ["aux_interference"],
-                            calibration_source=source)}
+                            calibration_source=source, location=ref)}
     m = np.asarray(check_part.mag, dtype=float)
     meta = check_part.metadata
     signal = np.asarray(check_part.covariates_at_mag()[channel], dtype=float)

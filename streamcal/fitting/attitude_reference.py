@@ -224,11 +224,17 @@ def on_reference_inliers(data: AttitudeData, channels=()) -> AttitudeData:
     inliers of the robust fit against the reference (:func:`reference_fit` over the
     interference ``channels`` the samples carry, no mounting search), so that a disturbance
     counts in no calibration's figure."""
-    keep = reference_fit(data, channels, detect=False)[0].inliers
+    return reference_inliers(data, channels)[0]
+
+
+def reference_inliers(data: AttitudeData, channels=()) -> tuple[AttitudeData, ReferenceFit]:
+    """:func:`on_reference_inliers` and the fit that chose them."""
+    fit = reference_fit(data, channels, detect=False)[0]
+    keep = fit.inliers
     return AttitudeData(t=data.t[keep], m=data.m[keep], q=data.q[keep],
                         expected=data.expected[keep],
                         cov={k: np.asarray(v)[keep] for k, v in data.cov.items()},
-                        ref=data.ref, rows=data.rows[keep])
+                        ref=data.ref, rows=data.rows[keep]), fit
 
 
 def implausible(fit: ReferenceFit) -> str:

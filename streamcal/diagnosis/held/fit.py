@@ -103,13 +103,18 @@ def predicted_errors(A: np.ndarray, sigma: float) -> np.ndarray:
 
 
 def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
-                tolerance: float, keep: Sequence[str] = ()) -> tuple[list[str], dict]:
+                tolerance: float, keep: Sequence[str] = (),
+                reference=None) -> tuple[list[str], dict]:
     """Estimated subset of ``names`` (see module doc) and every parameter's predicted error
     when it was last considered ({name: σ_CR}, sensor unit). Parameters in ``keep`` are never
     held: the worst of the others is held until every estimated one is within ``tolerance``
-    or only ``keep`` is left (whose errors are then the caller's to judge)."""
+    or only ``keep`` is left (whose errors are then the caller's to judge). ``reference``
+    (:class:`~.reference_rows.ReferenceRows`): its information counts too."""
     _, x, _, normal, D = project(K, b, terms, m, cov)
     A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T, K)
+    if reference is not None:
+        from .reference_rows import information_rows
+        A = np.vstack([A, information_rows(reference, names, K, b, terms, m, cov, sigma)])
     free = list(names)
     errors = {}
     while free:
@@ -124,7 +129,7 @@ def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
 
 
 def radius_free(free: Sequence[str], K, b, m, cov, terms, sigma: float,
-                tolerance: float) -> tuple[bool, float]:
+                tolerance: float, reference=None) -> tuple[bool, float]:
     """Whether the field radius (``radius``, the scale of the whole K) is to be estimated on
     top of the estimated set ``free``, and its predicted error (sensor unit): yes when the
     diagonal of K is not all in ``free`` (it would repeat it), its error is within
@@ -133,11 +138,15 @@ def radius_free(free: Sequence[str], K, b, m, cov, terms, sigma: float,
     Why: a calibration's field strength is a number the recording measures wherever the
     field it sees differs in size from the one it was made at (a motor field an autopilot's
     calibration in force leaves, another place); held, the difference goes into whatever
-    else is fitted (a motor term ~10 % low)."""
+    else is fitted (a motor term ~10 % low). ``reference``: as in :func:`choose_free`."""
     if {"K_xx", "K_yy", "K_zz"} <= set(free):
         return False, float("nan")
     _, x, _, normal, D = project(K, b, terms, m, cov)
     A = jacobian([*free, RADIUS], [], x, normal, D, cov, x @ np.asarray(K).T, K)
+    if reference is not None:
+        from .reference_rows import information_rows
+        A = np.vstack([A, information_rows(reference, [*free, RADIUS], K, b, terms, m, cov,
+                                           sigma)])
     err = predicted_errors(A, sigma)
     before = predicted_errors(A[:, :-1], sigma)
     ok = err[-1] <= tolerance and all(e <= max(tolerance, e0) for e, e0 in zip(err, before))
@@ -172,9 +181,12 @@ class HeldFit:
 
 
 def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequence[str],
-             held_terms=(), new_terms=(), sigma0: float | None = None) -> HeldFit:
+             held_terms=(), new_terms=(), sigma0: float | None = None,
+             reference=None) -> HeldFit:
     """Robust fit of the core parameters ``free`` and the θ of ``new_terms`` ([(term, θ0)]),
-    with every other core parameter and the ``held_terms`` ([(term, θ)]) at their values."""
+    with every other core parameter and the ``held_terms`` ([(term, θ)]) at their values;
+    with ``reference`` (:class:`~.reference_rows.ReferenceRows`) its direction residual is a
+    second robust block of the cost (:class:`~.reference_rows.JointBlock`)."""
     m = np.asarray(m, float)
     K0, b0 = np.asarray(K0, float), np.asarray(b0, float)
     nf = len(free)
@@ -202,8 +214,16 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
     sigma = sigma0 or float(np.median(np.abs(s)) * 1.4826) or 1e-9
     tau = CAUCHY_C * sigma
 
+    joint = None
+    if reference is not None:
+        from .reference_rows import JointBlock
+        joint = JointBlock(reference, m, cov, tau, len(held_terms), K0)
+
     def cost(s_):
         return float(np.sum(np.log1p((s_ / tau) ** 2)))
+
+    def total(st):   # both blocks' cost at a state (K, b, terms, r, x, s, …)
+        return cost(st[5]) + (0.0 if joint is None else joint.cost(st[0], st[1], st[2]))
 
     def linearize(p_, st):
         K_, _, terms_, _, x_, s_, normal_, D_ = st
@@ -213,16 +233,20 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
         # machine (9 of 18 s of a 20-minute flight's diagnosis) for a few MFLOP of work
         H = np.einsum("np,nq->pq", A * w[:, None], A)
         grad = -np.einsum("np,n->p", A, w * s_)     # s(p + dp) ≈ s − A dp
-        return cost(s_), H, grad, x_                # trials re-project from these directions
+        if joint is None:
+            return cost(s_), H, grad, x_            # trials re-project from these directions
+        c, Hr, gr = joint.linearize(free, K_, st[1], terms_)
+        return cost(s_) + c, H + Hr, grad + gr, x_
 
     def evaluate(p_, x_):
         trial = state(p_, x_)
-        return cost(trial[5]), trial
+        return total(trial), trial
 
     if P == 0:
         it, status, message = 0, CONVERGED, "nothing to fit"
     else:
-        res = damped_lm(p, (K, b, terms, r, x, s, normal, D), cost(s), linearize=linearize,
+        st = (K, b, terms, r, x, s, normal, D)
+        res = damped_lm(p, st, total(st), linearize=linearize,
                         propose=lambda p_, d: p_ + d, evaluate=evaluate, max_iter=MAX_ITER,
                         rtol=RTOL, damping=DAMPING)
         p, (K, b, terms, r, x, s, normal, D) = res.x, res.aux
@@ -235,6 +259,8 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
         A = jacobian(free, terms[len(held_terms):], x, normal, D, cov, x @ K.T, K0)
         w = 1.0 / (1.0 + (s / tau) ** 2)
         H = np.einsum("np,nq->pq", A * w[:, None], A)
+        if joint is not None:   # each block at its own width re-estimated at the solution
+            H = H + sigma ** 2 * joint.information(free, K, b, terms)
         try:
             Hinv = np.linalg.inv(H)
             sd = sigma * np.sqrt(np.maximum(np.diag(Hinv), 0.0))

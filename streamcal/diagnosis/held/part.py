@@ -15,7 +15,7 @@ from ...values import FrozenDict, fields_equal, freeze
 #: (after the keys every diagnosis has); ``held`` marks a held diagnosis.
 JSON_KEYS = ("held", "estimated", "predicted_sigma", "tolerance", "calibration_source",
              "n_ranked", "aux_channels", "fit_status", "held_after_fit", "suspicious",
-             "gyro_pinned", "gyro_link")
+             "gyro_pinned", "gyro_link", "held_attitude_reference")
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,6 +52,10 @@ class HeldPart:
     #: ``{name: {"value", "sigma", "held_value"}}``; ``gyro_link`` how that was decided.
     gyro_pinned: Mapping = field(default_factory=FrozenDict)
     gyro_link: Mapping = field(default_factory=FrozenDict)
+    #: The attitude reference the held fit used beside the magnitude
+    #: (:meth:`streamcal.diagnosis.held.reference_rows.ReferenceRows.describe`); empty without
+    #: one (and then not in the JSON).
+    attitude_reference: Mapping = field(default_factory=FrozenDict)
 
     def __post_init__(self):
         for f in dataclasses.fields(self):
@@ -73,7 +77,9 @@ class HeldPart:
                 "n_ranked": int(self.n_ranked or n), "aux_channels": self.aux_channels,
                 "fit_status": self.fit_status, "held_after_fit": self.held_after_fit,
                 "suspicious": self.suspicious, "gyro_pinned": jsonable(self.gyro_pinned),
-                "gyro_link": jsonable(self.gyro_link)}
+                "gyro_link": jsonable(self.gyro_link),
+                **({"held_attitude_reference": jsonable(self.attitude_reference)}
+                   if self.attitude_reference else {})}
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "HeldPart | None":
@@ -90,4 +96,5 @@ class HeldPart:
                    fit_status=d.get("fit_status", {}),
                    held_after_fit=d.get("held_after_fit", ()),
                    suspicious=d.get("suspicious", {}), gyro_pinned=d.get("gyro_pinned", {}),
-                   gyro_link=d.get("gyro_link", {}))
+                   gyro_link=d.get("gyro_link", {}),
+                   attitude_reference=d.get("held_attitude_reference", {}))

@@ -63,15 +63,20 @@ class Settled:
 
 
 def check(fit: HeldFit, free: Sequence[str], m, cov, held_terms, noise: float, tol: float,
-          r: float, b_given: np.ndarray) -> dict:
+          r: float, b_given: np.ndarray, reference=None) -> dict:
     """{name: entry} of the estimated core parameters that fail at the base fit ``fit`` (no
-    added effect terms; see module doc);
+    added effect terms; see module doc; the Cramér–Rao error counts the information of
+    ``reference``, :class:`~.reference_rows.ReferenceRows`, when given);
     entry: value, sigma (σ_p), sigma_fit, sigma_predicted, range, reason, score (sort key)."""
     if not free:
         return {}
     # a base fit: its only effect terms are the calibration's, held
     _, x, _, normal, D = project(fit.K, fit.b, list(held_terms), m, cov)
     A = jacobian(list(free), [], x, normal, D, cov, x @ fit.K.T, fit.K)
+    if reference is not None:
+        from .reference_rows import information_rows
+        A = np.vstack([A, information_rows(reference, free, fit.K, fit.b, list(held_terms), m,
+                                           cov, max(noise, fit.sigma))])
     predicted = predicted_errors(A, max(noise, fit.sigma))
     out = {}
     for name, pred in zip(free, predicted):
@@ -95,7 +100,7 @@ def check(fit: HeldFit, free: Sequence[str], m, cov, held_terms, noise: float, t
 
 def settle(fit_with: Callable[[list], HeldFit], free: Sequence[str], m, cov, held_terms,
            noise: float, tol: float, r: float, b_given: np.ndarray,
-           keep: Sequence[str] = ()) -> Settled:
+           keep: Sequence[str] = (), reference=None) -> Settled:
     """Fit with ``fit_with(free)`` (started from the given calibration), re-check at the fitted
     point, hold the worst failing parameter not in ``keep`` and refit, until none fails
     (module doc). At most len(free) + 1 fits."""
@@ -106,7 +111,7 @@ def settle(fit_with: Callable[[list], HeldFit], free: Sequence[str], m, cov, hel
         # below is what catches it
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             fit = fit_with(free)
-            failed = check(fit, free, m, cov, held_terms, noise, tol, r, b_given)
+            failed = check(fit, free, m, cov, held_terms, noise, tol, r, b_given, reference)
         rounds += 1
         may_hold = {k: v for k, v in failed.items() if k not in keep}
         if not may_hold:

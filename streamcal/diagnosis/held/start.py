@@ -25,6 +25,7 @@ from .gyro_pin import confirm, gyro_pin, pinned_model
 from .fit import (TOLERANCE, HeldFit, choose_free, core_params, field_radius, held_fit,
                   radius_free)
 from .recheck import check, settle
+from .reference_rows import frame
 from ..noise import noise_floor
 
 #: Fewest samples for any diagnosis against a calibration.
@@ -64,15 +65,18 @@ def default_calibration(m: np.ndarray, model: Sequence[str] = DEFAULT_MODEL) -> 
     return Calibration(K=r * np.eye(3), b=b, model=tuple(model), method="default")
 
 
-def _calibration(K, b, base: Calibration, terms, fit: HeldFit, model) -> Calibration:
+def _calibration(K, b, base: Calibration, terms, fit: HeldFit, model,
+                 reference=None) -> Calibration:
     effects = dict(base.effects)
     for term, theta in terms:
         effects[term.name] = term.to_physical(theta, 1.0)
     # the field strength follows the radius, so that the corrected field's matrix keeps its scale
     field = None if base.field is None else float(base.field) * fit.scale
+    # fitted against the attitude reference, the frame follows K (reference_rows.frame)
+    turned = {} if reference is None else {"frame_rotation_Q": frame(K, reference.V).tolist()}
     return base.replace(K=K, b=b, model=tuple(model), effects=effects, inliers=fit.inliers,
                         weights=None, directions=fit.x, field=field,
-                        extra={**dict(base.extra or {}), "tau": fit.tau})
+                        extra={**dict(base.extra or {}), "tau": fit.tau, **turned})
 
 
 #: Ridge of :func:`linear_start`, relative to each column's sum of squares.
@@ -134,11 +138,16 @@ class HeldStart:
     After construction: ``base`` (:class:`HeldEval` of the diagnosed model on every sample),
     ``model``, ``free`` and ``held_terms`` (what is re-estimated / the calibration's effects,
     held), ``source``, ``nf`` (the noise floor estimate), ``settled``, ``pin``, ``errors``
-    (Cramér–Rao errors at the start), ``tol`` (sensor unit)."""
+    (Cramér–Rao errors at the start), ``tol`` (sensor unit), ``reference`` (the
+    :class:`~.reference_rows.ReferenceRows` given, scaled to the field radius; None without).
+
+    ``reference``: the attitude reference's samples (:func:`.reference_rows.reference_rows`):
+    every fit and every Cramér–Rao choice then uses its direction residual beside the
+    magnitude's."""
 
     def __init__(self, track, calibration: Calibration | None = None, *,
                  model: Sequence[str] = DEFAULT_MODEL, calibration_source: str | None = None,
-                 tolerance: float = TOLERANCE):
+                 tolerance: float = TOLERANCE, reference=None):
         m = np.asarray(track.mag, dtype=float)
         n = len(m)
         self.track, self.m, self.unit = track, m, track.mag_unit
@@ -178,28 +187,31 @@ class HeldStart:
             sigma = float(np.median(np.abs(np.linalg.norm(m - b0, axis=1) - field_radius(K0))))
         b_names = [p for p, _ in B_PARAMS]
         keep = () if given else b_names   # without a calibration b is what is asked for
-        free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
+        ref = None if reference is None else reference.scaled(field_radius(K0))
+        free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep, ref)
         if not given:
             _refuse_b(n, errors, tol, self.unit, sigma)
             for _ in range(DEFAULT_ROUNDS):   # b on the slice, r from it
-                fit = held_fit(m, cov, K0, b0, b_names, held_terms)
+                fit = held_fit(m, cov, K0, b0, b_names, held_terms, reference=ref)
                 b0 = fit.b
                 K0 = float(np.median(np.linalg.norm(m - b0, axis=1))) * np.eye(3)
+                ref = None if ref is None else ref.scaled(field_radius(K0))
             base_cal = base_cal.replace(K=K0, b=b0)
             tol = tolerance * field_radius(K0)
-            free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep)
+            free, errors = choose_free(names, K0, b0, m, cov, held_terms, sigma, tol, keep, ref)
             _refuse_b(n, errors, tol, self.unit, sigma)
         # re-check at the fitted point; the candidates then use the settled estimated set
-        settled = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma), free, m,
-                         cov, held_terms, sigma, tol, field_radius(K0), b0, keep)
+        settled = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma, ref), free,
+                         m, cov, held_terms, sigma, tol, field_radius(K0), b0, keep, ref)
         free, fit = settled.free, settled.fit
         # then the field strength, at the fitted point, over what was settled
         add_radius, errors[RADIUS] = radius_free(free, fit.K, fit.b, m, cov, held_terms, sigma,
-                                                 tol)
+                                                 tol, ref)
         if add_radius:   # kept only when nothing estimated without it has to be held
-            with_radius = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma),
+            with_radius = settle(lambda f: held_fit(m, cov, K0, b0, f, held_terms, (), sigma,
+                                                    ref),
                                  [*free, RADIUS], m, cov, held_terms, sigma, tol,
-                                 field_radius(K0), b0, keep)
+                                 field_radius(K0), b0, keep, ref)
             if set(with_radius.free) == {*free, RADIUS}:
                 settled, free, fit = with_radius, with_radius.free, with_radius.fit
         # held parameters the gyro link determines (only when that helps: gyro_pin's rules)
@@ -207,16 +219,17 @@ class HeldStart:
                        [p for p in names if p not in free], tol, field_radius(K0))
         K0p, b0p = pinned_model(K0, b0, pin)
         again = confirm(pin, fit, lambda: settle(
-            lambda f: held_fit(m, cov, K0p, b0p, f, held_terms, (), sigma), free, m, cov,
-            held_terms, sigma, tol, field_radius(K0), b0, keep))
+            lambda f: held_fit(m, cov, K0p, b0p, f, held_terms, (), sigma, ref), free, m, cov,
+            held_terms, sigma, tol, field_radius(K0), b0, keep, ref))
         if again is not None:
             K0, b0, settled, free, fit = K0p, b0p, again, again.free, again.fit
         self.K0, self.b0, self.sigma, self.tol, self.errors = K0, b0, sigma, tol, errors
         self.free, self.settled, self.pin, self.base_cal = free, settled, pin, base_cal
+        self.reference = ref
         if np.isfinite(errors[RADIUS]):   # considered: the diagonal was not all estimated
             self.names = [*names, RADIUS]
         self.radius = field_radius(K0)
-        self.base = HeldEval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model),
+        self.base = HeldEval(fit, _calibration(fit.K, fit.b, base_cal, [], fit, model, ref),
                              len(free), [], t, free)
 
     def cov_at(self, rows=None) -> dict:
@@ -238,12 +251,14 @@ class HeldStart:
             m, t = m[rows], t[rows]
         K_s, b_s = (self.K0, self.b0) if start is None else (start.fit.K, start.fit.b)
         free = list(free if free is not None else start.free if start is not None else self.free)
-        fit = held_fit(m, cov, K_s, b_s, free, self.held_terms, new_terms, self.sigma)
+        ref = self.reference if self.reference is None or rows is None \
+            else self.reference.at(rows)
+        fit = held_fit(m, cov, K_s, b_s, free, self.held_terms, new_terms, self.sigma, ref)
         if start is not None:     # K_s carries start's radius already
             fit.scale *= start.fit.scale
         terms = [term for term, _ in new_terms]
         cal = _calibration(fit.K, fit.b, self.base_cal, list(zip(terms, fit.thetas)), fit,
-                           (*self.model, *(term.name for term in terms)))
+                           (*self.model, *(term.name for term in terms)), self.reference)
         return HeldEval(fit, cal, len(free) + sum(len(th) for th in fit.thetas), terms, t, free)
 
     def add(self, name: str, ref: HeldEval, rows=None) -> HeldEval:
@@ -269,10 +284,12 @@ class HeldStart:
         if RADIUS in ev.free or RADIUS not in self.names or not np.isfinite(ev.rms):
             return ev
         m, cov = (self.m, self.cov) if rows is None else (self.m[rows], self.cov_at(rows))
+        ref = self.reference if self.reference is None or rows is None \
+            else self.reference.at(rows)
         terms = [*self.held_terms, *zip(ev.terms, ev.fit.thetas)]
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             ok, _ = radius_free(ev.free, ev.fit.K, ev.fit.b, m, cov, terms, self.sigma,
-                                self.tol)
+                                self.tol, ref)
         if not ok:
             return ev
         prior = list(zip(ev.terms, ev.fit.thetas))
@@ -282,7 +299,7 @@ class HeldStart:
             trial = self.evaluate(prior, ev, rows, free)
             failed = check(trial.fit, trial.free, m, cov, [*self.held_terms,
                            *zip(trial.terms, trial.fit.thetas)], self.sigma, self.tol,
-                           self.radius, self.b0)
+                           self.radius, self.b0, ref)
         if failed or not self._same_on_each_half(prior, ev, rows, free):
             return ev
         return trial
