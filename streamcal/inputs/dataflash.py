@@ -10,7 +10,7 @@ MAG    MagX/Y/Z mG, OfsX/Y/Z, MOfsX/Y/Z  ``mx,my,mz`` µT (1 mG = 0.1 µT), offs
 IMU    AccX/Y/Z m/s², GyrX/Y/Z rad/s     ``ax..az``, ``gx..gz``; ``Temp`` → ``temp`` if not 0
 RCOU   C1…C14 or Ch1…Ch12, µs            ``rcou_c1``… (PWM outputs; unused ones left out)
 CURR   Volt, Curr, Throttle or ThrOut    ``battery_voltage_v``, ``battery_current_a``, ``throttle``
-BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.I = k, or BAT2) as
+BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.Inst = k, or BAT2) as
                                          ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``
 CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later)
 BARO   Temp °C                           ``temp`` when IMU has no temperature (said so)
@@ -226,12 +226,23 @@ def _time(msgs: _Messages, name: str, path: Path) -> np.ndarray:
                      f"{', '.join(msgs.fields[name])}): unknown layout")
 
 
+#: Names of the instance field of a message type that has one: ``I`` (MAG, IMU, BARO, GPS),
+#: ``Instance`` (BAT in ArduPilot 4.0), ``Inst`` (BAT from 4.1).
+INSTANCE_FIELDS = ("I", "Inst", "Instance")
+
+
+def instance_field(msgs: _Messages, name: str) -> str | None:
+    """The instance field of message type ``name`` (:data:`INSTANCE_FIELDS`), None without."""
+    return next((f for f in INSTANCE_FIELDS if msgs.has(name, f)), None)
+
+
 def _instance(msgs: _Messages, name: str, instance: int = 0) -> _Messages:
     """``msgs`` with only the rows of ``instance`` of ``name`` when its layout has an instance
-    field ``I`` (the other message types shared, not copied)."""
-    if not msgs.has(name, "I"):
+    field (:func:`instance_field`; the other message types shared, not copied)."""
+    column = instance_field(msgs, name)
+    if column is None:
         return msgs
-    keep = msgs.array(name, "I") == instance
+    keep = msgs.array(name, column) == instance
     cols = dict(msgs.cols)
     cols[name] = {k: v[keep] for k, v in msgs.cols[name].items()}
     return _Messages(msgs.fields, msgs.types, cols, msgs.params, msgs.texts, msgs.path)
@@ -365,7 +376,7 @@ def _rcou(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
 
 def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
     """CURR and BAT of battery 0 as ``battery_voltage_v``, ``battery_current_a`` (and CURR's
-    throttle), and every further battery (BAT rows with instance I ≥ 1, or BAT2) as
+    throttle), and every further battery (BAT rows with instance ≥ 1, or BAT2) as
     ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``: a current per battery, since each can
     feed motors near a different compass."""
     out = []
@@ -373,8 +384,9 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
         if msgs.count(name):
             stream = _battery_stream(msgs, _instance(msgs, name), name, "battery", path, meta)
             out += [stream] if stream is not None else []
-    if msgs.count("BAT") and msgs.has("BAT", "I"):
-        for k in sorted(int(i) for i in np.unique(msgs.array("BAT", "I")) if i >= 1):
+    column = instance_field(msgs, "BAT")
+    if msgs.count("BAT") and column is not None:
+        for k in sorted(int(i) for i in np.unique(msgs.array("BAT", column)) if i >= 1):
             stream = _battery_stream(msgs, _instance(msgs, "BAT", k), "BAT", f"battery{k + 1}",
                                      path, meta)
             out += [stream] if stream is not None else []
