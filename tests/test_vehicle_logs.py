@@ -35,3 +35,21 @@ def test_each_battery_is_its_own_channel(vehicle, tmp_path):
                                truth.current.astype(np.float32), rtol=1e-6, atol=1e-5)
     np.testing.assert_allclose(_column(track, "battery2_current_a"),
                                truth.current2.astype(np.float32), rtol=1e-6)
+
+
+@pytest.mark.parametrize("vehicle, source", [
+    ("copter4", "CTUN.ThO (0..1)"), ("copter33", "CURR.Throttle / 1000 (0..1)"),
+    ("plane4", "CTUN.ThO / 100 (0..1; a plane's throttle, logged in percent)"),
+    ("plane3", "CTUN.ThrOut / 100 (0..1; a plane's throttle, logged in percent)"),
+    ("rover3", "CTUN.ThrOut / 100 (0..1; a rover's throttle, logged in percent)"),
+    ("rover4", "THR.ThrOut / 100 (0..1; a rover's throttle, logged in percent)")])
+def test_throttle_in_each_vehicles_units(vehicle, source, tmp_path):
+    """The throttle each vehicle logs becomes 0..1: a copter's CTUN.ThO as is, CURR.Throttle
+    /1000, a plane's CTUN.ThO/ThrOut and a rover's CTUN/THR.ThrOut (percent) /100 — not 100×
+    or 10× off — and a rover's THR is read (not four RCOU channels that include its steering)."""
+    path = tmp_path / f"{vehicle}.bin"
+    truth = write_vehicle_log(path, vehicle, _compasses(2), seconds=30.0)
+    track = read_recording(path)
+    assert track.metadata["throttle_source"] == source
+    # logged as float, int16 percent (0.01 steps) or int16 per mille (0.001 steps)
+    np.testing.assert_allclose(_column(track, "throttle"), truth.throttle, atol=0.0051)

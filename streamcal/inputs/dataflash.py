@@ -12,7 +12,8 @@ RCOU   C1…C14 or Ch1…Ch12, µs            ``rcou_c1``… (PWM outputs; unuse
 CURR   Volt, Curr, Throttle or ThrOut    ``battery_voltage_v``, ``battery_current_a``, ``throttle``
 BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.Inst = k, or BAT2) as
                                          ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``
-CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later)
+CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later);
+       (plane, rover: percent)           a rover's THR.ThrOut (percent) where no CTUN has it
 BARO   Temp °C                           ``temp`` when IMU has no temperature (said so)
 PARM   Name, Value                       the compass's COMPASS_* in the metadata (``param.NAME``)
 ====== ================================ ==================================================
@@ -65,8 +66,8 @@ from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
 from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
 from .dataflash_mag import mag_meta, mag_values
 
-MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "PARM",
-            "MSG")
+MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "THR",
+            "PARM", "MSG")
 MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
 MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
