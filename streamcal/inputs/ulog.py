@@ -10,6 +10,10 @@ most samples of that instance; ties go to the uncalibrated one:
 ``sensor_combined``   magnetometer_ga[0..2] (G)      older logs; calibrated by PX4's driver
 ===================== ============================= =========================================
 
+``sensor_mag`` of older PX4 (up to 1.11, the layout with ``x_raw``/``scaling``) was published by
+the driver already corrected ``(r − o) · scale`` per axis with CAL_MAGn_xOFF/xSCALE; the reader
+undoes that (``r = c / scale + o``) and says so in ``mag_driver_calibration_undone``.
+
 Gauss → µT is ×100. PX4 corrects ``c = R S (r − o)`` (``o`` = CAL_MAGn_XOFF.. in G, ``S`` the
 symmetric matrix of CAL_MAGn_XSCALE../XODIAG.., ``R`` the board/external rotation). For a
 calibrated topic the reader undoes ``S`` and ``o`` (``r = S⁻¹ c + o``) when ``R`` is the identity
@@ -182,6 +186,35 @@ def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndar
     return raw
 
 
+#: Fields of ``sensor_mag`` as PX4's drivers published it while they applied the calibration
+#: themselves (``PX4Magnetometer`` up to 1.11): x, y, z are then ``(r − o) · scale`` per axis.
+DRIVER_CALIBRATED_FIELDS = ("x_raw", "scaling", "range_ga")
+
+
+def _driver_calibrated(d) -> bool:
+    """Whether ``sensor_mag`` data ``d`` carries the driver-calibrated layout."""
+    return any(f in d.data for f in DRIVER_CALIBRATED_FIELDS)
+
+
+def _undo_driver(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndarray:
+    """``r = c / scale + o`` per axis: the driver's CAL_MAGn_xSCALE and xOFF undone (it applied
+    them in its own frame, the frame of ``c``, before any board rotation)."""
+    p = _cal_prefix(params, device_id, meta)
+    if p is None:
+        meta["mag_driver_calibration_undone"] = (
+            "could not: no CAL_MAGn_ID matches the magnetometer's device id; mx,my,mz carry "
+            "the driver's offsets and scales")
+        return mag_g
+    scale = np.array([params.get(f"{p}{a}SCALE", 1.0) or 1.0 for a in "XYZ"], dtype=float)
+    off = px4_offsets(params, p)
+    meta["mag_driver_calibration_undone"] = (
+        f"sensor_mag of this layout ({', '.join(DRIVER_CALIBRATED_FIELDS[:2])}) is the driver's "
+        f"(r - {p}XOFF..) * {p}XSCALE..: divided by the scales "
+        f"({','.join(f'{v:g}' for v in scale)}) and the offsets "
+        f"({','.join(f'{v:g}' for v in off)} G) added back")
+    return mag_g / scale + off
+
+
 def _mag(ulog, path: Path, meta: dict, instance: int) -> Stream:
     candidates = _mag_topics(ulog, instance)
     if not candidates:
@@ -207,6 +240,8 @@ def _mag(ulog, path: Path, meta: dict, instance: int) -> Stream:
     if device_id:
         meta["compass_device_id"] = str(device_id)
     params = ulog.initial_parameters
+    if not calibrated and _driver_calibrated(d):
+        mag_g = _undo_driver(mag_g, params, device_id, meta)
     if calibrated:
         # the strength PX4's corrected field has: the scale of its calibration (--cal log)
         meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(mag_g, axis=1)) * UT_PER_GAUSS:.4g}"

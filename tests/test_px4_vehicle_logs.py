@@ -1,0 +1,42 @@
+"""PX4 logs of the layouts streamcal has no real log of (:mod:`tests._px4_vehicle_logs`): three
+``sensor_mag`` instances as PX4 1.9 drivers published them (already offset and scaled by
+CAL_MAGn) and as 1.14 publishes them (the raw reading), each read back to the sensor's reading
+and rebuilt by its own CAL_MAGn into the true body field."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from streamcal.cli import main
+from streamcal.diagnosis.compass_consistency import calibrated_field
+from streamcal.inputs import autopilot_calibration, read_compasses
+
+from ._px4_vehicle_logs import write_px4_log
+from ._vehicle_logs import soft_iron
+
+OFFSETS = [np.array([0.1, -0.05, 0.2]), np.array([-0.2, 0.1, 0.05]), np.array([0.05, 0.3, -0.1])]
+
+
+@pytest.mark.parametrize("version", ["1.9", "1.14"])
+def test_three_magnetometers_each_with_its_cal_magn(version, tmp_path, capsys):
+    """Each sensor_mag instance is the sensor's reading r (G × 100 = µT) — a 1.9 driver's
+    ``(r − o) · scale`` undone, not taken for r (which put CAL_MAGn's offsets in twice: 0.25 G,
+    half the field, off) — and CAL_MAGn of its device id rebuilds the body field."""
+    A = [np.diag(np.diag(soft_iron(k))) if version == "1.9" else soft_iron(k) for k in range(3)]
+    path = tmp_path / f"px4_{version}.ulg"
+    truth = write_px4_log(path, version, A, OFFSETS, seconds=30.0)
+    tracks = read_compasses(path)
+    assert [t.metadata["mag_cal_params"] for t in tracks] == ["CAL_MAG0_", "CAL_MAG1_",
+                                                               "CAL_MAG2_"]
+    for k, track in enumerate(tracks):
+        np.testing.assert_allclose(track.mag / 100.0, truth["raw"][k], atol=2e-6)
+        _, field = calibrated_field(track, autopilot_calibration(track))
+        np.testing.assert_allclose(field / 100.0, truth["e"], atol=2e-6)
+        assert ("mag_driver_calibration_undone" in track.metadata) == (version == "1.9")
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) in (0, 1)
+    pairs = json.loads(capsys.readouterr().out)["consistency"]
+    autopilot = [p for p in pairs if p["calibration"] == "autopilot"]
+    assert len(autopilot) == 3
+    assert all(p["angle_deg_p95"] < 0.01 and p["fraction_inconsistent"] == 0 for p in autopilot)
