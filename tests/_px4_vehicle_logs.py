@@ -42,7 +42,9 @@ LAYOUTS = {
 }
 _OTHER = {"sensor_combined": [("uint64_t", "timestamp"), ("float[3]", "gyro_rad"),
                               ("float[3]", "accelerometer_m_s2")],
-          "vehicle_attitude": [("uint64_t", "timestamp"), ("float[4]", "q")]}
+          "vehicle_attitude": [("uint64_t", "timestamp"), ("float[4]", "q")],
+          "vehicle_thrust_setpoint": [("uint64_t", "timestamp"), ("uint64_t", "timestamp_sample"),
+                                      ("float[3]", "xyz")]}
 
 
 def _m(kind: bytes, payload: bytes) -> bytes:
@@ -63,7 +65,7 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
 
     layout = LAYOUTS[version]
     topics = {"sensor_mag": layout["sensor_mag"], **_OTHER}
-    t, att, *_ = flight_profile(seconds, seed)
+    t, att, _, _, throttle = flight_profile(seconds, seed)
     e = att.inv().apply(ned_field(wmm_field(LAT, LON, 0.58, parse_date("2024-03-10")))) / 100.0
     accel = att.inv().apply([0.0, 0.0, -GRAVITY])
     q = att.as_quat()[:, [3, 0, 1, 2]]
@@ -93,6 +95,7 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
         out.append(_m(b"P", bytes([len(kk)]) + kk + struct.pack(code, value)))
     out.append(_m(b"A", struct.pack("<BH", 0, 0) + b"sensor_combined"))
     out.append(_m(b"A", struct.pack("<BH", 0, 1) + b"vehicle_attitude"))
+    out.append(_m(b"A", struct.pack("<BH", 0, 9) + b"vehicle_thrust_setpoint"))
     for c in range(len(A)):
         out.append(_m(b"A", struct.pack("<BH", c, 2 + c) + b"sensor_mag"))
     raws = [e @ np.asarray(Ak).T + np.asarray(off) for Ak, off in zip(A, offsets_g)]
@@ -103,6 +106,8 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
                                                                 us, 0, 0, 0, *accel[i])))
         out.append(_m(b"D", struct.pack("<H", 1) + struct.pack(_fmt(_OTHER["vehicle_attitude"]),
                                                                 us, *q[i])))
+        out.append(_m(b"D", struct.pack("<H", 9) + struct.pack(
+            _fmt(_OTHER["vehicle_thrust_setpoint"]), us, us, 0.02, 0.0, -throttle[i])))
         for c, r in enumerate(raws):
             if version == "1.9":    # the driver's output: offsets off, diagonal scale applied
                 diag = np.array([params[f"CAL_MAG{c}_{a}SCALE"] for a in "XYZ"])
@@ -115,4 +120,4 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
             out.append(_m(b"D", struct.pack("<H", 2 + c) + struct.pack(mag_fmt, *values)))
     with open(path, "wb") as fh:
         fh.write(b"".join(out))
-    return {"e": e, "raw": raws}
+    return {"e": e, "raw": raws, "throttle": throttle}

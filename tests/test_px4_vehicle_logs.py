@@ -40,3 +40,15 @@ def test_three_magnetometers_each_with_its_cal_magn(version, tmp_path, capsys):
     autopilot = [p for p in pairs if p["calibration"] == "autopilot"]
     assert len(autopilot) == 3
     assert all(p["angle_deg_p95"] < 0.01 and p["fraction_inconsistent"] == 0 for p in autopilot)
+
+
+def test_throttle_from_the_thrust_setpoint_of_px4_1_14(tmp_path):
+    """PX4 1.14 logs no actuator_controls_0: the throttle is the length of
+    vehicle_thrust_setpoint.xyz (0..1)."""
+    path = tmp_path / "px4_1.14.ulg"
+    truth = write_px4_log(path, "1.14", [np.eye(3)], OFFSETS[:1], seconds=10.0)
+    track = read_compasses(path)[0]
+    assert track.metadata["throttle_source"] == "|vehicle_thrust_setpoint.xyz| (0..1)"
+    got = np.asarray(track.columns["throttle"], float)
+    np.testing.assert_allclose(got[np.isfinite(got)], np.hypot(0.02, truth["throttle"]),
+                               rtol=1e-6)

@@ -23,8 +23,8 @@ non-zero the metadata says so.
 
 Also: ``sensor_combined`` accelerometer_m_s2 / gyro_rad → ``ax..az``, ``gx..gz``;
 ``actuator_outputs.output[i]`` → ``act_out{i}`` (outputs that never change are left out);
-``actuator_controls_0.control[3]`` → ``throttle`` (0..1, the signal of PX4's throttle-based
-compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
+``actuator_controls_0.control[3]`` (or, from 1.14, the length of ``vehicle_thrust_setpoint.xyz``)
+→ ``throttle`` (0..1, the signal of PX4's throttle-based compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
 ``battery_voltage_v`` (a second battery, instance 1: ``battery2_current_a``, …).
 Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
 
@@ -289,16 +289,25 @@ def _actuators(ulog, meta: dict) -> Stream | None:
 
 
 def _throttle(ulog, meta: dict) -> Stream | None:
-    """``actuator_controls_0.control[3]`` (0..1): the throttle PX4's CAL_MAG_COMP_TYP = 1
-    compensation scales with (``VehicleMagnetometer``), when logged and not constant."""
+    """The throttle PX4's CAL_MAG_COMP_TYP = 1 compensation scales with, when logged and not
+    constant: ``actuator_controls_0.control[3]`` (0..1), or, from PX4 1.14 (which dropped the
+    actuator_controls topics), the length of ``vehicle_thrust_setpoint.xyz`` (instance 0)."""
     d = _topic(ulog, "actuator_controls_0")
-    if d is None or "control[3]" not in d.data:
-        return None
-    values = d.data["control[3]"].astype(np.float64)
+    if d is not None and "control[3]" in d.data:
+        values, name = d.data["control[3]"].astype(np.float64), "actuator_controls_0"
+        source = "actuator_controls_0.control[3] (0..1)"
+    else:
+        d = _topic(ulog, "vehicle_thrust_setpoint", 0)
+        fields = [f"xyz[{i}]" for i in range(3)]
+        if d is None or not all(f in d.data for f in fields):
+            return None
+        values = np.linalg.norm(np.column_stack([d.data[f].astype(np.float64) for f in fields]),
+                                axis=1)
+        name, source = "vehicle_thrust_setpoint", "|vehicle_thrust_setpoint.xyz| (0..1)"
     if not np.all(np.isfinite(values)) or np.all(values == values[0]):
         return None
-    meta["throttle_source"] = "actuator_controls_0.control[3] (0..1)"
-    return Stream("actuator_controls_0", d.data["timestamp"] * 1e-6, {"throttle": values})
+    meta["throttle_source"] = source
+    return Stream(name, d.data["timestamp"] * 1e-6, {"throttle": values})
 
 
 def _battery(ulog, meta: dict) -> list[Stream]:
