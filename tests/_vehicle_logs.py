@@ -172,8 +172,10 @@ def flight_profile(seconds: float, seed: int, rate_hz: float = 10.0, tilt_deg: f
 
 def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: float = 120.0,
                       seed: int = 0, noise_mG: float = 2.0, extra_params=None,
-                      two_batteries: bool = False, motct: int = 2) -> Flight:
-    """Write ``vehicle``'s log (:data:`VEHICLES`) of ``compasses`` to ``path``; the truth."""
+                      two_batteries: bool = False, motct: int = 2,
+                      second_volts=lambda t: 15.1) -> Flight:
+    """Write ``vehicle``'s log (:data:`VEHICLES`) of ``compasses`` to ``path``; the truth.
+    ``second_volts(t)`` is the second battery's voltage (V) at time ``t`` s."""
     firmware, layouts, mag_kind, bat2, (thr_msg, thr_field, thr_full) = VEHICLES[vehicle]
     layouts = {**_COMMON, **layouts}
     if mag_kind == "names":
@@ -247,12 +249,12 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
                 msg("BAT", us, 0, volt, volt, current[i], 0, 0, 25, 0.02,
                     *([80, 1, 100] if inst == "Inst" else []))
                 if two_batteries:
-                    msg("BAT", us, 1, 15.1, 15.1, current2[i], 0, 0, 25, 0.02,
+                    msg("BAT", us, 1, second_volts(ti), 15.1, current2[i], 0, 0, 25, 0.02,
                         *([80, 1, 100] if inst == "Inst" else []))
             else:
                 msg("BAT", us, volt, volt, current[i], 0, 0, 25, 0.02)
                 if two_batteries and "BAT2" in layouts:
-                    msg("BAT2", us, 15.1, 15.1, current2[i], 0, 0, 25, 0.02)
+                    msg("BAT2", us, second_volts(ti), 15.1, current2[i], 0, 0, 25, 0.02)
         if "CURR" in layouts:
             msg("CURR", us, throttle[i] * 1000, volt * 100, current[i] * 100, 5000, 0, 0, 0)
         thr_values = {name: 0 for name in layouts[thr_msg][1].split(",")}

@@ -155,3 +155,26 @@ def test_motor_term_of_a_0_to_70_a_flight_in_each_firmwares_units(vehicle, firmw
     p = _parameters(px4.read_text(), "\t", 2, 3)
     assert p["CAL_MAG_COMP_TYP"] == 2 and "CAL_MAG0_XCOMP" not in p
     np.testing.assert_allclose([p[f"CAL_MAG1_{a}COMP"] for a in "XYZ"], -10.0 * g, atol=0.012)
+
+
+def test_a_battery_without_current_sensor_is_not_damage(tmp_path, monkeypatch):
+    """ArduPilot logs BAT.Curr as NaN when the monitor measures no current (a voltage-only
+    second battery): that column is left out and said, the battery's voltage kept, and nothing
+    is called damaged."""
+    import tests._vehicle_logs as logs
+
+    profile = logs.flight_profile
+
+    def voltage_only_second(*args, **kw):
+        t, att, current, current2, throttle = profile(*args, **kw)
+        return t, att, current, current2 * np.nan, throttle
+
+    monkeypatch.setattr(logs, "flight_profile", voltage_only_second)
+    path = tmp_path / "nan_current.bin"
+    write_vehicle_log(path, "copter4", _compasses(2), seconds=20.0, two_batteries=True,
+                      second_volts=lambda t: 15.1 - 0.01 * t)
+    track = read_recording(path)
+    assert "battery2_current_a" not in track.aux_names
+    assert len(_column(track, "battery2_voltage_v")) == 200
+    assert track.metadata["battery2_not_measured"].startswith("battery2_current_a")
+    assert "damaged" not in track.metadata.get("read_warnings", "")

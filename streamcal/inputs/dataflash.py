@@ -413,6 +413,11 @@ def _battery_stream(msgs: _Messages, msgs_i: _Messages, name: str, prefix: str, 
                 break
     if not cols or not len(next(iter(cols.values()))):
         return None
+    unmeasured = [k for k, v in cols.items() if not np.any(np.isfinite(v))]
+    for k in unmeasured:    # NaN throughout: ArduPilot's BAT where the monitor measures no current
+        del cols[k]
+    if unmeasured:
+        meta[f"{prefix}_not_measured"] = ",".join(unmeasured) + " (NaN over the whole log)"
     constant = [k for k, v in cols.items() if np.all(v == v[0])]
     for k in constant:
         del cols[k]
