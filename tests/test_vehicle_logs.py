@@ -178,3 +178,26 @@ def test_a_battery_without_current_sensor_is_not_damage(tmp_path, monkeypatch):
     assert len(_column(track, "battery2_voltage_v")) == 200
     assert track.metadata["battery2_not_measured"].startswith("battery2_current_a")
     assert "damaged" not in track.metadata.get("read_warnings", "")
+
+
+def test_a_calibration_file_is_applied_to_the_compass_it_was_fitted_for(tmp_path, capsys):
+    """``diagnose LOG --cal c1.json`` (c1.json fitted for compass 1) without --compass reads
+    compass 1, says so, and gives what ``--compass 1`` gives; compass 0's readings under
+    compass 1's calibration would have a far larger residual."""
+    compasses = _compasses(2)
+    compasses[1].b = np.array([-30.0, 25.0, 10.0])
+    log = tmp_path / "two.bin"
+    write_vehicle_log(log, "copter4", compasses, seconds=60.0)
+    cal = tmp_path / "c1.json"
+    assert main(["fit", str(log), "--compass", "1", "--cal", "autopilot", "-o", str(cal)]) == 0
+    capsys.readouterr()
+    runs = {}
+    for extra in ([], ["--compass", "1"], ["--compass", "0"]):
+        assert main(["diagnose", str(log), "--cal", str(cal), "--json", *extra]) in (0, 1)
+        captured = capsys.readouterr()
+        runs[tuple(extra)] = (json.loads(captured.out), captured.err)
+    followed, err = runs[()]
+    assert "reading compass 1" in err
+    given = runs[("--compass", "1")][0]
+    assert followed["ladder"][0]["rms"] == given["ladder"][0]["rms"]
+    assert runs[("--compass", "0")][0]["ladder"][0]["rms"] > 5 * given["ladder"][0]["rms"]

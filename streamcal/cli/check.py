@@ -39,8 +39,9 @@ def run(args) -> int:
     from ..errors import InputError
     from ..export.motor_check import flight_check, held_out_check
     from ..fitting.attitude_reference import calibration_in_force
-    from ._calarg import calibration_for
+    from ._calarg import calibration_for, follow_fitted_compass
 
+    follow_fitted_compass(args, "calibration", "CAL")
     track = read_track(args)
     if track.mag is None or not len(track.t_mag):
         raise InputError(f"{args.track}: no magnetometer samples")
@@ -51,7 +52,6 @@ def run(args) -> int:
     if cal.sensor != "mag" or cal.unit != "uT":
         raise InputError(f"{args.calibration}: a magnetometer calibration in µT is needed, this "
                          f"one is for {cal.sensor!r} in {cal.unit!r}")
-    track = _the_compass_fitted(args, cal, track)
     _say_other_compass(args, cal, track)
     ref = location_reference(args)
     in_force = calibration_in_force(track)
@@ -71,24 +71,6 @@ def run(args) -> int:
         return 0
     print("\n".join(_split_text(out) if args.split else _check_text(out)))
     return 0
-
-
-def _the_compass_fitted(args, cal, track):
-    """Without ``--compass``, the compass CAL was fitted for (its ``compass_instance``) when the
-    log has it, said on stderr: checking one compass's calibration on another's readings would
-    call a good calibration worse."""
-    import argparse
-    import sys
-
-    fitted = (cal.extra or {}).get("compass_instance")
-    read = track.metadata.get("compass_instance")
-    present = str(track.metadata.get("compasses_in_log", "")).split(",")
-    if args.compass is not None or fitted is None or read is None or int(fitted) == int(read) \
-            or str(int(fitted)) not in present:
-        return track
-    print(f"streamcal check: reading compass {int(fitted)} of {args.track}, the one "
-          f"{args.calibration} was fitted for (--compass N reads another)", file=sys.stderr)
-    return read_track(argparse.Namespace(**{**vars(args), "compass": int(fitted)}))
 
 
 def _say_other_compass(args, cal, track) -> None:

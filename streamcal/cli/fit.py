@@ -170,6 +170,9 @@ def run(args) -> int:
     from ..errors import InsufficientDataError
     from ..fitting import fit
     check_output(args.output)
+    from ._calarg import follow_fitted_compass
+
+    follow_fitted_compass(args)
     track = read_track(args)
     if not (args.planar or args.attitude or args.heading is not None):
         track, args.add = _named_channels(args, track)
