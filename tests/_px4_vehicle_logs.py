@@ -8,7 +8,9 @@ parameters, ``A`` subscriptions with their multi-instance, ``D`` data). Layouts:
   already ``(r − CAL_MAGn_xOFF) · CAL_MAGn_xSCALE``, no off-diagonal terms), ``ver_sw_release``
   1.9.2;
 * ``"1.14"``: ``sensor_mag`` the uncalibrated reading (``timestamp_sample``, ``error_count``),
-  CAL_MAGn_PRIO, ODIAG, ``ver_sw_release`` 1.14.0.
+  CAL_MAGn_PRIO, ODIAG, ``ver_sw_release`` 1.14.0;
+* ``"1.14-vm"``: only ``vehicle_magnetometer``, one instance per compass, PX4's corrected field
+  ``S (r − o)`` with its ``device_id``.
 
 Compass ``k`` (``sensor_mag`` instance ``k``) reads ``r_k = A_k e + o_k`` gauss, ``e`` the
 body-frame earth field (no rotations: CAL_MAGn_ROT −1, SENS_BOARD_ROT 0); CAL_MAGn_* hold the
@@ -39,6 +41,11 @@ LAYOUTS = {
                             ("float", "z"), ("float", "temperature"),
                             ("uint32_t", "error_count")],
              "release": 0x010E00FF},
+    "1.14-vm": {"vehicle_magnetometer": [("uint64_t", "timestamp"),
+                                         ("uint64_t", "timestamp_sample"),
+                                         ("uint32_t", "device_id"), ("float[3]", "magnetometer_ga"),
+                                         ("uint8_t", "calibration_count")],
+                "release": 0x010E00FF},
 }
 _OTHER = {"sensor_combined": [("uint64_t", "timestamp"), ("float[3]", "gyro_rad"),
                               ("float[3]", "accelerometer_m_s2")],
@@ -64,7 +71,8 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
     from streamcal.geomag import ned_field, parse_date, wmm_field
 
     layout = LAYOUTS[version]
-    topics = {"sensor_mag": layout["sensor_mag"], **_OTHER}
+    mag_topic = "vehicle_magnetometer" if version.endswith("-vm") else "sensor_mag"
+    topics = {mag_topic: layout[mag_topic], **_OTHER}
     t, att, _, _, throttle = flight_profile(seconds, seed)
     e = att.inv().apply(ned_field(wmm_field(LAT, LON, 0.58, parse_date("2024-03-10")))) / 100.0
     accel = att.inv().apply([0.0, 0.0, -GRAVITY])
@@ -97,9 +105,9 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
     out.append(_m(b"A", struct.pack("<BH", 0, 1) + b"vehicle_attitude"))
     out.append(_m(b"A", struct.pack("<BH", 0, 9) + b"vehicle_thrust_setpoint"))
     for c in range(len(A)):
-        out.append(_m(b"A", struct.pack("<BH", c, 2 + c) + b"sensor_mag"))
+        out.append(_m(b"A", struct.pack("<BH", c, 2 + c) + mag_topic.encode()))
     raws = [e @ np.asarray(Ak).T + np.asarray(off) for Ak, off in zip(A, offsets_g)]
-    mag_fmt = _fmt(layout["sensor_mag"])
+    mag_fmt = _fmt(layout[mag_topic])
     for i, ti in enumerate(t):
         us = 1_000_000 + int(round(ti * 1e6))
         out.append(_m(b"D", struct.pack("<H", 0) + struct.pack(_fmt(_OTHER["sensor_combined"]),
@@ -115,6 +123,8 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
                 values = (us, IDS[c], 0, *x, 4.0, 0.0015, 35.0,
                           *(int(v) for v in np.round(r[i] / 0.0015)),
                           c > 0)
+            elif mag_topic == "vehicle_magnetometer":
+                values = (us, us - 300, IDS[c], *(np.linalg.inv(A[c]) @ (r[i] - offsets_g[c])), 0)
             else:
                 values = (us, us - 300, IDS[c], *r[i], 35.0, 0)
             out.append(_m(b"D", struct.pack("<H", 2 + c) + struct.pack(mag_fmt, *values)))

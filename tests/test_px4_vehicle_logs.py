@@ -19,11 +19,13 @@ from ._vehicle_logs import soft_iron
 OFFSETS = [np.array([0.1, -0.05, 0.2]), np.array([-0.2, 0.1, 0.05]), np.array([0.05, 0.3, -0.1])]
 
 
-@pytest.mark.parametrize("version", ["1.9", "1.14"])
+@pytest.mark.parametrize("version", ["1.9", "1.14", "1.14-vm"])
 def test_three_magnetometers_each_with_its_cal_magn(version, tmp_path, capsys):
     """Each sensor_mag instance is the sensor's reading r (G × 100 = µT) — a 1.9 driver's
     ``(r − o) · scale`` undone, not taken for r (which put CAL_MAGn's offsets in twice: 0.25 G,
-    half the field, off) — and CAL_MAGn of its device id rebuilds the body field."""
+    half the field, off) — and CAL_MAGn of its device id rebuilds the body field; a log of
+    vehicle_magnetometer only (PX4's corrected field, one instance per compass) the same, its
+    S (r − o) undone."""
     A = [np.diag(np.diag(soft_iron(k))) if version == "1.9" else soft_iron(k) for k in range(3)]
     path = tmp_path / f"px4_{version}.ulg"
     truth = write_px4_log(path, version, A, OFFSETS, seconds=30.0)
