@@ -11,6 +11,7 @@ vehicle   compasses, batteries                         throttle
 copter4   MAG with ``I``; BAT with ``Inst`` (4.1 on)   CTUN.ThO (0..1)
 copter40  MAG with ``I``; BAT with ``Instance`` (4.0)  CTUN.ThO (0..1)
 copter36  MAG, MAG2, MAG3; BAT, BAT2 (no instance)     CTUN.ThO (0..1)
+copter34  MAG, MAG2; CURR, CUR2 (floats)               CTUN.ThO (0..1)
 copter33  MAG, MAG2, MAG3; CURR (centi-units, TimeMS)  CURR.Throttle (0..1000)
 plane4    MAG with ``I``; BAT with ``Inst``            CTUN.ThO (percent, −100..100)
 plane3    MAG, MAG2; BAT                               CTUN.ThrOut (int16 percent)
@@ -75,6 +76,10 @@ VEHICLES = {
     "copter36": ("ArduCopter V3.6.12 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
                  "MAG3": _MAG_OLD, "GPS": _GPS_OLD, "IMU": _IMU_OLD, "BAT": _BAT_OLD,
                  "BAT2": _BAT_OLD, "CTUN": _COPTER_CTUN}, "names", "BAT2", ("CTUN", "ThO", 1.0)),
+    "copter34": ("APM:Copter V3.4.6 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
+                 "GPS": _GPS_OLD, "IMU": _IMU_OLD, "CURR": ("Qfff", "TimeUS,Volt,Curr,CurrTot"),
+                 "CUR2": ("Qfff", "TimeUS,Volt,Curr,CurrTot"), "CTUN": _COPTER_CTUN}, "names",
+                 "CUR2", ("CTUN", "ThO", 1.0)),
     "copter33": ("APM:Copter V3.3.3 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
                  "MAG3": _MAG_OLD, "GPS": _GPS_OLD, "IMU": _IMU_OLD,
                  "CURR": ("QhhhhhfH", "TimeUS,Throttle,Volt,Curr,Vcc,CurrTot,Volt2,Flags")},
@@ -218,7 +223,7 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
     params.update(extra_params or {})
     for name, value in params.items():
         msg("PARM", us0, name, float(value))
-    before = vehicle in ("copter33", "rover3")   # Copter < 3.6, Rover < 3.3: MOT before S
+    before = vehicle in ("copter33", "copter34", "rover3")   # Copter < 3.6, Rover < 3.3
     logged = {}
     for k, c in enumerate(compasses):
         S, ofs, mot = c.params()
@@ -255,7 +260,11 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
                 msg("BAT", us, volt, volt, current[i], 0, 0, 25, 0.02)
                 if two_batteries and "BAT2" in layouts:
                     msg("BAT2", us, second_volts(ti), 15.1, current2[i], 0, 0, 25, 0.02)
-        if "CURR" in layouts:
+        if "CUR2" in layouts:
+            msg("CURR", us, volt, current[i], 0)
+            if two_batteries:
+                msg("CUR2", us, second_volts(ti), current2[i], 0)
+        elif "CURR" in layouts:
             msg("CURR", us, throttle[i] * 1000, volt * 100, current[i] * 100, 5000, 0, 0, 0)
         thr_values = {name: 0 for name in layouts[thr_msg][1].split(",")}
         thr_values["TimeUS"] = us

@@ -26,13 +26,16 @@ def _column(track, name):
     return values[np.isfinite(values)]
 
 
-@pytest.mark.parametrize("vehicle", ["copter4", "copter40", "copter36", "plane4", "rover4"])
+@pytest.mark.parametrize("vehicle", ["copter4", "copter40", "copter36", "copter34", "plane4",
+                                     "rover4"])
 def test_each_battery_is_its_own_channel(vehicle, tmp_path):
-    """BAT's instance field is ``Inst`` (4.1 on) or ``Instance`` (4.0), BAT2 before: battery 0's
+    """BAT's instance field is ``Inst`` (4.1 on) or ``Instance`` (4.0), BAT2 before (3.6), CUR2
+    before that (3.4–3.5): battery 0's
     current alone is ``battery_current_a`` (0–70 A), battery 1's is ``battery2_current_a`` —
     not the two batteries' rows mixed into one channel."""
     path = tmp_path / f"{vehicle}.bin"
-    truth = write_vehicle_log(path, vehicle, _compasses(2), seconds=30.0, two_batteries=True)
+    truth = write_vehicle_log(path, vehicle, _compasses(2), seconds=30.0, two_batteries=True,
+                              second_volts=lambda t: 15.1 - 0.01 * t)
     track = read_recording(path)
     np.testing.assert_allclose(_column(track, "battery_current_a"),
                                truth.current.astype(np.float32), rtol=1e-6, atol=1e-5)

@@ -10,7 +10,7 @@ MAG    MagX/Y/Z mG, OfsX/Y/Z, MOfsX/Y/Z  ``mx,my,mz`` µT (1 mG = 0.1 µT), offs
 IMU    AccX/Y/Z m/s², GyrX/Y/Z rad/s     ``ax..az``, ``gx..gz``; ``Temp`` → ``temp`` if not 0
 RCOU   C1…C14 or Ch1…Ch12, µs            ``rcou_c1``… (PWM outputs; unused ones left out)
 CURR   Volt, Curr, Throttle or ThrOut    ``battery_voltage_v``, ``battery_current_a``, ``throttle``
-BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.Inst = k, or BAT2) as
+BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.Inst = k, or CUR2/BAT2) as
                                          ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``
 CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later);
        (plane, rover: percent)           a rover's THR.ThrOut (percent) where no CTUN has it
@@ -66,8 +66,8 @@ from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
 from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
 from .dataflash_mag import mag_meta, mag_values
 
-MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "THR",
-            "PARM", "MSG")
+MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "CUR2", "BAT", "BAT2", "BARO", "CTUN",
+            "THR", "PARM", "MSG")
 MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
 MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
@@ -377,7 +377,7 @@ def _rcou(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
 
 def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
     """CURR and BAT of battery 0 as ``battery_voltage_v``, ``battery_current_a`` (and CURR's
-    throttle), and every further battery (BAT rows with instance ≥ 1, or BAT2) as
+    throttle), and every further battery (BAT rows with instance ≥ 1, or CUR2/BAT2) as
     ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``: a current per battery, since each can
     feed motors near a different compass."""
     out = []
@@ -391,9 +391,10 @@ def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
             stream = _battery_stream(msgs, _instance(msgs, "BAT", k), "BAT", f"battery{k + 1}",
                                      path, meta)
             out += [stream] if stream is not None else []
-    if msgs.count("BAT2"):
-        stream = _battery_stream(msgs, msgs, "BAT2", "battery2", path, meta)
-        out += [stream] if stream is not None else []
+    for name in ("CUR2", "BAT2"):    # the second battery of Copter 3.4–3.5, of 3.6–3.x
+        if msgs.count(name):
+            stream = _battery_stream(msgs, msgs, name, "battery2", path, meta)
+            out += [stream] if stream is not None else []
     return out
 
 
