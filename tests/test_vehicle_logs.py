@@ -222,3 +222,18 @@ def test_read_in_pieces_equals_read_whole(vehicle, tmp_path):
     for name in whole.columns:
         joined = np.concatenate([np.asarray(p.columns[name], float) for p in parts])
         np.testing.assert_array_equal(joined, np.asarray(whole.columns[name], float))
+
+
+def test_the_pairs_ardupilot_itself_compares(tmp_path, capsys):
+    """ArduPilot's consistency test compares the primary (COMPASS_PRIMARY, here 1) with each
+    compass used for yaw: with COMPASS_USE3 0 only pair 0–1 is one it checks; the JSON marks
+    each pair and the text names them."""
+    path = tmp_path / "three.bin"
+    write_vehicle_log(path, "copter36", _compasses(3), seconds=30.0,
+                      extra_params={"COMPASS_PRIMARY": 1, "COMPASS_USE3": 0})
+    assert main(["diagnose", str(path), "--compass", "all", "--json"]) in (0, 1)
+    pairs = json.loads(capsys.readouterr().out)["consistency"]
+    assert {(p["a"], p["b"]): p["ardupilot_checks"] for p in pairs} == {
+        (0, 1): True, (0, 2): False, (1, 2): False}
+    assert main(["diagnose", str(path), "--compass", "all"]) in (0, 1)
+    assert "compass used for yaw only: 0–1\n" in capsys.readouterr().out + "\n"
