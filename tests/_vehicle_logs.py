@@ -114,15 +114,19 @@ class Compass:
     ofs_error: np.ndarray = field(default_factory=lambda: np.zeros(3))
     mot_in_force: np.ndarray | None = None
     dev_id: int = 0
+    #: (3,3) sensor → body rotation of a compass mounted turned while COMPASS_ORIENTn says 0:
+    #: it reads ``mountᵀ r`` and the parameters in force are those of that frame
+    mount: np.ndarray = field(default_factory=lambda: np.eye(3))
 
     def S(self) -> np.ndarray:
         return np.linalg.inv(self.A)
 
     def params(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(S, COMPASS_OFS mG, COMPASS_MOT mG/A) in force."""
-        S = self.S()
-        ofs = -10.0 * np.asarray(self.b, float) + self.ofs_error
-        mot = -10.0 * S @ np.asarray(self.g, float) if self.mot_in_force is None \
+        """(S, COMPASS_OFS mG, COMPASS_MOT mG/A) in force, in the frame the compass reads."""
+        M = np.asarray(self.mount, float)
+        S = M.T @ self.S() @ M
+        ofs = -10.0 * M.T @ np.asarray(self.b, float) + self.ofs_error
+        mot = -10.0 * S @ M.T @ np.asarray(self.g, float) if self.mot_in_force is None \
             else np.asarray(self.mot_in_force, float)
         return S, ofs, mot
 
@@ -227,8 +231,8 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
     logged = {}
     for k, c in enumerate(compasses):
         S, ofs, mot = c.params()
-        raw = 10.0 * (e @ np.asarray(c.A, float).T + c.b + np.outer(current, c.g)) \
-            + rng.normal(0.0, noise_mG, e.shape)
+        raw = (10.0 * (e @ np.asarray(c.A, float).T + c.b + np.outer(current, c.g))) \
+            @ np.asarray(c.mount, float) + rng.normal(0.0, noise_mG, e.shape)
         mofs = np.outer(current if motct == 2 else throttle, mot)
         logged[k] = np.round((raw + ofs + mofs) @ S.T if before else (raw + ofs) @ S.T + mofs)
         c._mofs, c._ofs = np.round(mofs), np.round(ofs)

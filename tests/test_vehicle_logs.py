@@ -237,3 +237,25 @@ def test_the_pairs_ardupilot_itself_compares(tmp_path, capsys):
         (0, 1): True, (0, 2): False, (1, 2): False}
     assert main(["diagnose", str(path), "--compass", "all"]) in (0, 1)
     assert "compass used for yaw only: 0–1\n" in capsys.readouterr().out + "\n"
+
+
+def test_second_compass_mounted_turned_exports_compass_orient2(tmp_path):
+    """Compass 1 mounted turned 90° in yaw while COMPASS_ORIENT2 says 0: ``fit --compass 1
+    --attitude`` finds YAW_90 and the export sets COMPASS_ORIENT2 2 (not COMPASS_ORIENT, the
+    first compass's) with COMPASS_OFS2 in the vehicle frame after that rotation: −10 · b."""
+    from streamcal.inputs.mount_rotations import by_name
+
+    compasses = _compasses(2)
+    compasses[1].mount = np.array(by_name("YAW_90").matrix)
+    compasses[1].g = np.zeros(3)     # no motor field: the fit has no term for one
+    log = tmp_path / "turned.bin"
+    write_vehicle_log(log, "copter4", compasses, seconds=120.0)
+    cal, parm = tmp_path / "c1.json", tmp_path / "c1.parm"
+    assert main(["fit", str(log), "--compass", "1", "--attitude", "-o", str(cal)]) == 0
+    assert main(["export", str(cal), "--format", "ardupilot", "-o", str(parm)]) == 0
+    text = parm.read_text()
+    params = _parameters(text, ",", 0, 1)
+    assert params["COMPASS_ORIENT2"] == 2 and "COMPASS_ORIENT" not in params
+    assert "# COMPASS_ORIENT2 2: " in text
+    np.testing.assert_allclose([params[f"COMPASS_OFS2_{a}"] for a in "XYZ"],
+                               -10.0 * compasses[1].b, atol=1.5)

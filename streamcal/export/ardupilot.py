@@ -140,7 +140,7 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
                          "--firmware-version VERSION writes the order of the firmware it loads "
                          "into")
     if orient is not None:
-        lines.append(f"# COMPASS_ORIENT {orient}: the compass is mounted rotated "
+        lines.append(f"# COMPASS_ORIENT{suffix} {orient}: the compass is mounted rotated "
                      f"({orientation_words(cal)}); offsets and matrix are in the "
                      "vehicle frame after that rotation (ArduPilot 4.x order)")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]
