@@ -259,3 +259,36 @@ def test_second_compass_mounted_turned_exports_compass_orient2(tmp_path):
     assert "# COMPASS_ORIENT2 2: " in text
     np.testing.assert_allclose([params[f"COMPASS_OFS2_{a}"] for a in "XYZ"],
                                -10.0 * compasses[1].b, atol=1.5)
+
+
+def test_a_fit_without_motor_term_zeroes_the_motor_compensation_it_was_fitted_without(
+        tmp_path):
+    """Compass 1's motor field (0.03, −0.012, 0.048 µT/A) is compensated in the log by
+    COMPASS_MOT2, which the reader undoes: a fit without a motor term (``--attitude``) puts the
+    field's mean (≈35 A of it) into its offsets. Its export sets COMPASS_MOT2 (and PX4's
+    CAL_MAG1_xCOMP) to 0 and says why — keeping the old term would remove that mean twice."""
+    compasses = _compasses(2)
+    log = tmp_path / "mot_in_force.bin"
+    truth = write_vehicle_log(log, "copter4", compasses, seconds=120.0)
+    cal, parm, params = tmp_path / "c1.json", tmp_path / "c1.parm", tmp_path / "c1.params"
+    assert main(["fit", str(log), "--compass", "1", "--attitude", "-o", str(cal)]) == 0
+    assert main(["export", str(cal), "--format", "ardupilot", "-o", str(parm)]) == 0
+    assert main(["export", str(cal), "--format", "px4", "-o", str(params)]) == 0
+    ap = _parameters(parm.read_text(), ",", 0, 1)
+    assert [ap[f"COMPASS_MOT2_{a}"] for a in "XYZ"] == [0, 0, 0] and "COMPASS_MOTCT" not in ap
+    assert "# COMPASS_MOT2 set to 0:" in parm.read_text()
+    ofs = np.array([ap[f"COMPASS_OFS2_{a}"] for a in "XYZ"])
+    mean_field = compasses[1].b + compasses[1].g * truth.current.mean()
+    assert np.linalg.norm(ofs + 10 * mean_field) < 0.3 * np.linalg.norm(ofs + 10 * compasses[1].b)
+    p = _parameters(params.read_text(), "\t", 2, 3)
+    assert [p[f"CAL_MAG1_{a}COMP"] for a in "XYZ"] == [0, 0, 0]
+    # a bench calibration (no log, no motor compensation in force) leaves COMPASS_MOT alone
+    from streamcal.calibration import Calibration
+
+    bench = Calibration.load(cal)
+    bench = bench.replace(extra={k: v for k, v in bench.extra.items()
+                                 if k != "motor_field_in_readings"})
+    bench.save(tmp_path / "bench.json")
+    assert main(["export", str(tmp_path / "bench.json"), "--format", "ardupilot", "-o",
+                 str(tmp_path / "bench.parm")]) == 0
+    assert "COMPASS_MOT2_X" not in (tmp_path / "bench.parm").read_text()

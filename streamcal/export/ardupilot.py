@@ -116,6 +116,10 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
         for k, a in enumerate("XYZ"):
             params[f"COMPASS_MOT_{a}"] = mot[k]
         params["COMPASS_MOTCT"] = motct
+    in_readings = (cal.extra or {}).get("motor_field_in_readings") if chosen is None else None
+    if in_readings:
+        for a in "XYZ":
+            params[f"COMPASS_MOT_{a}"] = 0.0
     if orient is not None:
         params["COMPASS_ORIENT"] = orient
     suffix = slot_suffix(cal)
@@ -139,6 +143,12 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
                          f"in the order '{logged}'; these are for '{order}': export "
                          "--firmware-version VERSION writes the order of the firmware it loads "
                          "into")
+    if in_readings:
+        lines.append(f"# COMPASS_MOT{suffix} set to 0: this calibration has no motor term, and "
+                     f"was fitted on readings that carry the motor field ({in_readings} of the "
+                     "log undone), so its offsets hold the field's mean; the old "
+                     f"COMPASS_MOT{suffix} would remove it a second time. For a motor term refit "
+                     "with --cal autopilot --add aux_interference=CHANNEL")
     if orient is not None:
         lines.append(f"# COMPASS_ORIENT{suffix} {orient}: the compass is mounted rotated "
                      f"({orientation_words(cal)}); offsets and matrix are in the "
