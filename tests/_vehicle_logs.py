@@ -23,7 +23,8 @@ The truth, per compass ``k`` in the body frame (ArduPilot logs every compass rot
 COMPASS_ORIENTn): the sensor reads ``r_k = 10 (A_k e + b_k + g_k i)`` mG, ``e`` the body-frame
 earth field (µT, WMM at the place and date, turned by the logged attitude), ``i`` battery 0's
 current (A). The parameters in force are COMPASS_OFS{n}, DIA{n}/ODI{n}, MOT{n} with
-COMPASS_MOTCT 2 (``cal``: exact unless told otherwise), and the firmware logs
+COMPASS_MOTCT 2 (``cal``: exact unless told otherwise; a COMPASS_SCALEn among the extra
+parameters multiplies ``S``), and the firmware logs
 ``MagX = S (r + o) + MOfs`` (or ``S (r + o + MOfs)`` before Copter 3.6 / Plane 3.9 / Rover 3.3)
 with ``MOfs = MOT · i``.
 """
@@ -231,6 +232,7 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
     logged = {}
     for k, c in enumerate(compasses):
         S, ofs, mot = c.params()
+        S = S * (params.get(f"COMPASS_SCALE{'' if k == 0 else k + 1}", 0.0) or 1.0)
         raw = (10.0 * (e @ np.asarray(c.A, float).T + c.b + np.outer(current, c.g))) \
             @ np.asarray(c.mount, float) + rng.normal(0.0, noise_mG, e.shape)
         mofs = np.outer(current if motct == 2 else throttle, mot)

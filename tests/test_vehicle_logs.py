@@ -292,3 +292,28 @@ def test_a_fit_without_motor_term_zeroes_the_motor_compensation_it_was_fitted_wi
     assert main(["export", str(tmp_path / "bench.json"), "--format", "ardupilot", "-o",
                  str(tmp_path / "bench.parm")]) == 0
     assert "COMPASS_MOT2_X" not in (tmp_path / "bench.parm").read_text()
+
+
+def test_compass_scale_in_force_is_reset_with_the_matrix(tmp_path):
+    """ArduPilot 4.x multiplies compass 1's field by COMPASS_SCALE2 (1.1 here) before the
+    matrix. The exported COMPASS_DIA2/ODI2 hold the whole scale, so the export sets
+    COMPASS_SCALE2 1; ArduPilot's formula with the exported parameters then gives the
+    calibration's field strength, not 10 % more."""
+    from streamcal.calibration import Calibration
+    from streamcal.export.ardupilot import apply_ardupilot
+
+    log = tmp_path / "scaled.bin"
+    write_vehicle_log(log, "copter4", _compasses(2), seconds=60.0,
+                      extra_params={"COMPASS_SCALE2": 1.1})
+    cal, parm = tmp_path / "c1.json", tmp_path / "c1.parm"
+    assert main(["fit", str(log), "--compass", "1", "--cal", "autopilot", "-o", str(cal)]) == 0
+    assert main(["export", str(cal), "--format", "ardupilot", "-o", str(parm)]) == 0
+    ap = _parameters(parm.read_text(), ",", 0, 1)
+    assert ap["COMPASS_SCALE2"] == 1 and "COMPASS_SCALE" not in ap
+    first = {k.replace("2_", "_"): v for k, v in ap.items()}
+    track = read_recording(log, compass=1)
+    current = np.interp(track.t_mag, track.t[np.isfinite(track.columns["battery_current_a"])],
+                        _column(track, "battery_current_a"))
+    field = apply_ardupilot(first, 10.0 * np.asarray(track.mag), current)
+    strength = np.median(np.linalg.norm(field, axis=1)) / 10.0
+    assert strength == pytest.approx(Calibration.load(cal).field, rel=0.01)

@@ -298,7 +298,9 @@ def compass_slot(metadata: dict) -> dict:
     """``{"compass_params_index": i, "compass_instance": j}`` of an autopilot log's compass:
     which parameter set the autopilot keeps its calibration in (ArduPilot 0 → ``COMPASS_OFS_*``,
     1 → ``COMPASS_OFS2_*``, 2 → ``COMPASS_OFS3_*``; PX4 ``CAL_MAGi_*``) and which compass it
-    is; empty for a recording of one magnetometer."""
+    is; also ``motor_field_in_readings`` (:func:`motor_field_in_readings`) and, for ArduPilot,
+    ``scale_in_force`` ``{"param", "value"}`` when its COMPASS_SCALEn is neither 0 nor 1 (it
+    multiplies the corrected field); empty for a recording of one magnetometer."""
     out = {}
     if "compass_params_index" in metadata:
         out["compass_params_index"] = int(metadata["compass_params_index"])
@@ -309,6 +311,14 @@ def compass_slot(metadata: dict) -> dict:
     in_readings = motor_field_in_readings(metadata, out.get("compass_params_index", 0))
     if in_readings:
         out["motor_field_in_readings"] = in_readings
+    if metadata.get("input_format") == "ardupilot-dataflash":
+        name = ardupilot_param("SCALE", out.get("compass_params_index", 0))
+        try:
+            scale = float(metadata.get(f"param.{name}", 0.0))
+        except ValueError:
+            scale = 0.0
+        if scale not in (0.0, 1.0):   # 0: no scale factor (ArduPilot then applies none)
+            out["scale_in_force"] = {"param": name, "value": scale}
     return out
 
 
