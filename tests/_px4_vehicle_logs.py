@@ -64,7 +64,7 @@ def _fmt(fields) -> str:
 
 
 def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: float = 60.0,
-                  seed: int = 0, prio=None) -> dict:
+                  seed: int = 0, prio=None, prime: int = 0) -> dict:
     """Write a ULog of ``version`` (:data:`LAYOUTS`) with one ``sensor_mag`` instance per
     compass (soft iron ``A[k]`` (3,3), offsets ``offsets_g[k]`` (3,) G). Returns the truth
     ``{"e": (n,3) body field G, "raw": [(n,3) r_k G]}``."""
@@ -85,7 +85,7 @@ def write_px4_log(path, version: str, A: list, offsets_g: list, *, seconds: floa
         out.append(_m(b"I", bytes([len(k)]) + k + value))
     k = b"uint32_t ver_sw_release"
     out.append(_m(b"I", bytes([len(k)]) + k + struct.pack("<I", layout["release"])))
-    params: dict = {"SENS_BOARD_ROT": 0, "CAL_MAG_PRIME": IDS[0]}
+    params: dict = {"SENS_BOARD_ROT": 0, "CAL_MAG_PRIME": IDS[prime]}
     for c, (Ak, off) in enumerate(zip(A, offsets_g)):
         S = np.linalg.inv(Ak)
         params[f"CAL_MAG{c}_ID"] = IDS[c]

@@ -54,3 +54,16 @@ def test_throttle_from_the_thrust_setpoint_of_px4_1_14(tmp_path):
     got = np.asarray(track.columns["throttle"], float)
     np.testing.assert_allclose(got[np.isfinite(got)], np.hypot(0.02, truth["throttle"]),
                                rtol=1e-6)
+
+
+def test_the_default_magnetometer_of_px4_1_9_is_cal_mag_prime(tmp_path):
+    """PX4 up to 1.11 has no CAL_MAGn_PRIO: the magnetometer it uses first is CAL_MAG_PRIME's
+    device id (here instance 1's), not instance 0; with CAL_MAGn_PRIO (1.14) the priority
+    decides."""
+    A = [np.eye(3)] * 2
+    old = tmp_path / "px4_1.9.ulg"
+    write_px4_log(old, "1.9", A, OFFSETS[:2], seconds=5.0, prime=1)
+    assert read_compasses(old)[0].metadata["compass_default"] == "1"
+    new = tmp_path / "px4_1.14.ulg"
+    write_px4_log(new, "1.14", A, OFFSETS[:2], seconds=5.0, prime=1, prio=(75, 50))
+    assert read_compasses(new)[0].metadata["compass_default"] == "0"

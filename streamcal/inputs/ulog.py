@@ -126,15 +126,21 @@ def compass_instances(ulog) -> list[int]:
 
 def default_compass(ulog) -> int:
     """The magnetometer PX4 uses first: the ``sensor_mag`` instance whose CAL_MAGn_PRIO is the
-    highest (the lowest instance on ties), else 0."""
+    highest (the lowest instance on ties); in logs without CAL_MAGn_PRIO (PX4 up to 1.11) the
+    one whose device id is CAL_MAG_PRIME; else 0."""
     params = ulog.initial_parameters
+    prime = None if any(k.startswith("CAL_MAG") and k.endswith("_PRIO") for k in params) \
+        else params.get("CAL_MAG_PRIME")
     best = None
     for d in sorted((d for d in ulog.data_list if d.name == "sensor_mag"),
                     key=lambda d: d.multi_id):
         if "device_id" not in d.data or not len(d.data["device_id"]):
             continue
-        i = _cal_index(params, int(d.data["device_id"][0]))
+        device = int(d.data["device_id"][0])
+        i = _cal_index(params, device)
         prio = params.get(f"CAL_MAG{i}_PRIO", 0) if i is not None else 0
+        if prime:
+            prio = 1 if device == int(prime) else 0
         if best is None or prio > best[0]:
             best = (prio, d.multi_id)
     present = compass_instances(ulog)
