@@ -11,7 +11,7 @@ vehicle   compasses, batteries                         throttle
 copter4   MAG with ``I``; BAT with ``Inst`` (4.1 on)   CTUN.ThO (0..1)
 copter40  MAG with ``I``; BAT with ``Instance`` (4.0)  CTUN.ThO (0..1)
 copter36  MAG, MAG2, MAG3; BAT, BAT2 (no instance)     CTUN.ThO (0..1)
-copter34  MAG, MAG2; CURR, CUR2 (floats)               CTUN.ThO (0..1)
+copter34  MAG, MAG2, MAG3; CURR, CUR2 (floats)         CTUN.ThO (0..1)
 copter33  MAG, MAG2, MAG3; CURR (centi-units, TimeMS)  CURR.Throttle (0..1000)
 plane4    MAG with ``I``; BAT with ``Inst``            CTUN.ThO (percent, −100..100)
 plane3    MAG, MAG2; BAT                               CTUN.ThrOut (int16 percent)
@@ -78,7 +78,8 @@ VEHICLES = {
                  "MAG3": _MAG_OLD, "GPS": _GPS_OLD, "IMU": _IMU_OLD, "BAT": _BAT_OLD,
                  "BAT2": _BAT_OLD, "CTUN": _COPTER_CTUN}, "names", "BAT2", ("CTUN", "ThO", 1.0)),
     "copter34": ("APM:Copter V3.4.6 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
-                 "GPS": _GPS_OLD, "IMU": _IMU_OLD, "CURR": ("Qfff", "TimeUS,Volt,Curr,CurrTot"),
+                 "MAG3": _MAG_OLD, "GPS": _GPS_OLD, "IMU": _IMU_OLD,
+                 "CURR": ("Qfff", "TimeUS,Volt,Curr,CurrTot"),
                  "CUR2": ("Qfff", "TimeUS,Volt,Curr,CurrTot"), "CTUN": _COPTER_CTUN}, "names",
                  "CUR2", ("CTUN", "ThO", 1.0)),
     "copter33": ("APM:Copter V3.3.3 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
