@@ -233,6 +233,11 @@ def test_second_compass(tmp_path, capsys):
         firmware_field(in_force, "ardupilot", m, motor_signal(in_force, "ardupilot", cov)), None)
     # compass 1's calibration in force misses 15 µT of hard iron
     assert out["after"]["ardupilot"]["spread_pct"] < 0.2 * out["before"]["ardupilot"]["spread_pct"]
-    assert main(["check", str(new), str(log)]) == 0
+    # without --compass the compass it was fitted for is read (said), not the default compass 0
+    assert main(["check", str(new), str(log), "--json"]) == 0
+    captured = capsys.readouterr()
+    assert json.loads(captured.out)["after"] == out["after"]
+    assert "reading compass 1" in captured.err
+    assert main(["check", str(new), str(log), "--compass", "0"]) == 0
     err = capsys.readouterr().err
     assert "fitted for compass 1" in err and "--compass 1" in err

@@ -61,3 +61,27 @@ def calibration_for(path: str, track, option: str = "--cal") -> tuple[Calibratio
         where = dict(cal.extra or {}).get("source") or "the recording's parameters"
         return cal, f"autopilot calibration in force ({where})"
     return load_calibration_arg(path, option)
+
+
+def follow_fitted_compass(args, attr: str = "cal", option: str = "--cal") -> None:
+    """Without ``--compass``, set ``args.compass`` to the compass the calibration file
+    ``args.<attr>`` was fitted for (its ``compass_instance``) when ``args.track`` is an autopilot
+    log, and say so on stderr: one compass's calibration on another's readings would make
+    every figure wrong. Nothing for ``autopilot``/``log``, a calibration of no particular
+    compass, or another recording."""
+    import sys
+
+    path = getattr(args, attr, None)
+    if not path or getattr(args, "compass", None) is not None or \
+            (path in FROM_RECORDING and not Path(path).exists()):
+        return
+    fitted = (load_calibration_arg(path, option)[0].extra or {}).get("compass_instance")
+    if fitted is None:
+        return
+    from ..inputs import detect
+
+    if detect(Path(args.track)) not in ("dataflash", "ulog"):
+        return
+    args.compass = int(fitted)
+    print(f"streamcal: reading compass {int(fitted)} of {args.track}, the one {path} was fitted "
+          f"for (--compass N reads another)", file=sys.stderr)

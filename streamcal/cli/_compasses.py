@@ -64,7 +64,26 @@ def _consistency(entries: list[dict]) -> list:
                                 float(e["track"].metadata.get("log_t0_s", 0.0)))
                   for e in entries if get(e) is not None]
         pairs += compare_all(fields, label)
+    _mark_ardupilot_checks(entries, pairs)
     return pairs
+
+
+def _mark_ardupilot_checks(entries: list[dict], pairs: list) -> None:
+    """On an ArduPilot log, set each pair's ``ardupilot_checks``: ArduPilot's consistency test
+    (``Compass::consistent``) compares each compass used for yaw (COMPASS_USEn not 0) with the
+    primary only."""
+    from ..inputs.autopilot_cal import ardupilot_param
+
+    if not entries or entries[0]["track"].metadata.get("input_format") != "ardupilot-dataflash":
+        return
+    primary = int(entries[0]["track"].metadata.get("compass_default", entries[0]["instance"]))
+    used = {}
+    for e in entries:
+        md = e["track"].metadata
+        name = ardupilot_param("USE", int(md.get("compass_params_index", e["instance"])))
+        used[e["instance"]] = float(md.get(f"param.{name}", 1.0)) != 0
+    for p in pairs:
+        p.ardupilot_checks = primary in (p.a, p.b) and used.get(p.a, True) and used.get(p.b, True)
 
 
 def _entry_json(e: dict) -> dict:
@@ -115,6 +134,11 @@ def _table(pairs: list[dict]) -> str:
              "  pair calibration  median      p95  horiz med  horiz p95  inconsistent   n"]
     table += [_pair_line(p) for p in pairs] or ["  (fewer than two compasses: nothing to compare)"]
     table.append(f"limits: {LIMITS_TEXT}")
+    if any(p.get("ardupilot_checks") is not None for p in pairs):
+        checked = list(dict.fromkeys(f"{p['a']}–{p['b']}" for p in pairs
+                                     if p.get("ardupilot_checks")))
+        table.append("ArduPilot's own test compares the primary with each compass used for yaw "
+                     f"only: {', '.join(checked) or 'none of these pairs'}")
     return "\n".join(table)
 
 

@@ -37,6 +37,9 @@ def run(args) -> int:
     from ..inputs.track import Track
 
     cal = Calibration.load(args.calibration)
+    from ._calarg import follow_fitted_compass
+
+    follow_fitted_compass(args, "calibration", "CAL.json")
     if getattr(args, "unit", None) is not None:
         chunks = iter([read_track(args)])        # read_track explains --unit on a track
     else:

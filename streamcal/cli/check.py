@@ -39,9 +39,10 @@ def run(args) -> int:
     from ..errors import InputError
     from ..export.motor_check import flight_check, held_out_check
     from ..fitting.attitude_reference import calibration_in_force
-    from ._calarg import calibration_for
+    from ._calarg import calibration_for, follow_fitted_compass
 
     ref = location_reference(args)     # a mistyped --lat/--date said before the reading
+    follow_fitted_compass(args, "calibration", "CAL")
     track = read_track(args)
     if track.mag is None or not len(track.t_mag):
         raise InputError(f"{args.track}: no magnetometer samples")

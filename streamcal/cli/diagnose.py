@@ -56,6 +56,9 @@ def run(args: argparse.Namespace) -> int:
     from ..diagnosis.subsample import LONG_SAMPLES, diagnose_recording
 
     model = tuple(n.strip() for n in args.model.split(",") if n.strip())
+    from ._calarg import follow_fitted_compass
+
+    follow_fitted_compass(args)
     if getattr(args, "compass", None) == "all":
         from ._compasses import diagnose_all
         return diagnose_all(args, model, describe=lambda d: _text(d) + held_text(d))

@@ -169,6 +169,9 @@ def run(args) -> int:
     from ..errors import InsufficientDataError
     from ..fitting import fit
     check_output(args.output)
+    from ._calarg import follow_fitted_compass
+
+    follow_fitted_compass(args)
     ref = location_reference(args)     # a mistyped --lat/--date said before the reading
     track = read_track(args)
     if not (args.planar or args.attitude or args.heading is not None):

@@ -60,6 +60,9 @@ def run(args) -> int:
     from ..geomag import text_lines
 
     model = model_from_args(args.model, args.add)
+    from ._calarg import follow_fitted_compass
+
+    follow_fitted_compass(args)
     if getattr(args, "compass", None) == "all":
         from ._compasses import report_all
         return report_all(args, model, args.output or default_output(args.track))

@@ -62,6 +62,9 @@ class PairConsistency:
     angle_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
     xy_angle_deg: np.ndarray = field(default_factory=lambda: np.zeros(0))
     inconsistent: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    #: whether ArduPilot's own test compares this pair (one of them the primary, both used for
+    #: yaw); None for a log of another autopilot
+    ardupilot_checks: bool | None = None
 
     def to_dict(self) -> dict:
         """The SPEC §6 ``consistency`` entry (None for the statistics of an empty pairing)."""
@@ -76,7 +79,7 @@ class PairConsistency:
                 "xy_angle_deg_median": stat(self.xy_angle_deg, 50),
                 "xy_angle_deg_p95": stat(self.xy_angle_deg, 95),
                 "fraction_inconsistent": float(np.mean(self.inconsistent)) if n else None,
-                "xy_plane": self.xy_plane}
+                "xy_plane": self.xy_plane, "ardupilot_checks": self.ardupilot_checks}
 
 
 def calibrated_field(track, cal) -> tuple[np.ndarray, np.ndarray]:

@@ -77,7 +77,8 @@ def _named(params: dict, suffix: str) -> dict:
     if not suffix:
         return params
     return {re.sub(r"^COMPASS_(OFS|DIA|ODI|MOT)_", rf"COMPASS_\g<1>{suffix}_", name)
-            .replace("COMPASS_ORIENT", f"COMPASS_ORIENT{suffix}"): value
+            .replace("COMPASS_ORIENT", f"COMPASS_ORIENT{suffix}")
+            .replace("COMPASS_SCALE", f"COMPASS_SCALE{suffix}"): value
             for name, value in params.items()}
 
 
@@ -116,6 +117,13 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
         for k, a in enumerate("XYZ"):
             params[f"COMPASS_MOT_{a}"] = mot[k]
         params["COMPASS_MOTCT"] = motct
+    scale = (cal.extra or {}).get("scale_in_force")
+    if scale:   # ArduPilot multiplies by COMPASS_SCALEn after the offsets: S is the whole scale
+        params["COMPASS_SCALE"] = 1.0
+    in_readings = (cal.extra or {}).get("motor_field_in_readings") if chosen is None else None
+    if in_readings:
+        for a in "XYZ":
+            params[f"COMPASS_MOT_{a}"] = 0.0
     if orient is not None:
         params["COMPASS_ORIENT"] = orient
     suffix = slot_suffix(cal)
@@ -140,8 +148,18 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
                          f"in the order '{logged}'; these are for '{order}': export "
                          "--firmware-version VERSION writes the order of the firmware it loads "
                          "into")
+    if scale:
+        lines.append(f"# COMPASS_SCALE{suffix} set to 1 (the log had {scale['value']:g}): "
+                     "ArduPilot multiplies the field by it before the matrix, which here holds "
+                     "the whole scale")
+    if in_readings:
+        lines.append(f"# COMPASS_MOT{suffix} set to 0: this calibration has no motor term, and "
+                     f"was fitted on readings that carry the motor field ({in_readings} of the "
+                     "log undone), so its offsets hold the field's mean; the old "
+                     f"COMPASS_MOT{suffix} would remove it a second time. For a motor term refit "
+                     "with --cal autopilot --add aux_interference=CHANNEL")
     if orient is not None:
-        lines.append(f"# COMPASS_ORIENT {orient}: the compass is mounted rotated "
+        lines.append(f"# COMPASS_ORIENT{suffix} {orient}: the compass is mounted rotated "
                      f"({orientation_words(cal)}); offsets and matrix are in the "
                      "vehicle frame after that rotation (ArduPilot 4.x order)")
     lines += [f"# NOT EXPRESSED: {note}" for note in notes]

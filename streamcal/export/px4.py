@@ -86,9 +86,10 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
         params[f"CAL_MAG0_{a}SCALE"] = S[k, k]
     params["CAL_MAG0_XODIAG"], params["CAL_MAG0_YODIAG"], params["CAL_MAG0_ZODIAG"] = \
         S[0, 1], S[0, 2], S[1, 2]
-    if chosen is not None:
+    in_readings = (cal.extra or {}).get("motor_field_in_readings") if chosen is None else None
+    if chosen is not None or in_readings:
         for k, a in enumerate("XYZ"):
-            params[f"CAL_MAG0_{a}COMP"] = comp[k]
+            params[f"CAL_MAG0_{a}COMP"] = comp[k] if chosen is not None else 0.0
     lines = [f"# streamcal calibration for PX4 (CAL_MAG0), {cal.created}",
              "# PX4 corrects f = R S (r + p CAL_MAG0_COMP - CAL_MAG0_OFF), offsets in gauss; "
              "CAL_MAG0_ID (and _ROT unless a mounting rotation was found) are left as they "
@@ -103,6 +104,12 @@ def export(cal: Calibration) -> tuple[str, list[str]]:
                      + (f"battery_status instance {comp_type - 2} current in kA, G/kA"
                         if comp_type >= 2 else "throttle 0..1, G at full throttle")
                      + "; PX4 applies it only while armed)")
+    if in_readings:
+        lines.append("# CAL_MAG0_*COMP set to 0: this calibration has no motor term, and was "
+                     f"fitted on readings that carry the motor field ({in_readings} of the log "
+                     "not in them), so its offsets hold the field's mean; the old compensation "
+                     "would remove it a second time. For a motor term refit with --cal "
+                     "autopilot --add aux_interference=CHANNEL")
     index = int((cal.extra or {}).get("compass_params_index", 0))
     if index:   # the compass the calibration was fitted for keeps it in CAL_MAG<index>_*
         params = {k.replace("CAL_MAG0_", f"CAL_MAG{index}_"): v for k, v in params.items()}

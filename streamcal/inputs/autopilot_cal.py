@@ -333,7 +333,9 @@ def compass_slot(metadata: dict) -> dict:
     """``{"compass_params_index": i, "compass_instance": j}`` of an autopilot log's compass:
     which parameter set the autopilot keeps its calibration in (ArduPilot 0 → ``COMPASS_OFS_*``,
     1 → ``COMPASS_OFS2_*``, 2 → ``COMPASS_OFS3_*``; PX4 ``CAL_MAGi_*``) and which compass it
-    is; empty for a recording of one magnetometer."""
+    is; also ``motor_field_in_readings`` (:func:`motor_field_in_readings`) and, for ArduPilot,
+    ``scale_in_force`` ``{"param", "value"}`` when its COMPASS_SCALEn is neither 0 nor 1 (it
+    multiplies the corrected field); empty for a recording of one magnetometer."""
     out = {}
     if "compass_params_index" in metadata:
         out["compass_params_index"] = int(metadata["compass_params_index"])
@@ -341,4 +343,39 @@ def compass_slot(metadata: dict) -> dict:
         out["compass_params_index"] = int(metadata["mag_cal_params"][7:-1])
     if "compass_instance" in metadata:
         out["compass_instance"] = int(metadata["compass_instance"])
+    in_readings = motor_field_in_readings(metadata, out.get("compass_params_index", 0))
+    if in_readings:
+        out["motor_field_in_readings"] = in_readings
+    if metadata.get("input_format") == "ardupilot-dataflash":
+        name = ardupilot_param("SCALE", out.get("compass_params_index", 0))
+        try:
+            scale = float(metadata.get(f"param.{name}", 0.0))
+        except ValueError:
+            scale = 0.0
+        if scale not in (0.0, 1.0):   # 0: no scale factor (ArduPilot then applies none)
+            out["scale_in_force"] = {"param": name, "value": scale}
     return out
+
+
+def motor_field_in_readings(metadata: dict, index: int) -> str | None:
+    """The motor-compensation parameters (``COMPASS_MOT2``, ``CAL_MAG1_xCOMP``) in force in the
+    log whose compensation is *not* in the track's readings (the reader undid ArduPilot's MOfs;
+    PX4's sensor_mag never had it), when they are non-zero; None otherwise. A calibration
+    fitted on such readings without a motor term holds the mean motor field in its offsets, so
+    loading it beside that compensation would remove the field twice."""
+    def value(name):
+        try:
+            return float(metadata.get(f"param.{name}", 0.0))
+        except ValueError:
+            return 0.0
+
+    if metadata.get("input_format") == "ardupilot-dataflash":
+        names = [ardupilot_param("MOT", index, a) for a in "XYZ"]
+        if value("COMPASS_MOTCT") in MOTCT_CHANNELS and any(value(n) for n in names):
+            return names[0][:-2]
+    elif metadata.get("input_format") == "px4-ulog" and \
+            str(metadata.get("mag_calibrated_by_px4", "")).startswith("no"):
+        names = [f"CAL_MAG{index}_{a}COMP" for a in "XYZ"]
+        if value("CAL_MAG_COMP_TYP") and any(value(n) for n in names):
+            return f"CAL_MAG{index}_xCOMP"
+    return None

@@ -10,9 +10,11 @@ MAG    MagX/Y/Z mG, OfsX/Y/Z, MOfsX/Y/Z  ``mx,my,mz`` µT (1 mG = 0.1 µT), offs
 IMU    AccX/Y/Z m/s², GyrX/Y/Z rad/s     ``ax..az``, ``gx..gz``; ``Temp`` → ``temp`` if not 0
 RCOU   C1…C14 or Ch1…Ch12, µs            ``rcou_c1``… (PWM outputs; unused ones left out)
 CURR   Volt, Curr, Throttle or ThrOut    ``battery_voltage_v``, ``battery_current_a``, ``throttle``
-BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.I = k, or BAT2) as
+BAT    Volt, Curr (newer firmware)       as CURR; battery k ≥ 1 (BAT.Inst = k, or CUR2/BAT2) as
                                          ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``
-CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later)
+                                         (:mod:`.dataflash_battery`)
+CTUN   ThO (0..1) or ThrOut (0..1000)    ``throttle`` when CURR has none (3.4 and later);
+       (plane, rover: percent)           a rover's THR.ThrOut (percent) where no CTUN has it
 BARO   Temp °C                           ``temp`` when IMU has no temperature (said so)
 PARM   Name, Value                       the compass's COMPASS_* in the metadata (``param.NAME``)
 VER    FWS (4.1 and later)               ``firmware``, the version text; else the MSG that names it
@@ -63,18 +65,16 @@ from .autopilot_cal import (FIRMWARE_VERSION, MG_PER_UT, ardupilot_param, ardupi
 from .streams import Stream, drop_nonfinite, merge
 from .dataflash_bulk import MAGIC, decode, walk
 from .attitude_streams import DATAFLASH_MESSAGES, dataflash_attitude
-from .dataflash_throttle import THROTTLE_FULL, ctun_throttle, rcou_throttle
+from .dataflash_throttle import ctun_throttle, rcou_throttle
+from .dataflash_battery import battery_streams, rows_of
 from .dataflash_mag import mag_meta, mag_values
 
-MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "BAT", "BAT2", "BARO", "CTUN", "PARM",
-            "MSG", "VER")
+MESSAGES = ("MAG", "MAG2", "MAG3", "IMU", "RCOU", "CURR", "CUR2", "BAT", "BAT2", "BARO", "CTUN",
+            "THR", "PARM", "MSG", "VER")
 MESSAGES += DATAFLASH_MESSAGES  # attitude and GPS: .attitude_streams
 MAG_NAMES = ("MAG", "MAG2", "MAG3")
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; anything outside this is not PWM.
 PWM_RANGE_US = (0.0, 3000.0)
-#: Integer-typed CURR Volt/Curr fields are centivolts / centiamps (older layouts).
-CENTI = 0.01
-_INT_TYPES = set("bBhHiIqQ")
 
 
 @dataclass
@@ -227,17 +227,6 @@ def _time(msgs: _Messages, name: str, path: Path) -> np.ndarray:
                      f"{', '.join(msgs.fields[name])}): unknown layout")
 
 
-def _instance(msgs: _Messages, name: str, instance: int = 0) -> _Messages:
-    """``msgs`` with only the rows of ``instance`` of ``name`` when its layout has an instance
-    field ``I`` (the other message types shared, not copied)."""
-    if not msgs.has(name, "I"):
-        return msgs
-    keep = msgs.array(name, "I") == instance
-    cols = dict(msgs.cols)
-    cols[name] = {k: v[keep] for k, v in msgs.cols[name].items()}
-    return _Messages(msgs.fields, msgs.types, cols, msgs.params, msgs.texts, msgs.path)
-
-
 def compass_instances(msgs: _Messages) -> list[int]:
     """The compass instances (from 0) that have MAG rows in the log."""
     if msgs.has("MAG", "I"):
@@ -265,7 +254,7 @@ def _mag_rows(msgs: _Messages, path: Path, instance: int) -> tuple[_Messages, st
     if not msgs.has(name, "MagX", "MagY", "MagZ"):
         raise InputError(f"{path}: {name} message without MagX/MagY/MagZ (fields: "
                          f"{', '.join(msgs.fields[name])}): unknown layout")
-    return _instance(msgs, name, instance), name
+    return rows_of(msgs, name, instance), name
 
 
 def _mag(msgs: _Messages, path: Path, meta: dict, instance: int) -> Stream:
@@ -292,7 +281,7 @@ def slow_streams(msgs: _Messages, path: Path, meta: dict, baro: bool) -> list[St
     if baro:
         out.append(_baro_temp(msgs, path, meta))
     out.append(_rcou(msgs, path, meta))
-    out += _battery(msgs, path, meta)
+    out += battery_streams(msgs, lambda rows, name: _time(rows, name, path), meta)
     out += dataflash_attitude(msgs, lambda name: _time(msgs, name, path), meta)
     if "throttle_source" not in meta:
         def time_of(name):
@@ -319,7 +308,7 @@ def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
     names = ("AccX", "AccY", "AccZ", "GyrX", "GyrY", "GyrZ")
     if not msgs.has("IMU", *names) or not msgs.count("IMU"):
         return None
-    msgs = _instance(msgs, "IMU")
+    msgs = rows_of(msgs, "IMU")
     cols = dict(zip(("ax", "ay", "az", "gx", "gy", "gz"), (msgs.array("IMU", c) for c in names)))
     if msgs.has("IMU", "Temp"):
         temp = msgs.array("IMU", "Temp")
@@ -332,7 +321,7 @@ def _imu(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
 def _baro_temp(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
     if not msgs.has("BARO", "Temp") or not msgs.count("BARO"):
         return None
-    msgs = _instance(msgs, "BARO")
+    msgs = rows_of(msgs, "BARO")
     meta["temp_source"] = ("BARO.Temp (the barometer's temperature, not the magnetometer's; "
                            "IMU logs no temperature)")
     return Stream("BARO", _time(msgs, "BARO", path), {"temp": msgs.array("BARO", "Temp")})
@@ -362,56 +351,6 @@ def _rcou(msgs: _Messages, path: Path, meta: dict) -> Stream | None:
     if dropped:
         meta["rcou_dropped"] = "; ".join(dropped)
     return Stream("RCOU", _time(msgs, "RCOU", path), cols) if cols else None
-
-
-def _battery(msgs: _Messages, path: Path, meta: dict) -> list[Stream]:
-    """CURR and BAT of battery 0 as ``battery_voltage_v``, ``battery_current_a`` (and CURR's
-    throttle), and every further battery (BAT rows with instance I ≥ 1, or BAT2) as
-    ``battery{k+1}_voltage_v``, ``battery{k+1}_current_a``: a current per battery, since each can
-    feed motors near a different compass."""
-    out = []
-    for name in ("CURR", "BAT"):
-        if msgs.count(name):
-            stream = _battery_stream(msgs, _instance(msgs, name), name, "battery", path, meta)
-            out += [stream] if stream is not None else []
-    if msgs.count("BAT") and msgs.has("BAT", "I"):
-        for k in sorted(int(i) for i in np.unique(msgs.array("BAT", "I")) if i >= 1):
-            stream = _battery_stream(msgs, _instance(msgs, "BAT", k), "BAT", f"battery{k + 1}",
-                                     path, meta)
-            out += [stream] if stream is not None else []
-    if msgs.count("BAT2"):
-        stream = _battery_stream(msgs, msgs, "BAT2", "battery2", path, meta)
-        out += [stream] if stream is not None else []
-    return out
-
-
-def _battery_stream(msgs: _Messages, msgs_i: _Messages, name: str, prefix: str, path: Path,
-                    meta: dict) -> Stream | None:
-    types = msgs_i.types.get(name, {})
-    cols = {}
-    for field_name, quantity in (("Volt", "voltage_v"), ("Curr", "current_a")):
-        if msgs_i.has(name, field_name):
-            scale = CENTI if types.get(field_name) in _INT_TYPES else 1.0
-            cols[f"{prefix}_{quantity}"] = msgs_i.array(name, field_name) * scale
-    if prefix == "battery":
-        for field_name in ("Throttle", "ThrOut"):
-            if msgs_i.has(name, field_name):
-                cols["throttle"] = msgs_i.array(name, field_name) / THROTTLE_FULL
-                meta["throttle_source"] = f"{name}.{field_name} / {THROTTLE_FULL:g} (0..1)"
-                break
-    if not cols or not len(next(iter(cols.values()))):
-        return None
-    constant = [k for k, v in cols.items() if np.all(v == v[0])]
-    for k in constant:
-        del cols[k]
-    if constant:
-        key = f"{name.lower()}_constant_dropped" if prefix == "battery" else \
-            f"{prefix}_constant_dropped"
-        meta[key] = ",".join(constant) + " (constant over the log: no sensor fitted or not logged)"
-    if "throttle" in constant:     # a constant throttle is no signal: let CTUN/RCOU try
-        meta.pop("throttle_source", None)
-    return Stream(name if prefix == "battery" else f"{name} {prefix}", _time(msgs_i, name, path),
-                  cols) if cols else None
 
 
 def read_dataflash(path, *, skip_bad_rows: bool = False, compass: int | None = None) -> Track:

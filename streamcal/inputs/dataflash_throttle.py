@@ -1,6 +1,7 @@
 """The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with, where CURR does not log
-it: ``CTUN.ThO`` (0..1, 3.4 on) or ``CTUN.ThrOut`` (0..1000), else the motor outputs of ``RCOU``
-normalised by the PWM range (see :mod:`.dataflash`).
+it: a copter's ``CTUN.ThO`` (0..1, 3.4 on) or ``CTUN.ThrOut`` (0..1000), a plane's ``CTUN.ThO``
+/ ``ThrOut`` and a rover's ``CTUN.ThrOut`` / ``THR.ThrOut`` (percent), else the motor outputs of
+``RCOU`` normalised by the PWM range (see :mod:`.dataflash`).
 
 Both take the parsed messages (``msgs.count``, ``msgs.has``, ``msgs.array``, ``msgs.params``) and
 ``time_of(name)`` → the message type's times (s); they return a ``throttle`` Stream (0..1) and
@@ -15,6 +16,9 @@ from .streams import Stream
 #: CURR.Throttle / ThrOut and CTUN.ThrOut run 0..1000 in the firmware versions that log them;
 #: CTUN.ThO runs 0..1.
 THROTTLE_FULL = 1000.0
+#: A plane's CTUN.ThO / ThrOut (SRV_Channels output scaled, −100..100) and a rover's CTUN.ThrOut
+#: (3.0–3.1) and THR.ThrOut (3.2 on) are in percent.
+PERCENT = 100.0
 #: ArduCopter's default motor PWM range (µs) when MOT_PWM_MIN/MAX are 0 or not logged.
 MOTOR_PWM_US = (1000.0, 2000.0)
 #: PWM outputs are 0 (off/unused) or roughly 800–2200 µs; above this is not PWM.
@@ -26,16 +30,32 @@ THROTTLE_FUNCTION = 70
 SERVO_PWM_US = (1100.0, 1900.0)
 
 
+def _throttle_fields(msgs) -> list[tuple[str, str, float, str]]:
+    """(message, field, full scale, whose) of the throttle each vehicle logs, in the order
+    tried: a plane's CTUN (its NavRoll field tells it; ThO or ThrOut, percent), a rover's CTUN
+    (Steer; ThrOut, percent), a copter's CTUN (ThO 0..1, ThrOut 0..1000), a rover's THR
+    (3.2 on; ThrOut, percent)."""
+    if msgs.has("CTUN", "NavRoll"):
+        ctun = [("CTUN", f, PERCENT, "a plane's") for f in ("ThO", "ThrOut")]
+    elif msgs.has("CTUN", "Steer"):
+        ctun = [("CTUN", "ThrOut", PERCENT, "a rover's")]
+    else:
+        ctun = [("CTUN", "ThO", 1.0, ""), ("CTUN", "ThrOut", THROTTLE_FULL, "")]
+    return ctun + [("THR", "ThrOut", PERCENT, "a rover's")]
+
+
 def ctun_throttle(msgs, time_of, meta: dict) -> Stream | None:
-    """CTUN.ThO (0..1, 3.4 on) or CTUN.ThrOut (0..1000): the motors' throttle."""
-    for field_name, full in (("ThO", 1.0), ("ThrOut", THROTTLE_FULL)):
-        if msgs.count("CTUN") and msgs.has("CTUN", field_name):
-            values = msgs.array("CTUN", field_name) / full
+    """The throttle of the vehicle's control message (:func:`_throttle_fields`), as 0..1
+    (a plane's or rover's reverse thrust negative)."""
+    for name, field_name, full, whose in _throttle_fields(msgs):
+        if msgs.count(name) and msgs.has(name, field_name):
+            values = msgs.array(name, field_name) / full
             if np.all(values == values[0]):
                 return None
-            meta["throttle_source"] = f"CTUN.{field_name}" + (
-                f" / {full:g}" if full != 1.0 else "") + " (0..1)"
-            return Stream("CTUN", time_of("CTUN"), {"throttle": values})
+            meta["throttle_source"] = f"{name}.{field_name}" + (
+                f" / {full:g}" if full != 1.0 else "") + " (0..1" + (
+                f"; {whose} throttle, logged in percent" if full == PERCENT else "") + ")"
+            return Stream(name, time_of(name), {"throttle": values})
     return None
 
 

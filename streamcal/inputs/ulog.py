@@ -10,6 +10,10 @@ most samples of that instance; ties go to the uncalibrated one:
 ``sensor_combined``   magnetometer_ga[0..2] (G)      older logs; calibrated by PX4's driver
 ===================== ============================= =========================================
 
+``sensor_mag`` of older PX4 (up to 1.11, the layout with ``x_raw``/``scaling``) was published by
+the driver already corrected ``(r − o) · scale`` per axis with CAL_MAGn_xOFF/xSCALE; the reader
+undoes that (``r = c / scale + o``) and says so in ``mag_driver_calibration_undone``.
+
 Gauss → µT is ×100. PX4 corrects ``c = R S (r − o)`` (``o`` = CAL_MAGn_XOFF.. in G, ``S`` the
 symmetric matrix of CAL_MAGn_XSCALE../XODIAG.., ``R`` the board/external rotation). For a
 calibrated topic the reader undoes ``S`` and ``o`` (``r = S⁻¹ c + o``) when ``R`` is the identity
@@ -19,8 +23,8 @@ non-zero the metadata says so.
 
 Also: ``sensor_combined`` accelerometer_m_s2 / gyro_rad → ``ax..az``, ``gx..gz``;
 ``actuator_outputs.output[i]`` → ``act_out{i}`` (outputs that never change are left out);
-``actuator_controls_0.control[3]`` → ``throttle`` (0..1, the signal of PX4's throttle-based
-compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
+``actuator_controls_0.control[3]`` (or, from 1.14, the length of ``vehicle_thrust_setpoint.xyz``)
+→ ``throttle`` (0..1, the signal of PX4's throttle-based compass compensation); ``battery_status`` current_a / voltage_v → ``battery_current_a``,
 ``battery_voltage_v`` (a second battery, instance 1: ``battery2_current_a``, …).
 Time is the ULog timestamp (µs), shifted so the log starts at 0 s.
 
@@ -122,15 +126,21 @@ def compass_instances(ulog) -> list[int]:
 
 def default_compass(ulog) -> int:
     """The magnetometer PX4 uses first: the ``sensor_mag`` instance whose CAL_MAGn_PRIO is the
-    highest (the lowest instance on ties), else 0."""
+    highest (the lowest instance on ties); in logs without CAL_MAGn_PRIO (PX4 up to 1.11) the
+    one whose device id is CAL_MAG_PRIME; else 0."""
     params = ulog.initial_parameters
+    prime = None if any(k.startswith("CAL_MAG") and k.endswith("_PRIO") for k in params) \
+        else params.get("CAL_MAG_PRIME")
     best = None
     for d in sorted((d for d in ulog.data_list if d.name == "sensor_mag"),
                     key=lambda d: d.multi_id):
         if "device_id" not in d.data or not len(d.data["device_id"]):
             continue
-        i = _cal_index(params, int(d.data["device_id"][0]))
+        device = int(d.data["device_id"][0])
+        i = _cal_index(params, device)
         prio = params.get(f"CAL_MAG{i}_PRIO", 0) if i is not None else 0
+        if prime:
+            prio = 1 if device == int(prime) else 0
         if best is None or prio > best[0]:
             best = (prio, d.multi_id)
     present = compass_instances(ulog)
@@ -182,6 +192,35 @@ def _undo_px4(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndar
     return raw
 
 
+#: Fields of ``sensor_mag`` as PX4's drivers published it while they applied the calibration
+#: themselves (``PX4Magnetometer`` up to 1.11): x, y, z are then ``(r − o) · scale`` per axis.
+DRIVER_CALIBRATED_FIELDS = ("x_raw", "scaling", "range_ga")
+
+
+def _driver_calibrated(d) -> bool:
+    """Whether ``sensor_mag`` data ``d`` carries the driver-calibrated layout."""
+    return any(f in d.data for f in DRIVER_CALIBRATED_FIELDS)
+
+
+def _undo_driver(mag_g: np.ndarray, params: dict, device_id, meta: dict) -> np.ndarray:
+    """``r = c / scale + o`` per axis: the driver's CAL_MAGn_xSCALE and xOFF undone (it applied
+    them in its own frame, the frame of ``c``, before any board rotation)."""
+    p = _cal_prefix(params, device_id, meta)
+    if p is None:
+        meta["mag_driver_calibration_undone"] = (
+            "could not: no CAL_MAGn_ID matches the magnetometer's device id; mx,my,mz carry "
+            "the driver's offsets and scales")
+        return mag_g
+    scale = np.array([params.get(f"{p}{a}SCALE", 1.0) or 1.0 for a in "XYZ"], dtype=float)
+    off = px4_offsets(params, p)
+    meta["mag_driver_calibration_undone"] = (
+        f"sensor_mag of this layout ({', '.join(DRIVER_CALIBRATED_FIELDS[:2])}) is the driver's "
+        f"(r - {p}XOFF..) * {p}XSCALE..: divided by the scales "
+        f"({','.join(f'{v:g}' for v in scale)}) and the offsets "
+        f"({','.join(f'{v:g}' for v in off)} G) added back")
+    return mag_g / scale + off
+
+
 def _mag(ulog, path: Path, meta: dict, instance: int) -> Stream:
     candidates = _mag_topics(ulog, instance)
     if not candidates:
@@ -207,6 +246,8 @@ def _mag(ulog, path: Path, meta: dict, instance: int) -> Stream:
     if device_id:
         meta["compass_device_id"] = str(device_id)
     params = ulog.initial_parameters
+    if not calibrated and _driver_calibrated(d):
+        mag_g = _undo_driver(mag_g, params, device_id, meta)
     if calibrated:
         # the strength PX4's corrected field has: the scale of its calibration (--cal log)
         meta["autopilot_field_uT"] = f"{np.median(np.linalg.norm(mag_g, axis=1)) * UT_PER_GAUSS:.4g}"
@@ -254,16 +295,25 @@ def _actuators(ulog, meta: dict) -> Stream | None:
 
 
 def _throttle(ulog, meta: dict) -> Stream | None:
-    """``actuator_controls_0.control[3]`` (0..1): the throttle PX4's CAL_MAG_COMP_TYP = 1
-    compensation scales with (``VehicleMagnetometer``), when logged and not constant."""
+    """The throttle PX4's CAL_MAG_COMP_TYP = 1 compensation scales with, when logged and not
+    constant: ``actuator_controls_0.control[3]`` (0..1), or, from PX4 1.14 (which dropped the
+    actuator_controls topics), the length of ``vehicle_thrust_setpoint.xyz`` (instance 0)."""
     d = _topic(ulog, "actuator_controls_0")
-    if d is None or "control[3]" not in d.data:
-        return None
-    values = d.data["control[3]"].astype(np.float64)
+    if d is not None and "control[3]" in d.data:
+        values, name = d.data["control[3]"].astype(np.float64), "actuator_controls_0"
+        source = "actuator_controls_0.control[3] (0..1)"
+    else:
+        d = _topic(ulog, "vehicle_thrust_setpoint", 0)
+        fields = [f"xyz[{i}]" for i in range(3)]
+        if d is None or not all(f in d.data for f in fields):
+            return None
+        values = np.linalg.norm(np.column_stack([d.data[f].astype(np.float64) for f in fields]),
+                                axis=1)
+        name, source = "vehicle_thrust_setpoint", "|vehicle_thrust_setpoint.xyz| (0..1)"
     if not np.all(np.isfinite(values)) or np.all(values == values[0]):
         return None
-    meta["throttle_source"] = "actuator_controls_0.control[3] (0..1)"
-    return Stream("actuator_controls_0", d.data["timestamp"] * 1e-6, {"throttle": values})
+    meta["throttle_source"] = source
+    return Stream(name, d.data["timestamp"] * 1e-6, {"throttle": values})
 
 
 def _battery(ulog, meta: dict) -> list[Stream]:
