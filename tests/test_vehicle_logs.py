@@ -240,8 +240,8 @@ def test_the_pairs_ardupilot_itself_compares(tmp_path, capsys):
 
 
 def test_second_compass_mounted_turned_exports_compass_orient2(tmp_path):
-    """Compass 1 mounted turned 90° in yaw while COMPASS_ORIENT2 says 0: ``fit --compass 1
-    --attitude`` finds YAW_90 and the export sets COMPASS_ORIENT2 2 (not COMPASS_ORIENT, the
+    """Compass 1 (external) mounted turned 90° in yaw while COMPASS_ORIENT2 says 0: ``fit
+    --compass 1 --attitude`` finds YAW_90 and the export sets COMPASS_ORIENT2 2 (not COMPASS_ORIENT, the
     first compass's) with COMPASS_OFS2 in the vehicle frame after that rotation: −10 · b."""
     from streamcal.inputs.mount_rotations import by_name
 
@@ -249,7 +249,9 @@ def test_second_compass_mounted_turned_exports_compass_orient2(tmp_path):
     compasses[1].mount = np.array(by_name("YAW_90").matrix)
     compasses[1].g = np.zeros(3)     # no motor field: the fit has no term for one
     log = tmp_path / "turned.bin"
-    write_vehicle_log(log, "copter4", compasses, seconds=120.0)
+    # external: ArduPilot ignores COMPASS_ORIENTn of an internal compass (the board's rotation)
+    write_vehicle_log(log, "copter4", compasses, seconds=120.0,
+                      extra_params={"COMPASS_EXTERN2": 1})
     cal, parm = tmp_path / "c1.json", tmp_path / "c1.parm"
     assert main(["fit", str(log), "--compass", "1", "--attitude", "-o", str(cal)]) == 0
     assert main(["export", str(cal), "--format", "ardupilot", "-o", str(parm)]) == 0

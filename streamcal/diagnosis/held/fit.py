@@ -113,8 +113,7 @@ def choose_free(names: Sequence[str], K, b, m, cov, terms, sigma: float,
     _, x, _, normal, D = project(K, b, terms, m, cov)
     A = jacobian(list(names), [], x, normal, D, cov, x @ np.asarray(K).T, K)
     if reference is not None:
-        from .reference_rows import information_rows
-        A = np.vstack([A, information_rows(reference, names, K, b, terms, m, cov, sigma)])
+        A = np.vstack([A, reference.information_rows(names, K, b, terms, m, cov, sigma)])
     free = list(names)
     errors = {}
     while free:
@@ -144,9 +143,8 @@ def radius_free(free: Sequence[str], K, b, m, cov, terms, sigma: float,
     _, x, _, normal, D = project(K, b, terms, m, cov)
     A = jacobian([*free, RADIUS], [], x, normal, D, cov, x @ np.asarray(K).T, K)
     if reference is not None:
-        from .reference_rows import information_rows
-        A = np.vstack([A, information_rows(reference, [*free, RADIUS], K, b, terms, m, cov,
-                                           sigma)])
+        A = np.vstack([A, reference.information_rows([*free, RADIUS], K, b, terms, m, cov,
+                                                     sigma)])
     err = predicted_errors(A, sigma)
     before = predicted_errors(A[:, :-1], sigma)
     ok = err[-1] <= tolerance and all(e <= max(tolerance, e0) for e, e0 in zip(err, before))
@@ -216,8 +214,7 @@ def held_fit(m: np.ndarray, cov: Mapping[str, np.ndarray], K0, b0, free: Sequenc
 
     joint = None
     if reference is not None:
-        from .reference_rows import JointBlock
-        joint = JointBlock(reference, m, cov, tau, len(held_terms), K0)
+        joint = reference.joint_block(m, cov, tau, len(held_terms), K0)
 
     def cost(s_):
         return float(np.sum(np.log1p((s_ / tau) ** 2)))

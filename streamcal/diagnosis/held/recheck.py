@@ -74,9 +74,8 @@ def check(fit: HeldFit, free: Sequence[str], m, cov, held_terms, noise: float, t
     _, x, _, normal, D = project(fit.K, fit.b, list(held_terms), m, cov)
     A = jacobian(list(free), [], x, normal, D, cov, x @ fit.K.T, fit.K)
     if reference is not None:
-        from .reference_rows import information_rows
-        A = np.vstack([A, information_rows(reference, free, fit.K, fit.b, list(held_terms), m,
-                                           cov, max(noise, fit.sigma))])
+        A = np.vstack([A, reference.information_rows(free, fit.K, fit.b, list(held_terms), m,
+                                                     cov, max(noise, fit.sigma))])
     predicted = predicted_errors(A, max(noise, fit.sigma))
     out = {}
     for name, pred in zip(free, predicted):

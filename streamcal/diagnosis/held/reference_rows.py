@@ -92,6 +92,15 @@ class ReferenceRows:
         ok[ok] = rows[pos[ok]] == self.index[ok]
         return replace(self, index=pos[ok], body=self.body[ok])
 
+    def information_rows(self, names, K, b, terms, m, cov, sigma: float) -> np.ndarray:
+        """:func:`information_rows` of this reference."""
+        return information_rows(self, names, K, b, terms, m, cov, sigma)
+
+    def joint_block(self, m, cov, tau: float, n_held: int, K_base=None) -> "JointBlock":
+        """This reference's :class:`JointBlock` in a held fit of ``m`` (magnitude width
+        ``tau``, ``n_held`` held effect terms first, ``K_base`` the K its radius scales)."""
+        return JointBlock(self, m, cov, tau, n_held, K_base)
+
     def describe(self) -> dict:
         """What a calibration file and ``diagnose --json`` say of the reference used."""
         return {"samples": int(len(self.index)),
