@@ -123,3 +123,14 @@ def test_planar_part_of_a_circle(ref, turns):
 
         with pytest.raises(InsufficientDataError, match="half a circle"):
             fit_planar(track, ref)
+
+
+def test_known_heading_refuses_samples_at_many_headings(ref):
+    """A flight turns through every heading: its still moments are not at the heading given,
+    and offsets from them would fit none (refused, saying what to do instead)."""
+    from streamcal.errors import InsufficientDataError
+
+    track, _ = simulated_log("flight", duration_s=120, b_body=B_TRUE, seed=3)
+    with pytest.raises(InsufficientDataError, match="not at one heading.*--planar.*--attitude"):
+        fit_heading(track, 90.0, ref)
+

@@ -195,3 +195,45 @@ def test_a_ladder_on_two_residuals_keeps_the_inliers_of_its_last_model_on_each()
                                  lambda c: c.effect != "time_lag")
     assert [s.get("added") for s in steps] == [None, "temperature_offset"]
     assert [c.effect for c in shown] == ["temperature_offset"]
+
+
+def test_a_step_unsupported_on_the_ladders_samples_is_tried_later_not_dropped_with_the_rest():
+    """Effect A (a drift) is ranked first on the samples the model with it keeps; effect B (a
+    motor field) makes the last model keep the high-throttle samples, where A's step alone is
+    lost in the motor field. Told in the order A, B the first step fails and the whole ladder
+    would end at the base; climbed again with A barred from the first step, B then A are each
+    supported on the same samples."""
+    from streamcal.diagnosis import story
+    from streamcal.diagnosis.candidates import Candidate
+
+    n = 400
+    motor = np.zeros(n, bool)
+    motor[300:] = True
+    base = _ev(np.where(motor, 10.0, 1.0), ~motor, 9)
+    with_a = _ev(np.where(motor, 10.0, 0.5), ~motor, 12)
+    with_b = _ev(np.where(motor, 1.0, 1.0), np.ones(n, bool), 12)
+    with_both = _ev(np.full(n, 0.5), np.ones(n, bool), 15)
+
+    def candidate(effect, evaluated, reference):
+        return Candidate(effect, 0.0, 0.0, "", 3, True, None, _evaluated=evaluated,
+                         _reference=reference)
+
+    ranked = [candidate("A", with_a, base), candidate("B", with_b, base)]
+
+    def rank_after(added, rest):     # the other effect on top of the one added
+        return [candidate(name, with_both, added[-1]._evaluated) for name in rest]
+
+    def judge(c):
+        return c.rms_after < 0.9 * c.rms_before
+
+    plain = story.climb(ranked, rank_after, max_steps=3)
+    assert [c.effect for c in plain] == ["A", "B"]
+    steps, _, _ = story.tell(("hard_iron",), base, lambda ev: "sensor", plain, ranked, judge)
+    assert len(steps) == 1                      # told as climbed: nothing left
+    added = story.climb_supported(ranked, rank_after, max_steps=3, model=("hard_iron",),
+                                  base=base, residual_of=lambda ev: "sensor", judge=judge)
+    assert [c.effect for c in added] == ["B", "A"]
+    steps, shown, _ = story.tell(("hard_iron",), base, lambda ev: "sensor", added, ranked,
+                                 judge)
+    assert [s.get("added") for s in steps] == [None, "B", "A"]
+    assert [s["n"] for s in steps] == [n] * 3 and steps[2]["rms"] == pytest.approx(0.5)

@@ -123,12 +123,15 @@ def diagnose_against(track, calibration: Calibration | None = None, *,
                                                       idx)
         return _rank(start, ref_r, rest, floor, idx)
 
-    added = story.climb(ranked, rank_after, max_steps=LADDER_STEPS if ladder else 0,
-                        on_every_sample=on_every_sample)
-    steps, added, ranked = story.tell(
-        start.model, base, lambda ev: "sensor", added, ranked,
-        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor)
-        and not c.implausible)
+    def judge(c):
+        return cand.is_significant(c.rms_before, c.rms_after, c.p_value, floor) \
+            and not c.implausible
+
+    added = story.climb_supported(ranked, rank_after, max_steps=LADDER_STEPS if ladder else 0,
+                                  model=start.model, base=base, residual_of=lambda ev: "sensor",
+                                  judge=judge, on_every_sample=on_every_sample)
+    steps, added, ranked = story.tell(start.model, base, lambda ev: "sensor", added, ranked,
+                                      judge)
     verdict = verdict_mod.decide(steps[0]["rms"], "sensor", nf.floor, reliable, ranked)
     misfit = misfit_mod.localise(base.r, base.inliers, t, m - np.asarray(base.cal.b, float), cov,
                                  start.gyro)

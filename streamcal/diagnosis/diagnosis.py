@@ -376,14 +376,19 @@ def diagnose(track, model: Sequence[str] = DEFAULT_MODEL, *, calibration=None,
     def rank_after(added, rest):
         return _rank(ctx, added[-1]._evaluated, (*model, *(c.effect for c in added)), rest)
 
-    added = story.climb(ranked, rank_after, max_steps=LADDER_STEPS if ladder else 0)
+    def judge(c):
+        return cand.is_significant(c.rms_before, c.rms_after, c.p_value,
+                                   ctx.floor_for(c.residual))
+
+    def residual_of(ev):
+        return RESIDUAL_OF_KIND[ev.kind]
+
+    added = story.climb_supported(ranked, rank_after, max_steps=LADDER_STEPS if ladder else 0,
+                                  model=model, base=base, residual_of=residual_of, judge=judge)
     spans = [(c._evaluated, (*model, *(a.effect for a in added[:k + 1])))
              for k, c in enumerate(added) if not c._evaluated.tied]
     spans_from, spans_model = spans[-1] if spans else (base, tuple(model))
-    steps, added, ranked = story.tell(
-        model, base, lambda ev: RESIDUAL_OF_KIND[ev.kind], added, ranked,
-        lambda c: cand.is_significant(c.rms_before, c.rms_after, c.p_value,
-                                      ctx.floor_for(c.residual)))
+    steps, added, ranked = story.tell(model, base, residual_of, added, ranked, judge)
     judged = ctx.floor_for(residual)   # the floor of the residual the rms is on
     verdict = verdict_mod.decide(steps[0]["rms"], residual, judged, bool(np.isfinite(judged)),
                                  ranked)

@@ -93,23 +93,55 @@ def ladder(model, base, residual_of, added) -> tuple[list[dict], list]:
 
 
 def climb(ranked: list, rank_after: Callable, *, max_steps: int,
-          on_every_sample: Callable | None = None) -> list:
+          on_every_sample: Callable | None = None, barred: dict | None = None) -> list:
     """The candidates the ladder adds, in order — the one loop of every starting point: while
     the best of a ranking is significant (and, when ``on_every_sample(candidate, added so far)``
     refits it on every sample, still is), add it and rank the rest on top of the model reached
     with ``rank_after(added so far, effect names)``, at most ``max_steps`` times. Effects that explained
     nothing significant alone (p ≥ :data:`~streamcal.diagnosis.candidates.P_VALUE`) are not
-    retried."""
+    retried. ``barred``: {step index: effect names not taken at that step} (they may be
+    taken at a later one)."""
+    barred = barred or {}
     added, current = [], ranked
-    while current and current[0].significant and len(added) < max_steps:
-        top = current[0]
+    while current and len(added) < max_steps:
+        skip = barred.get(len(added), ())
+        top = next((c for c in current if c.significant and c.effect not in skip), None)
+        if top is None:
+            break
         if on_every_sample is not None:
             top = on_every_sample(top, added)
             if not top.significant:
                 break
         added.append(top)
-        rest = [c.effect for c in current[1:] if c.p_value < cand.P_VALUE]
+        rest = [c.effect for c in current if c.effect != top.effect and c.p_value < cand.P_VALUE]
         current = rank_after(added, rest) if rest else []
+    return added
+
+
+#: How many times :func:`climb_supported` climbs again with an unsupported step barred.
+RECLIMBS = 6
+
+
+def climb_supported(ranked: list, rank_after: Callable, *, max_steps: int, model, base,
+                    residual_of: Callable, judge: Callable,
+                    on_every_sample: Callable | None = None) -> list:
+    """:func:`climb`, then, while a step of the ladder its climb gives is not supported by the
+    ladder's own numbers (``judge`` on the candidates of :func:`ladder`, as :func:`tell`
+    judges them), climb again with that effect barred from that step (at most
+    :data:`RECLIMBS` times). Why: each step is ranked on the samples of the model it
+    extends, the ladder is told on those of its last model; an effect ranked first on fewer
+    samples (a temperature drift, before the motor field that the last model's samples hold)
+    can fail there while the same effects added in another order are each supported."""
+    barred: dict[int, set] = {}
+    added = climb(ranked, rank_after, max_steps=max_steps, on_every_sample=on_every_sample)
+    for _ in range(RECLIMBS):
+        _, shown = ladder(model, base, residual_of, added)
+        failed = next((k for k, c in enumerate(shown) if not judge(c)), None)
+        if failed is None:
+            break
+        barred.setdefault(failed, set()).add(added[failed].effect)
+        added = climb(ranked, rank_after, max_steps=max_steps, on_every_sample=on_every_sample,
+                      barred=barred)
     return added
 
 

@@ -41,6 +41,10 @@ VERTICAL_IRON = ("A33", "A13", "A23")
 CHI2_2_MEDIAN, CHI2_2_INLIER = 1.3863, 13.816
 #: Fewest magnetometer samples with an accelerometer sample for either fit.
 MIN_SAMPLES = 10
+#: ``--heading`` refuses still samples whose calibrated field points over more than this many
+#: degrees of heading (5th to 95th percentile): they were not taken at one heading (noise
+#: 0.4 µT on a 20 µT horizontal field spreads them by about 4°).
+MAX_HEADING_SPREAD_DEG = 30.0
 
 
 def _mag_and_down(track, still: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -93,6 +97,7 @@ def fit_heading(track, heading_deg: float, ref: dict, initial: Calibration | Non
     r = m - e @ A.T
     b = np.median(r, axis=0)
     resid = np.linalg.norm(r - b, axis=1)
+    _one_heading(m, b, A, down)
     spread = float(np.degrees(np.ptp(np.arctan2(down[:, 1], down[:, 2]))))
     fit = ReferenceFit(rotation=mount_rotations()[0], A=A, b=b, weights=np.ones(len(m)),
                        rms=float(np.sqrt(np.mean(resid ** 2))), inliers=np.ones(len(m), bool))
@@ -109,6 +114,24 @@ def fit_heading(track, heading_deg: float, ref: dict, initial: Calibration | Non
     extra["known_heading"] = {"heading_deg": heading_deg, "declination_deg": ref["declination_deg"],
                               "roll_span_deg": round(spread, 3), "reference": ref["source"]}
     return cal.replace(method="known_heading", kernel=None, extra=extra)
+
+
+def _one_heading(m: np.ndarray, b: np.ndarray, A: np.ndarray, down: np.ndarray) -> None:
+    """Refuse (InsufficientDataError) when the still samples ``m`` (M,3), corrected with ``b``
+    and ``A`` and levelled with ``down`` (M,3), point over more than
+    :data:`MAX_HEADING_SPREAD_DEG` of heading: a vehicle that turned between its still moments
+    (a flight, a drive) gives offsets that fit no heading."""
+    level = tilt_rotation(down, 0.0).apply(np.linalg.solve(A, (m - b).T).T)
+    angle = np.arctan2(level[:, 1], level[:, 0])
+    centre = np.angle(np.mean(np.exp(1j * angle)))
+    turn = np.degrees(np.angle(np.exp(1j * (angle - centre))))
+    spread = float(np.percentile(turn, 95) - np.percentile(turn, 5))
+    if spread > MAX_HEADING_SPREAD_DEG:
+        raise InsufficientDataError(
+            f"--heading: the {len(m)} still samples point over {spread:.0f}° of heading (5th to "
+            f"95th percentile; at most {MAX_HEADING_SPREAD_DEG:g}°), not at one heading: record "
+            "a few still seconds at the known heading, or use --planar (a vehicle turning in "
+            "the plane) or --attitude (a log with attitude and GPS)")
 
 
 def heading_arc_deg(yaw_deg) -> float:
