@@ -2,8 +2,6 @@
 (streamcal.diagnosis.held.reference_rows): where a log has an attitude and a place, a refinement
 no longer turns the heading the magnitude cannot see; without them nothing changes."""
 import json
-import subprocess
-import sys
 
 import numpy as np
 
@@ -14,6 +12,8 @@ from streamcal.fitting.attitude_reference import fit_attitude_reference
 from streamcal.fitting.entries import shifted
 from streamcal.fitting.heading_check import heading_check
 from streamcal.sim.flight import simulated_log
+
+from .test_heading_check import _run
 
 S_TRUE = np.array([[1.05, 0.03, -0.02], [0.03, 0.97, 0.04], [-0.02, 0.04, 1.02]])
 B_TRUE = np.array([12.0, -7.0, 20.0])
@@ -102,13 +102,6 @@ def test_a_mounting_the_calibration_does_not_describe_is_not_used():
                                   .tolist()})
     rows, why = reference_rows(track, turned)
     assert rows is None and "points" in why
-
-
-def _run(*argv):
-    run = subprocess.run([sys.executable, "-m", "streamcal", *argv], capture_output=True,
-                         text=True, timeout=600)
-    assert run.returncode == 0, run.stderr
-    return run
 
 
 def test_a_place_given_on_the_command_line_is_in_the_pasted_command(tmp_path):
