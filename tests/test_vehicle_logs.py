@@ -319,3 +319,24 @@ def test_compass_scale_in_force_is_reset_with_the_matrix(tmp_path):
     field = apply_ardupilot(first, 10.0 * np.asarray(track.mag), current)
     strength = np.median(np.linalg.norm(field, axis=1)) / 10.0
     assert strength == pytest.approx(Calibration.load(cal).field, rel=0.01)
+
+
+@pytest.mark.parametrize("external", [1, 0])
+def test_the_text_says_which_parameter_to_set_for_a_turned_compass(tmp_path, capsys, external):
+    """``diagnose --compass 1`` of a compass mounted YAW_90 where COMPASS_ORIENT2 says 0 names
+    what to set: COMPASS_ORIENT2 2 for an external compass; for an internal one the board's
+    AHRS_ORIENTATION, said to turn the IMU too."""
+    from streamcal.inputs.mount_rotations import by_name
+
+    compasses = _compasses(2)
+    compasses[1].mount = np.array(by_name("YAW_90").matrix)
+    compasses[1].g = np.zeros(3)
+    log = tmp_path / "turned.bin"
+    write_vehicle_log(log, "copter4", compasses, seconds=120.0,
+                      extra_params={"COMPASS_EXTERN2": external})
+    assert main(["diagnose", str(log), "--compass", "1", "--cal", "log"]) == 0
+    out = capsys.readouterr().out
+    if external:
+        assert "set COMPASS_ORIENT2 2 (now 0;" in out
+    else:
+        assert "set AHRS_ORIENTATION 2 (now 0; the board's rotation" in out

@@ -57,6 +57,16 @@ def attitude_lines(out: dict) -> list[str]:
     if o:
         lines.append(f"mounting   {o.get('name')} (ArduPilot {o.get('ardupilot')}, PX4 "
                      f"{o.get('px4')})")
+        chosen, configured = o.get("set") or {}, o.get("configured") or {}
+        if chosen.get("param") and chosen.get("value") is not None \
+                and chosen["value"] != configured.get("value"):
+            from ..inputs.autopilot_cal import BOARD_ROTATION
+
+            how = ("the board's rotation: it turns the accelerometer and gyro too, so only if "
+                   "the whole board is mounted so" if chosen["param"] in BOARD_ROTATION.values()
+                   else "`streamcal fit … --attitude` then `export` write it")
+            lines.append(f"           set {chosen['param']} {chosen['value']} (now "
+                         f"{configured.get('value')}; {how})")
     return lines
 
 
