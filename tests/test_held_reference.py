@@ -146,3 +146,19 @@ def test_candidates_ranked_on_a_subsample_use_the_reference_there():
     # the base is fitted on every sample either way: the same held fit
     assert sub.held.estimated == whole.held.estimated
     assert {c.effect for c in sub.candidates} == {c.effect for c in whole.candidates}
+
+
+def test_the_report_says_the_held_fit_used_the_attitude():
+    """The report's held section says the held fits also fitted the direction against the
+    attitude reference (samples, width, caveat) — and says nothing of it when they did not."""
+    from streamcal.report.held_table import held_section
+
+    track, _, given = _level_flight()
+    joint = diagnose_against(track, given, ladder=False)
+    page = held_section(joint, "µT")
+    used = joint.held.attitude_reference
+    assert used and f"against the attitude reference ({used['samples']} samples" in page
+    assert "steered by the compass" in page
+    alone = diagnose_against(track, given, ladder=False, attitude=False)
+    assert not alone.held.attitude_reference
+    assert "attitude reference" not in held_section(alone, "µT")

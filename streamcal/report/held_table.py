@@ -42,6 +42,11 @@ def held_section(d, unit: str) -> str:
                                              "predicted σ (Cramér–Rao)", "unit"))
     body = "".join("<tr>" + "".join(f"<td>{c}</td>" for c in r) + "</tr>" for r in rows)
     n_r = h.n_ranked or d.n
+    used = h.attitude_reference
+    joint = (f" Every held fit here also fitted the field's direction against the attitude "
+             f"reference ({used['samples']} samples, width {used['width_deg']:.2g}°), beside its "
+             f"size; the field errors shown are the size's. Caveat: {e(str(used['caveat']))}"
+             if used else "")
     ranked = (f" The candidate refits used {n_r} of the {d.n} samples (every cell of direction "
               f"× stretch of time kept); the model's rms and these parameters use all {d.n}."
               if n_r < d.n else "")
@@ -52,7 +57,7 @@ def held_section(d, unit: str) -> str:
             f"calibration's value. After the fit the rule is checked again at the fitted point "
             f"(σ within the tolerance, value within its plausible range ± 3 σ); the worst "
             f"failing parameter is held and the fit repeated ({len(after)} held so)."
-            f"{_status(d)}{ranked}</p>"
+            f"{_status(d)}{ranked}{joint}</p>"
             f'<table id="held-parameters"><thead><tr>{head}</tr></thead><tbody>{body}</tbody>'
             f"</table>")
 
