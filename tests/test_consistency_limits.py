@@ -19,6 +19,9 @@ from ._vehicle_logs import Compass, soft_iron, write_vehicle_log
     ("APM:Copter V3.4.6 (abc)", OLD_LIMITS, "Copter 3.4, before the limits were relaxed in "
                                             "Copter 3.5"),
     ("APM:Copter V3.5.0", LIMITS, "Copter 3.5: the limits since Copter 3.5"),
+    ("ArduCopter V3.2.1", OLD_LIMITS, "Copter 3.2, before the limits were relaxed in Copter "
+                                      "3.5; the oldest limits known, assumed: this firmware's "
+                                      "own check is not established"),
     ("ArduPlane V3.7.1 (x)", OLD_LIMITS, "Plane 3.7, before the limits were relaxed in Plane 3.8"),
     ("ArduPlane V3.8.0", LIMITS, "Plane 3.8: the limits since Plane 3.8"),
     ("APM:Rover v3.1.2", OLD_LIMITS, "Rover 3.1, before the limits were relaxed in Rover 3.2"),

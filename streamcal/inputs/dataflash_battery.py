@@ -3,8 +3,8 @@ instance of a message type.
 
 Battery 0 is ``CURR`` (older layouts; centivolts and centiamps when its fields are integers, and
 its ``Throttle``/``ThrOut``: 0..1000, a plane's pilot input in percent,
-:func:`~.dataflash_throttle.curr_throttle`) or the rows of ``BAT`` whose instance field is 0; battery
-``k`` ≥ 1 is the rows of ``BAT`` with instance ``k`` (4.0 on), ``BAT2`` (3.6) or ``CUR2``
+:func:`~.dataflash_throttle.curr_throttle`) or the rows of ``BAT`` whose instance field is 0;
+battery ``k`` ≥ 1 is the rows of ``BAT`` with instance ``k`` (4.0 on), ``BAT2`` (3.6) or ``CUR2``
 (Copter 3.4–3.5). Each becomes ``battery_…`` / ``battery{k+1}_…`` ``voltage_v`` and
 ``current_a`` columns: a current per battery, since each can feed motors near a different
 compass. A column constant over the log (no sensor fitted) or NaN throughout (ArduPilot's BAT of
