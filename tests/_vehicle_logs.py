@@ -14,6 +14,8 @@ copter36  MAG, MAG2, MAG3; BAT, BAT2 (no instance)     CTUN.ThO (0..1)
 copter34  MAG, MAG2, MAG3; CURR, CUR2 (floats)         CTUN.ThO (0..1)
 copter33  MAG, MAG2, MAG3; CURR (centi-units, TimeMS)  CURR.Throttle (0..1000)
 plane4    MAG with ``I``; BAT with ``Inst``            CTUN.ThO (percent, −100..100)
+plane32   MAG, MAG2; CURR (centi-units)                CTUN.ThrOut (int16 percent); CURR.Throttle
+                                                       the pilot's input (percent)
 plane3    MAG, MAG2; BAT                               CTUN.ThrOut (int16 percent)
 rover3    MAG, MAG2; BAT                               CTUN.ThrOut (int16 percent; Steer, no ThO)
 rover4    MAG with ``I``; BAT with ``Inst``            THR.ThrOut (percent; no CTUN)
@@ -26,7 +28,9 @@ current (A). The parameters in force are COMPASS_OFS{n}, DIA{n}/ODI{n}, MOT{n} w
 COMPASS_MOTCT 2 (``cal``: exact unless told otherwise; a COMPASS_SCALEn among the extra
 parameters multiplies ``S``), and the firmware logs
 ``MagX = S (r + o) + MOfs`` (or ``S (r + o + MOfs)`` before Copter 3.6 / Plane 3.9 / Rover 3.3)
-with ``MOfs = MOT · i``.
+with ``MOfs = MOT · i``. Like ``copter33``, ``plane32`` keeps TimeUS where its firmware logged
+TimeMS, and its CURR.Throttle is the pilot's throttle input (ArduPlane 3.0–3.2 logged
+``channel_throttle->control_in``, 0–100 %), here ``Flight.throttle_in``, not the output.
 """
 from __future__ import annotations
 
@@ -90,6 +94,11 @@ VEHICLES = {
                "BAT": _BAT_INST, "CTUN": ("QccccffffBffi", "TimeUS,NavRoll,Roll,NavPitch,Pitch,"
                                                             "ThO,RdO,ThD,As,AsT,SAs,E2T,GU")},
                "I", "Inst", ("CTUN", "ThO", 100.0)),
+    "plane32": ("ArduPlane V3.2.3 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
+                "GPS": _GPS_OLD, "IMU": _IMU_OLD,
+                "CURR": ("Qhhhhf", "TimeUS,Throttle,Volt,Curr,Vcc,CurrTot"),
+                "CTUN": ("Qcccchhf", "TimeUS,NavRoll,Roll,NavPitch,Pitch,ThrOut,RdrOut,AccY")},
+                "names", None, ("CTUN", "ThrOut", 100.0)),
     "plane3": ("ArduPlane V3.9.11 (self-made)", {"MAG": _MAG_OLD, "MAG2": _MAG_OLD,
                "GPS": _GPS_OLD, "IMU": _IMU_OLD, "BAT": _BAT_OLD,
                "CTUN": ("Qccccchhf", "TimeUS,NavRoll,Roll,NavPitch,Pitch,ThrOut,RdrOut,ThrDem,"
@@ -162,6 +171,8 @@ class Flight:
     compasses: list
     b_ned: np.ndarray
     vehicle: str = ""
+    #: (n,) 0..1: the pilot's throttle input (plane32's CURR.Throttle), unlike ``throttle``
+    throttle_in: np.ndarray | None = None
 
 
 def flight_profile(seconds: float, seed: int, rate_hz: float = 10.0, tilt_deg: float = 25.0):
@@ -229,7 +240,9 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
     params.update(extra_params or {})
     for name, value in params.items():
         msg("PARM", us0, name, float(value))
-    before = vehicle in ("copter33", "copter34", "rover3")   # Copter < 3.6, Rover < 3.3
+    before = vehicle in ("copter33", "copter34", "rover3", "plane32")   # Copter < 3.6,
+    # Rover < 3.3, Plane < 3.9
+    throttle_in = np.clip(0.8 * throttle + 0.15, 0.0, 1.0)
     logged = {}
     for k, c in enumerate(compasses):
         S, ofs, mot = c.params()
@@ -271,6 +284,8 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
             msg("CURR", us, volt, current[i], 0)
             if two_batteries:
                 msg("CUR2", us, second_volts(ti), current2[i], 0)
+        elif "CURR" in layouts and vehicle == "plane32":
+            msg("CURR", us, throttle_in[i] * 100, volt * 100, current[i] * 100, 5000, 0)
         elif "CURR" in layouts:
             msg("CURR", us, throttle[i] * 1000, volt * 100, current[i] * 100, 5000, 0, 0, 0)
         thr_values = {name: 0 for name in layouts[thr_msg][1].split(",")}
@@ -289,7 +304,8 @@ def write_vehicle_log(path, vehicle: str, compasses: list[Compass], *, seconds: 
                 *([0, 1] if mag_kind == "I" else [1]))
     with open(path, "wb") as fh:
         fh.write(b"".join(out))
-    return Flight(t, current, current2, throttle, e, logged, accel, compasses, b_ned, vehicle)
+    return Flight(t, current, current2, throttle, e, logged, accel, compasses, b_ned, vehicle,
+                  throttle_in)
 
 
 def soft_iron(seed: int, size: float = 0.05) -> np.ndarray:

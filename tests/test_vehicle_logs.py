@@ -47,6 +47,7 @@ def test_each_battery_is_its_own_channel(vehicle, tmp_path):
     ("copter4", "CTUN.ThO (0..1)"), ("copter33", "CURR.Throttle / 1000 (0..1)"),
     ("plane4", "CTUN.ThO / 100 (0..1; a plane's throttle, logged in percent)"),
     ("plane3", "CTUN.ThrOut / 100 (0..1; a plane's throttle, logged in percent)"),
+    ("plane32", "CTUN.ThrOut / 100 (0..1; a plane's throttle, logged in percent)"),
     ("rover3", "CTUN.ThrOut / 100 (0..1; a rover's throttle, logged in percent)"),
     ("rover4", "THR.ThrOut / 100 (0..1; a rover's throttle, logged in percent)")])
 def test_throttle_in_each_vehicles_units(vehicle, source, tmp_path):
@@ -59,6 +60,33 @@ def test_throttle_in_each_vehicles_units(vehicle, source, tmp_path):
     assert track.metadata["throttle_source"] == source
     # logged as float, int16 percent (0.01 steps) or int16 per mille (0.001 steps)
     np.testing.assert_allclose(_column(track, "throttle"), truth.throttle, atol=0.0051)
+
+
+def test_plane_curr_throttle_is_the_pilots_input_in_percent(tmp_path):
+    """ArduPlane 3.0–3.2 logged CURR.Throttle = channel_throttle->control_in (0–100 %, the
+    pilot's input): beside CTUN.ThrOut (the output) it is not the throttle; a plane log whose
+    CTUN has no throttle reads it as percent (/100, not /1000) and says it is the input."""
+    path = tmp_path / "plane32.bin"
+    truth = write_vehicle_log(path, "plane32", _compasses(2), seconds=30.0)
+    track = read_recording(path)
+    assert track.metadata["curr_throttle_ignored"].startswith("CURR.Throttle: a plane's pilot")
+    np.testing.assert_allclose(_column(track, "throttle"), truth.throttle, atol=0.0051)
+    assert np.max(np.abs(truth.throttle_in - truth.throttle)) > 0.1
+    # the same log without CTUN's throttle fields: CURR.Throttle, percent, the pilot's input
+    import tests._vehicle_logs as vl
+
+    layouts = dict(vl.VEHICLES["plane32"][1])
+    layouts["CTUN"] = ("Qcccchf", "TimeUS,NavRoll,Roll,NavPitch,Pitch,RdrOut,AccY")
+    saved = vl.VEHICLES["plane32"]
+    vl.VEHICLES["plane32"] = (saved[0], layouts, *saved[2:4], ("CTUN", "RdrOut", 100.0))
+    try:
+        write_vehicle_log(path, "plane32", _compasses(2), seconds=30.0)
+    finally:
+        vl.VEHICLES["plane32"] = saved
+    track = read_recording(path)
+    assert track.metadata["throttle_source"].startswith("CURR.Throttle / 100 (0..1; a plane's "
+                                                         "pilot throttle input")
+    np.testing.assert_allclose(_column(track, "throttle"), truth.throttle_in, atol=0.0051)
 
 
 def _pymavlink_rows(path, name, fields):
@@ -206,7 +234,7 @@ def test_a_calibration_file_is_applied_to_the_compass_it_was_fitted_for(tmp_path
     assert runs[("--compass", "0")][0]["ladder"][0]["rms"] > 5 * given["ladder"][0]["rms"]
 
 
-@pytest.mark.parametrize("vehicle", ["copter4", "copter34", "plane3", "rover4"])
+@pytest.mark.parametrize("vehicle", ["copter4", "copter34", "plane3", "plane32", "rover4"])
 def test_read_in_pieces_equals_read_whole(vehicle, tmp_path):
     """The bounded-memory reader of long logs gives the whole-log Track on every layout here
     (second batteries, each vehicle's throttle), compass 1."""

@@ -57,15 +57,27 @@ def _consistency(entries: list[dict]) -> list:
     streamcal's (the diagnosed compasses)."""
     from ..diagnosis.compass_consistency import compare_all, compass_field
 
+    limits = consistency_limits(entries)
     pairs = []
     for label, get in (("autopilot", lambda e: e["autopilot_cal"]),
                        ("streamcal", lambda e: getattr(e["diagnosis"], "calibration", None))):
         fields = [compass_field(e["track"], get(e), e["instance"],
                                 float(e["track"].metadata.get("log_t0_s", 0.0)))
                   for e in entries if get(e) is not None]
-        pairs += compare_all(fields, label)
+        pairs += compare_all(fields, label, limits)
     _mark_ardupilot_checks(entries, pairs)
     return pairs
+
+
+def consistency_limits(entries: list[dict]):
+    """The consistency limits of the log's firmware (:func:`~streamcal.diagnosis.
+    compass_consistency.limits_for`, from the first compass's metadata)."""
+    from ..diagnosis.compass_consistency import CURRENT, limits_for
+
+    if not entries:
+        return CURRENT
+    md = entries[0]["track"].metadata
+    return limits_for(md.get("firmware"), md.get("input_format"))
 
 
 def _mark_ardupilot_checks(entries: list[dict], pairs: list) -> None:
@@ -126,14 +138,12 @@ def _pair_line(p: dict) -> str:
             f"{f(p['xy_angle_deg_p95']):>10} {f(p['fraction_inconsistent']):>12}   {p['n']}")
 
 
-def _table(pairs: list[dict]) -> str:
-    from ..diagnosis.compass_consistency import LIMITS_TEXT
-
+def _table(pairs: list[dict], limits) -> str:
     table = ["consistency (angles in degrees between calibrated field vectors; horizontal: "
              + (pairs[0]["xy_plane"] if pairs else "-") + ")",
              "  pair calibration  median      p95  horiz med  horiz p95  inconsistent   n"]
     table += [_pair_line(p) for p in pairs] or ["  (fewer than two compasses: nothing to compare)"]
-    table.append(f"limits: {LIMITS_TEXT}")
+    table.append(f"limits: {limits.text}")
     if any(p.get("ardupilot_checks") is not None for p in pairs):
         checked = list(dict.fromkeys(f"{p['a']}–{p['b']}" for p in pairs
                                      if p.get("ardupilot_checks")))
@@ -148,7 +158,7 @@ def _compass_title(e: dict) -> str:
                                          if e["device_id"] else "")
 
 
-def _text(entries: list[dict], pairs: list[dict], describe) -> str:
+def _text(entries: list[dict], pairs: list[dict], describe, limits) -> str:
     """One paragraph per compass (``describe(diagnosis)``), then the consistency table."""
     parts = []
     for e in entries:
@@ -156,7 +166,7 @@ def _text(entries: list[dict], pairs: list[dict], describe) -> str:
         body = ("\n".join([describe(e["diagnosis"])] + _place_lines(e))
                 if e["diagnosis"] is not None else f"no calibration: {e['error']}")
         parts.append(f"{head}\n{body}")
-    return "\n\n".join(parts + [_table(pairs)])
+    return "\n\n".join(parts + [_table(pairs, limits)])
 
 
 def _plots(directory, entries: list[dict], pairs) -> str:
@@ -188,14 +198,14 @@ def diagnose_all(args, model, describe=str) -> int:
     pairs = _consistency(entries)
     dicts = [p.to_dict() for p in pairs]
     plots = _plots(args.plots, entries, pairs) if getattr(args, "plots", None) else ""
+    limits = consistency_limits(entries)
     if args.json:
-        from ..diagnosis.compass_consistency import LIMITS
-
         print(json.dumps(jsonable({"compasses": [_entry_json(e) for e in entries],
-                                   "consistency": dicts, "consistency_limits": LIMITS}),
+                                   "consistency": dicts,
+                                   "consistency_limits": limits.to_dict()}),
                          allow_nan=False))
     else:
-        print(_text(entries, dicts, describe))
+        print(_text(entries, dicts, describe, limits))
     if plots:
         print(plots, file=sys.stderr if args.json else sys.stdout)
     return 0 if any(e["diagnosis"] is not None for e in entries) else 1
@@ -217,7 +227,8 @@ def report_all(args, model, output) -> int:
     default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
     first = next((e for e in entries if str(e["instance"]) == default), entries[0])
     figure = consistency_figure(pairs) if pairs else None
-    sections = [compasses_section([_entry_json(e) for e in entries], pairs, figure)]
+    limits = consistency_limits(entries)
+    sections = [compasses_section([_entry_json(e) for e in entries], pairs, figure, limits)]
     sections += [diagnosis_section(e["diagnosis"], unit_label(e["track"].mag_unit),
                                    title=_compass_title(e), anchor=f"compass-{e['instance']}",
                                    reason=e["error"]) for e in entries]
@@ -228,7 +239,7 @@ def report_all(args, model, output) -> int:
     say = messages_to(out)
     for e in entries:
         print("\n".join(_terminal_lines(e)) + "\n", file=say)
-    print(_table([p.to_dict() for p in pairs]), file=say)
+    print(_table([p.to_dict() for p in pairs], limits), file=say)
     print(f"report written to {out}", file=say)
     if all(e["diagnosis"] is None for e in entries):
         print(f"streamcal report: no calibration of any compass ({first['error']})",

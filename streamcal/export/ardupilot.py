@@ -15,6 +15,12 @@ battery current (A). Streamcal's channel term ``g·a`` in the sensor frame becom
 throttle). The newest order is written unless a firmware version says otherwise. One channel
 only; an aux channel named ``throttle`` (0..1) maps to MOTCT 1, ``battery_current_a`` /
 ``motor_current`` / ``current`` (A) to MOTCT 2.
+
+COMPASS_MOTCT 1 needs the vehicle to pass its throttle to the compass library
+(``Compass::set_throttle``), which ArduCopter does and ArduPlane and Rover do not (ArduPilot PR
+19414, open since December 2021, would take it from the motors for Rover and QuadPlane VTOL
+motors): for a Plane or Rover firmware (``--firmware-version``, else the log's version the
+calibration carries in ``extra["firmware"]``) the file and the notes say the term is ignored.
 """
 from __future__ import annotations
 
@@ -62,6 +68,21 @@ def target_order(firmware_version: str | None) -> str:
         raise InputError(f"--firmware-version {firmware_version!r}: expected an ArduPilot "
                          "vehicle and version, e.g. 'Copter 3.5' or 'ArduPlane V3.8.2'")
     return ardupilot_correction_order(firmware_version)[0]
+
+
+#: Vehicles whose firmware never passes its throttle to the compass library: COMPASS_MOTCT 1
+#: leaves the motor offset at 0 there (AP_Compass_Backend::correct_field scales COMPASS_MOT by
+#: the throttle ``Compass::set_throttle`` set, which only ArduCopter calls).
+NO_THROTTLE_FEED = ("plane", "rover")
+
+
+def throttle_ignored(firmware: str | None) -> str | None:
+    """"Plane 3.9" when the firmware ``firmware`` names is one that ignores COMPASS_MOTCT 1
+    (:data:`NO_THROTTLE_FEED`), else None."""
+    match = FIRMWARE_VERSION.search(firmware or "")
+    if not match or match.group(1).lower() not in NO_THROTTLE_FEED:
+        return None
+    return f"{match.group(1).capitalize()} {match.group(2)}.{match.group(3)}"
 
 
 def slot_suffix(cal: Calibration) -> str:
@@ -117,6 +138,15 @@ def export(cal: Calibration, firmware_version: str | None = None, *,
         for k, a in enumerate("XYZ"):
             params[f"COMPASS_MOT_{a}"] = mot[k]
         params["COMPASS_MOTCT"] = motct
+        target, whose = ((firmware_version, "--firmware-version") if firmware_version else
+                         ((cal.extra or {}).get("firmware"), "the log's firmware"))
+        ignored = throttle_ignored(target) if motct == 1 else None
+        if ignored:
+            notes.append(f"COMPASS_MOTCT 1 (throttle): {ignored} ({whose}) ignores it, only "
+                         "ArduCopter passes its throttle to the compass library "
+                         "(Compass::set_throttle; ArduPilot PR 19414 would add Rover and "
+                         "QuadPlane VTOL motors), so COMPASS_MOT stays unapplied there; fit "
+                         "--add aux_interference=battery_current_a for COMPASS_MOTCT 2")
     scale = (cal.extra or {}).get("scale_in_force")
     if scale:   # ArduPilot multiplies by COMPASS_SCALEn after the offsets: S is the whole scale
         params["COMPASS_SCALE"] = 1.0

@@ -334,7 +334,7 @@ def compass_slot(metadata: dict) -> dict:
     which parameter set the autopilot keeps its calibration in (ArduPilot 0 → ``COMPASS_OFS_*``,
     1 → ``COMPASS_OFS2_*``, 2 → ``COMPASS_OFS3_*``; PX4 ``CAL_MAGi_*``) and which compass it
     is; also ``motor_field_in_readings`` (:func:`motor_field_in_readings`) and, for ArduPilot,
-    ``scale_in_force`` ``{"param", "value"}`` when its COMPASS_SCALEn is neither 0 nor 1 (it
+    ``firmware`` (the log's version text, which ``export`` reads) and ``scale_in_force`` ``{"param", "value"}`` when its COMPASS_SCALEn is neither 0 nor 1 (it
     multiplies the corrected field); empty for a recording of one magnetometer."""
     out = {}
     if "compass_params_index" in metadata:
@@ -347,6 +347,8 @@ def compass_slot(metadata: dict) -> dict:
     if in_readings:
         out["motor_field_in_readings"] = in_readings
     if metadata.get("input_format") == "ardupilot-dataflash":
+        if metadata.get("firmware"):
+            out["firmware"] = str(metadata["firmware"])
         name = ardupilot_param("SCALE", out.get("compass_params_index", 0))
         try:
             scale = float(metadata.get(f"param.{name}", 0.0))

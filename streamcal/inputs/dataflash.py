@@ -30,7 +30,8 @@ the logged instance is the priority), the set whose COMPASS_DEV_IDn is that comp
 logged and that compass has rows, else instance 0. IMU, BAT, BARO: instance 0.
 
 The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with (``motors->get_throttle()``)
-is CURR.Throttle/ThrOut in 3.2–3.3, CTUN.ThO from 3.4 on; when neither is logged it is
+is CURR.Throttle/ThrOut in Copter 3.2–3.3, CTUN.ThO from 3.4 on (a plane's CURR.Throttle is the
+pilot's input in percent: its CTUN.ThrOut is taken); when neither is logged it is
 approximated by the motor outputs: the mean over the motor channels of RCOU normalised by the
 PWM range (:mod:`.dataflash_throttle`: the SERVOn_FUNCTION 33–40 motors, a plane's throttle
 channel, else channels 1–4), said in ``throttle_source``.

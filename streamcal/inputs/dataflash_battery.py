@@ -2,8 +2,9 @@
 instance of a message type.
 
 Battery 0 is ``CURR`` (older layouts; centivolts and centiamps when its fields are integers, and
-its ``Throttle``/``ThrOut`` 0..1000) or the rows of ``BAT`` whose instance field is 0; battery
-``k`` ≥ 1 is the rows of ``BAT`` with instance ``k`` (4.0 on), ``BAT2`` (3.6) or ``CUR2``
+its ``Throttle``/``ThrOut``: 0..1000, a plane's pilot input in percent,
+:func:`~.dataflash_throttle.curr_throttle`) or the rows of ``BAT`` whose instance field is 0;
+battery ``k`` ≥ 1 is the rows of ``BAT`` with instance ``k`` (4.0 on), ``BAT2`` (3.6) or ``CUR2``
 (Copter 3.4–3.5). Each becomes ``battery_…`` / ``battery{k+1}_…`` ``voltage_v`` and
 ``current_a`` columns: a current per battery, since each can feed motors near a different
 compass. A column constant over the log (no sensor fitted) or NaN throughout (ArduPilot's BAT of
@@ -19,7 +20,7 @@ import dataclasses
 
 import numpy as np
 
-from .dataflash_throttle import THROTTLE_FULL
+from .dataflash_throttle import curr_throttle
 from .streams import Stream
 
 #: Names of the instance field of a message type that has one: ``I`` (MAG, IMU, BARO, GPS),
@@ -74,8 +75,9 @@ def _battery_stream(msgs, name: str, prefix: str, time_of, meta: dict) -> Stream
     if prefix == "battery":
         for field_name in ("Throttle", "ThrOut"):
             if msgs.has(name, field_name):
-                cols["throttle"] = msgs.array(name, field_name) / THROTTLE_FULL
-                meta["throttle_source"] = f"{name}.{field_name} / {THROTTLE_FULL:g} (0..1)"
+                throttle = curr_throttle(msgs, name, field_name, meta)
+                if throttle is not None:
+                    cols["throttle"] = throttle
                 break
     if not cols or not len(next(iter(cols.values()))):
         return None

@@ -1,7 +1,8 @@
 """The throttle ArduPilot's COMPASS_MOTCT = 1 compensation scales with, where CURR does not log
 it: a copter's ``CTUN.ThO`` (0..1, 3.4 on) or ``CTUN.ThrOut`` (0..1000), a plane's ``CTUN.ThO``
 / ``ThrOut`` and a rover's ``CTUN.ThrOut`` / ``THR.ThrOut`` (percent), else the motor outputs of
-``RCOU`` normalised by the PWM range (see :mod:`.dataflash`).
+``RCOU`` normalised by the PWM range (see :mod:`.dataflash`). CURR's own throttle
+(:func:`curr_throttle`) is a copter's output (0..1000) but a plane's pilot input (percent).
 
 Both take the parsed messages (``msgs.count``, ``msgs.has``, ``msgs.array``, ``msgs.params``) and
 ``time_of(name)`` → the message type's times (s); they return a ``throttle`` Stream (0..1) and
@@ -28,6 +29,30 @@ MOTOR_FUNCTIONS = range(33, 41)
 #: SERVOn_FUNCTION of a plane's throttle (k_throttle) and ArduPilot's default SERVOn_MIN/MAX.
 THROTTLE_FUNCTION = 70
 SERVO_PWM_US = (1100.0, 1900.0)
+
+
+def is_plane(msgs) -> bool:
+    """Whether the log is a plane's: its CTUN has NavRoll (ArduPlane's control message)."""
+    return bool(msgs.has("CTUN", "NavRoll"))
+
+
+def curr_throttle(msgs, name: str, field_name: str, meta: dict) -> np.ndarray | None:
+    """CURR's ``Throttle``/``ThrOut`` as 0..1 (a copter's, 0..1000), or None where another
+    message holds the throttle COMPASS_MOTCT 1 uses: a plane's CURR.Throttle (ArduPlane 3.0–3.2)
+    is the pilot's throttle input (``channel_throttle->control_in``, percent), not the output,
+    so its CTUN.ThrOut is taken instead (said in ``meta["curr_throttle_ignored"]``); without a
+    CTUN throttle it is read as percent and said to be the pilot's input."""
+    values = msgs.array(name, field_name)
+    if not is_plane(msgs):
+        meta["throttle_source"] = f"{name}.{field_name} / {THROTTLE_FULL:g} (0..1)"
+        return values / THROTTLE_FULL
+    if any(msgs.count("CTUN") and msgs.has("CTUN", f) for f in ("ThO", "ThrOut")):
+        meta["curr_throttle_ignored"] = (f"{name}.{field_name}: a plane's pilot throttle input "
+                                         "(percent), not its output; CTUN's taken")
+        return None
+    meta["throttle_source"] = (f"{name}.{field_name} / {PERCENT:g} (0..1; a plane's pilot "
+                               "throttle input, logged in percent: no CTUN throttle output)")
+    return values / PERCENT
 
 
 def _throttle_fields(msgs) -> list[tuple[str, str, float, str]]:

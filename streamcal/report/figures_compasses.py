@@ -8,7 +8,7 @@ from html import escape
 import numpy as np
 from matplotlib.figure import Figure
 
-from ..diagnosis.compass_consistency import LIMITS, LIMITS_TEXT
+from ..diagnosis.compass_consistency import CURRENT
 from .figure_common import RenderedFigure, png_bytes, stride_index
 
 _STYLE = {"autopilot": "-", "streamcal": "--"}
@@ -16,7 +16,9 @@ _STYLE = {"autopilot": "-", "streamcal": "--"}
 
 def consistency_figure(pairs) -> RenderedFigure:
     """3-D and horizontal angle (degrees) between each pair's calibrated fields over log time,
-    with ArduPilot's limits as lines; ``pairs`` are :class:`PairConsistency`."""
+    with the limits the pairs applied (those of the log's firmware) as lines; ``pairs`` are
+    :class:`PairConsistency`."""
+    limits = pairs[0].limits if pairs else CURRENT
     fig = Figure(figsize=(9.0, 5.6))
     ax3, axh = fig.subplots(2, 1, sharex=True)
     for k, p in enumerate(pairs):
@@ -27,8 +29,8 @@ def consistency_figure(pairs) -> RenderedFigure:
                  linewidth=0.8, label=label)
         axh.plot(p.t[idx], p.xy_angle_deg[idx], _STYLE.get(p.calibration, "-"), color=colour,
                  linewidth=0.8, label=label)
-    ax3.axhline(LIMITS["angle_deg"], color="#d62728", linewidth=1.0, label="ArduPilot limit")
-    axh.axhline(LIMITS["xy_angle_deg"], color="#d62728", linewidth=1.0)
+    ax3.axhline(limits.angle_deg, color="#d62728", linewidth=1.0, label="ArduPilot limit")
+    axh.axhline(limits.xy_angle_deg, color="#d62728", linewidth=1.0)
     ax3.set_ylabel("3-D angle (deg)")
     axh.set_ylabel("horizontal angle (deg)")
     axh.set_xlabel("log time (s)")
@@ -40,7 +42,7 @@ def consistency_figure(pairs) -> RenderedFigure:
     plane = pairs[0].xy_plane if pairs else "horizontal"
     caption = ("Angle between the calibrated field vectors of each pair of compasses over time: "
                "3-D (top) and in the " + plane + " plane (bottom); solid: the autopilot's "
-               "calibration in force, dashed: streamcal's fit. Red lines: " + LIMITS_TEXT + ".")
+               "calibration in force, dashed: streamcal's fit. Red lines: " + limits.text + ".")
     return RenderedFigure("compass-consistency", "Do the compasses agree?", caption,
                           png_bytes(fig))
 
@@ -50,9 +52,11 @@ def _num(value, fmt: str = ".3g") -> str:
         else format(value, fmt)
 
 
-def compasses_section(entries: list[dict], pairs, figure: RenderedFigure | None) -> str:
+def compasses_section(entries: list[dict], pairs, figure: RenderedFigure | None,
+                      limits=CURRENT) -> str:
     """HTML: a table of the compasses (instance, device id, verdict, rms or error), a table of
-    the pairs (SPEC §6 ``consistency`` entries), the limits and the figure."""
+    the pairs (SPEC §6 ``consistency`` entries), the ``limits`` applied (a
+    :class:`~streamcal.diagnosis.compass_consistency.ConsistencyLimits`) and the figure."""
     rows = "".join(
         f"<tr><td>{e['instance']}</td><td>{escape(str(e.get('device_id') or '–'))}</td>"
         f"<td>{escape(e['diagnosis']['verdict']) if e.get('diagnosis') else 'no fit'}</td>"
@@ -76,4 +80,4 @@ def compasses_section(entries: list[dict], pairs, figure: RenderedFigure | None)
             "<table><thead><tr><th>pair</th><th>calibration</th><th>angle median (°)</th>"
             "<th>angle p95 (°)</th><th>horizontal angle median (°)</th>"
             "<th>horizontal angle p95 (°)</th><th>share inconsistent</th></tr></thead>"
-            f"<tbody>{prow}</tbody></table><p>{escape(LIMITS_TEXT)}.</p>{img}</section>")
+            f"<tbody>{prow}</tbody></table><p>{escape(limits.text)}.</p>{img}</section>")
