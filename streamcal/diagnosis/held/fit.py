@@ -3,7 +3,9 @@
 A slice of the sphere (a drone flying level, a robot driving) constrains some combinations of
 K and b well and leaves others free. Here the parameters are named one by one
 (``K_xx, K_xy, K_xz, K_yy, K_yz, K_zz`` — the upper-triangular K — and ``b_x, b_y, b_z``, sensor
-unit) and each is either *estimated* from the recording or *held* at a given value.
+unit) and each is either *estimated* from the recording or *held* at a given value; the field
+radius ``radius`` (the scale of the whole K, the field strength) is one more where the diagonal
+of K is not all estimated (:func:`radius_free`).
 
 Which are estimated is decided by the Cramér–Rao bound. With directions free, sample j tells the
 model only along the surface normal n_j, through the row a_j = n_jᵀ ∂g(x_j)/∂p
@@ -18,7 +20,8 @@ than a short noisy one of the same directions.
 :func:`held_fit` is a robust Gauss–Newton/LM on the scalar normal residual
 s_j = −n_jᵀ(g(x̂_j) − m_j) (x̂_j the closest point of the model surface, re-projected every
 iteration), Cauchy weights of width 2.385 σ̂, over the estimated core parameters and the
-parameters of any added effect term; the covariance of the estimate is σ̂² (AᵀWA)⁻¹.
+parameters of any added effect term; the covariance of the estimate is σ̂² (AᵀWA)⁻¹. With an
+attitude reference (:mod:`.reference_rows`) its direction residual is a second robust block.
 """
 from __future__ import annotations
 
