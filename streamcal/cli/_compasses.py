@@ -52,12 +52,11 @@ def _diagnose_each(args, model) -> list[dict]:
     return out
 
 
-def _consistency(entries: list[dict]) -> list:
+def _consistency(entries: list[dict], limits) -> list:
     """Pairs under the autopilot's calibration (where every compass has one) and under
-    streamcal's (the diagnosed compasses)."""
+    streamcal's (the diagnosed compasses), judged by ``limits``."""
     from ..diagnosis.compass_consistency import compare_all, compass_field
 
-    limits = consistency_limits(entries)
     pairs = []
     for label, get in (("autopilot", lambda e: e["autopilot_cal"]),
                        ("streamcal", lambda e: getattr(e["diagnosis"], "calibration", None))):
@@ -195,10 +194,10 @@ def diagnose_all(args, model, describe=str) -> int:
     """Print the per-compass diagnoses (``describe(diagnosis)`` each) and the consistency table
     (or one JSON object); exit 1 when no compass could be calibrated."""
     entries = _diagnose_each(args, model)
-    pairs = _consistency(entries)
+    limits = consistency_limits(entries)
+    pairs = _consistency(entries, limits)
     dicts = [p.to_dict() for p in pairs]
     plots = _plots(args.plots, entries, pairs) if getattr(args, "plots", None) else ""
-    limits = consistency_limits(entries)
     if args.json:
         print(json.dumps(jsonable({"compasses": [_entry_json(e) for e in entries],
                                    "consistency": dicts,
@@ -223,11 +222,11 @@ def report_all(args, model, output) -> int:
 
     check_output(output)
     entries = _diagnose_each(args, model)
-    pairs = _consistency(entries)
+    limits = consistency_limits(entries)
+    pairs = _consistency(entries, limits)
     default = entries[0]["track"].metadata.get("compass_default", str(entries[0]["instance"]))
     first = next((e for e in entries if str(e["instance"]) == default), entries[0])
     figure = consistency_figure(pairs) if pairs else None
-    limits = consistency_limits(entries)
     sections = [compasses_section([_entry_json(e) for e in entries], pairs, figure, limits)]
     sections += [diagnosis_section(e["diagnosis"], unit_label(e["track"].mag_unit),
                                    title=_compass_title(e), anchor=f"compass-{e['instance']}",

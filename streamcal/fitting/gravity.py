@@ -134,9 +134,7 @@ def tilt_sigma(track) -> tuple[float, str]:
         raise MissingColumnsError("the gravity reference needs accelerometer columns "
                                   "(ax, ay, az), which the track lacks")
     t, f = _specific_force(track)
-    followed = _lowpass(_gyro_frame(track, t, f).apply(f), t, CUTOFF_GYRO_HZ) \
-        if track.has("gyro") else None
-    return _tilt(t, f, followed)
+    return _tilt(t, f, _followed(track, t, f)[1] if track.has("gyro") else None)
 
 
 def _tilt(t: np.ndarray, f: np.ndarray, followed: np.ndarray | None) -> tuple[float, str]:
@@ -179,6 +177,13 @@ def _gyro_frame(track, t: np.ndarray, f: np.ndarray):
     return cumulative_rotation(Rotation.from_rotvec(steps))
 
 
+def _followed(track, t: np.ndarray, f: np.ndarray):
+    """(q, the specific force ``f`` (A,3) in the gyro-following frame, low-passed at
+    :data:`CUTOFF_GYRO_HZ`); q: body → that frame at the IMU instants ``t``."""
+    q = _gyro_frame(track, t, f)
+    return q, _lowpass(q.apply(f), t, CUTOFF_GYRO_HZ)
+
+
 def gravity_reference(track) -> GravityReference:
     """The down direction from ``track``'s accelerometer (and gyro when present), with its own
     error ``tilt`` (:func:`tilt_sigma`; NaN with fewer than two IMU samples)."""
@@ -190,8 +195,7 @@ def gravity_reference(track) -> GravityReference:
     trust = 1.0 / (1.0 + ((norm - 1.0) / TRUST_G) ** 2)
     followed = None
     if track.has("gyro"):
-        q = _gyro_frame(track, t, f)   # body → gyro-following frame
-        followed = _lowpass(q.apply(f), t, CUTOFF_GYRO_HZ)
+        q, followed = _followed(track, t, f)
         up = q.inv().apply(followed)
         trust = np.ones_like(trust)  # the filter has removed the linear acceleration
         method = "gyro-aided zero-phase low-pass"

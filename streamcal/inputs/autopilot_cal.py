@@ -131,7 +131,7 @@ def compass_rotation_param(meta: Mapping[str, str]) -> tuple[str, str] | None:
             ardupilot_param("ORIENT", index)
     if meta.get("input_format") == "px4-ulog" and meta.get("mag_cal_params"):
         own = meta["mag_cal_params"] + "ROT"
-        internal = float(meta.get(f"param.{own}", 0)) < 0
+        internal = _param_value(meta, own) < 0
         return "px4", BOARD_ROTATION["px4"] if internal else own
     return None
 
@@ -350,10 +350,7 @@ def compass_slot(metadata: dict) -> dict:
         if metadata.get("firmware"):
             out["firmware"] = str(metadata["firmware"])
         name = ardupilot_param("SCALE", out.get("compass_params_index", 0))
-        try:
-            scale = float(metadata.get(f"param.{name}", 0.0))
-        except ValueError:
-            scale = 0.0
+        scale = _param_value(metadata, name)
         if scale not in (0.0, 1.0):   # 0: no scale factor (ArduPilot then applies none)
             out["scale_in_force"] = {"param": name, "value": scale}
     return out
@@ -365,19 +362,24 @@ def motor_field_in_readings(metadata: dict, index: int) -> str | None:
     PX4's sensor_mag never had it), when they are non-zero; None otherwise. A calibration
     fitted on such readings without a motor term holds the mean motor field in its offsets, so
     loading it beside that compensation would remove the field twice."""
-    def value(name):
-        try:
-            return float(metadata.get(f"param.{name}", 0.0))
-        except ValueError:
-            return 0.0
-
     if metadata.get("input_format") == "ardupilot-dataflash":
         names = [ardupilot_param("MOT", index, a) for a in "XYZ"]
-        if value("COMPASS_MOTCT") in MOTCT_CHANNELS and any(value(n) for n in names):
+        if _param_value(metadata, "COMPASS_MOTCT") in MOTCT_CHANNELS and \
+                any(_param_value(metadata, n) for n in names):
             return names[0][:-2]
     elif metadata.get("input_format") == "px4-ulog" and \
             str(metadata.get("mag_calibrated_by_px4", "")).startswith("no"):
         names = [f"CAL_MAG{index}_{a}COMP" for a in "XYZ"]
-        if value("CAL_MAG_COMP_TYP") and any(value(n) for n in names):
+        if _param_value(metadata, "CAL_MAG_COMP_TYP") and \
+                any(_param_value(metadata, n) for n in names):
             return f"CAL_MAG{index}_xCOMP"
     return None
+
+
+def _param_value(metadata: dict, name: str) -> float:
+    """The logged parameter ``name`` (``param.NAME`` in a track's metadata) as a number; 0 when
+    absent or not a number."""
+    try:
+        return float(metadata.get(f"param.{name}", 0.0))
+    except ValueError:
+        return 0.0

@@ -60,7 +60,7 @@ def _throttle_fields(msgs) -> list[tuple[str, str, float, str]]:
     tried: a plane's CTUN (its NavRoll field tells it; ThO or ThrOut, percent), a rover's CTUN
     (Steer; ThrOut, percent), a copter's CTUN (ThO 0..1, ThrOut 0..1000), a rover's THR
     (3.2 on; ThrOut, percent)."""
-    if msgs.has("CTUN", "NavRoll"):
+    if is_plane(msgs):
         ctun = [("CTUN", f, PERCENT, "a plane's") for f in ("ThO", "ThrOut")]
     elif msgs.has("CTUN", "Steer"):
         ctun = [("CTUN", "ThrOut", PERCENT, "a rover's")]

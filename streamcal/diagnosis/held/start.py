@@ -241,18 +241,22 @@ class HeldStart:
             self._rows, self._cov_rows = rows, {k: v[rows] for k, v in self.cov.items()}
         return self._cov_rows
 
+    def _at(self, rows=None) -> tuple:
+        """(readings (M,3), covariates, times (M,) s, attitude reference or None) of every
+        sample, or of the sample indices ``rows``."""
+        if rows is None:
+            return self.m, self.cov, self.t, self.reference
+        ref = None if self.reference is None else self.reference.at(rows)
+        return self.m[rows], self.cov_at(rows), self.t[rows], ref
+
     def evaluate(self, new_terms, start: HeldEval | None = None, rows=None,
                  free: Sequence[str] | None = None) -> HeldEval:
         """Fit the base model plus ``new_terms`` (``[(term, θ start), …]``) from ``start``'s
         K, b (default the held values) on every sample, or on the sample indices ``rows``,
         estimating ``free`` (default ``start``'s, else the base's)."""
-        m, cov, t = self.m, self.cov_at(rows), self.t
-        if rows is not None:
-            m, t = m[rows], t[rows]
+        m, cov, t, ref = self._at(rows)
         K_s, b_s = (self.K0, self.b0) if start is None else (start.fit.K, start.fit.b)
         free = list(free if free is not None else start.free if start is not None else self.free)
-        ref = self.reference if self.reference is None or rows is None \
-            else self.reference.at(rows)
         fit = held_fit(m, cov, K_s, b_s, free, self.held_terms, new_terms, self.sigma, ref)
         if start is not None:     # K_s carries start's radius already
             fit.scale *= start.fit.scale
@@ -283,9 +287,7 @@ class HeldStart:
         leaves much unexplained can drift along it on one half."""
         if RADIUS in ev.free or RADIUS not in self.names or not np.isfinite(ev.rms):
             return ev
-        m, cov = (self.m, self.cov) if rows is None else (self.m[rows], self.cov_at(rows))
-        ref = self.reference if self.reference is None or rows is None \
-            else self.reference.at(rows)
+        m, cov, _, ref = self._at(rows)
         terms = [*self.held_terms, *zip(ev.terms, ev.fit.thetas)]
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             ok, _ = radius_free(ev.free, ev.fit.K, ev.fit.b, m, cov, terms, self.sigma,
